@@ -1,0 +1,138 @@
+// raystream public API: build a grid over caller-owned triangles, trace SoA ray streams.
+// This header is all a tracer that links raystream needs (pkg-config raystream).
+#pragma once
+
+#include <cstddef>
+#include <cstdint>
+#include <memory>
+#include <stdexcept>
+#include <string>
+
+namespace rs {
+
+// Every stream array is aligned to kStreamAlign bytes and holds at least PaddedSize(size)
+// elements, so SIMD kernels load whole vectors and mask lanes >= size (no scalar tails).
+inline constexpr size_t kStreamAlign = 64;
+inline constexpr size_t kStreamPad = 16;  // floats per 64 B: the widest vector (AVX-512)
+constexpr size_t PaddedSize(size_t n) {
+  return n == 0 ? kStreamPad : (n + kStreamPad - 1) / kStreamPad * kStreamPad;
+}
+
+// All user-input errors (bad mesh, bad scene file, bad option) are thrown as rs::Error with a
+// message naming the file and the line or element. Kernels never throw.
+class Error : public std::runtime_error {
+ public:
+  using std::runtime_error::runtime_error;
+};
+
+enum class RayKind : int32_t { kPrimary = 0, kShadow = 1, kReflection = 2, kRefraction = 3 };
+inline constexpr int kNumRayKinds = 4;
+const char* RayKindName(RayKind kind);
+
+// A stream of rays, one pointer per component (SoA). The geometric fields (o, d, tmin, tmax)
+// are all the trace functions read; pixel, weight, depth and kind are carried for the
+// renderer and may be null for callers that only trace. Directions need not be normalized;
+// t is measured in units of |d|. Views do not own their data.
+struct RayStreamView {
+  float* ox = nullptr;
+  float* oy = nullptr;
+  float* oz = nullptr;
+  float* dx = nullptr;
+  float* dy = nullptr;
+  float* dz = nullptr;
+  float* tmin = nullptr;
+  float* tmax = nullptr;
+  uint32_t* pixel = nullptr;  // pixel id (y * width + x) the ray contributes to
+  float* wr = nullptr;        // weight: product of BRDF factors along the path (rgb);
+  float* wg = nullptr;        // for shadow rays, the light contribution if unoccluded
+  float* wb = nullptr;
+  int32_t* depth = nullptr;   // bounces so far (0 for primary rays)
+  int32_t* kind = nullptr;    // RayKind
+  size_t size = 0;
+};
+
+// Closest-hit results. prim = -1 and t = +inf for a miss; u, v are the barycentrics of
+// vertices 1 and 2 (hit point = (1-u-v)·p0 + u·p1 + v·p2).
+struct HitStreamView {
+  float* t = nullptr;
+  float* u = nullptr;
+  float* v = nullptr;
+  int32_t* prim = nullptr;
+  size_t size = 0;
+};
+
+// Caller-owned triangle mesh: positions are xyz floats with a stride (in floats, >= 3);
+// indices are 3 per triangle. Accel copies what it needs; the mesh may be freed after Build.
+struct MeshView {
+  const float* positions = nullptr;
+  size_t num_vertices = 0;
+  size_t stride = 3;
+  const uint32_t* indices = nullptr;
+  size_t num_triangles = 0;
+};
+
+enum class GridKind : int { kAuto = 0, kUniform = 1, kTwoLevel = 2 };
+
+struct BuildOptions {
+  float lambda = 4.0f;    // grid density: cells ~= lambda * triangles (Cleary/Wyvill heuristic)
+  int max_resolution = 512;  // per axis
+  GridKind grid = GridKind::kAuto;
+};
+
+// Figures about a built structure, as printed by `raystream info`.
+struct AccelInfo {
+  size_t triangles = 0;
+  size_t degenerate_triangles = 0;  // zero-area: kept in the mesh, never hit, not binned
+  float bounds_lo[3] = {0, 0, 0};
+  float bounds_hi[3] = {0, 0, 0};
+  int resolution[3] = {0, 0, 0};
+  size_t cells = 0;
+  size_t occupied_cells = 0;
+  size_t references = 0;  // sum over cells of triangles per cell
+  size_t max_per_cell = 0;
+  double build_seconds = 0;
+  size_t bytes = 0;
+  const char* kind = "uniform";
+};
+
+struct TraceStats {
+  uint64_t rays = 0;
+  uint64_t cell_steps = 0;
+  uint64_t triangle_tests = 0;
+};
+
+// The acceleration structure: a uniform grid with an occupancy bit array and CSR cell lists.
+// Thread-safe for concurrent Intersect/Occluded calls once built.
+class Accel {
+ public:
+  // Throws rs::Error if an index is out of range or a vertex of a referenced triangle is
+  // NaN/Inf (message names the triangle and vertex). An empty mesh builds an Accel that
+  // never hits.
+  explicit Accel(const MeshView& mesh, const BuildOptions& options = {});
+  ~Accel();
+  Accel(Accel&&) noexcept;
+  Accel& operator=(Accel&&) noexcept;
+
+  // Closest hit in [tmin, tmax] for rays[0, size). hits.size must equal rays.size. Rays with
+  // NaN/Inf components or zero direction never hit. Results are exact in the sense of the
+  // watertight test (Woop, Benthin, Wald 2013): no ray passes between two triangles sharing an
+  // edge. Optional stats are accumulated (not reset).
+  void Intersect(const RayStreamView& rays, const HitStreamView& hits,
+                 TraceStats* stats = nullptr) const;
+  // Any hit in [tmin, tmax]: occluded[i] = 1 if ray i is blocked, else 0. May stop at the
+  // first hit found.
+  void Occluded(const RayStreamView& rays, int32_t* occluded, TraceStats* stats = nullptr) const;
+
+  AccelInfo Info() const;
+
+  struct Impl;
+  const Impl& impl() const { return *impl_; }
+
+ private:
+  std::unique_ptr<Impl> impl_;
+};
+
+// Library version, e.g. "0.1.0".
+const char* Version();
+
+}  // namespace rs

@@ -1,0 +1,130 @@
+// Owning SoA ray and hit buffers (see ray_stream.h).
+#include "streams/ray_stream.h"
+
+#include <limits>
+
+namespace rs {
+
+const char* RayKindName(RayKind kind) {
+  switch (kind) {
+    case RayKind::kPrimary: return "primary";
+    case RayKind::kShadow: return "shadow";
+    case RayKind::kReflection: return "reflection";
+    case RayKind::kRefraction: return "refraction";
+  }
+  return "unknown";
+}
+
+const char* Version() { return RS_VERSION; }
+
+void RayStream::Reserve(size_t capacity) {
+  for (auto* a : {&ox_, &oy_, &oz_, &dx_, &dy_, &dz_, &tmin_, &tmax_, &wr_, &wg_, &wb_}) {
+    a->Reserve(capacity);
+  }
+  pixel_.Reserve(capacity);
+  depth_.Reserve(capacity);
+  kind_.Reserve(capacity);
+}
+
+void RayStream::Resize(size_t n) {
+  if (n > capacity() || capacity() == 0) Reserve(n < 2 * capacity() ? 2 * capacity() : n);
+  size_ = n;
+}
+
+size_t RayStream::Push(float ox, float oy, float oz, float dx, float dy, float dz, float tmin,
+                       float tmax, uint32_t pixel, float wr, float wg, float wb, int32_t depth,
+                       RayKind kind) {
+  const size_t i = size_;
+  Resize(size_ + 1);
+  ox_[i] = ox;
+  oy_[i] = oy;
+  oz_[i] = oz;
+  dx_[i] = dx;
+  dy_[i] = dy;
+  dz_[i] = dz;
+  tmin_[i] = tmin;
+  tmax_[i] = tmax;
+  pixel_[i] = pixel;
+  wr_[i] = wr;
+  wg_[i] = wg;
+  wb_[i] = wb;
+  depth_[i] = depth;
+  kind_[i] = static_cast<int32_t>(kind);
+  return i;
+}
+
+size_t RayStream::PushFrom(const RayStreamView& f, size_t i) {
+  return Push(f.ox[i], f.oy[i], f.oz[i], f.dx[i], f.dy[i], f.dz[i], f.tmin[i], f.tmax[i],
+              f.pixel ? f.pixel[i] : 0u, f.wr ? f.wr[i] : 1.0f, f.wg ? f.wg[i] : 1.0f,
+              f.wb ? f.wb[i] : 1.0f, f.depth ? f.depth[i] : 0,
+              f.kind ? static_cast<RayKind>(f.kind[i]) : RayKind::kPrimary);
+}
+
+void RayStream::FillPadding() {
+  const float nan = std::numeric_limits<float>::quiet_NaN();
+  for (size_t i = size_; i < capacity(); ++i) {
+    ox_[i] = oy_[i] = oz_[i] = nan;
+    dx_[i] = dy_[i] = dz_[i] = nan;
+    tmin_[i] = 1.0f;
+    tmax_[i] = 0.0f;
+    pixel_[i] = 0;
+    wr_[i] = wg_[i] = wb_[i] = 0.0f;
+    depth_[i] = 0;
+    kind_[i] = 0;
+  }
+}
+
+RayStreamView RayStream::view() {
+  if (capacity() == 0) Reserve(1);
+  RayStreamView v;
+  v.ox = ox_.data();
+  v.oy = oy_.data();
+  v.oz = oz_.data();
+  v.dx = dx_.data();
+  v.dy = dy_.data();
+  v.dz = dz_.data();
+  v.tmin = tmin_.data();
+  v.tmax = tmax_.data();
+  v.pixel = pixel_.data();
+  v.wr = wr_.data();
+  v.wg = wg_.data();
+  v.wb = wb_.data();
+  v.depth = depth_.data();
+  v.kind = kind_.data();
+  v.size = size_;
+  return v;
+}
+
+void HitStream::Reserve(size_t capacity) {
+  t_.Reserve(capacity);
+  u_.Reserve(capacity);
+  v_.Reserve(capacity);
+  prim_.Reserve(capacity);
+}
+
+void HitStream::Resize(size_t n) {
+  if (n > t_.capacity() || t_.capacity() == 0) Reserve(n);
+  size_ = n;
+}
+
+void HitStream::Reset() {
+  if (t_.capacity() == 0) Reserve(1);
+  for (size_t i = 0; i < t_.capacity(); ++i) {
+    t_[i] = std::numeric_limits<float>::infinity();
+    u_[i] = v_[i] = 0.0f;
+    prim_[i] = -1;
+  }
+}
+
+HitStreamView HitStream::view() {
+  if (t_.capacity() == 0) Reserve(1);
+  HitStreamView h;
+  h.t = t_.data();
+  h.u = u_.data();
+  h.v = v_.data();
+  h.prim = prim_.data();
+  h.size = size_;
+  return h;
+}
+
+}  // namespace rs
