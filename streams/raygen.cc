@@ -1,1 +1,163 @@
-// placeholder: being written
+// Primary ray generation (see raygen.h). Scalar: generation is a small share of a frame; the
+// per-pixel float sequence lives in PrimaryDirection only, so every tiling gives the same bits.
+#include "streams/raygen.h"
+
+// No FMA contraction in this file, whatever the flags (-march with FMA, clang's default
+// fp-contract=on): a pixel's direction must be the same float sequence in every build and at
+// every call site, so that every backend and every SIMD target gets bit-identical rays.
+#if defined(__clang__)
+#pragma clang fp contract(off)
+#elif defined(__GNUC__)
+#pragma GCC optimize("fp-contract=off")
+#endif
+
+#include <cmath>
+#include <limits>
+#include <numbers>
+#include <string>
+
+namespace rs {
+
+const char* RayOrderName(RayOrder order) {
+  switch (order) {
+    case RayOrder::kScanline: return "scanline";
+    case RayOrder::kBlock4x2: return "block4x2";
+  }
+  return "unknown";
+}
+
+namespace {
+
+bool Finite(const glm::vec3& v) {
+  return std::isfinite(v.x) && std::isfinite(v.y) && std::isfinite(v.z);
+}
+
+std::string Vec(const glm::vec3& v) {
+  return "(" + std::to_string(v.x) + ", " + std::to_string(v.y) + ", " + std::to_string(v.z) +
+         ")";
+}
+
+// Normalizes in double and rounds once, so the basis does not depend on float summation order.
+glm::vec3 NormalizeD(const glm::dvec3& v) { return glm::vec3(v / glm::length(v)); }
+
+}  // namespace
+
+CameraBasis MakeCameraBasis(const Camera& camera, int width, int height) {
+  if (width < 1 || height < 1) {
+    throw Error("camera: image size " + std::to_string(width) + "x" + std::to_string(height) +
+                " must be at least 1x1");
+  }
+  if (static_cast<uint64_t>(width) * static_cast<uint64_t>(height) >=
+      (uint64_t{1} << 32)) {
+    throw Error("camera: image size " + std::to_string(width) + "x" + std::to_string(height) +
+                " has >= 2^32 pixels (pixel ids are 32-bit)");
+  }
+  if (!Finite(camera.eye) || !Finite(camera.look_at) || !Finite(camera.up)) {
+    throw Error("camera: eye " + Vec(camera.eye) + ", look_at " + Vec(camera.look_at) +
+                " or up " + Vec(camera.up) + " is not finite");
+  }
+  if (!(camera.fov_y_deg > 0.0f && camera.fov_y_deg < 180.0f)) {
+    throw Error("camera: fov_y_deg " + std::to_string(camera.fov_y_deg) +
+                " must be in (0, 180)");
+  }
+  const glm::dvec3 eye(camera.eye);
+  const glm::dvec3 to(glm::dvec3(camera.look_at) - eye);
+  const double dist = glm::length(to);
+  if (!(dist > 0.0)) throw Error("camera: eye and look_at are both " + Vec(camera.eye));
+  const glm::dvec3 f = to / dist;
+
+  glm::dvec3 up(camera.up);
+  const double up_len = glm::length(up);
+  // Up parallel to the view (or zero): take the world axis least aligned with f.
+  if (!(up_len > 0.0) || glm::length(glm::cross(f, up / up_len)) < 1e-6) {
+    const glm::dvec3 a = glm::abs(f);
+    up = (a.y <= a.x && a.y <= a.z) ? glm::dvec3(0, 1, 0)
+         : (a.z <= a.x)             ? glm::dvec3(0, 0, 1)
+                                    : glm::dvec3(1, 0, 0);
+  }
+  const glm::dvec3 r = glm::normalize(glm::cross(f, up));
+  const glm::dvec3 u = glm::cross(r, f);
+
+  CameraBasis b;
+  b.eye = camera.eye;
+  b.forward = NormalizeD(f);
+  b.right = NormalizeD(r);
+  b.up = NormalizeD(u);
+  const double tan_half = std::tan(static_cast<double>(camera.fov_y_deg) * (std::numbers::pi / 360.0));
+  b.tan_half_y = static_cast<float>(tan_half);
+  b.tan_half_x = static_cast<float>(tan_half * width / height);
+  b.fwidth = static_cast<float>(width);
+  b.fheight = static_cast<float>(height);
+  b.width = width;
+  b.height = height;
+  return b;
+}
+
+glm::vec3 PrimaryDirection(const CameraBasis& b, int x, int y) {
+  // Screen coordinates of the pixel centre in [-1, 1]; y grows downwards in the image.
+  const float sx = ((2.0f * static_cast<float>(x) + 1.0f) / b.fwidth - 1.0f) * b.tan_half_x;
+  const float sy = (1.0f - (2.0f * static_cast<float>(y) + 1.0f) / b.fheight) * b.tan_half_y;
+  const float dx = b.forward.x + sx * b.right.x + sy * b.up.x;
+  const float dy = b.forward.y + sx * b.right.y + sy * b.up.y;
+  const float dz = b.forward.z + sx * b.right.z + sy * b.up.z;
+  const float len = std::sqrt(dx * dx + dy * dy + dz * dz);  // >= 1 - eps: forward is unit
+  return glm::vec3(dx / len, dy / len, dz / len);
+}
+
+void TilePixel(const Tile& tile, RayOrder order, size_t i, int& x, int& y) {
+  const size_t tw = static_cast<size_t>(tile.Width());
+  if (order == RayOrder::kScanline) {
+    x = tile.x0 + static_cast<int>(i % tw);
+    y = tile.y0 + static_cast<int>(i / tw);
+    return;
+  }
+  // 4x2 blocks: every block row but the last is 2 high; every block but the last in its row
+  // is 4 wide, so the block and the position inside it follow from two divisions.
+  const size_t row = i / (2 * tw);
+  const int row_y = tile.y0 + static_cast<int>(2 * row);
+  const size_t bh = tile.y1 - row_y >= 2 ? 2 : 1;
+  const size_t r = i - row * 2 * tw;
+  const size_t block = r / (4 * bh);
+  const size_t p = r - block * 4 * bh;
+  const int bx = tile.x0 + static_cast<int>(4 * block);
+  const size_t bw = tile.x1 - bx >= 4 ? 4 : static_cast<size_t>(tile.x1 - bx);
+  x = bx + static_cast<int>(p % bw);
+  y = row_y + static_cast<int>(p / bw);
+}
+
+void GeneratePrimaryRays(const CameraBasis& basis, const Tile& tile, RayOrder order,
+                         size_t first, size_t count, const RayStreamView& out, size_t offset) {
+  HWY_DASSERT(tile.x0 >= 0 && tile.y0 >= 0 && tile.x1 <= basis.width &&
+              tile.y1 <= basis.height);
+  HWY_DASSERT(first + count <= tile.NumPixels());
+  const float inf = std::numeric_limits<float>::infinity();
+  for (size_t k = 0; k < count; ++k) {
+    int x, y;
+    TilePixel(tile, order, first + k, x, y);
+    const glm::vec3 d = PrimaryDirection(basis, x, y);
+    const size_t j = offset + k;
+    out.ox[j] = basis.eye.x;
+    out.oy[j] = basis.eye.y;
+    out.oz[j] = basis.eye.z;
+    out.dx[j] = d.x;
+    out.dy[j] = d.y;
+    out.dz[j] = d.z;
+    out.tmin[j] = 0.0f;
+    out.tmax[j] = inf;
+    out.pixel[j] = static_cast<uint32_t>(y) * static_cast<uint32_t>(basis.width) +
+                   static_cast<uint32_t>(x);
+    out.wr[j] = out.wg[j] = out.wb[j] = 1.0f;
+    out.depth[j] = 0;
+    out.kind[j] = static_cast<int32_t>(RayKind::kPrimary);
+  }
+}
+
+void AppendPrimaryRays(const CameraBasis& basis, const Tile& tile, RayOrder order,
+                       RayStream& out) {
+  const size_t n = tile.NumPixels();
+  const size_t offset = out.size();
+  out.Resize(offset + n);
+  GeneratePrimaryRays(basis, tile, order, 0, n, out.view(), offset);
+}
+
+}  // namespace rs

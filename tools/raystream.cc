@@ -122,7 +122,7 @@ struct RenderArgs {
   float speed = 1.0f;
   std::string out;
   std::string backend = "serial";
-  size_t task_size = RenderOptions{}.task_size;
+  int task_size = RenderOptions{}.task_size;
   std::string order = "scanline";
   float cutoff = RenderOptions{}.weight_cutoff;
   float lambda = BuildOptions{}.lambda;
@@ -145,7 +145,9 @@ Json StatsJson(int frame, const FrameStats& s) {
               {"tasks", s.tasks},
               {"cell_steps", s.trace.cell_steps},
               {"triangle_tests", s.trace.triangle_tests},
-              {"seconds", s.seconds},
+              {"seconds", s.total_seconds},
+              {"trace_seconds", s.trace_seconds},
+              {"shade_seconds", s.shade_seconds},
               {"mrays_per_second", s.MraysPerSecond()}};
 }
 
@@ -179,18 +181,20 @@ int RunRender(const RenderArgs& args) {
   options.order = args.order == "block" ? RayOrder::kBlock4x2 : RayOrder::kScanline;
 
   Json stats_json = Json::array();
-  FrameStats total;
+  FrameStats total;  // counters summed over frames
+  double total_seconds = 0;
   RenderResult last;
   for (int frame = 0; frame < args.frames; ++frame) {
     const Camera camera = scene.path.At(frame, args.speed, scene.camera);
     last = RenderImage(scene, accel, camera, options);
-    total.Add(last.stats);
+    total.Merge(last.stats);
+    total_seconds += last.stats.total_seconds;
     stats_json.push_back(StatsJson(frame, last.stats));
     const bool write = frame + 1 == args.frames || out.find('#') != std::string::npos;
     if (write) WriteImage(FrameFileName(out, frame), args.width, args.height, last.rgb);
     if (args.frames > 1 && !args.quiet) {
       fmt::print(stderr, "{}frame {}/{}  {:.1f} ms  {:.2f} Mrays/s{}", tty ? "\r" : "",
-                 frame + 1, args.frames, 1e3 * last.stats.seconds, last.stats.MraysPerSecond(),
+                 frame + 1, args.frames, 1e3 * last.stats.total_seconds, last.stats.MraysPerSecond(),
                  tty ? "" : "\n");
     }
   }
@@ -218,8 +222,10 @@ int RunRender(const RenderArgs& args) {
       rays += total.rays[k];
     }
     fmt::print("rays       {} ({})\n", rays, by_kind);
-    fmt::print("trace      {:.1f} ms in {} tasks, {:.2f} Mrays/s\n", 1e3 * total.seconds,
-               total.tasks, total.MraysPerSecond());
+    fmt::print("trace      {:.1f} ms in {} tasks ({:.1f} ms tracing, {:.1f} ms shading), "
+               "{:.2f} Mrays/s\n",
+               1e3 * total_seconds, total.tasks, 1e3 * total.trace_seconds,
+               1e3 * total.shade_seconds, total_seconds > 0 ? rays / total_seconds * 1e-6 : 0.0);
     fmt::print("wrote      {}\n", FrameFileName(out, args.frames - 1));
   }
   return 0;
@@ -253,7 +259,7 @@ int Main(int argc, char** argv) {
                      "writes every frame, otherwise only the last frame is written");
   render->add_option("--backend", r.backend, "scheduler: serial")->capture_default_str();
   render->add_option("--task-size", r.task_size, "rays per task")
-      ->check(CLI::Range(size_t{1}, size_t{1} << 20))
+      ->check(CLI::Range(1, 1 << 20))
       ->capture_default_str();
   render->add_option("--order", r.order, "primary ray order")
       ->check(CLI::IsMember({"scanline", "block"}))

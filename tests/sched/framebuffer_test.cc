@@ -1,1 +1,172 @@
+// Fixed-point framebuffer: the same contributions in any order and from any number of threads
+// give identical bits; NaN is dropped, out-of-range values are clamped, conversion is exact.
+#include "sched/framebuffer.h"
+
 #include <doctest/doctest.h>
+
+#include <algorithm>
+#include <cstring>
+#include <limits>
+#include <random>
+#include <thread>
+#include <vector>
+
+#include "include/raystream/raystream.h"
+
+namespace rs {
+namespace {
+
+struct Contribution {
+  uint32_t pixel;
+  float r, g, b;
+};
+
+std::vector<Contribution> RandomContributions(size_t n, uint32_t pixels, uint32_t seed) {
+  std::mt19937 rng(seed);
+  std::uniform_real_distribution<float> mag(-12.0f, 3.0f);  // 2^-12 .. 2^3, many scales
+  std::uniform_real_distribution<float> unit(0.0f, 1.0f);
+  std::vector<Contribution> c(n);
+  for (auto& x : c) {
+    x.pixel = static_cast<uint32_t>(rng() % pixels);
+    x.r = std::exp2(mag(rng)) * unit(rng);
+    x.g = std::exp2(mag(rng)) * unit(rng);
+    x.b = std::exp2(mag(rng)) * unit(rng);
+  }
+  return c;
+}
+
+bool SameBits(const std::vector<float>& a, const std::vector<float>& b) {
+  return a.size() == b.size() && std::memcmp(a.data(), b.data(), a.size() * sizeof(float)) == 0;
+}
+
+TEST_CASE("order independence: shuffled contributions from 4 threads give identical bits") {
+  const int w = 16, h = 8;
+  const auto contribs = RandomContributions(200000, w * h, 42);
+
+  Framebuffer serial(w, h);
+  for (const auto& c : contribs) serial.Add(c.pixel, c.r, c.g, c.b);
+  const std::vector<float> want = serial.ToRgb();
+
+  // Float summation of the same data is order-dependent: the test data can tell orders apart.
+  auto float_sum = [&](const std::vector<Contribution>& cs) {
+    std::vector<float> s(static_cast<size_t>(3 * w * h), 0.0f);
+    for (const auto& c : cs) {
+      s[3 * c.pixel] += c.r;
+      s[3 * c.pixel + 1] += c.g;
+      s[3 * c.pixel + 2] += c.b;
+    }
+    return s;
+  };
+  auto shuffled = contribs;
+  std::mt19937 rng(7);
+  std::shuffle(shuffled.begin(), shuffled.end(), rng);
+  CHECK_FALSE(SameBits(float_sum(contribs), float_sum(shuffled)));
+
+  for (int round = 0; round < 3; ++round) {
+    std::shuffle(shuffled.begin(), shuffled.end(), rng);
+    Framebuffer fb(w, h);
+    std::vector<std::thread> threads;
+    const size_t per = shuffled.size() / 4;
+    for (size_t t = 0; t < 4; ++t) {
+      threads.emplace_back([&, t] {
+        const size_t end = t == 3 ? shuffled.size() : (t + 1) * per;
+        for (size_t i = t * per; i < end; ++i) {
+          fb.Add(shuffled[i].pixel, shuffled[i].r, shuffled[i].g, shuffled[i].b);
+        }
+      });
+    }
+    for (auto& th : threads) th.join();
+    CHECK(SameBits(fb.ToRgb(), want));
+    CHECK(std::memcmp(fb.sums(), serial.sums(), sizeof(int64_t) * 3 * w * h) == 0);
+    CHECK(fb.dropped_nan() == 0);
+    CHECK(fb.clamped() == 0);
+  }
+
+  // Partial framebuffers (e.g. one per MPI rank) merge to the same bits.
+  Framebuffer a(w, h), b(w, h);
+  for (size_t i = 0; i < shuffled.size(); ++i) {
+    (i % 3 == 0 ? a : b).Add(shuffled[i].pixel, shuffled[i].r, shuffled[i].g, shuffled[i].b);
+  }
+  a.Accumulate(b);
+  CHECK(SameBits(a.ToRgb(), want));
+  Framebuffer other_size(w + 1, h);
+  CHECK_THROWS_AS(a.Accumulate(other_size), Error);
+}
+
+TEST_CASE("conversion: exact for dyadic values, 2^-32 resolution") {
+  Framebuffer fb(3, 2);
+  fb.Add(4, 0.5f, 0.25f, 1.0f);
+  fb.Add(4, 0.25f, 0.25f, 2.5f);
+  std::vector<float> rgb = fb.ToRgb();
+  REQUIRE(rgb.size() == 18);
+  CHECK(rgb[12] == 0.75f);
+  CHECK(rgb[13] == 0.5f);
+  CHECK(rgb[14] == 3.5f);
+  for (size_t i = 0; i < rgb.size(); ++i) {
+    if (i < 12 || i > 14) CHECK(rgb[i] == 0.0f);
+  }
+  // 1000 x 1e-3 sums to 1 within the fixed-point resolution (float summation would drift).
+  Framebuffer acc(1, 1);
+  for (int i = 0; i < 1000; ++i) acc.Add(0, 1e-3f, 1e-6f, 0.0f);
+  rgb = acc.ToRgb();
+  CHECK(rgb[0] == doctest::Approx(1000.0 * static_cast<double>(1e-3f)).epsilon(1e-7));
+  CHECK(rgb[1] == doctest::Approx(1000.0 * static_cast<double>(1e-6f)).epsilon(1e-6));
+  bool nan = false, clamped = false;
+  CHECK(Framebuffer::ToFixed(1.0f, &nan, &clamped) == (int64_t{1} << 32));
+  // The smallest representable step: 2^-32 rounds to 1, 2^-34 rounds to 0.
+  CHECK(Framebuffer::ToFixed(std::ldexp(1.0f, -32), &nan, &clamped) == 1);
+  CHECK(Framebuffer::ToFixed(std::ldexp(1.0f, -34), &nan, &clamped) == 0);
+  CHECK_FALSE(nan);
+  CHECK_FALSE(clamped);
+}
+
+TEST_CASE("NaN contributions are dropped and counted; out-of-range ones clamped") {
+  const float nan = std::numeric_limits<float>::quiet_NaN();
+  const float inf = std::numeric_limits<float>::infinity();
+  Framebuffer fb(2, 2);
+  fb.Add(1, 0.5f, 0.5f, 0.5f);
+  fb.Add(1, nan, 1.0f, 1.0f);  // the whole contribution is dropped
+  fb.Add(1, 1.0f, 1.0f, nan);
+  CHECK(fb.dropped_nan() == 2);
+  CHECK(fb.clamped() == 0);
+  std::vector<float> rgb = fb.ToRgb();
+  CHECK(rgb[3] == 0.5f);
+  CHECK(rgb[4] == 0.5f);
+  CHECK(rgb[5] == 0.5f);
+
+  fb.Add(2, 1e9f, -1.0f, inf);
+  fb.Add(3, -inf, kMaxContribution, 0.0f);
+  CHECK(fb.clamped() == 2);  // counted per contribution, not per channel
+  rgb = fb.ToRgb();
+  CHECK(rgb[6] == kMaxContribution);
+  CHECK(rgb[7] == 0.0f);
+  CHECK(rgb[8] == kMaxContribution);
+  CHECK(rgb[9] == 0.0f);
+  CHECK(rgb[10] == kMaxContribution);
+
+  // 2^19 maximal contributions to one channel still fit in int64 (documented headroom).
+  Framebuffer big(1, 1);
+  for (int i = 0; i < (1 << 19) - 1; ++i) big.Add(0, kMaxContribution, 0.0f, 0.0f);
+  CHECK(big.sums()[0] > 0);
+  CHECK(big.ToRgb()[0] == static_cast<float>(kMaxContribution * ((1 << 19) - 1)));
+
+  fb.Clear();
+  CHECK(fb.dropped_nan() == 0);
+  CHECK(fb.clamped() == 0);
+  for (const float x : fb.ToRgb()) CHECK(x == 0.0f);
+}
+
+TEST_CASE("size checks and moves") {
+  CHECK_THROWS_AS(Framebuffer(0, 5), Error);
+  CHECK_THROWS_AS(Framebuffer(5, -1), Error);
+  CHECK_THROWS_AS(Framebuffer(70000, 70000), Error);
+  Framebuffer a(4, 3);
+  a.Add(11, 1.0f, 2.0f, 3.0f);
+  Framebuffer b(std::move(a));
+  CHECK(b.width() == 4);
+  CHECK(b.height() == 3);
+  CHECK(b.ToRgb()[35] == 3.0f);
+}
+
+}  // namespace
+}  // namespace rs

@@ -1,1 +1,140 @@
+// SoA ray streams: push/grow/padding invariants, and stable compaction (sizes 0, 1, N; padding
+// refilled; optional arrays absent).
+#include "streams/ray_stream.h"
+
 #include <doctest/doctest.h>
+
+#include <cmath>
+#include <cstdint>
+#include <random>
+#include <vector>
+
+#include "streams/compact.h"
+
+namespace rs {
+namespace {
+
+// Ray i gets values derived from `id` so its identity survives moves.
+void PushTagged(RayStream& s, int id) {
+  const float f = static_cast<float>(id);
+  s.Push(f, f + 0.25f, f + 0.5f, -f, 1.0f, 2.0f, 0.125f * f, 1000.0f + f,
+         static_cast<uint32_t>(7 * id + 1), 0.5f * f, 0.25f * f, 0.125f * f, id % 5,
+         static_cast<RayKind>(id % kNumRayKinds));
+}
+
+void CheckTagged(const RayStreamView& v, size_t i, int id) {
+  INFO("lane ", i, " expected ray ", id);
+  const float f = static_cast<float>(id);
+  CHECK(v.ox[i] == f);
+  CHECK(v.oy[i] == f + 0.25f);
+  CHECK(v.oz[i] == f + 0.5f);
+  CHECK(v.dx[i] == -f);
+  CHECK(v.dy[i] == 1.0f);
+  CHECK(v.dz[i] == 2.0f);
+  CHECK(v.tmin[i] == 0.125f * f);
+  CHECK(v.tmax[i] == 1000.0f + f);
+  CHECK(v.pixel[i] == static_cast<uint32_t>(7 * id + 1));
+  CHECK(v.wr[i] == 0.5f * f);
+  CHECK(v.wg[i] == 0.25f * f);
+  CHECK(v.wb[i] == 0.125f * f);
+  CHECK(v.depth[i] == id % 5);
+  CHECK(v.kind[i] == id % kNumRayKinds);
+}
+
+void CheckPadding(RayStream& s) {
+  const RayStreamView v = s.view();
+  CHECK(s.capacity() % kStreamPad == 0);
+  CHECK(s.capacity() >= PaddedSize(s.size()));
+  for (size_t i = s.size(); i < s.capacity(); ++i) {
+    INFO("padding lane ", i);
+    CHECK(std::isnan(v.ox[i]));
+    CHECK(std::isnan(v.dx[i]));
+    CHECK(v.tmax[i] < v.tmin[i]);
+    CHECK(v.wr[i] == 0.0f);
+  }
+}
+
+TEST_CASE("RayStream: push, growth keeps contents, alignment, padding sentinel") {
+  RayStream s;
+  CHECK(s.empty());
+  for (int i = 0; i < 100; ++i) PushTagged(s, i);
+  REQUIRE(s.size() == 100);
+  const RayStreamView v = s.view();
+  CHECK(reinterpret_cast<uintptr_t>(v.ox) % kStreamAlign == 0);
+  CHECK(reinterpret_cast<uintptr_t>(v.kind) % kStreamAlign == 0);
+  for (int i = 0; i < 100; ++i) CheckTagged(v, static_cast<size_t>(i), i);
+  s.FillPadding();
+  CheckPadding(s);
+
+  RayStream copy;
+  for (int i = 0; i < 100; i += 3) copy.PushFrom(v, static_cast<size_t>(i));
+  const RayStreamView cv = copy.view();
+  for (size_t j = 0; j < copy.size(); ++j) CheckTagged(cv, j, static_cast<int>(3 * j));
+}
+
+TEST_CASE("CompactRays: sizes 0 and 1") {
+  RayStream s;
+  const int32_t none[1] = {0};
+  CHECK(CompactRays(s, none) == 0);
+  CHECK(s.size() == 0);
+  CheckPadding(s);
+
+  PushTagged(s, 9);
+  const int32_t keep[1] = {5};  // any nonzero keeps
+  CHECK(CompactRays(s, keep) == 1);
+  CheckTagged(s.view(), 0, 9);
+  CheckPadding(s);
+  CHECK(CompactRays(s, none) == 0);
+  CHECK(s.size() == 0);
+  CheckPadding(s);  // the old ray 0 is now a padding lane
+}
+
+TEST_CASE("CompactRays: stable, random flags, sizes around the padding width") {
+  std::mt19937 rng(1234);
+  for (const int n : {2, 15, 16, 17, 31, 33, 100, 257}) {
+    for (const int density : {0, 10, 50, 90, 100}) {
+      INFO("n ", n, " keep % ", density);
+      RayStream s;
+      for (int i = 0; i < n; ++i) PushTagged(s, i);
+      std::vector<int32_t> keep(static_cast<size_t>(n));
+      std::vector<int> want;
+      for (int i = 0; i < n; ++i) {
+        keep[static_cast<size_t>(i)] =
+            static_cast<int>(rng() % 100) < density ? static_cast<int32_t>(rng() % 7 + 1) : 0;
+        if (keep[static_cast<size_t>(i)] != 0) want.push_back(i);
+      }
+      const size_t got = CompactRays(s, keep.data());
+      REQUIRE(got == want.size());
+      REQUIRE(s.size() == want.size());
+      const RayStreamView v = s.view();
+      for (size_t j = 0; j < want.size(); ++j) CheckTagged(v, j, want[j]);
+      CheckPadding(s);
+    }
+  }
+}
+
+TEST_CASE("CompactRays on a view: optional arrays may be null, size untouched") {
+  RayStream s;
+  for (int i = 0; i < 20; ++i) PushTagged(s, i);
+  RayStreamView v = s.view();
+  v.pixel = nullptr;
+  v.wr = v.wg = v.wb = nullptr;
+  v.depth = nullptr;
+  v.kind = nullptr;
+  std::vector<int32_t> keep(20, 0);
+  keep[3] = keep[4] = keep[19] = 1;
+  CHECK(CompactRays(v, keep.data()) == 3);
+  CHECK(v.size == 20);
+  CHECK(s.size() == 20);
+  const RayStreamView full = s.view();
+  CHECK(full.ox[0] == 3.0f);
+  CHECK(full.ox[1] == 4.0f);
+  CHECK(full.ox[2] == 19.0f);
+  CHECK(full.tmax[2] == 1019.0f);
+  // The untouched optional arrays still hold the original order.
+  CHECK(full.pixel[0] == 1u);
+  CHECK(full.pixel[2] == 15u);
+}
+
+}  // namespace
+}  // namespace rs

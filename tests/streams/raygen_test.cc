@@ -1,1 +1,227 @@
+// Primary ray generation: tile coverage in both orders, partial 4x2 blocks, camera geometry,
+// and bit-identical rays whatever the tiling (the backend-independence precondition).
+#include "streams/raygen.h"
+
 #include <doctest/doctest.h>
+
+#include <cmath>
+#include <cstring>
+#include <limits>
+#include <map>
+#include <utility>
+#include <vector>
+
+namespace rs {
+namespace {
+
+Camera TestCamera() {
+  Camera c;
+  c.eye = glm::vec3(1.0f, 2.0f, 3.0f);
+  c.look_at = glm::vec3(-0.5f, 0.25f, -4.0f);
+  c.up = glm::vec3(0.1f, 1.0f, 0.0f);
+  c.fov_y_deg = 55.0f;
+  return c;
+}
+
+std::vector<std::pair<int, int>> Pixels(const Tile& tile, RayOrder order, int width) {
+  const CameraBasis basis = MakeCameraBasis(TestCamera(), width, tile.y1 + 1);
+  RayStream s;
+  AppendPrimaryRays(basis, tile, order, s);
+  std::vector<std::pair<int, int>> px;
+  const RayStreamView v = s.view();
+  for (size_t i = 0; i < v.size; ++i) {
+    px.emplace_back(static_cast<int>(v.pixel[i] % width), static_cast<int>(v.pixel[i] / width));
+  }
+  return px;
+}
+
+TEST_CASE("tile coverage: every pixel exactly once, both orders, odd tiles") {
+  const int width = 23;
+  for (const RayOrder order : {RayOrder::kScanline, RayOrder::kBlock4x2}) {
+    for (int x0 : {0, 3}) {
+      for (int y0 : {0, 5}) {
+        for (int tw = 0; tw <= 11; ++tw) {
+          for (int th = 0; th <= 5; ++th) {
+            const Tile tile{x0, y0, x0 + tw, y0 + th};
+            INFO("order ", RayOrderName(order), " tile ", x0, ",", y0, " ", tw, "x", th);
+            const auto px = Pixels(tile, order, width);
+            REQUIRE(px.size() == static_cast<size_t>(tw * th));
+            std::vector<int> seen(static_cast<size_t>(tw * th), 0);
+            for (const auto& [x, y] : px) {
+              REQUIRE(x >= tile.x0);
+              REQUIRE(x < tile.x1);
+              REQUIRE(y >= tile.y0);
+              REQUIRE(y < tile.y1);
+              ++seen[static_cast<size_t>((y - y0) * tw + (x - x0))];
+            }
+            for (const int s : seen) CHECK(s == 1);
+          }
+        }
+      }
+    }
+  }
+}
+
+TEST_CASE("scanline order is row by row") {
+  const auto px = Pixels(Tile{2, 1, 5, 3}, RayOrder::kScanline, 10);
+  const std::vector<std::pair<int, int>> want = {{2, 1}, {3, 1}, {4, 1}, {2, 2}, {3, 2}, {4, 2}};
+  CHECK(px == want);
+}
+
+TEST_CASE("4x2 block order with partial blocks at the right and bottom edges") {
+  // Tile 6 x 3 at (1, 1): block row 0 = block [1,5)x[1,3) then partial [5,7)x[1,3);
+  // block row 1 (1 high) = [1,5)x[3,4) then [5,7)x[3,4).
+  const auto px = Pixels(Tile{1, 1, 7, 4}, RayOrder::kBlock4x2, 9);
+  const std::vector<std::pair<int, int>> want = {
+      {1, 1}, {2, 1}, {3, 1}, {4, 1}, {1, 2}, {2, 2}, {3, 2}, {4, 2},  // full block
+      {5, 1}, {6, 1}, {5, 2}, {6, 2},                                  // 2 wide
+      {1, 3}, {2, 3}, {3, 3}, {4, 3},                                  // 1 high
+      {5, 3}, {6, 3}};                                                 // 2 x 1
+  CHECK(px == want);
+  // A tile narrower than a block: 3 wide, 4 high -> blocks of 3 x 2.
+  const auto narrow = Pixels(Tile{0, 0, 3, 4}, RayOrder::kBlock4x2, 3);
+  const std::vector<std::pair<int, int>> want_narrow = {{0, 0}, {1, 0}, {2, 0}, {0, 1},
+                                                        {1, 1}, {2, 1}, {0, 2}, {1, 2},
+                                                        {2, 2}, {0, 3}, {1, 3}, {2, 3}};
+  CHECK(narrow == want_narrow);
+}
+
+TEST_CASE("ray fields: origin, normalized direction, tmin, tmax, pixel id, weight, kind") {
+  const Camera cam = TestCamera();
+  const CameraBasis basis = MakeCameraBasis(cam, 37, 21);
+  RayStream s;
+  AppendPrimaryRays(basis, Tile{0, 0, 37, 21}, RayOrder::kScanline, s);
+  const RayStreamView v = s.view();
+  REQUIRE(v.size == 37u * 21u);
+  for (size_t i = 0; i < v.size; ++i) {
+    CHECK(v.ox[i] == cam.eye.x);
+    CHECK(v.oy[i] == cam.eye.y);
+    CHECK(v.oz[i] == cam.eye.z);
+    const float len = std::sqrt(v.dx[i] * v.dx[i] + v.dy[i] * v.dy[i] + v.dz[i] * v.dz[i]);
+    CHECK(len == doctest::Approx(1.0f).epsilon(1e-6));
+    CHECK(v.tmin[i] == 0.0f);
+    CHECK(v.tmax[i] == std::numeric_limits<float>::infinity());
+    CHECK(v.pixel[i] == i);  // scanline over the whole image: id = y * width + x = i
+    CHECK(v.wr[i] == 1.0f);
+    CHECK(v.wg[i] == 1.0f);
+    CHECK(v.wb[i] == 1.0f);
+    CHECK(v.depth[i] == 0);
+    CHECK(v.kind[i] == static_cast<int32_t>(RayKind::kPrimary));
+  }
+}
+
+TEST_CASE("camera geometry: centre ray hits look_at, field of view, orientation") {
+  const Camera cam = TestCamera();
+  const int w = 41, h = 31;  // odd: a pixel centre lies on the optical axis
+  const CameraBasis basis = MakeCameraBasis(cam, w, h);
+  const glm::vec3 centre = PrimaryDirection(basis, w / 2, h / 2);
+  const glm::vec3 want = glm::normalize(cam.look_at - cam.eye);
+  CHECK(centre.x == doctest::Approx(want.x).epsilon(1e-6));
+  CHECK(centre.y == doctest::Approx(want.y).epsilon(1e-6));
+  CHECK(centre.z == doctest::Approx(want.z).epsilon(1e-6));
+
+  // The angle to the centre ray of pixel (w/2, 0) is atan((1 - 1/h) tan(fov/2)).
+  const glm::vec3 top = PrimaryDirection(basis, w / 2, 0);
+  const double angle = std::acos(std::min(1.0, static_cast<double>(glm::dot(top, centre))));
+  const double want_angle =
+      std::atan((1.0 - 1.0 / h) * std::tan(cam.fov_y_deg * 3.14159265358979 / 360.0));
+  CHECK(angle == doctest::Approx(want_angle).epsilon(1e-4));
+  // Square pixels: pixel (w-1, h/2) is as far horizontally as (w/2 + (w-1)/2) predicts.
+  const glm::vec3 right = PrimaryDirection(basis, w - 1, h / 2);
+  const double hangle = std::atan(static_cast<double>(w - 1) / w *
+                                  std::tan(cam.fov_y_deg * 3.14159265358979 / 360.0) * w / h);
+  CHECK(std::acos(static_cast<double>(glm::dot(right, centre))) ==
+        doctest::Approx(hangle).epsilon(1e-4));
+
+  // Orientation: row 0 is the top (towards up), column 0 is the left (against right).
+  const glm::vec3 up_dir = glm::normalize(cam.up - glm::dot(cam.up, want) * want);
+  const glm::vec3 right_dir = glm::normalize(glm::cross(want, cam.up));
+  CHECK(glm::dot(top, up_dir) > 0.1f);
+  CHECK(glm::dot(PrimaryDirection(basis, w / 2, h - 1), up_dir) < -0.1f);
+  CHECK(glm::dot(PrimaryDirection(basis, 0, h / 2), right_dir) < -0.1f);
+  CHECK(glm::dot(right, right_dir) > 0.1f);
+}
+
+TEST_CASE("rays are bit-identical whatever the tile split and order") {
+  const int w = 29, h = 17;
+  const CameraBasis basis = MakeCameraBasis(TestCamera(), w, h);
+  auto key = [](const RayStreamView& v, size_t i) {
+    std::vector<uint32_t> bits(6);
+    const float f[6] = {v.ox[i], v.oy[i], v.oz[i], v.dx[i], v.dy[i], v.dz[i]};
+    std::memcpy(bits.data(), f, sizeof(f));
+    return bits;
+  };
+  std::map<uint32_t, std::vector<uint32_t>> whole;
+  {
+    RayStream s;
+    AppendPrimaryRays(basis, Tile{0, 0, w, h}, RayOrder::kScanline, s);
+    const RayStreamView v = s.view();
+    for (size_t i = 0; i < v.size; ++i) whole[v.pixel[i]] = key(v, i);
+  }
+  REQUIRE(whole.size() == static_cast<size_t>(w * h));
+  for (const RayOrder order : {RayOrder::kScanline, RayOrder::kBlock4x2}) {
+    for (const int ts : {1, 3, 4, 7, 16}) {
+      INFO("order ", RayOrderName(order), " tile size ", ts);
+      RayStream s;
+      for (int y = 0; y < h; y += ts) {
+        for (int x = 0; x < w; x += ts) {
+          AppendPrimaryRays(basis, Tile{x, y, std::min(x + ts, w), std::min(y + ts, h)}, order,
+                            s);
+        }
+      }
+      const RayStreamView v = s.view();
+      REQUIRE(v.size == static_cast<size_t>(w * h));
+      size_t same = 0;
+      for (size_t i = 0; i < v.size; ++i) same += whole.at(v.pixel[i]) == key(v, i) ? 1 : 0;
+      CHECK(same == v.size);
+    }
+  }
+  // Generating a tile in chunks (as tasks do) gives the same rays as generating it at once.
+  const Tile tile{3, 2, 26, 15};
+  RayStream all, chunks;
+  AppendPrimaryRays(basis, tile, RayOrder::kBlock4x2, all);
+  chunks.Resize(tile.NumPixels());
+  for (size_t first = 0; first < tile.NumPixels(); first += 7) {
+    const size_t count = std::min<size_t>(7, tile.NumPixels() - first);
+    GeneratePrimaryRays(basis, tile, RayOrder::kBlock4x2, first, count, chunks.view(), first);
+  }
+  const RayStreamView a = all.view(), c = chunks.view();
+  for (size_t i = 0; i < a.size; ++i) {
+    CHECK(a.pixel[i] == c.pixel[i]);
+    CHECK(key(a, i) == key(c, i));
+  }
+}
+
+TEST_CASE("camera errors and degenerate up vector") {
+  Camera cam = TestCamera();
+  CHECK_THROWS_AS(MakeCameraBasis(cam, 0, 10), Error);
+  CHECK_THROWS_AS(MakeCameraBasis(cam, 10, -1), Error);
+  CHECK_THROWS_AS(MakeCameraBasis(cam, 70000, 70000), Error);  // >= 2^32 pixel ids
+  Camera same = cam;
+  same.look_at = same.eye;
+  CHECK_THROWS_AS(MakeCameraBasis(same, 10, 10), Error);
+  for (const float fov : {0.0f, -5.0f, 180.0f, std::numeric_limits<float>::quiet_NaN()}) {
+    Camera bad = cam;
+    bad.fov_y_deg = fov;
+    CHECK_THROWS_AS(MakeCameraBasis(bad, 10, 10), Error);
+  }
+  Camera nan_eye = cam;
+  nan_eye.eye.y = std::numeric_limits<float>::quiet_NaN();
+  CHECK_THROWS_AS(MakeCameraBasis(nan_eye, 10, 10), Error);
+
+  // Looking straight down with up = +y: a fallback up is chosen, rays stay finite and unit.
+  Camera down;
+  down.eye = glm::vec3(0, 5, 0);
+  down.look_at = glm::vec3(0, 0, 0);
+  down.up = glm::vec3(0, 1, 0);
+  const CameraBasis b = MakeCameraBasis(down, 5, 5);
+  const glm::vec3 c = PrimaryDirection(b, 2, 2);
+  CHECK(c.y == doctest::Approx(-1.0f).epsilon(1e-6));
+  const glm::vec3 corner = PrimaryDirection(b, 0, 0);
+  CHECK(std::isfinite(corner.x));
+  CHECK(glm::length(corner) == doctest::Approx(1.0f).epsilon(1e-6));
+  CHECK(glm::dot(b.right, b.up) == doctest::Approx(0.0f).epsilon(1e-6));
+}
+
+}  // namespace
+}  // namespace rs

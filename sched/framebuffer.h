@@ -1,0 +1,117 @@
+// Order-independent framebuffer: per-pixel rgb sums as 64-bit fixed-point integers added with
+// relaxed atomic fetch_add. Integer addition is associative, so any thread count and any order
+// of contributions give the same image bit for bit (the backend-independence guarantee).
+#pragma once
+
+#include <atomic>
+#include <cmath>
+#include <cstddef>
+#include <cstdint>
+#include <vector>
+
+#include <hwy/base.h>
+
+namespace rs {
+
+// Pixel values are stored as round(c * 2^kFixedFracBits) per contribution c. Each contribution
+// channel is clamped to [0, kMaxContribution] (negative values and +inf are clamped and
+// counted; NaN is dropped and counted). Per contribution the fixed value is <= 2^44, so a pixel
+// channel can take 2^19 maximal contributions (or any number of ordinary ones) before the
+// int64 sum could overflow. Resolution is 2^-32 ~ 2.3e-10 per contribution.
+inline constexpr int kFixedFracBits = 32;
+inline constexpr float kFixedScale = 4294967296.0f;  // 2^32, exact in float
+inline constexpr float kMaxContribution = 4096.0f;   // 2^12
+
+class Framebuffer {
+ public:
+  Framebuffer() = default;
+  // width * height pixels, all zero. Throws rs::Error if width or height < 1 or the pixel
+  // count does not fit 32-bit pixel ids.
+  Framebuffer(int width, int height);
+
+  // Movable (not while other threads add), not copyable.
+  Framebuffer(Framebuffer&& other) noexcept;
+  Framebuffer& operator=(Framebuffer&& other) noexcept;
+  Framebuffer(const Framebuffer&) = delete;
+  Framebuffer& operator=(const Framebuffer&) = delete;
+
+  int width() const { return width_; }
+  int height() const { return height_; }
+  size_t num_pixels() const { return static_cast<size_t>(width_) * height_; }
+
+  // Zeroes every pixel and the counters. Not concurrent with Add.
+  void Clear();
+
+  // Converts one contribution channel to fixed point: NaN -> 0 with *nan = true; clamped to
+  // [0, kMaxContribution] with *clamped = true when it was outside. Deterministic (depends on
+  // c only; the current rounding mode is round-to-nearest-even, never changed in raystream).
+  static int64_t ToFixed(float c, bool* nan, bool* clamped) {
+    if (std::isnan(c)) {
+      *nan = true;
+      return 0;
+    }
+    if (!(c >= 0.0f)) {
+      *clamped = true;
+      return 0;
+    }
+    if (c > kMaxContribution) {
+      *clamped = true;
+      c = kMaxContribution;
+    }
+    // c * 2^32 is exact in float (power-of-two scale, no overflow), then rounded to an integer.
+    return static_cast<int64_t>(std::nearbyint(c * kFixedScale));
+  }
+
+  // Adds (r, g, b) to pixel `pixel` (< num_pixels()). Thread-safe and wait-free: three relaxed
+  // atomic adds (only the final sums matter; the frame barrier orders them before ToRgb). A
+  // contribution with a NaN channel is dropped entirely (all three channels) and counted.
+  void Add(uint32_t pixel, float r, float g, float b) {
+    bool nan = false, clamped = false;
+    const int64_t fr = ToFixed(r, &nan, &clamped);
+    const int64_t fg = ToFixed(g, &nan, &clamped);
+    const int64_t fb = ToFixed(b, &nan, &clamped);
+    if (nan) {
+      std::atomic_ref<uint64_t>(dropped_nan_).fetch_add(1, std::memory_order_relaxed);
+      return;
+    }
+    if (clamped) std::atomic_ref<uint64_t>(clamped_).fetch_add(1, std::memory_order_relaxed);
+    HWY_DASSERT(pixel < num_pixels());
+    int64_t* p = sums_.data() + 3 * static_cast<size_t>(pixel);
+    if (fr != 0) std::atomic_ref<int64_t>(p[0]).fetch_add(fr, std::memory_order_relaxed);
+    if (fg != 0) std::atomic_ref<int64_t>(p[1]).fetch_add(fg, std::memory_order_relaxed);
+    if (fb != 0) std::atomic_ref<int64_t>(p[2]).fetch_add(fb, std::memory_order_relaxed);
+  }
+
+  // Adds every pixel sum and counter of `other` (same size) into this one: partial
+  // framebuffers (e.g. per MPI rank) merge exactly. Not concurrent with Add.
+  void Accumulate(const Framebuffer& other);
+
+  // rgb floats, width * height * 3, row 0 at the top: sum * 2^-32 rounded once to float.
+  // Call after all adds of the frame have completed (after the frame barrier).
+  std::vector<float> ToRgb() const;
+  void ToRgb(std::vector<float>& rgb) const;
+
+  // Raw fixed-point sums (3 per pixel), for exact comparisons and reductions.
+  const int64_t* sums() const { return sums_.data(); }
+  int64_t* sums() { return sums_.data(); }
+
+  uint64_t dropped_nan() const {
+    return std::atomic_ref<uint64_t>(const_cast<uint64_t&>(dropped_nan_)).load(std::memory_order_relaxed);
+  }
+  uint64_t clamped() const {
+    return std::atomic_ref<uint64_t>(const_cast<uint64_t&>(clamped_)).load(std::memory_order_relaxed);
+  }
+
+ private:
+  static_assert(std::atomic_ref<int64_t>::required_alignment <= alignof(int64_t),
+                "vector<int64_t> elements must be usable with atomic_ref");
+  static_assert(std::atomic_ref<int64_t>::is_always_lock_free, "need lock-free 64-bit adds");
+
+  int width_ = 0;
+  int height_ = 0;
+  std::vector<int64_t> sums_;  // 3 per pixel
+  alignas(std::atomic_ref<uint64_t>::required_alignment) uint64_t dropped_nan_ = 0;
+  alignas(std::atomic_ref<uint64_t>::required_alignment) uint64_t clamped_ = 0;
+};
+
+}  // namespace rs

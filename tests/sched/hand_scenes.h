@@ -1,0 +1,165 @@
+// Test helpers for shading and rendering: tiny scenes built by hand, a brute-force watertight
+// ray/triangle oracle (Woop, Benthin, Wald 2013) and an icosphere for self-intersection tests.
+#pragma once
+
+#include <glm/glm.hpp>
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <map>
+#include <utility>
+#include <vector>
+
+#include "include/raystream/raystream.h"
+#include "scenes/scene.h"
+#include "streams/ray_stream.h"
+
+namespace rs::test {
+
+// SceneFeatures as documented in scenes/scene.h, computed here so these tests do not depend on
+// the loaders (the real ComputeFeatures is tested in tests/scenes).
+inline void SetFeatures(Scene& s) {
+  SceneFeatures f;
+  f.lights = !s.lights.empty();
+  for (const Material& m : s.materials) {
+    f.specular |= m.shininess > 0.0f && (m.specular.x > 0 || m.specular.y > 0 || m.specular.z > 0);
+    f.reflection |= m.reflectivity > 0.0f;
+    f.transmission |= m.transmission > 0.0f;
+    f.textures |= m.texture >= 0 && !s.uvs.empty();
+  }
+  f.triangles = s.triangles.size();
+  f.large = f.triangles > kLargeSceneTriangles;
+  s.features = f;
+}
+
+inline MeshView MeshOf(const Scene& s) {
+  MeshView m;
+  m.positions = s.positions.empty() ? nullptr : &s.positions[0].x;
+  m.num_vertices = s.positions.size();
+  m.stride = 3;
+  m.indices = s.triangles.empty() ? nullptr : &s.triangles[0].x;
+  m.num_triangles = s.triangles.size();
+  return m;
+}
+
+// Appends the quad a, b, c, d (counter-clockwise seen from the front) as two triangles.
+inline void AddQuad(Scene& s, glm::vec3 a, glm::vec3 b, glm::vec3 c, glm::vec3 d,
+                    uint32_t material) {
+  const uint32_t i = static_cast<uint32_t>(s.positions.size());
+  s.positions.insert(s.positions.end(), {a, b, c, d});
+  s.triangles.push_back(glm::uvec3(i, i + 1, i + 2));
+  s.triangles.push_back(glm::uvec3(i, i + 2, i + 3));
+  s.material_ids.push_back(material);
+  s.material_ids.push_back(material);
+}
+
+// Watertight ray/triangle test in float (Woop et al. 2013, with the double fallback for zero
+// edge functions). Two-sided. Returns true and t (in units of |d|) for a hit in [tmin, tmax].
+inline bool IntersectWatertight(glm::vec3 o, glm::vec3 d, glm::vec3 p0, glm::vec3 p1,
+                                glm::vec3 p2, float tmin, float tmax, float* t_out,
+                                float* u_out = nullptr, float* v_out = nullptr) {
+  const glm::vec3 ad = glm::abs(d);
+  int kz = ad.x > ad.y ? (ad.x > ad.z ? 0 : 2) : (ad.y > ad.z ? 1 : 2);
+  int kx = (kz + 1) % 3;
+  int ky = (kx + 1) % 3;
+  if (d[kz] < 0.0f) std::swap(kx, ky);
+  if (d[kz] == 0.0f) return false;
+  const float sx = d[kx] / d[kz], sy = d[ky] / d[kz], sz = 1.0f / d[kz];
+  const glm::vec3 a = p0 - o, b = p1 - o, c = p2 - o;
+  const float ax = a[kx] - sx * a[kz], ay = a[ky] - sy * a[kz];
+  const float bx = b[kx] - sx * b[kz], by = b[ky] - sy * b[kz];
+  const float cx = c[kx] - sx * c[kz], cy = c[ky] - sy * c[kz];
+  float U = cx * by - cy * bx;
+  float V = ax * cy - ay * cx;
+  float W = bx * ay - by * ax;
+  if (U == 0.0f || V == 0.0f || W == 0.0f) {
+    U = static_cast<float>(static_cast<double>(cx) * by - static_cast<double>(cy) * bx);
+    V = static_cast<float>(static_cast<double>(ax) * cy - static_cast<double>(ay) * cx);
+    W = static_cast<float>(static_cast<double>(bx) * ay - static_cast<double>(by) * ax);
+  }
+  if ((U < 0 || V < 0 || W < 0) && (U > 0 || V > 0 || W > 0)) return false;
+  float det = U + V + W;
+  if (det == 0.0f) return false;
+  float T = U * (sz * a[kz]) + V * (sz * b[kz]) + W * (sz * c[kz]);
+  if (det < 0) {
+    det = -det;
+    T = -T;
+    U = -U;
+    V = -V;
+    W = -W;
+  }
+  if (T < tmin * det || T > tmax * det) return false;
+  *t_out = T / det;
+  if (u_out) *u_out = V / det;  // barycentric of p1
+  if (v_out) *v_out = W / det;  // barycentric of p2
+  return true;
+}
+
+// Closest hit over all triangles (ties: lowest index), the oracle the shading tests use.
+inline void BruteForceIntersect(const Scene& s, const RayStreamView& rays,
+                                const HitStreamView& hits) {
+  for (size_t i = 0; i < rays.size; ++i) {
+    const glm::vec3 o(rays.ox[i], rays.oy[i], rays.oz[i]);
+    const glm::vec3 d(rays.dx[i], rays.dy[i], rays.dz[i]);
+    float best = rays.tmax[i];
+    hits.t[i] = std::numeric_limits<float>::infinity();
+    hits.u[i] = hits.v[i] = 0.0f;
+    hits.prim[i] = -1;
+    for (size_t k = 0; k < s.triangles.size(); ++k) {
+      const glm::uvec3 tri = s.triangles[k];
+      float t, u, v;
+      if (IntersectWatertight(o, d, s.positions[tri.x], s.positions[tri.y], s.positions[tri.z],
+                              rays.tmin[i], best, &t, &u, &v) &&
+          (hits.prim[i] < 0 || t < best)) {
+        best = t;
+        hits.t[i] = t;
+        hits.u[i] = u;
+        hits.v[i] = v;
+        hits.prim[i] = static_cast<int32_t>(k);
+      }
+    }
+  }
+}
+
+// Unit icosphere (subdivided `levels` times) scaled by r around c, wound outwards.
+inline void AddIcosphere(Scene& s, glm::vec3 c, float r, int levels, uint32_t material) {
+  const float t = (1.0f + std::sqrt(5.0f)) / 2.0f;
+  std::vector<glm::vec3> v = {{-1, t, 0}, {1, t, 0}, {-1, -t, 0}, {1, -t, 0},
+                              {0, -1, t}, {0, 1, t}, {0, -1, -t}, {0, 1, -t},
+                              {t, 0, -1}, {t, 0, 1}, {-t, 0, -1}, {-t, 0, 1}};
+  for (auto& p : v) p = glm::normalize(p);
+  std::vector<glm::uvec3> f = {{0, 11, 5}, {0, 5, 1},  {0, 1, 7},   {0, 7, 10}, {0, 10, 11},
+                               {1, 5, 9},  {5, 11, 4}, {11, 10, 2}, {10, 7, 6}, {7, 1, 8},
+                               {3, 9, 4},  {3, 4, 2},  {3, 2, 6},   {3, 6, 8},  {3, 8, 9},
+                               {4, 9, 5},  {2, 4, 11}, {6, 2, 10},  {8, 6, 7},  {9, 8, 1}};
+  for (int l = 0; l < levels; ++l) {
+    std::map<std::pair<uint32_t, uint32_t>, uint32_t> mid;
+    auto midpoint = [&](uint32_t a, uint32_t b) {
+      const auto key = std::minmax(a, b);
+      const auto it = mid.find(key);
+      if (it != mid.end()) return it->second;
+      v.push_back(glm::normalize(v[a] + v[b]));
+      const uint32_t id = static_cast<uint32_t>(v.size() - 1);
+      mid.emplace(key, id);
+      return id;
+    };
+    std::vector<glm::uvec3> g;
+    for (const auto& tri : f) {
+      const uint32_t a = midpoint(tri.x, tri.y), b = midpoint(tri.y, tri.z),
+                     cc = midpoint(tri.z, tri.x);
+      g.insert(g.end(), {{tri.x, a, cc}, {tri.y, b, a}, {tri.z, cc, b}, {a, b, cc}});
+    }
+    f = std::move(g);
+  }
+  const uint32_t base = static_cast<uint32_t>(s.positions.size());
+  for (const auto& p : v) s.positions.push_back(c + r * p);
+  for (auto tri : f) {
+    const glm::vec3 n = glm::cross(v[tri.y] - v[tri.x], v[tri.z] - v[tri.x]);
+    if (glm::dot(n, v[tri.x] + v[tri.y] + v[tri.z]) < 0) std::swap(tri.y, tri.z);
+    s.triangles.push_back(tri + base);
+    s.material_ids.push_back(material);
+  }
+}
+
+}  // namespace rs::test
