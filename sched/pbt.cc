@@ -1,0 +1,614 @@
+// Prediction Binary Tree: construction, PBT-Update (Algorithm 1 of Cosenza et al., §3), the §4
+// tile assignments and the §5 measures. Plain scalar code run once per frame by the master.
+#include "sched/pbt.h"
+
+#include <algorithm>
+#include <cmath>
+#include <cstdio>
+#include <deque>
+#include <functional>
+#include <limits>
+#include <numeric>
+#include <queue>
+#include <random>
+#include <string>
+#include <utility>
+
+#include "include/raystream/raystream.h"
+
+namespace rs {
+namespace {
+
+PbtAxis Other(PbtAxis axis) { return axis == PbtAxis::kX ? PbtAxis::kY : PbtAxis::kX; }
+
+int Extent(const Tile& t, PbtAxis axis) { return axis == PbtAxis::kX ? t.Width() : t.Height(); }
+
+// Cuts `t` along `axis` after `first` pixels (0 < first < extent) into the two children.
+void Cut(const Tile& t, PbtAxis axis, int first, Tile& a, Tile& b) {
+  a = t;
+  b = t;
+  if (axis == PbtAxis::kX) {
+    a.x1 = t.x0 + first;
+    b.x0 = a.x1;
+  } else {
+    a.y1 = t.y0 + first;
+    b.y0 = a.y1;
+  }
+}
+
+std::string TileString(const Tile& t) {
+  char buf[96];
+  std::snprintf(buf, sizeof(buf), "[%d,%d)x[%d,%d)", t.x0, t.x1, t.y0, t.y1);
+  return buf;
+}
+
+bool SameTile(const Tile& a, const Tile& b) {
+  return a.x0 == b.x0 && a.y0 == b.y0 && a.x1 == b.x1 && a.y1 == b.y1;
+}
+
+Assignment MakeAssignment(int num_workers) {
+  Assignment a;
+  a.tiles.resize(static_cast<size_t>(num_workers));
+  a.predicted_load.assign(static_cast<size_t>(num_workers), 0.0);
+  return a;
+}
+
+void Give(Assignment& a, size_t worker, size_t tile, std::span<const double> estimates) {
+  a.tiles[worker].push_back(static_cast<int32_t>(tile));
+  a.predicted_load[worker] += estimates[tile];
+}
+
+}  // namespace
+
+// ---------------------------------------------------------------------------------------------
+// Construction.
+
+Pbt::Pbt(int width, int height, int num_workers, int tiles_per_worker)
+    : width_(width),
+      height_(height),
+      num_workers_(num_workers),
+      tiles_per_worker_(tiles_per_worker) {
+  if (width < 1 || height < 1) {
+    throw Error("Pbt: image size " + std::to_string(width) + "x" + std::to_string(height) +
+                " must be at least 1x1");
+  }
+  const int64_t pixels = int64_t{width} * height;
+  if (pixels >= (int64_t{1} << 31)) {
+    throw Error("Pbt: image " + std::to_string(width) + "x" + std::to_string(height) +
+                " has 2^31 or more pixels");
+  }
+  if (num_workers < 1) throw Error("Pbt: num_workers " + std::to_string(num_workers) + " < 1");
+  if (tiles_per_worker < 1) {
+    throw Error("Pbt: tiles_per_worker " + std::to_string(tiles_per_worker) + " < 1");
+  }
+  const int64_t m = int64_t{num_workers} * tiles_per_worker;
+  if (m > pixels) {
+    throw Error("Pbt: " + std::to_string(m) + " tiles (num_workers " + std::to_string(num_workers) +
+                " x tiles_per_worker " + std::to_string(tiles_per_worker) + ") exceed the " +
+                std::to_string(pixels) + " pixels of a " + std::to_string(width) + "x" +
+                std::to_string(height) + " image");
+  }
+  root_axis_ = width >= height ? PbtAxis::kX : PbtAxis::kY;
+  nodes_.reserve(static_cast<size_t>(2 * m - 1));
+  const int32_t root = NewNode();
+  nodes_[static_cast<size_t>(root)].tile = Tile{0, 0, width, height};
+  Build(root, static_cast<int>(m));
+  RebuildLeafOrder();
+  // Initial affinity: runs of k in-order leaves per worker (spatially compact, §4).
+  for (size_t i = 0; i < leaves_.size(); ++i) {
+    nodes_[static_cast<size_t>(leaves_[i])].worker =
+        static_cast<int32_t>(i / static_cast<size_t>(tiles_per_worker_));
+  }
+}
+
+int32_t Pbt::NewNode() {
+  if (!free_.empty()) {
+    const int32_t id = free_.back();
+    free_.pop_back();
+    nodes_[static_cast<size_t>(id)] = PbtNode{};
+    return id;
+  }
+  nodes_.emplace_back();
+  return static_cast<int32_t>(nodes_.size() - 1);
+}
+
+// Initial tree: a node with q >= 2 leaves below it is cut along its depth's axis (the other if
+// that extent is 1) at the position proportional to floor(q/2) : ceil(q/2), and the leaf counts
+// are then clamped so each side has at least as many pixels as leaves (possible since the
+// node has >= q pixels). Recursion depth <= m (each level has >= 2 leaves per node).
+void Pbt::Build(int32_t id, int num_leaves) {
+  if (num_leaves <= 1) return;
+  const PbtNode node = nodes_[static_cast<size_t>(id)];
+  const PbtAxis axis = SplitAxis(node);
+  const int extent = Extent(node.tile, axis);
+  const int64_t across = Extent(node.tile, Other(axis));
+  const int q1_ideal = num_leaves / 2;
+  int first = static_cast<int>(
+      std::lround(static_cast<double>(extent) * q1_ideal / static_cast<double>(num_leaves)));
+  first = std::clamp(first, 1, extent - 1);
+  const int64_t area0 = int64_t{first} * across;
+  const int64_t area1 = int64_t{extent - first} * across;
+  const int64_t q1 = std::clamp<int64_t>(q1_ideal, std::max<int64_t>(1, num_leaves - area1),
+                                         std::min<int64_t>(area0, num_leaves - 1));
+  Tile t0, t1;
+  Cut(node.tile, axis, first, t0, t1);
+  const int32_t c0 = NewNode();
+  const int32_t c1 = NewNode();
+  PbtNode& n = nodes_[static_cast<size_t>(id)];
+  n.axis = axis;
+  n.child[0] = c0;
+  n.child[1] = c1;
+  for (int s = 0; s < 2; ++s) {
+    PbtNode& c = nodes_[static_cast<size_t>(n.child[s])];
+    c.tile = s == 0 ? t0 : t1;
+    c.parent = id;
+    c.depth = n.depth + 1;
+  }
+  Build(c0, static_cast<int>(q1));
+  Build(c1, num_leaves - static_cast<int>(q1));
+}
+
+// §3: children of nodes on alternating levels are cut along alternating axes; the root uses
+// root_axis_. A node that is 1 pixel along its level's axis uses the other one.
+PbtAxis Pbt::SplitAxis(const PbtNode& node) const {
+  const PbtAxis preferred = (node.depth % 2 == 0) ? root_axis_ : Other(root_axis_);
+  return Extent(node.tile, preferred) >= 2 ? preferred : Other(preferred);
+}
+
+// Algorithm 1, lines 11-13: a leaf becomes inner; each half predicts e(a) / 2.
+void Pbt::SplitLeaf(int32_t id) {
+  const PbtNode node = nodes_[static_cast<size_t>(id)];
+  const PbtAxis axis = SplitAxis(node);
+  Tile t0, t1;
+  Cut(node.tile, axis, Extent(node.tile, axis) / 2, t0, t1);
+  const int32_t c0 = NewNode();
+  const int32_t c1 = NewNode();
+  PbtNode& n = nodes_[static_cast<size_t>(id)];
+  n.axis = axis;
+  n.child[0] = c0;
+  n.child[1] = c1;
+  for (int s = 0; s < 2; ++s) {
+    PbtNode& c = nodes_[static_cast<size_t>(n.child[s])];
+    c.tile = s == 0 ? t0 : t1;
+    c.parent = id;
+    c.depth = n.depth + 1;
+    c.estimate = n.estimate * 0.5;  // exact in binary floating point (barring subnormals)
+    c.measured = n.measured * 0.5;
+    c.worker = n.worker;  // the caller sets the §4 affinities
+  }
+}
+
+void Pbt::RebuildLeafOrder() {
+  leaves_.clear();
+  std::vector<int32_t> stack{Root()};
+  while (!stack.empty()) {
+    const int32_t id = stack.back();
+    stack.pop_back();
+    const PbtNode& n = nodes_[static_cast<size_t>(id)];
+    if (n.IsLeaf()) {
+      leaves_.push_back(id);
+    } else {
+      stack.push_back(n.child[1]);
+      stack.push_back(n.child[0]);
+    }
+  }
+}
+
+void Pbt::RecomputeSums() {
+  // Pre-order list, then children before parents by walking it backwards.
+  std::vector<int32_t> order;
+  order.reserve(nodes_.size());
+  std::vector<int32_t> stack{Root()};
+  while (!stack.empty()) {
+    const int32_t id = stack.back();
+    stack.pop_back();
+    order.push_back(id);
+    const PbtNode& n = nodes_[static_cast<size_t>(id)];
+    if (!n.IsLeaf()) {
+      stack.push_back(n.child[1]);
+      stack.push_back(n.child[0]);
+    }
+  }
+  for (auto it = order.rbegin(); it != order.rend(); ++it) {
+    PbtNode& n = nodes_[static_cast<size_t>(*it)];
+    if (n.IsLeaf()) continue;
+    const PbtNode& c0 = nodes_[static_cast<size_t>(n.child[0])];
+    const PbtNode& c1 = nodes_[static_cast<size_t>(n.child[1])];
+    n.estimate = c0.estimate + c1.estimate;
+    n.measured = c0.measured + c1.measured;
+  }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Queries.
+
+std::vector<Tile> Pbt::Tiles() const {
+  std::vector<Tile> out;
+  out.reserve(leaves_.size());
+  for (const int32_t id : leaves_) out.push_back(Node(id).tile);
+  return out;
+}
+
+std::vector<double> Pbt::Estimates() const {
+  std::vector<double> out;
+  out.reserve(leaves_.size());
+  for (const int32_t id : leaves_) out.push_back(Node(id).estimate);
+  return out;
+}
+
+std::vector<int32_t> Pbt::LeafWorkers() const {
+  std::vector<int32_t> out;
+  out.reserve(leaves_.size());
+  for (const int32_t id : leaves_) out.push_back(Node(id).worker);
+  return out;
+}
+
+double Pbt::Variance() const { return LeafVariance(Estimates()); }
+
+// ---------------------------------------------------------------------------------------------
+// PBT-Update.
+
+void Pbt::SetMeasuredTimes(std::span<const double> times) {
+  if (times.size() != leaves_.size()) {
+    throw Error("Pbt::SetMeasuredTimes: " + std::to_string(times.size()) + " times for " +
+                std::to_string(leaves_.size()) + " tiles");
+  }
+  for (size_t i = 0; i < times.size(); ++i) {
+    if (!std::isfinite(times[i]) || times[i] < 0.0) {
+      throw Error("Pbt::SetMeasuredTimes: tile " + std::to_string(i) + " " +
+                  TileString(LeafTile(i)) + " has time " + std::to_string(times[i]) +
+                  " (must be finite and >= 0)");
+    }
+  }
+  // Algorithm 1, lines 2-4: e(l) <- t(l).
+  for (size_t i = 0; i < times.size(); ++i) {
+    PbtNode& n = nodes_[static_cast<size_t>(leaves_[i])];
+    n.measured = times[i];
+    n.estimate = times[i];
+  }
+  RecomputeSums();
+}
+
+PbtUpdateStats Pbt::Update(std::span<const double> times, const PbtUpdateOptions& options) {
+  SetMeasuredTimes(times);
+  return Update(options);
+}
+
+// Algorithm 1 (§3), lines 5-17. Each split-merge replaces (a, b1, b2) by (a/2, a/2, b1 + b2):
+// the sum and m are unchanged, and sum e^2 drops by (e(a)^2 - 4 e(b1) e(b2)) / 2, so m sigma^2
+// drops by the same amount; the loop runs only while that is > 0, so the variance strictly
+// decreases (the paper's termination argument). Two deviations make the algorithm well defined:
+//  - Line 6 takes the costliest leaf that can be split (>= 2 pixels); a 1x1 leaf cannot be. The
+//    variance argument holds for any a, not only the maximum.
+//  - Line 7 skips the sibling pair that contains a (splitting a and merging it with its sibling
+//    at once is contradictory; the paper leaves the case open, e.g. m = 2 with one costly
+//    tile). With no such pair (m <= 2, or the only pair contains a) the tree is final.
+// Ties go to the first leaf / pair in in-order. The §4 PBT-Greedy affinities follow the paper:
+// a1 <- worker(a), a2 <- worker(b1), b <- worker(b2), so every worker keeps k leaves.
+PbtUpdateStats Pbt::Update(const PbtUpdateOptions& options) {
+  if (options.max_steps < 0) {
+    throw Error("Pbt::Update: max_steps " + std::to_string(options.max_steps) + " < 0");
+  }
+  const int64_t m = static_cast<int64_t>(leaves_.size());
+  const int64_t max_steps = options.max_steps > 0 ? options.max_steps : 16 * m + 64;
+  PbtUpdateStats stats;
+  stats.variance_before = Variance();
+  for (;;) {
+    // Line 6: l_a = argmax e(l) over the splittable leaves.
+    int32_t a = -1;
+    for (const int32_t id : leaves_) {
+      const PbtNode& n = Node(id);
+      if (n.tile.NumPixels() < 2) continue;
+      if (a < 0 || n.estimate > Node(a).estimate) a = id;
+    }
+    if (a < 0) break;
+    // Line 7: (l_b1, l_b2) = the sibling leaves minimizing e(b1) e(b2), a excluded. A pair is
+    // visited once, from its first child.
+    int32_t pair_parent = -1;
+    double best = 0.0;
+    for (const int32_t id : leaves_) {
+      const PbtNode& n = Node(id);
+      if (n.parent < 0) continue;
+      const PbtNode& p = Node(n.parent);
+      if (p.child[0] != id || !Node(p.child[1]).IsLeaf()) continue;
+      if (id == a || p.child[1] == a) continue;
+      const double product = n.estimate * Node(p.child[1]).estimate;
+      if (pair_parent < 0 || product < best) {
+        pair_parent = n.parent;
+        best = product;
+      }
+    }
+    if (pair_parent < 0) break;
+    // Line 8: stop when e(a)^2 <= 4 e(b1) e(b2) (true for e(a) = 0, and for overflow to inf).
+    const double ea = Node(a).estimate;
+    if (ea * ea <= 4.0 * best) break;
+    if (stats.steps >= max_steps) {
+      stats.hit_step_bound = true;
+      break;
+    }
+    // Lines 14-15: merge b1, b2 into their parent b (first, so the split reuses their ids).
+    PbtNode& b = nodes_[static_cast<size_t>(pair_parent)];
+    const PbtNode b1 = Node(b.child[0]);
+    const PbtNode b2 = Node(b.child[1]);
+    free_.push_back(b.child[1]);
+    free_.push_back(b.child[0]);
+    b.child[0] = -1;
+    b.child[1] = -1;
+    b.estimate = b1.estimate + b2.estimate;
+    b.measured = b1.measured + b2.measured;
+    b.worker = b2.worker;
+    // Lines 11-13: split a into a1, a2 with e(a) / 2 each.
+    SplitLeaf(a);
+    const PbtNode& an = Node(a);
+    nodes_[static_cast<size_t>(an.child[0])].worker = an.worker;
+    nodes_[static_cast<size_t>(an.child[1])].worker = b1.worker;
+    ++stats.steps;
+    RebuildLeafOrder();
+  }
+  RecomputeSums();
+  stats.variance_after = Variance();
+  return stats;
+}
+
+// ---------------------------------------------------------------------------------------------
+// Self-check.
+
+std::string Pbt::Validate() const {
+  if (nodes_.empty()) return "no nodes";
+  const PbtNode& root = Node(Root());
+  if (root.parent != -1 || !SameTile(root.tile, Tile{0, 0, width_, height_})) {
+    return "root " + TileString(root.tile) + " is not the image";
+  }
+  const size_t m = static_cast<size_t>(num_workers_) * static_cast<size_t>(tiles_per_worker_);
+  std::vector<int> per_worker(static_cast<size_t>(num_workers_), 0);
+  size_t leaves = 0;
+  std::vector<int32_t> stack{Root()};
+  while (!stack.empty()) {
+    const int32_t id = stack.back();
+    stack.pop_back();
+    const PbtNode& n = Node(id);
+    const std::string where = "node " + std::to_string(id) + " " + TileString(n.tile);
+    if (n.tile.NumPixels() == 0) return where + " is empty";
+    if (n.IsLeaf()) {
+      if (n.child[1] != -1) return where + " has only one child";
+      if (leaves >= leaves_.size() || leaves_[leaves] != id) return where + " out of leaf order";
+      ++leaves;
+      if (n.worker < 0 || n.worker >= num_workers_) return where + " has no worker";
+      ++per_worker[static_cast<size_t>(n.worker)];
+      continue;
+    }
+    const PbtNode& c0 = Node(n.child[0]);
+    const PbtNode& c1 = Node(n.child[1]);
+    if (c0.parent != id || c1.parent != id) return where + ": child with a wrong parent";
+    if (c0.depth != n.depth + 1 || c1.depth != n.depth + 1) return where + ": child depth";
+    Tile t0, t1;
+    const int first = n.axis == PbtAxis::kX ? c0.tile.x1 - n.tile.x0 : c0.tile.y1 - n.tile.y0;
+    if (first < 1 || first >= Extent(n.tile, n.axis)) return where + ": cut outside the tile";
+    Cut(n.tile, n.axis, first, t0, t1);
+    if (!SameTile(t0, c0.tile) || !SameTile(t1, c1.tile)) {
+      return where + ": children " + TileString(c0.tile) + " " + TileString(c1.tile) +
+             " do not partition it";
+    }
+    const double sum = c0.estimate + c1.estimate;
+    if (std::abs(n.estimate - sum) > 1e-9 * std::max(1.0, std::abs(sum))) {
+      return where + ": estimate is not the sum of its children";
+    }
+    stack.push_back(n.child[1]);
+    stack.push_back(n.child[0]);
+  }
+  if (leaves != leaves_.size() || leaves != m) {
+    return std::to_string(leaves) + " leaves, expected " + std::to_string(m);
+  }
+  for (size_t w = 0; w < per_worker.size(); ++w) {
+    if (per_worker[w] != tiles_per_worker_) {
+      return "worker " + std::to_string(w) + " holds " + std::to_string(per_worker[w]) +
+             " leaves, expected " + std::to_string(tiles_per_worker_);
+    }
+  }
+  return "";
+}
+
+// ---------------------------------------------------------------------------------------------
+// Assignments.
+
+double Assignment::PredictedMakespan() const {
+  double best = 0.0;
+  for (const double load : predicted_load) best = std::max(best, load);
+  return best;
+}
+
+Assignment AssignPbtGreedy(const Pbt& pbt) {
+  const std::vector<double> e = pbt.Estimates();
+  Assignment a = MakeAssignment(pbt.num_workers());
+  const auto leaves = pbt.LeafNodes();
+  for (size_t i = 0; i < leaves.size(); ++i) {
+    Give(a, static_cast<size_t>(pbt.Node(leaves[i]).worker), i, e);
+  }
+  return a;
+}
+
+Assignment AssignPbtVisit(const Pbt& pbt) {
+  const std::vector<double> e = pbt.Estimates();
+  const size_t n = static_cast<size_t>(pbt.num_workers());
+  const size_t m = e.size();
+  Assignment a = MakeAssignment(pbt.num_workers());
+  double total = 0.0;
+  for (const double x : e) total += x;
+  double prefix = 0.0;
+  for (size_t i = 0; i < m; ++i) {
+    size_t w;
+    if (total > 0.0) {
+      const double mid = (prefix + 0.5 * e[i]) / total;  // in [0, 1], non-decreasing in i
+      w = std::min(n - 1, static_cast<size_t>(mid * static_cast<double>(n)));
+    } else {
+      w = i * n / m;
+    }
+    Give(a, w, i, e);
+    prefix += e[i];
+  }
+  return a;
+}
+
+Assignment AssignRandom(std::span<const double> estimates, int num_workers, uint64_t seed) {
+  if (num_workers < 1) throw Error("AssignRandom: num_workers " + std::to_string(num_workers));
+  const size_t m = estimates.size();
+  std::vector<size_t> perm(m);
+  std::iota(perm.begin(), perm.end(), size_t{0});
+  // Fisher-Yates with a modulo draw: mt19937_64 is specified by the standard, unlike
+  // std::shuffle / uniform_int_distribution, so the result is the same everywhere.
+  std::mt19937_64 rng(seed);
+  for (size_t i = m; i > 1; --i) {
+    const size_t j = static_cast<size_t>(rng() % i);
+    std::swap(perm[i - 1], perm[j]);
+  }
+  Assignment a = MakeAssignment(num_workers);
+  for (size_t r = 0; r < m; ++r) Give(a, r % static_cast<size_t>(num_workers), perm[r], estimates);
+  return a;
+}
+
+Assignment AssignPbtRandom(const Pbt& pbt, uint64_t seed) {
+  return AssignRandom(pbt.Estimates(), pbt.num_workers(), seed);
+}
+
+Assignment AssignLpt(std::span<const double> estimates, int num_workers) {
+  if (num_workers < 1) throw Error("AssignLpt: num_workers " + std::to_string(num_workers));
+  std::vector<size_t> order(estimates.size());
+  std::iota(order.begin(), order.end(), size_t{0});
+  std::stable_sort(order.begin(), order.end(),
+                   [&](size_t x, size_t y) { return estimates[x] > estimates[y]; });
+  Assignment a = MakeAssignment(num_workers);
+  for (const size_t i : order) {
+    const size_t w =
+        static_cast<size_t>(std::min_element(a.predicted_load.begin(), a.predicted_load.end()) -
+                            a.predicted_load.begin());
+    Give(a, w, i, estimates);
+  }
+  return a;
+}
+
+DemandDrivenRun SimulateDemandDriven(const Assignment& affinity, std::span<const double> estimates,
+                                     std::span<const double> tile_times) {
+  if (estimates.size() != tile_times.size()) {
+    throw Error("SimulateDemandDriven: " + std::to_string(estimates.size()) + " estimates for " +
+                std::to_string(tile_times.size()) + " tile times");
+  }
+  const size_t n = affinity.tiles.size();
+  std::vector<std::deque<int32_t>> waiting(n);
+  std::vector<double> waiting_load(n, 0.0);
+  for (size_t w = 0; w < n; ++w) {
+    for (const int32_t t : affinity.tiles[w]) {
+      if (t < 0 || static_cast<size_t>(t) >= tile_times.size()) {
+        throw Error("SimulateDemandDriven: worker " + std::to_string(w) + " has tile " +
+                    std::to_string(t) + " of " + std::to_string(tile_times.size()));
+      }
+      waiting[w].push_back(t);
+      waiting_load[w] += estimates[static_cast<size_t>(t)];
+    }
+  }
+  DemandDrivenRun run;
+  run.executed.resize(n);
+  run.finish.assign(n, 0.0);
+  using Event = std::pair<double, size_t>;  // (time the worker becomes free, worker)
+  std::priority_queue<Event, std::vector<Event>, std::greater<Event>> free_at;
+  for (size_t w = 0; w < n; ++w) free_at.push({0.0, w});
+  while (!free_at.empty()) {
+    const auto [now, w] = free_at.top();
+    free_at.pop();
+    size_t donor = w;
+    if (waiting[w].empty()) {
+      donor = n;
+      for (size_t v = 0; v < n; ++v) {
+        if (!waiting[v].empty() && (donor == n || waiting_load[v] > waiting_load[donor])) {
+          donor = v;
+        }
+      }
+      if (donor == n) continue;  // nothing left: this worker is done
+    }
+    int32_t tile;
+    if (donor == w) {
+      tile = waiting[w].front();
+      waiting[w].pop_front();
+    } else {
+      tile = waiting[donor].back();
+      waiting[donor].pop_back();
+      ++run.non_affine;
+    }
+    waiting_load[donor] -= estimates[static_cast<size_t>(tile)];
+    run.executed[w].push_back(tile);
+    run.finish[w] = now + tile_times[static_cast<size_t>(tile)];
+    free_at.push({run.finish[w], w});
+  }
+  return run;
+}
+
+// ---------------------------------------------------------------------------------------------
+// Measures.
+
+double LeafVariance(std::span<const double> estimates) {
+  if (estimates.empty()) return 0.0;
+  const double m = static_cast<double>(estimates.size());
+  double sum = 0.0;
+  for (const double x : estimates) sum += x;
+  const double mean = sum / m;
+  double sq = 0.0;
+  for (const double x : estimates) sq += (x - mean) * (x - mean);
+  return sq / m;
+}
+
+double PredictionError(double predicted, double measured) {
+  if (measured == 0.0) {
+    return predicted == 0.0 ? 0.0 : std::numeric_limits<double>::infinity();
+  }
+  return std::abs(predicted - measured) / std::abs(measured);
+}
+
+PredictionAccuracy MeasurePredictionAccuracy(std::span<const double> predicted,
+                                             std::span<const double> measured) {
+  if (predicted.size() != measured.size()) {
+    throw Error("MeasurePredictionAccuracy: " + std::to_string(predicted.size()) +
+                " predictions for " + std::to_string(measured.size()) + " measured tiles");
+  }
+  PredictionAccuracy acc;
+  acc.tiles = predicted.size();
+  if (acc.tiles == 0) return acc;
+  constexpr double kSlack = 1.0 + 1e-9;
+  size_t c5 = 0, c10 = 0, c15 = 0;
+  for (size_t i = 0; i < predicted.size(); ++i) {
+    const double err = PredictionError(predicted[i], measured[i]);  // NaN compares false: a miss
+    c5 += err <= 0.05 * kSlack;
+    c10 += err <= 0.10 * kSlack;
+    c15 += err <= 0.15 * kSlack;
+  }
+  const double m = static_cast<double>(acc.tiles);
+  acc.within5 = static_cast<double>(c5) / m;
+  acc.within10 = static_cast<double>(c10) / m;
+  acc.within15 = static_cast<double>(c15) / m;
+  return acc;
+}
+
+std::vector<double> WorkerTimes(const Assignment& assignment, std::span<const double> tile_times) {
+  std::vector<double> out(assignment.tiles.size(), 0.0);
+  for (size_t w = 0; w < assignment.tiles.size(); ++w) {
+    for (const int32_t t : assignment.tiles[w]) {
+      if (t < 0 || static_cast<size_t>(t) >= tile_times.size()) {
+        throw Error("WorkerTimes: worker " + std::to_string(w) + " has tile " + std::to_string(t) +
+                    ", but there are " + std::to_string(tile_times.size()) + " tile times");
+      }
+      out[w] += tile_times[static_cast<size_t>(t)];
+    }
+  }
+  return out;
+}
+
+double FrameImbalance(std::span<const double> worker_times) {
+  if (worker_times.empty()) return 1.0;
+  double sum = 0.0, slowest = 0.0;
+  for (const double t : worker_times) {
+    sum += t;
+    slowest = std::max(slowest, t);
+  }
+  const double mean = sum / static_cast<double>(worker_times.size());
+  return mean > 0.0 ? slowest / mean : 1.0;
+}
+
+}  // namespace rs
