@@ -39,14 +39,20 @@ std::string_view BuiltinSceneJson(std::string_view name);
 // Lower-level loaders, each appending into `scene` (materials appended, ids offset).
 // All throw rs::Error naming the file and the line or element on malformed input.
 void LoadObj(const std::string& path, Scene& scene);
-void LoadWithAssimp(const std::string& path, Scene& scene);  // .ply and others
-// Parses a raystream scene file; relative mesh paths resolve against the file's directory,
-// then the search path. `origin` names the text in messages.
+// .ply and others: PLY goes through raystream's strict PLY reader (scenes/ply.cc: assimp 5.2.4
+// accepts broken PLYs silently), everything else through assimp (its logged errors are fatal).
+void LoadWithAssimp(const std::string& path, Scene& scene);
+// Parses a raystream scene file (format in scenes/scene_json.cc); relative mesh paths resolve
+// against the file's directory, then the search path. `origin` names the text in messages;
+// errors carry the JSON pointer of the element or line:column of a syntax error.
 Scene LoadSceneJson(std::string_view json_text, const std::string& origin,
                     const std::string& base_dir);
 
 // Parsing from memory, for the fuzz targets (same checks, no file system).
 void ParseObjText(std::string_view obj_text, const std::string& origin, Scene& scene);
 void ParsePlyText(std::string_view ply_text, const std::string& origin, Scene& scene);
+// A scene file from memory with no file access: mesh entries naming a "file" are an error,
+// built-in primitives ("box", "quad", "sphere") are fine. Validated, features computed.
+Scene ParseSceneJsonText(std::string_view json_text, const std::string& origin);
 
 }  // namespace rs

@@ -81,6 +81,10 @@ struct Scene {
   glm::vec3 background{0.0f};
   float ambient = 0.1f;  // ambient term, scales diffuse colour
   SceneFeatures features;
+  // Non-fatal problems met while loading (missing .mtl or texture, ignored statements), each
+  // naming the file; LoadScene also prints them to stderr. Never affects the image silently:
+  // every fallback taken (default material, untextured) is listed here.
+  std::vector<std::string> warnings;
 
   MeshView mesh() const;
   void Bounds(glm::vec3& lo, glm::vec3& hi) const;
