@@ -1,1 +1,92 @@
-// placeholder: being written
+// Triangle storage (gathering a MeshView into float SoA arrays, degenerate flags) and the
+// non-inline scalar ray/triangle tests (see triangle.h).
+#include "kernels/triangle.h"
+
+#include <cfloat>
+#include <cmath>
+
+namespace rs {
+
+bool IsDegenerateTriangle(const float p0[3], const float p1[3], const float p2[3]) {
+  for (int a = 0; a < 3; ++a) {
+    if (!std::isfinite(p0[a]) || !std::isfinite(p1[a]) || !std::isfinite(p2[a])) return true;
+  }
+  // float -> double is exact; the differences of floats and the products below are (nearly)
+  // exact in double, so only truly zero-area triangles give the zero vector.
+  const double e1[3] = {double(p1[0]) - double(p0[0]), double(p1[1]) - double(p0[1]),
+                        double(p1[2]) - double(p0[2])};
+  const double e2[3] = {double(p2[0]) - double(p0[0]), double(p2[1]) - double(p0[1]),
+                        double(p2[2]) - double(p0[2])};
+  const double nx = e1[1] * e2[2] - e1[2] * e2[1];
+  const double ny = e1[2] * e2[0] - e1[0] * e2[2];
+  const double nz = e1[0] * e2[1] - e1[1] * e2[0];
+  return nx == 0.0 && ny == 0.0 && nz == 0.0;
+}
+
+void BuildTriangleSoA(const MeshView& mesh, TriangleSoA* out) {
+  const size_t n = mesh.num_triangles;
+  for (auto& vertex : out->p) {
+    for (auto& axis : vertex) axis.Reserve(n);
+  }
+  out->degenerate.Reserve(n);
+  out->size = n;
+  out->num_degenerate = 0;
+  for (size_t i = 0; i < n; ++i) {
+    float p[3][3];
+    for (int k = 0; k < 3; ++k) {
+      const float* src = mesh.positions + size_t{mesh.indices[3 * i + k]} * mesh.stride;
+      for (int a = 0; a < 3; ++a) {
+        p[k][a] = src[a];
+        out->p[k][a][i] = src[a];
+      }
+    }
+    const bool degenerate = IsDegenerateTriangle(p[0], p[1], p[2]);
+    out->degenerate[i] = degenerate ? 1 : 0;
+    out->num_degenerate += degenerate ? 1 : 0;
+  }
+}
+
+bool IntersectTriangle(const float p0[3], const float p1[3], const float p2[3], float ox,
+                       float oy, float oz, float dx, float dy, float dz, float tmin, float tmax,
+                       TriHit* hit) {
+  if (IsDegenerateTriangle(p0, p1, p2)) return false;
+  const WatertightRay r = PrepareWatertightRay(ox, oy, oz, dx, dy, dz);
+  const float tmax_finite = tmax > FLT_MAX ? FLT_MAX : tmax;  // NaN stays NaN: no hit
+  const int kx = r.kx, ky = r.ky, kz = r.kz;
+  return IntersectWatertightPermuted(r, p0[kx], p0[ky], p0[kz], p1[kx], p1[ky], p1[kz], p2[kx],
+                                     p2[ky], p2[kz], tmin, tmax_finite, hit);
+}
+
+bool IntersectMollerTrumbore(const float p0[3], const float p1[3], const float p2[3], float ox,
+                             float oy, float oz, float dx, float dy, float dz, float tmin,
+                             float tmax, TriHit* hit) {
+  if (!RayIsValid(ox, oy, oz, dx, dy, dz) || IsDegenerateTriangle(p0, p1, p2)) return false;
+  // e1, e2: edges from p0; pvec = d x e2; det = e1 . pvec (0 => ray parallel to the plane)
+  const float e1x = p1[0] - p0[0], e1y = p1[1] - p0[1], e1z = p1[2] - p0[2];
+  const float e2x = p2[0] - p0[0], e2y = p2[1] - p0[1], e2z = p2[2] - p0[2];
+  const float px = dy * e2z - dz * e2y;
+  const float py = dz * e2x - dx * e2z;
+  const float pz = dx * e2y - dy * e2x;
+  const float det = e1x * px + e1y * py + e1z * pz;
+  if (det == 0.0f || !std::isfinite(det)) return false;
+  const float inv_det = 1.0f / det;
+  // s = o - p0; u = (s . pvec) / det
+  const float sx = ox - p0[0], sy = oy - p0[1], sz = oz - p0[2];
+  const float u = (sx * px + sy * py + sz * pz) * inv_det;
+  if (!(u >= 0.0f && u <= 1.0f)) return false;
+  // q = s x e1; v = (d . q) / det; t = (e2 . q) / det
+  const float qx = sy * e1z - sz * e1y;
+  const float qy = sz * e1x - sx * e1z;
+  const float qz = sx * e1y - sy * e1x;
+  const float v = (dx * qx + dy * qy + dz * qz) * inv_det;
+  if (!(v >= 0.0f && u + v <= 1.0f)) return false;
+  const float t = (e2x * qx + e2y * qy + e2z * qz) * inv_det;
+  const float tmax_finite = tmax > FLT_MAX ? FLT_MAX : tmax;  // NaN stays NaN: no hit
+  if (!(t > tmin && t <= tmax_finite)) return false;
+  hit->t = t;
+  hit->u = u;
+  hit->v = v;
+  return true;
+}
+
+}  // namespace rs

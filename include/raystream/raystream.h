@@ -113,13 +113,13 @@ class Accel {
   Accel(Accel&&) noexcept;
   Accel& operator=(Accel&&) noexcept;
 
-  // Closest hit in [tmin, tmax] for rays[0, size). hits.size must equal rays.size. Rays with
+  // Closest hit with t in (tmin, tmax] for rays[0, size). hits.size must equal rays.size. Rays with
   // NaN/Inf components or zero direction never hit. Results are exact in the sense of the
   // watertight test (Woop, Benthin, Wald 2013): no ray passes between two triangles sharing an
   // edge. Optional stats are accumulated (not reset).
   void Intersect(const RayStreamView& rays, const HitStreamView& hits,
                  TraceStats* stats = nullptr) const;
-  // Any hit in [tmin, tmax]: occluded[i] = 1 if ray i is blocked, else 0. May stop at the
+  // Any hit with t in (tmin, tmax]: occluded[i] = 1 if ray i is blocked, else 0. May stop at the
   // first hit found.
   void Occluded(const RayStreamView& rays, int32_t* occluded, TraceStats* stats = nullptr) const;
 

@@ -1,1 +1,380 @@
+// Uniform grid build: resolution heuristic values, CSR/occupancy consistency, conservative
+// binning checked against an independent double-precision triangle/box overlap, flat scenes,
+// single triangles, empty meshes and degenerate triangles.
 #include <doctest/doctest.h>
+
+#include <algorithm>
+#include <cmath>
+#include <vector>
+
+#include "kernels/grid.h"
+#include "kernels/triangle.h"
+#include "tests/kernels/geometry_util.h"
+
+namespace rs {
+namespace {
+
+using test::F;
+using test::Rng;
+using test::Soup;
+
+struct Built {
+  TriangleSoA tris;
+  Grid grid;
+};
+
+void Build(const Soup& soup, Built* b, float lambda = 4.0f, int max_res = 512) {
+  BuildTriangleSoA(soup.view(), &b->tris);
+  BuildGrid(b->tris, lambda, max_res, &b->grid);
+}
+
+void Res(double ex, double ey, double ez, size_t n, double lambda, int max_res, int rx, int ry,
+         int rz) {
+  const double e[3] = {ex, ey, ez};
+  int r[3] = {-1, -1, -1};
+  ComputeGridResolution(e, n, lambda, max_res, r);
+  INFO("extent ", ex, " ", ey, " ", ez, " n ", n, " lambda ", lambda);
+  CHECK(r[0] == rx);
+  CHECK(r[1] == ry);
+  CHECK(r[2] == rz);
+}
+
+TEST_CASE("resolution heuristic: res = extent * cbrt(lambda N / V), flat axes, caps") {
+  Res(1, 1, 1, 1000, 4, 512, 16, 16, 16);      // cbrt(4000) = 15.87
+  Res(2, 1, 1, 1000, 4, 512, 25, 13, 13);      // cbrt(2000) = 12.6
+  Res(10, 10, 10, 1000, 4, 512, 16, 16, 16);   // scale-invariant
+  Res(1, 1, 1, 1, 4, 512, 2, 2, 2);            // cbrt(4) = 1.59
+  Res(1, 1, 0, 1000, 4, 512, 63, 63, 1);       // flat: sqrt(4000) = 63.2 per unit
+  Res(1, 1, 1e-6, 1000, 4, 512, 63, 63, 1);    // thin axis drops out, area density
+  Res(4, 1, 1e-6, 1000, 4, 512, 126, 32, 1);   // sqrt(1000) = 31.6 per unit
+  Res(1, 0, 0, 1000, 4, 512, 512, 1, 1);       // a line: 4000 cells, capped
+  Res(1, 0, 0, 1000, 4, 8192, 4000, 1, 1);
+  Res(1, 1e-9, 1e-9, 1000, 4, 8192, 4000, 1, 1);
+  Res(1, 1, 1, 1000000000, 4, 512, 512, 512, 512);  // cap per axis
+  Res(1, 1, 1, 1000, 4, 8, 8, 8, 8);
+  Res(1, 1, 1, 0, 4, 512, 1, 1, 1);            // no triangles
+  Res(1, 1, 1, 1000, 0, 512, 1, 1, 1);         // lambda 0
+  Res(0, 0, 0, 1000, 4, 512, 1, 1, 1);         // a point
+  Res(1000, 1, 1, 10, 1, 512, 10, 1, 1);       // long box: 10 cells along x only
+}
+
+// Independent exact-as-double triangle / closed box overlap: the 13 axes of the separating
+// axis theorem (3 box normals, triangle normal, 9 edge crosses), closed intervals.
+bool TriBoxOverlap(const double v[3][3], const double lo[3], const double hi[3]) {
+  for (int a = 0; a < 3; ++a) {
+    const double mn = std::min({v[0][a], v[1][a], v[2][a]});
+    const double mx = std::max({v[0][a], v[1][a], v[2][a]});
+    if (mn > hi[a] || mx < lo[a]) return false;
+  }
+  double c[3], h[3], w[3][3];
+  for (int a = 0; a < 3; ++a) {
+    c[a] = 0.5 * (lo[a] + hi[a]);
+    h[a] = 0.5 * (hi[a] - lo[a]);
+  }
+  for (int k = 0; k < 3; ++k) {
+    for (int a = 0; a < 3; ++a) w[k][a] = v[k][a] - c[a];
+  }
+  auto separated = [&](const double ax[3]) {
+    const double p0 = ax[0] * w[0][0] + ax[1] * w[0][1] + ax[2] * w[0][2];
+    const double p1 = ax[0] * w[1][0] + ax[1] * w[1][1] + ax[2] * w[1][2];
+    const double p2 = ax[0] * w[2][0] + ax[1] * w[2][1] + ax[2] * w[2][2];
+    const double r = h[0] * std::fabs(ax[0]) + h[1] * std::fabs(ax[1]) + h[2] * std::fabs(ax[2]);
+    return std::min({p0, p1, p2}) > r || std::max({p0, p1, p2}) < -r;
+  };
+  double e[3][3];
+  for (int k = 0; k < 3; ++k) {
+    for (int a = 0; a < 3; ++a) e[k][a] = w[(k + 1) % 3][a] - w[k][a];
+  }
+  const double n[3] = {e[0][1] * e[1][2] - e[0][2] * e[1][1], e[0][2] * e[1][0] - e[0][0] * e[1][2],
+                       e[0][0] * e[1][1] - e[0][1] * e[1][0]};
+  if (separated(n)) return false;
+  for (int k = 0; k < 3; ++k) {
+    for (int a = 0; a < 3; ++a) {
+      double unit[3] = {0, 0, 0};
+      unit[a] = 1;
+      const double ax[3] = {unit[1] * e[k][2] - unit[2] * e[k][1],
+                            unit[2] * e[k][0] - unit[0] * e[k][2],
+                            unit[0] * e[k][1] - unit[1] * e[k][0]};
+      if (separated(ax)) return false;
+    }
+  }
+  return true;
+}
+
+// Box of cell (x, y, z), grown by `grow` cells plus `ulps` float ulps of the largest
+// coordinate magnitude of the grid.
+void CellBox(const Grid& g, int x, int y, int z, double grow, double ulps, double lo[3],
+             double hi[3]) {
+  const int c[3] = {x, y, z};
+  double max_abs = 0.0;
+  for (int a = 0; a < 3; ++a) max_abs = std::max({max_abs, std::fabs(double(g.lo[a])), std::fabs(double(g.hi[a]))});
+  for (int a = 0; a < 3; ++a) {
+    const double cs = g.cell_size[a];
+    const double pad = grow * cs + ulps * 1.1920929e-7 * max_abs;
+    lo[a] = double(g.lo[a]) + c[a] * cs - pad;
+    hi[a] = double(g.lo[a]) + (c[a] + 1) * cs + pad;
+  }
+}
+
+// Structural invariants plus the binning check against TriBoxOverlap for every (cell, triangle)
+// pair. Returns the number of (cell, triangle) pairs whose bounding boxes overlap but whose
+// triangle does not touch the cell (what the SAT filter saved).
+size_t CheckGrid(const Soup& soup, const Built& b) {
+  const Grid& g = b.grid;
+  const TriangleSoA& t = b.tris;
+  REQUIRE(!g.empty());
+  REQUIRE(g.num_cells == size_t(g.res[0]) * g.res[1] * g.res[2]);
+  // CSR: monotone offsets, ascending ids, occupancy bit iff non-empty, no degenerate ids
+  REQUIRE(g.cell_begin[0] == 0);
+  REQUIRE(g.cell_begin[g.num_cells] == g.num_refs);
+  size_t occupied = 0, max_per_cell = 0;
+  std::vector<std::vector<char>> listed(g.num_cells);
+  for (size_t c = 0; c < g.num_cells; ++c) {
+    REQUIRE(g.cell_begin[c] <= g.cell_begin[c + 1]);
+    const size_t count = g.cell_begin[c + 1] - g.cell_begin[c];
+    CHECK(g.Occupied(c) == (count > 0));
+    occupied += count > 0;
+    max_per_cell = std::max(max_per_cell, count);
+    listed[c].assign(t.size, 0);
+    for (uint32_t k = g.cell_begin[c]; k < g.cell_begin[c + 1]; ++k) {
+      const uint32_t id = g.tri_ids[k];
+      REQUIRE(id < t.size);
+      CHECK(t.degenerate[id] == 0);
+      if (k > g.cell_begin[c]) CHECK(g.tri_ids[k - 1] < id);
+      listed[c][id] = 1;
+    }
+  }
+  CHECK(occupied == g.occupied_cells);
+  CHECK(max_per_cell == g.max_per_cell);
+  // padding bits past num_cells are clear
+  for (size_t c = g.num_cells; c < (g.num_cells + 63) / 64 * 64; ++c) CHECK_FALSE(g.Occupied(c));
+
+  size_t missing = 0, far = 0, saved = 0;
+  for (size_t i = 0; i < t.size; ++i) {
+    if (t.degenerate[i]) continue;
+    double v[3][3];
+    const MeshView m = soup.view();
+    for (int k = 0; k < 3; ++k) {
+      for (int a = 0; a < 3; ++a) v[k][a] = m.positions[3 * m.indices[3 * i + k] + a];
+    }
+    for (int z = 0; z < g.res[2]; ++z) {
+      for (int y = 0; y < g.res[1]; ++y) {
+        for (int x = 0; x < g.res[0]; ++x) {
+          const size_t c = g.CellIndex(x, y, z);
+          double lo[3], hi[3];
+          CellBox(g, x, y, z, 0.0, 0.0, lo, hi);
+          const bool touches = TriBoxOverlap(v, lo, hi);
+          if (touches && !listed[c][i]) ++missing;
+          // listed cells must at least touch the cell grown by 1% and 16 ulps (the grid's
+          // margin is 0.1% and 4 ulps)
+          double glo[3], ghi[3];
+          CellBox(g, x, y, z, 0.01, 16.0, glo, ghi);
+          if (listed[c][i] && !TriBoxOverlap(v, glo, ghi)) ++far;
+          // bounding-box-only overlap that the SAT removed
+          bool bbox = true;
+          for (int a = 0; a < 3; ++a) {
+            bbox = bbox && std::min({v[0][a], v[1][a], v[2][a]}) <= hi[a] &&
+                   std::max({v[0][a], v[1][a], v[2][a]}) >= lo[a];
+          }
+          saved += bbox && !listed[c][i];
+        }
+      }
+    }
+  }
+  CHECK(missing == 0);
+  CHECK(far == 0);
+  return saved;
+}
+
+TEST_CASE("random soups: every triangle is listed in every cell it touches, and only near ones") {
+  Rng rng(17);
+  size_t saved = 0;
+  for (int round = 0; round < 6; ++round) {
+    // small and large triangles mixed, so many triangles span several cells diagonally
+    Soup soup = test::RandomSoup(rng, 150, -1.0, 1.0, 0.1);
+    const Soup big = test::RandomSoup(rng, 30, -1.0, 1.0, 1.0);
+    soup.positions.insert(soup.positions.end(), big.positions.begin(), big.positions.end());
+    for (const uint32_t i : big.indices) soup.indices.push_back(i + uint32_t(150 * 3));
+    Built b;
+    Build(soup, &b, round % 2 ? 4.0f : 12.0f);
+    INFO("round ", round, " res ", b.grid.res[0], " ", b.grid.res[1], " ", b.grid.res[2]);
+    saved += CheckGrid(soup, b);
+  }
+  MESSAGE("bounding-box cells rejected by the separating-axis filter: ", saved);
+  CHECK(saved > 1000);  // the SAT filter really filters
+}
+
+TEST_CASE("triangles lying on cell boundaries are listed on both sides") {
+  // First build a grid over a box to learn its cell boundaries, then put triangles exactly on
+  // (float-rounded) boundary planes, edges and corners, rebuild over the same bounds.
+  Rng rng(5);
+  Soup soup = test::RandomSoup(rng, 200, 0.0, 8.0, 0.5);
+  // two placeholder triangles (same count, inside the bounds), replaced below
+  const float d0[3] = {4, 4, 4}, d1[3] = {4.1f, 4, 4}, d2[3] = {4, 4.1f, 4};
+  soup.AddTriangle(d0, d1, d2);
+  soup.AddTriangle(d0, d1, d2);
+  Built probe;
+  Build(soup, &probe);
+  const Grid& g = probe.grid;
+  REQUIRE(g.res[0] >= 4);
+  REQUIRE(g.res[1] >= 4);
+  const float bx = F(double(g.lo[0]) + 2.0 * g.cell_size[0]);  // plane x = boundary 2|3... 1|2
+  const float by = F(double(g.lo[1]) + 3.0 * g.cell_size[1]);
+  const float z0 = F(double(g.lo[2]) + 0.5 * (double(g.hi[2]) - g.lo[2]));
+  // in the plane x = bx
+  const float a[3] = {bx, by - 0.3f * g.cell_size[1], z0}, b2[3] = {bx, by + 0.2f * g.cell_size[1], z0},
+              c[3] = {bx, by, z0 + 0.25f * g.cell_size[2]};
+  auto replace = [&](uint32_t id, const float* u, const float* v, const float* w) {
+    const float* src[3] = {u, v, w};
+    for (int k = 0; k < 3; ++k) {
+      for (int ax = 0; ax < 3; ++ax) soup.positions[3 * soup.indices[3 * id + k] + ax] = src[k][ax];
+    }
+  };
+  replace(200, a, b2, c);
+  // touching the grid line (bx, by) only with one vertex, from the -x -y quadrant
+  const float p[3] = {bx, by, z0}, q[3] = {bx - 0.4f * g.cell_size[0], by - 0.1f * g.cell_size[1], z0},
+              r[3] = {bx - 0.1f * g.cell_size[0], by - 0.4f * g.cell_size[1], z0 + 0.1f};
+  replace(201, p, q, r);
+  Built b;
+  Build(soup, &b);
+  for (int ax = 0; ax < 3; ++ax) {  // same bounds and resolution as the probe
+    REQUIRE(b.grid.res[ax] == g.res[ax]);
+    REQUIRE(b.grid.lo[ax] == g.lo[ax]);
+    REQUIRE(b.grid.cell_size[ax] == g.cell_size[ax]);
+  }
+  CheckGrid(soup, b);
+  const uint32_t plane_id = 200, corner_id = 201;
+  auto listed_in = [&](uint32_t id, int x, int y, int z) {
+    const size_t cell = b.grid.CellIndex(x, y, z);
+    for (uint32_t k = b.grid.cell_begin[cell]; k < b.grid.cell_begin[cell + 1]; ++k) {
+      if (b.grid.tri_ids[k] == id) return true;
+    }
+    return false;
+  };
+  const int zc = std::min(int((z0 - g.lo[2]) * g.inv_cell_size[2]), g.res[2] - 1);
+  CHECK(listed_in(plane_id, 1, 2, zc));
+  CHECK(listed_in(plane_id, 2, 2, zc));
+  CHECK(listed_in(plane_id, 1, 3, zc));  // the top vertex and edge reach y = by
+  CHECK(listed_in(plane_id, 2, 3, zc));
+  // the corner triangle touches all four cells around the grid line
+  CHECK(listed_in(corner_id, 1, 2, zc));
+  CHECK(listed_in(corner_id, 2, 2, zc));
+  CHECK(listed_in(corner_id, 1, 3, zc));
+  CHECK(listed_in(corner_id, 2, 3, zc));
+  CHECK_FALSE(listed_in(corner_id, 3, 3, zc));
+}
+
+TEST_CASE("flat scene (all z = 0) builds with one cell along z") {
+  Rng rng(9);
+  Soup soup;
+  for (int i = 0; i < 500; ++i) {
+    const double cx = rng.Uniform(-5, 5), cy = rng.Uniform(-5, 5);
+    const float a[3] = {F(cx), F(cy), 0.0f}, b[3] = {F(cx + rng.Uniform(0.05, 0.3)), F(cy), 0.0f},
+                c[3] = {F(cx), F(cy + rng.Uniform(0.05, 0.3)), 0.0f};
+    soup.AddTriangle(a, b, c);
+  }
+  Built b;
+  Build(soup, &b);
+  CHECK(b.grid.res[2] == 1);
+  CHECK(b.grid.res[0] > 10);
+  CHECK(b.grid.res[1] > 10);
+  CHECK(b.grid.lo[2] < 0.0f);  // padded around the plane
+  CHECK(b.grid.hi[2] > 0.0f);
+  // about lambda * N cells in 2D
+  CHECK(b.grid.num_cells > 1000);
+  CHECK(b.grid.num_cells < 4000);
+  CheckGrid(soup, b);
+}
+
+TEST_CASE("single triangle, empty mesh, all-degenerate mesh") {
+  Soup one;
+  const float a[3] = {0, 0, 0}, b[3] = {1, 0, 0}, c[3] = {0, 1, 1};
+  one.AddTriangle(a, b, c);
+  Built b1;
+  Build(one, &b1);
+  CHECK(b1.grid.num_refs >= 1);
+  CHECK(b1.grid.occupied_cells >= 1);
+  CheckGrid(one, b1);
+  for (int k = 0; k < 3; ++k) {
+    CHECK(b1.grid.lo[k] < std::min({a[k], b[k], c[k]}));
+    CHECK(b1.grid.hi[k] > std::max({a[k], b[k], c[k]}));
+  }
+
+  Soup empty;
+  Built b0;
+  Build(empty, &b0);
+  CHECK(b0.grid.empty());
+  CHECK(b0.grid.num_refs == 0);
+  CHECK(b0.grid.Bytes() == 0);
+
+  Soup degenerate;
+  degenerate.AddTriangle(a, a, b);
+  degenerate.AddTriangle(a, b, b);
+  const float l2[3] = {2, 0, 0};
+  degenerate.AddTriangle(a, b, l2);
+  Built bd;
+  Build(degenerate, &bd);
+  CHECK(bd.tris.num_degenerate == 3);
+  CHECK(bd.grid.empty());
+}
+
+TEST_CASE("degenerate triangles are skipped: not binned, not in the bounds") {
+  Rng rng(21);
+  Soup soup = test::RandomSoup(rng, 100, -1.0, 1.0, 0.3);
+  // zero-area triangles, one far outside the others
+  const float far0[3] = {1000, 1000, 1000}, far1[3] = {1001, 1000, 1000};
+  soup.AddTriangle(far0, far0, far1);
+  const float z[3] = {0, 0, 0}, x1[3] = {0.5f, 0.5f, 0.5f}, x2[3] = {1, 1, 1};
+  soup.AddTriangle(z, x1, x2);
+  Built b;
+  Build(soup, &b);
+  CHECK(b.tris.num_degenerate == 2);
+  CHECK(b.tris.degenerate[100] == 1);
+  CHECK(b.tris.degenerate[101] == 1);
+  CHECK(b.grid.hi[0] < 2.0f);
+  CheckGrid(soup, b);
+}
+
+TEST_CASE("huge coordinate offset (1e5) builds conservatively") {
+  Rng rng(33);
+  Soup soup = test::RandomSoup(rng, 200, 1e5, 1e5 + 20.0, 1.0);
+  Built b;
+  Build(soup, &b);
+  CHECK(b.grid.lo[0] < 1e5f + 1.0f);
+  CheckGrid(soup, b);
+}
+
+// Regression: GCC 12.2's SLP vectorizer dropped the float rounding of the cell size where the
+// build reads it back as double (-O3 only), so the margin and the bounding-box cell ranges came
+// from a slightly different cell size than the stored one (office-graz had 47 more references
+// at -O0 than at -O3). Everything derived must come from the stored floats.
+TEST_CASE("regression: derived grid parameters use the stored float cell size and bounds") {
+  Soup s;
+  const float a[3] = {-0.3f, 0.1f, 2.7f}, b[3] = {1.9f, -0.7f, 0.3f}, c[3] = {0.7f, 2.3f, -1.1f};
+  const float d[3] = {1.3f, 1.7f, 0.9f}, e[3] = {-0.9f, 0.3f, -0.5f}, f[3] = {0.1f, -0.9f, 1.3f};
+  s.AddTriangle(a, b, c);
+  s.AddTriangle(d, e, f);
+  s.AddTriangle(a, e, d);
+  Built bt;
+  Build(s, &bt, 7.0f);
+  const Grid& g = bt.grid;
+  double max_abs = 0.0;
+  for (int k = 0; k < 3; ++k) {
+    max_abs = std::max({max_abs, std::fabs(double(g.lo[k])), std::fabs(double(g.hi[k]))});
+  }
+  for (int k = 0; k < 3; ++k) {
+    INFO("axis ", k);
+    const double cs = g.cell_size[k];
+    CHECK(g.margin[k] == 1e-3 * cs + 4.0 * 1.1920928955078125e-7 * max_abs);
+    // the float cell size is the rounded extent / res
+    CHECK(double(g.cell_size[k]) ==
+          double(F((double(g.hi[k]) - double(g.lo[k])) / g.res[k])));
+    // bounds strictly enclose the vertices
+    CHECK(double(g.lo[k]) < std::min({a[k], b[k], c[k], d[k], e[k], f[k]}));
+    CHECK(double(g.hi[k]) > std::max({a[k], b[k], c[k], d[k], e[k], f[k]}));
+  }
+  CheckGrid(s, bt);
+}
+
+}  // namespace
+}  // namespace rs
