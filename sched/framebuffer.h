@@ -3,13 +3,13 @@
 // of contributions give the same image bit for bit (the backend-independence guarantee).
 #pragma once
 
+#include <hwy/base.h>
+
 #include <atomic>
 #include <cmath>
 #include <cstddef>
 #include <cstdint>
 #include <vector>
-
-#include <hwy/base.h>
 
 namespace rs {
 
@@ -96,10 +96,12 @@ class Framebuffer {
   int64_t* sums() { return sums_.data(); }
 
   uint64_t dropped_nan() const {
-    return std::atomic_ref<uint64_t>(const_cast<uint64_t&>(dropped_nan_)).load(std::memory_order_relaxed);
+    return std::atomic_ref<uint64_t>(const_cast<uint64_t&>(dropped_nan_))
+        .load(std::memory_order_relaxed);
   }
   uint64_t clamped() const {
-    return std::atomic_ref<uint64_t>(const_cast<uint64_t&>(clamped_)).load(std::memory_order_relaxed);
+    return std::atomic_ref<uint64_t>(const_cast<uint64_t&>(clamped_))
+        .load(std::memory_order_relaxed);
   }
 
  private:

@@ -24,7 +24,7 @@ struct RenderOptions {
   int task_size = 20;           // rays per task (the paper's 20)
   float weight_cutoff = 1e-3f;  // bounce rays with max weight channel below this are dropped
   RayOrder order = RayOrder::kScanline;  // ray order inside a primary tile
-  int tile_size = 32;           // primary generation tiles: tile_size x tile_size, row-major
+  int tile_size = 32;  // primary generation tiles: tile_size x tile_size, row-major
 };
 
 // Throws rs::Error naming the option if width/height < 1 (or >= 2^32 pixels), max_depth < 0
@@ -107,14 +107,13 @@ struct TaskScratch {
 // accumulated into `stats`. Thread-safe as long as each thread has its own scratch and stats
 // (fb takes concurrent adds). A ray's contributions depend on that ray only, so any backend
 // that processes the same rays produces the same image bit for bit.
-void ProcessTask(const FrameContext& ctx, const RayStreamView& task, Framebuffer& fb,
-                 TaskSink& out, TaskScratch& scratch, FrameStats& stats);
+void ProcessTask(const FrameContext& ctx, const RayStreamView& task, Framebuffer& fb, TaskSink& out,
+                 TaskScratch& scratch, FrameStats& stats);
 
 // Cuts rays[0, size) into tasks of at most task_size rays (shadow and non-shadow rays kept
 // apart, order preserved within each class) and pushes them to `out`. The open tasks live in
 // scratch.open_shadow / open_bounce and are always flushed before returning.
-void CutIntoTasks(const RayStreamView& rays, size_t task_size, TaskSink& out,
-                  TaskScratch& scratch);
+void CutIntoTasks(const RayStreamView& rays, size_t task_size, TaskSink& out, TaskScratch& scratch);
 
 // The image split into tile_size x tile_size tiles (partial at the right and bottom), in
 // row-major order.

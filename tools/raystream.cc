@@ -10,11 +10,13 @@
 #include <exception>
 #include <fstream>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include "include/raystream/raystream.h"
 #include "scenes/image_io.h"
 #include "scenes/load.h"
+#include "sched/backends.h"
 #include "sched/render.h"
 
 namespace rs {
@@ -128,7 +130,61 @@ struct RenderArgs {
   float lambda = BuildOptions{}.lambda;
   std::string stats;
   bool quiet = false;
+  // Host schedulers (sched/backends.h).
+  int threads = 1;
+  std::string tile = "32x32";
+  int pbt = 0;
+  int pbt_workers = 0;
+  std::string assign = "random";
+  std::string pbt_time = "wall";
+  uint64_t seed = 1;
+  bool queue_stats = true;
 };
+
+// "32x32", "640x2", "300x1" -> width, height. Throws rs::Error naming the option.
+void ParseTileShape(const std::string& text, int& width, int& height) {
+  const size_t x = text.find_first_of("xX");
+  auto number = [&](const std::string& part) {
+    if (part.empty() || part.size() > 6 || part.find_first_not_of("0123456789") != std::string::npos) {
+      throw Error(fmt::format("--tile {}: expected WIDTHxHEIGHT, e.g. 32x32 or 640x2", text));
+    }
+    return std::stoi(part);
+  };
+  if (x == std::string::npos) number("");
+  width = number(text.substr(0, x));
+  height = number(text.substr(x + 1));
+  if (width < 1 || height < 1) {
+    throw Error(fmt::format("--tile {}: width and height must be at least 1", text));
+  }
+}
+
+BackendOptions MakeBackendOptions(const RenderArgs& args) {
+  BackendOptions o;
+  if (!ParseBackendKind(args.backend, &o.kind)) {
+    std::string names;
+    for (const auto& n : BackendNames()) names += (names.empty() ? "" : ", ") + n;
+    throw Error(fmt::format("--backend {}: unknown backend (available: {})", args.backend, names));
+  }
+  o.threads = args.threads;
+  ParseTileShape(args.tile, o.tile_width, o.tile_height);
+  o.pbt_tiles_per_worker = args.pbt;
+  o.pbt_workers = args.pbt_workers;
+  if (!ParsePbtAssign(args.assign, &o.assign)) {
+    throw Error(fmt::format("--assign {}: expected random, greedy, visit or static", args.assign));
+  }
+  o.pbt_cpu_time = args.pbt_time == "cpu";
+  o.seed = args.seed;
+  o.queue_stats = args.queue_stats;
+  if (o.kind == BackendKind::kSerial && o.threads != 1) {
+    throw Error(fmt::format("--threads {}: the serial backend runs one thread (use lock, lfree, "
+                            "local or tiles)", o.threads));
+  }
+  if (o.pbt_tiles_per_worker > 0 && o.kind != BackendKind::kTiles) {
+    throw Error(fmt::format("--pbt {}: PBT tiling needs --backend tiles", args.pbt));
+  }
+  ValidateBackendOptions(o);
+  return o;
+}
 
 // "frame#.png" -> "frame0007.png"; names without '#' are used as they are.
 std::string FrameFileName(const std::string& pattern, int frame) {
@@ -137,24 +193,10 @@ std::string FrameFileName(const std::string& pattern, int frame) {
   return pattern.substr(0, hash) + fmt::format("{:04d}", frame) + pattern.substr(hash + 1);
 }
 
-Json StatsJson(int frame, const FrameStats& s) {
-  Json rays = Json::object();
-  for (int k = 0; k < kNumRayKinds; ++k) rays[RayKindName(RayKind(k))] = s.rays[k];
-  return Json{{"frame", frame},
-              {"rays", rays},
-              {"tasks", s.tasks},
-              {"cell_steps", s.trace.cell_steps},
-              {"triangle_tests", s.trace.triangle_tests},
-              {"seconds", s.total_seconds},
-              {"trace_seconds", s.trace_seconds},
-              {"shade_seconds", s.shade_seconds},
-              {"mrays_per_second", s.MraysPerSecond()}};
-}
-
 int RunRender(const RenderArgs& args) {
-  if (args.backend != "serial") {
-    throw Error(fmt::format("--backend {}: not available in this build (available: serial)",
-                            args.backend));
+  const BackendOptions backend = MakeBackendOptions(args);
+  if (!args.stats.empty() && !StatsFileFormatOk(args.stats)) {
+    throw Error(fmt::format("--stats {}: statistics file must end in .json or .csv", args.stats));
   }
   if (args.width <= 0 || args.height <= 0 || args.width > 16384 || args.height > 16384) {
     throw Error(fmt::format("--width/--height must be within 1..16384 (got {}x{})", args.width,
@@ -180,32 +222,35 @@ int RunRender(const RenderArgs& args) {
   options.weight_cutoff = args.cutoff;
   options.order = args.order == "block" ? RayOrder::kBlock4x2 : RayOrder::kScanline;
 
-  Json stats_json = Json::array();
+  HostRenderer renderer(backend);
+  Framebuffer fb(args.width, args.height);
+  std::vector<float> rgb;
+  std::vector<HostFrameStats> frames;
+  frames.reserve(static_cast<size_t>(args.frames));
   FrameStats total;  // counters summed over frames
   double total_seconds = 0;
-  RenderResult last;
   for (int frame = 0; frame < args.frames; ++frame) {
     const Camera camera = scene.path.At(frame, args.speed, scene.camera);
-    last = RenderImage(scene, accel, camera, options);
-    total.Merge(last.stats);
-    total_seconds += last.stats.total_seconds;
-    stats_json.push_back(StatsJson(frame, last.stats));
+    const FrameContext ctx = MakeFrameContext(scene, accel, camera, options);
+    fb.Clear();
+    frames.push_back(renderer.RenderFrame(ctx, fb));
+    const HostFrameStats& s = frames.back();
+    total.Merge(s.total);
+    total_seconds += s.total.total_seconds;
     const bool write = frame + 1 == args.frames || out.find('#') != std::string::npos;
-    if (write) WriteImage(FrameFileName(out, frame), args.width, args.height, last.rgb);
+    if (write) {
+      fb.ToRgb(rgb);
+      WriteImage(FrameFileName(out, frame), args.width, args.height, rgb);
+    }
     if (args.frames > 1 && !args.quiet) {
       fmt::print(stderr, "{}frame {}/{}  {:.1f} ms  {:.2f} Mrays/s{}", tty ? "\r" : "",
-                 frame + 1, args.frames, 1e3 * last.stats.total_seconds, last.stats.MraysPerSecond(),
+                 frame + 1, args.frames, 1e3 * s.total.total_seconds, s.total.MraysPerSecond(),
                  tty ? "" : "\n");
     }
   }
   if (args.frames > 1 && !args.quiet && tty) fmt::print(stderr, "\n");
 
-  if (!args.stats.empty()) {
-    std::ofstream f(args.stats);
-    f << Json{{"scene", scene.name}, {"backend", args.backend}, {"frames", stats_json}}.dump(2)
-      << "\n";
-    if (!f) throw Error(fmt::format("{}: cannot write statistics file", args.stats));
-  }
+  if (!args.stats.empty()) WriteHostStats(args.stats, scene.name, backend, frames);
   if (!args.quiet) {
     fmt::print("scene      {}: {} triangles, {} lights, grid {}x{}x{}\n", scene.name,
                info.triangles, scene.lights.size(), info.resolution[0], info.resolution[1],
@@ -213,8 +258,16 @@ int RunRender(const RenderArgs& args) {
     fmt::print("load       {:.1f} ms, grid build {:.1f} ms ({:.1f} Mtris/s)\n",
                1e3 * load_seconds, 1e3 * info.build_seconds,
                info.build_seconds > 0 ? info.triangles / info.build_seconds * 1e-6 : 0.0);
+    std::string how = BackendName(backend.kind);
+    if (backend.kind != BackendKind::kSerial) how += fmt::format(", {} thread(s)", backend.threads);
+    if (backend.kind == BackendKind::kTiles) {
+      how += backend.pbt_tiles_per_worker > 0
+                 ? fmt::format(", PBT k={} assign {}", backend.pbt_tiles_per_worker,
+                               PbtAssignName(backend.assign))
+                 : fmt::format(", tiles {}x{}", backend.tile_width, backend.tile_height);
+    }
     fmt::print("image      {}x{}, depth {}, {} frame(s), backend {}\n", args.width, args.height,
-               args.depth, args.frames, args.backend);
+               args.depth, args.frames, how);
     std::string by_kind;
     uint64_t rays = 0;
     for (int k = 0; k < kNumRayKinds; ++k) {
@@ -226,6 +279,23 @@ int RunRender(const RenderArgs& args) {
                "{:.2f} Mrays/s\n",
                1e3 * total_seconds, total.tasks, 1e3 * total.trace_seconds,
                1e3 * total.shade_seconds, total_seconds > 0 ? rays / total_seconds * 1e-6 : 0.0);
+    if (backend.kind != BackendKind::kSerial) {
+      double idle = 0, queue = 0, imbalance = 0;
+      for (const HostFrameStats& f : frames) {
+        idle += f.IdleSeconds();
+        queue += f.QueueSeconds();
+        imbalance += f.imbalance;
+      }
+      const double n = static_cast<double>(frames.size());
+      fmt::print("threads    {:.2f} fps, per frame: {:.2f} ms idle at the barrier (all threads), "
+                 "{:.2f} ms in queue operations, imbalance {:.3f}\n",
+                 total_seconds > 0 ? n / total_seconds : 0.0, 1e3 * idle / n, 1e3 * queue / n,
+                 imbalance / n);
+      if (backend.threads > static_cast<int>(std::thread::hardware_concurrency())) {
+        fmt::print("note       {} threads oversubscribe the {} hardware threads of this machine\n",
+                   backend.threads, std::thread::hardware_concurrency());
+      }
+    }
     fmt::print("wrote      {}\n", FrameFileName(out, args.frames - 1));
   }
   return 0;
@@ -257,7 +327,26 @@ int Main(int argc, char** argv) {
   render->add_option("--out", r.out,
                      "output image (default SCENE.png); a '#' becomes the frame number and "
                      "writes every frame, otherwise only the last frame is written");
-  render->add_option("--backend", r.backend, "scheduler: serial")->capture_default_str();
+  render->add_option("--backend", r.backend, "scheduler: serial, lock, lfree, local, tiles")
+      ->capture_default_str();
+  render->add_option("--threads", r.threads, "render threads (lock, lfree, local, tiles)")
+      ->check(CLI::Range(1, 1024))
+      ->capture_default_str();
+  render->add_option("--tile", r.tile, "tiles backend: tile shape WxH (8x8, 32x32, 640x2, ...)")
+      ->capture_default_str();
+  render->add_option("--pbt", r.pbt, "tiles backend: PBT tiling with k tiles per worker (0: off)")
+      ->check(CLI::Range(0, 4096))
+      ->capture_default_str();
+  render->add_option("--pbt-workers", r.pbt_workers, "PBT workers n (0: --threads)")
+      ->check(CLI::Range(0, 65536))
+      ->capture_default_str();
+  render->add_option("--assign", r.assign, "PBT tile assignment: random, greedy, visit, static")
+      ->capture_default_str();
+  render->add_option("--pbt-time", r.pbt_time, "tile time fed to PBT-Update: wall or cpu")
+      ->check(CLI::IsMember({"wall", "cpu"}))
+      ->capture_default_str();
+  render->add_option("--seed", r.seed, "seed of the random tile assignments")->capture_default_str();
+  render->add_flag("!--no-queue-stats", r.queue_stats, "do not time queue operations");
   render->add_option("--task-size", r.task_size, "rays per task")
       ->check(CLI::Range(1, 1 << 20))
       ->capture_default_str();
@@ -269,7 +358,9 @@ int Main(int argc, char** argv) {
   render->add_option("--lambda", r.lambda, "grid density: cells per triangle")
       ->check(CLI::Range(0.01f, 64.0f))
       ->capture_default_str();
-  render->add_option("--stats", r.stats, "write per-frame statistics as JSON to this file");
+  render->add_option("--stats", r.stats,
+                     "write per-frame, per-thread and per-tile statistics to this file (.json or "
+                     ".csv)");
   render->add_flag("--quiet,-q", r.quiet, "print nothing on success");
 
   InfoArgs i;

@@ -113,10 +113,10 @@ class Accel {
   Accel(Accel&&) noexcept;
   Accel& operator=(Accel&&) noexcept;
 
-  // Closest hit with t in (tmin, tmax] for rays[0, size). hits.size must equal rays.size. Rays with
-  // NaN/Inf components or zero direction never hit. Results are exact in the sense of the
-  // watertight test (Woop, Benthin, Wald 2013): no ray passes between two triangles sharing an
-  // edge. Optional stats are accumulated (not reset).
+  // Closest hit with t in (tmin, tmax] for rays[0, size). hits.size must equal rays.size.
+  // Rays with NaN/Inf components or zero direction never hit. Results are exact in the sense of
+  // the watertight test (Woop, Benthin, Wald 2013): no ray passes between two triangles sharing
+  // an edge. On equal t the lower triangle id wins. Optional stats are accumulated (not reset).
   void Intersect(const RayStreamView& rays, const HitStreamView& hits,
                  TraceStats* stats = nullptr) const;
   // Any hit with t in (tmin, tmax]: occluded[i] = 1 if ray i is blocked, else 0. May stop at the

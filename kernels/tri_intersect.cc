@@ -1,0 +1,151 @@
+// SIMD ray/triangle tests over triangle packets (1 ray x packets, N rays x triangles) with
+// dynamic dispatch, and their scalar oracles. Per-target code; foreach_target re-includes this
+// file. The kernels themselves are in tri_intersect-inl.h, shared with SIMD traversal code.
+#include "kernels/tri_intersect.h"
+
+#include <cfloat>
+#include <cstdint>
+
+#undef HWY_TARGET_INCLUDE
+#define HWY_TARGET_INCLUDE "kernels/tri_intersect.cc"
+#include <hwy/foreach_target.h>  // IWYU pragma: keep
+#include <hwy/highway.h>         // must follow foreach_target.h
+
+#include "kernels/tri_intersect-inl.h"
+
+HWY_BEFORE_NAMESPACE();
+namespace rs {
+namespace HWY_NAMESPACE {
+
+// One switch per call (per cell): the (test, width) pair selects an instantiation.
+bool IntersectPackets(const PacketRay& ray, const TriPacketSpan& tris, float tmin, float tmax,
+                      TriTest test, PacketWidth width, PacketHit* hit) {
+  if (test == TriTest::kWatertight) {
+    return PacketsWidth<TriTest::kWatertight, false>(ray, tris, tmin, tmax, width, hit);
+  }
+  return PacketsWidth<TriTest::kMollerTrumbore, false>(ray, tris, tmin, tmax, width, hit);
+}
+
+bool OccludedPackets(const PacketRay& ray, const TriPacketSpan& tris, float tmin, float tmax,
+                     TriTest test, PacketWidth width) {
+  if (test == TriTest::kWatertight) {
+    return PacketsWidth<TriTest::kWatertight, true>(ray, tris, tmin, tmax, width, nullptr);
+  }
+  return PacketsWidth<TriTest::kMollerTrumbore, true>(ray, tris, tmin, tmax, width, nullptr);
+}
+
+void IntersectStream(const RayStreamView& rays, const TriPacketSpan& tris, TriTest test,
+                     const HitStreamView& hits) {
+  if (test == TriTest::kWatertight) {
+    StreamT<TriTest::kWatertight>(rays, tris, hits);
+  } else {
+    StreamT<TriTest::kMollerTrumbore>(rays, tris, hits);
+  }
+}
+
+}  // namespace HWY_NAMESPACE
+}  // namespace rs
+HWY_AFTER_NAMESPACE();
+
+#if HWY_ONCE
+namespace rs {
+
+HWY_EXPORT(IntersectPackets);
+HWY_EXPORT(OccludedPackets);
+HWY_EXPORT(IntersectStream);
+
+bool IntersectPackets(const PacketRay& ray, const TriPacketSpan& tris, float tmin, float tmax,
+                      TriTest test, PacketWidth width, PacketHit* hit) {
+  return HWY_DYNAMIC_DISPATCH(IntersectPackets)(ray, tris, tmin, tmax, test, width, hit);
+}
+
+bool OccludedPackets(const PacketRay& ray, const TriPacketSpan& tris, float tmin, float tmax,
+                     TriTest test, PacketWidth width) {
+  return HWY_DYNAMIC_DISPATCH(OccludedPackets)(ray, tris, tmin, tmax, test, width);
+}
+
+void IntersectStream(const RayStreamView& rays, const TriPacketSpan& tris, TriTest test,
+                     const HitStreamView& hits) {
+  HWY_DYNAMIC_DISPATCH(IntersectStream)(rays, tris, test, hits);
+}
+
+namespace ref {
+namespace {
+
+// The scalar test of `test` on lane j of the span, t in (tmin, tmax] (tmax finite).
+bool TestLane(const PacketRay& ray, const TriPacketSpan& tris, size_t j, float tmin, float tmax,
+              TriTest test, TriHit* th) {
+  if (test == TriTest::kWatertight) {
+    const WatertightRay& r = ray.wt;
+    const int k[3] = {r.kx, r.ky, r.kz};
+    float p[3][3];
+    for (int v = 0; v < 3; ++v) {
+      for (int a = 0; a < 3; ++a) p[v][a] = tris.Component(v, k[a])[j];
+    }
+    return IntersectWatertightPermuted(r, p[0][0], p[0][1], p[0][2], p[1][0], p[1][1], p[1][2],
+                                       p[2][0], p[2][1], p[2][2], tmin, tmax, th);
+  }
+  float p[3][3];
+  for (int v = 0; v < 3; ++v) {
+    for (int a = 0; a < 3; ++a) p[v][a] = tris.Component(v, a)[j];
+  }
+  return IntersectMollerTrumbore(p[0], p[1], p[2], ray.o[0], ray.o[1], ray.o[2], ray.d[0], ray.d[1],
+                                 ray.d[2], tmin, tmax, th);
+}
+
+}  // namespace
+
+bool IntersectPackets(const PacketRay& ray, const TriPacketSpan& tris, float tmin, float tmax,
+                      TriTest test, PacketHit* hit) {
+  if (!ray.valid) return false;
+  const float tmax_f = tmax > FLT_MAX ? FLT_MAX : tmax;  // NaN stays NaN: no hit
+  float upper = hit->t < tmax_f ? hit->t : tmax_f;
+  bool changed = false;
+  for (size_t j = 0; j < tris.lanes(); ++j) {
+    const int32_t id = tris.ids[j];
+    if (id < 0) continue;
+    TriHit th;
+    if (!TestLane(ray, tris, j, tmin, upper, test, &th)) continue;
+    // th.t <= upper <= hit->t: equal t needs a lower id (prim -1 = none)
+    if (!(th.t < hit->t || uint32_t(id) < uint32_t(hit->prim))) continue;
+    hit->t = upper = th.t;
+    hit->u = th.u;
+    hit->v = th.v;
+    hit->prim = id;
+    changed = true;
+  }
+  return changed;
+}
+
+bool OccludedPackets(const PacketRay& ray, const TriPacketSpan& tris, float tmin, float tmax,
+                     TriTest test) {
+  if (!ray.valid) return false;
+  const float tmax_f = tmax > FLT_MAX ? FLT_MAX : tmax;
+  for (size_t j = 0; j < tris.lanes(); ++j) {
+    TriHit th;
+    if (tris.ids[j] >= 0 && TestLane(ray, tris, j, tmin, tmax_f, test, &th)) return true;
+  }
+  return false;
+}
+
+void IntersectStream(const RayStreamView& rays, const TriPacketSpan& tris, TriTest test,
+                     const HitStreamView& hits) {
+  for (size_t i = 0; i < rays.size; ++i) {
+    const PacketRay ray =
+        MakePacketRay(rays.ox[i], rays.oy[i], rays.oz[i], rays.dx[i], rays.dy[i], rays.dz[i]);
+    PacketHit h;
+    h.t = hits.t[i];
+    h.u = hits.u[i];
+    h.v = hits.v[i];
+    h.prim = hits.prim[i];
+    if (!IntersectPackets(ray, tris, rays.tmin[i], rays.tmax[i], test, &h)) continue;
+    hits.t[i] = h.t;
+    hits.u[i] = h.u;
+    hits.v[i] = h.v;
+    hits.prim[i] = h.prim;
+  }
+}
+
+}  // namespace ref
+}  // namespace rs
+#endif  // HWY_ONCE

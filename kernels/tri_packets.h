@@ -1,0 +1,85 @@
+// Per-cell triangle packets for the SIMD ray/triangle kernels (kernels/tri_intersect.h): each
+// grid cell's triangles re-laid out as 4-wide SoA packets ("the triangles are always organized
+// in packets of four", Cell paper section 3.6), built in one pass from the grid's CSR lists.
+#pragma once
+
+#include <hwy/aligned_allocator.h>
+
+#include <cstddef>
+#include <cstdint>
+
+#include "kernels/grid.h"
+#include "kernels/triangle.h"
+
+namespace rs {
+
+inline constexpr size_t kPacketLanes = 4;                                  // triangles per packet
+inline constexpr size_t kPacketComponents = 9;                             // 3 vertices x (x, y, z)
+inline constexpr size_t kPacketFloats = kPacketComponents * kPacketLanes;  // 144 B per packet
+
+// The packets of one cell (or of one list), as the kernels read them. Layout ("cell block"):
+// the `count` packets of a cell are stored component-major, so component c = 3 * vertex + axis
+// of lane l of packet k is block[c * stride() + 4 * k + l], stride() = 4 * count. A packet is
+// still 4 x 9 floats, but packets k and k+1 (k..k+3) of one component are 8 (16) contiguous
+// floats: AVX2 (AVX-512) loads 2 (4) packets with one unaligned load and no shuffles, and the
+// whole cell (144 B per packet, plus 16 B of ids elsewhere) is contiguous for the prefetcher.
+// Vertices are the raw float vertices (not edges): the watertight test needs them bit for bit,
+// and Moller-Trumbore's edges p1 - p0 are the same float subtraction whether done here or there.
+// Padding lanes (past the cell's last triangle) and degenerate triangles hold NaN vertices,
+// which no test can hit (NaN fails every comparison, and is never an exact-zero edge function,
+// so it never triggers the double-precision fallback); padding lanes have id -1.
+struct TriPacketSpan {
+  const float* block = nullptr;  // 16-B aligned, 36 * count floats
+  const int32_t* ids = nullptr;  // 4 * count triangle ids; ascending within a grid cell
+  size_t count = 0;              // packets
+
+  size_t stride() const { return kPacketLanes * count; }
+  // First lane of component (vertex, axis): stride() floats, one per triangle of the span.
+  const float* Component(int vertex, int axis) const {
+    return block + size_t(3 * vertex + axis) * stride();
+  }
+  size_t lanes() const { return kPacketLanes * count; }
+};
+
+// All cells' packets: cell c owns packets [cell_begin[c], cell_begin[c + 1]); its block starts
+// at data[kPacketFloats * cell_begin[c]] and its ids at ids[kPacketLanes * cell_begin[c]].
+// Empty cells own no packet. Arrays are 64-B aligned; total size about (refs + 1.5 * occupied
+// cells) * 40 B.
+struct TriPackets {
+  hwy::AlignedFreeUniquePtr<float[]> data;           // kPacketFloats per packet
+  hwy::AlignedFreeUniquePtr<int32_t[]> ids;          // kPacketLanes per packet
+  hwy::AlignedFreeUniquePtr<uint32_t[]> cell_begin;  // num_cells + 1 packet offsets
+  size_t num_cells = 0;
+  size_t num_packets = 0;
+  size_t num_triangles = 0;  // triangle references (lanes that are not padding)
+
+  TriPacketSpan Cell(size_t cell) const {
+    const size_t first = cell_begin[cell];
+    TriPacketSpan s;
+    s.block = data.get() + kPacketFloats * first;
+    s.ids = ids.get() + kPacketLanes * first;
+    s.count = cell_begin[cell + 1] - first;
+    return s;
+  }
+  size_t Bytes() const {
+    return num_packets * (kPacketFloats * sizeof(float) + kPacketLanes * sizeof(int32_t)) +
+           (num_cells + 1) * sizeof(uint32_t);
+  }
+
+  // Capacities of the arrays (in packets and cells), kept for reuse by the next build.
+  size_t packet_capacity = 0;
+  size_t cell_capacity = 0;
+};
+
+// Re-lays out every cell of `grid` (built over `tris`) into packets: one pass over the CSR
+// lists, keeping each cell's id order. Reuses `out`'s arrays when they are large enough.
+// Degenerate triangles (tris.degenerate, never binned by BuildGrid) would get NaN vertices.
+// An empty grid gives num_cells = 0. Never throws (allocation failure aborts, as in Highway).
+void BuildTriPackets(const Grid& grid, const TriangleSoA& tris, TriPackets* out);
+
+// Packets for one list of triangle ids (any order, duplicates allowed): out becomes a single
+// cell, out->Cell(0). For tests, benchmarks and N rays x M triangles streams. Ids must be
+// < tris.size; degenerate triangles get NaN vertices (never hit) but keep their id.
+void BuildTriPacketList(const TriangleSoA& tris, const uint32_t* ids, size_t n, TriPackets* out);
+
+}  // namespace rs

@@ -1,0 +1,1053 @@
+// The host backends of HostRenderer (see backends.h): serial, LOCK / LFREE / LOCAL queues with an
+// outstanding-task counter for termination, and the tile counter / PBT tile lists; plus the
+// JSON / CSV export of their per-frame, per-thread and per-tile statistics.
+#include "sched/backends.h"
+
+#include <fmt/core.h>
+#include <nlohmann/json.hpp>
+#include <time.h>
+
+#include <algorithm>
+#include <atomic>
+#include <chrono>
+#include <deque>
+#include <exception>
+#include <fstream>
+#include <thread>
+#include <utility>
+
+#include "sched/frame_loop.h"
+#include "sched/queue.h"
+#include "sched/queue_local.h"
+#include "sched/queue_lock.h"
+#include "sched/queue_lockfree.h"
+
+namespace rs {
+
+// ---------------------------------------------------------------------------------------------
+// Names and options.
+
+const char* BackendName(BackendKind kind) {
+  switch (kind) {
+    case BackendKind::kSerial:
+      return "serial";
+    case BackendKind::kLock:
+      return "lock";
+    case BackendKind::kLockFree:
+      return "lfree";
+    case BackendKind::kLocal:
+      return "local";
+    case BackendKind::kTiles:
+      return "tiles";
+  }
+  return "?";
+}
+
+bool ParseBackendKind(std::string_view name, BackendKind* kind) {
+  if (name == "serial" || name == "SERIAL") {
+    *kind = BackendKind::kSerial;
+  } else if (name == "tiles" || name == "TILES") {
+    *kind = BackendKind::kTiles;
+  } else {
+    QueueKind q;
+    if (!ParseQueueKind(name, &q)) return false;
+    *kind = q == QueueKind::kLock       ? BackendKind::kLock
+            : q == QueueKind::kLockFree ? BackendKind::kLockFree
+                                        : BackendKind::kLocal;
+  }
+  return true;
+}
+
+std::vector<std::string> BackendNames() { return {"serial", "lock", "lfree", "local", "tiles"}; }
+
+const char* PbtAssignName(PbtAssign assign) {
+  switch (assign) {
+    case PbtAssign::kRandom:
+      return "random";
+    case PbtAssign::kGreedy:
+      return "greedy";
+    case PbtAssign::kVisit:
+      return "visit";
+    case PbtAssign::kStatic:
+      return "static";
+  }
+  return "?";
+}
+
+bool ParsePbtAssign(std::string_view name, PbtAssign* assign) {
+  for (const PbtAssign a : {PbtAssign::kRandom, PbtAssign::kGreedy, PbtAssign::kVisit,
+                            PbtAssign::kStatic}) {
+    if (name == PbtAssignName(a)) {
+      *assign = a;
+      return true;
+    }
+  }
+  return false;
+}
+
+void ValidateBackendOptions(const BackendOptions& o) {
+  auto fail = [](const std::string& what) { throw Error("backend options: " + what); };
+  const int kind = static_cast<int>(o.kind);
+  if (kind < 0 || kind > static_cast<int>(BackendKind::kTiles)) {
+    fail(fmt::format("unknown backend {}", kind));
+  }
+  const char* name = BackendName(o.kind);
+  if (o.threads < 1 || o.threads > FrameLoop::kMaxThreads) {
+    fail(fmt::format("threads {} must be in [1, {}]", o.threads, FrameLoop::kMaxThreads));
+  }
+  if (o.kind == BackendKind::kSerial && o.threads != 1) {
+    fail(fmt::format("backend serial runs on the calling thread: threads must be 1, not {}",
+                     o.threads));
+  }
+  if (o.tile_width < 1 || o.tile_height < 1) {
+    fail(fmt::format("tile {}x{} must be at least 1x1", o.tile_width, o.tile_height));
+  }
+  if (o.pbt_tiles_per_worker < 0 || o.pbt_tiles_per_worker > 4096) {
+    fail(fmt::format("pbt tiles per worker {} must be in [0, 4096]", o.pbt_tiles_per_worker));
+  }
+  if (o.pbt_workers < 0 || o.pbt_workers > 65536) {
+    fail(fmt::format("pbt workers {} must be in [0, 65536]", o.pbt_workers));
+  }
+  if (o.pbt_tiles_per_worker > 0 && o.kind != BackendKind::kTiles) {
+    fail(fmt::format("PBT tiling (k = {}) needs the tiles backend, not {}",
+                     o.pbt_tiles_per_worker, name));
+  }
+  const int assign = static_cast<int>(o.assign);
+  if (assign < 0 || assign > static_cast<int>(PbtAssign::kStatic)) {
+    fail(fmt::format("unknown PBT assignment {}", assign));
+  }
+}
+
+double HostFrameStats::IdleSeconds() const {
+  double s = 0;
+  for (const ThreadStats& t : threads) s += t.idle_seconds;
+  return s;
+}
+
+double HostFrameStats::QueueSeconds() const {
+  double s = app_queue_seconds;
+  for (const ThreadStats& t : threads) s += t.queue_seconds;
+  return s;
+}
+
+// ---------------------------------------------------------------------------------------------
+// Shared pieces.
+
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+double Seconds(Clock::time_point a, Clock::time_point b) {
+  return std::chrono::duration<double>(b - a).count();
+}
+
+// CPU time of the calling thread (Linux: per-thread clock, ~1 us per call, ns resolution).
+double ThreadCpuSeconds() {
+  timespec ts{};
+  if (clock_gettime(CLOCK_THREAD_CPUTIME_ID, &ts) != 0) return 0.0;
+  return static_cast<double>(ts.tv_sec) + 1e-9 * static_cast<double>(ts.tv_nsec);
+}
+
+double Imbalance(const std::vector<ThreadStats>& threads) {
+  std::vector<double> busy;
+  busy.reserve(threads.size());
+  for (const ThreadStats& t : threads) busy.push_back(t.busy_seconds);
+  return FrameImbalance(busy);
+}
+
+// A private breadth-first FIFO of tasks: one tile's whole ray tree on one thread (the tiles
+// backend's workers and the serial backend with explicit tiles).
+class LocalFifo final : public TaskSink {
+ public:
+  RayStream NewTask() override { return pool_.Get(); }
+  void Push(RayStream&& task) override { fifo_.push_back(std::move(task)); }
+
+  void RenderTile(const FrameContext& ctx, const Tile& tile, Framebuffer& fb, FrameStats& stats) {
+    fifo_.clear();
+    GeneratePrimaryTasks(ctx, tile, *this, stats);
+    while (!fifo_.empty()) {
+      RayStream task = std::move(fifo_.front());
+      fifo_.pop_front();
+      ProcessTask(ctx, task.view(), fb, *this, scratch_, stats);
+      pool_.Put(std::move(task));
+    }
+  }
+
+ private:
+  std::deque<RayStream> fifo_;
+  TaskPool pool_;
+  TaskScratch scratch_;
+};
+
+}  // namespace
+
+// The per-backend part of HostRenderer. The application-thread-only state lives here; the
+// backends add what their render threads share.
+class HostRenderer::Impl {
+ public:
+  explicit Impl(const BackendOptions& options) : options_(options) {}
+  virtual ~Impl() = default;
+
+  // Called by BeginFrame on the application thread with ctx_, fb_, begin_ set. `tiles` is the
+  // explicit tile set or nullptr for the whole image. Loads the frame and releases the threads.
+  virtual void Begin(const std::vector<Tile>* tiles) = 0;
+  // Called by EndFrame: waits for the frame and fills stats_ (frame, backend and total are set
+  // by the caller afterwards... see EndFrame). Rethrows a render thread's exception.
+  virtual void End() = 0;
+  virtual const Pbt* pbt() const { return nullptr; }
+
+  BackendOptions options_;
+  FrameContext ctx_;
+  Framebuffer* fb_ = nullptr;
+  Clock::time_point begin_{};
+  HostFrameStats stats_;
+  uint64_t frames_ = 0;
+  bool in_frame_ = false;
+};
+
+namespace {
+
+std::vector<Tile> WholeImageTiles(const FrameContext& ctx) {
+  return ImageTiles(ctx.options.width, ctx.options.height, ctx.options.tile_size);
+}
+
+// ---------------------------------------------------------------------------------------------
+// serial: the reference renderer on the application thread, run in EndFrame.
+
+class SerialImpl final : public HostRenderer::Impl {
+ public:
+  using Impl::Impl;
+
+  void Begin(const std::vector<Tile>* tiles) override {
+    whole_ = tiles == nullptr;
+    if (tiles != nullptr) tiles_ = *tiles;
+  }
+
+  void End() override {
+    FrameStats work;
+    if (whole_) {
+      work = renderer_.Render(ctx_, *fb_);
+    } else {
+      for (const Tile& tile : tiles_) fifo_.RenderTile(ctx_, tile, *fb_, work);
+    }
+    stats_.threads.assign(1, ThreadStats{});
+    ThreadStats& t = stats_.threads[0];
+    t.work = work;
+    t.busy_seconds = Seconds(begin_, Clock::now());
+    stats_.total = work;
+    stats_.primary_tasks = 0;
+  }
+
+ private:
+  SerialRenderer renderer_;
+  LocalFifo fifo_;
+  std::vector<Tile> tiles_;
+  bool whole_ = true;
+};
+
+// ---------------------------------------------------------------------------------------------
+// LOCK / LFREE / LOCAL: listing 2 over a WorkQueue of task pointers.
+//
+// A task is a RayStream owned by the backend; the queues carry RayStream* (8 bytes: LFREE keeps
+// it inline in the node and reads it before its CAS). Each thread has a free list of streams
+// (with their buffers) and of empty "shells" (the RayStream objects the queue points to, kept
+// in per-thread arenas with stable addresses). A popped task's buffers go to the popping
+// thread's free list. The application thread, which creates every primary task, takes its
+// streams round-robin from the threads' free lists while they are parked, so the total number
+// of streams stays at the peak number of live tasks instead of growing every frame.
+//
+// Termination with shared queues (LOCK, LFREE). EMPTY does not mean the frame is done: another
+// thread may be processing a task whose children are not pushed yet. `outstanding_` counts the
+// tasks pushed and not yet fully processed:
+//   application: outstanding_ = number of primary tasks, stored before the opening barrier
+//                (the barrier publishes it; relaxed store);
+//   worker:      pop a task; ProcessTask collects its k children in `pending`;
+//                outstanding_.fetch_add(k - 1) (the k children counted, the parent retired, in
+//                ONE read-modify-write, before any child is visible); then push the k children;
+//   worker:      on EMPTY, leave the frame iff outstanding_ == 0, else pause / yield and retry.
+// Why the count reaches 0 only when every task is done: all updates are read-modify-writes on
+// one atomic, so they form one modification order. A child's increment is in its parent's
+// fetch_add, which is sequenced before the child's Push; that Push synchronizes with the Pop
+// of the child (queue release/acquire), which is sequenced before the child's own fetch_add.
+// So the parent's update precedes the child's in the modification order (write-write
+// coherence), and the running sum counts every child from before it can be popped until after
+// it was processed: it is >= 1 while any task exists and never rises again after 0.
+// Memory orders: fetch_add is acq_rel and the zero test an acquire load, so a thread that sees
+// 0 also sees all effects of every processed task (not needed for the image, which the closing
+// barrier orders, but it keeps the argument local). Correctness of the counting itself needs
+// only the atomicity of the RMW. One RMW per task (not one per push) keeps the counter's
+// cache line traffic at the level of the queue's own.
+// LOCAL needs no counter: nobody else pushes into a thread's queue, so EMPTY means done.
+
+template <class Q>
+class QueueImpl final : public HostRenderer::Impl {
+  static constexpr bool kShared = Q::kKind != QueueKind::kLocal;
+  static constexpr bool kTimed = Q::stats_type::kEnabled;
+
+ public:
+  explicit QueueImpl(const BackendOptions& options)
+      : Impl(options), queue_(MakeQueue(options.threads)) {
+    const int n = options.threads;
+    for (int w = 0; w <= n; ++w) workers_.push_back(std::make_unique<Worker>(this, w, w == n));
+    loop_ = std::make_unique<FrameLoop>(n, [this](int w) { Work(w); });
+  }
+
+  ~QueueImpl() override {
+    loop_.reset();  // END: stop the threads before the queue and the workers go away
+  }
+
+  void Begin(const std::vector<Tile>* tiles) override {
+    const int n = options_.threads;
+    Worker& app = *workers_[static_cast<size_t>(n)];
+    if constexpr (kTimed) queue_.stats().Reset();
+    if constexpr (!kShared) queue_.RewindPrimary();  // deal primary task i to thread i mod n
+    abort_.store(false, std::memory_order_relaxed);
+    for (int w = 0; w < n; ++w) {
+      workers_[static_cast<size_t>(w)]->stats = FrameStats();
+      workers_[static_cast<size_t>(w)]->empty_polls = 0;
+    }
+    app.stats = FrameStats();
+    app.primary = 0;
+    // Listing 3 line 6: Generate_PrimRays into the queue(s).
+    try {
+      if (tiles == nullptr) {
+        for (const Tile& tile : WholeImageTiles(ctx_)) GeneratePrimaryTasks(ctx_, tile, app, app.stats);
+      } else {
+        for (const Tile& tile : *tiles) GeneratePrimaryTasks(ctx_, tile, app, app.stats);
+      }
+    } catch (...) {
+      Drain();
+      throw;
+    }
+    // Published to the threads by the opening barrier (Release), hence relaxed.
+    outstanding_.store(static_cast<int64_t>(app.primary), std::memory_order_relaxed);
+    loop_->Release();  // line 7
+  }
+
+  void End() override {
+    std::exception_ptr error;
+    try {
+      loop_->Wait();  // listing 3 line 9
+    } catch (...) {
+      error = std::current_exception();
+    }
+    const int n = options_.threads;
+    Worker& app = *workers_[static_cast<size_t>(n)];
+    stats_.threads.assign(static_cast<size_t>(n), ThreadStats{});
+    FrameStats total = app.stats;
+    for (int w = 0; w < n; ++w) {
+      const Worker& me = *workers_[static_cast<size_t>(w)];
+      ThreadStats& t = stats_.threads[static_cast<size_t>(w)];
+      t.work = me.stats;
+      t.busy_seconds = loop_->times()[static_cast<size_t>(w)].busy_seconds;
+      t.idle_seconds = loop_->times()[static_cast<size_t>(w)].idle_seconds;
+      t.empty_polls = me.empty_polls;
+      if constexpr (kTimed) {
+        t.queue_seconds = queue_.stats().Seconds(w);
+        t.queue_ops = queue_.stats().Ops(w);
+      }
+      total.Merge(me.stats);
+    }
+    stats_.app_queue_seconds = 0;
+    if constexpr (kTimed) stats_.app_queue_seconds = queue_.stats().Seconds(n);
+    stats_.primary_tasks = app.primary;
+    stats_.total = total;
+    if (error) {
+      Drain();
+      std::rethrow_exception(error);
+    }
+  }
+
+ private:
+  struct alignas(kQueueFalseSharing) Worker final : public TaskSink {
+    Worker(QueueImpl* owner_in, int id_in, bool app_in) : owner(owner_in), id(id_in), app(app_in) {}
+
+    RayStream NewTask() override {
+      if (!app) return GetStream();
+      // The application thread recycles the streams the threads freed (they are parked).
+      const auto& all = owner->workers_;
+      for (size_t tries = 0; free.empty() && tries + 1 < all.size(); ++tries) {
+        Worker& from = *all[borrow++ % (all.size() - 1)];
+        if (!from.free.empty()) {
+          RayStream s = std::move(from.free.back());
+          from.free.pop_back();
+          return s;  // cleared when it was put back
+        }
+      }
+      return GetStream();
+    }
+
+    void Push(RayStream&& task) override {
+      RayStream* shell = GetShell();
+      *shell = std::move(task);
+      if (app) {
+        owner->queue_.PushPrimary(std::move(shell));
+        ++primary;
+      } else {
+        pending.push_back(shell);
+      }
+    }
+
+    RayStream GetStream() {
+      if (free.empty()) return RayStream();
+      RayStream s = std::move(free.back());
+      free.pop_back();
+      return s;
+    }
+    void PutStream(RayStream&& s) {
+      s.Clear();
+      free.push_back(std::move(s));
+    }
+    RayStream* GetShell() {
+      if (shells.empty() && app) {
+        const auto& all = owner->workers_;
+        for (size_t tries = 0; tries + 1 < all.size(); ++tries) {
+          Worker& from = *all[borrow_shell++ % (all.size() - 1)];
+          if (!from.shells.empty()) {
+            RayStream* s = from.shells.back();
+            from.shells.pop_back();
+            return s;
+          }
+        }
+      }
+      if (shells.empty()) {
+        arena.emplace_back();
+        return &arena.back();
+      }
+      RayStream* s = shells.back();
+      shells.pop_back();
+      return s;
+    }
+    // A processed (or drained) task: its buffers to the free list, its shell to the shells.
+    void Retire(RayStream* task) {
+      PutStream(std::move(*task));
+      shells.push_back(task);
+    }
+
+    QueueImpl* owner;
+    int id;
+    bool app;
+    std::vector<RayStream> free;        // streams with buffers, cleared
+    std::vector<RayStream*> shells;     // empty RayStream objects in some arena
+    std::deque<RayStream> arena;        // shells this worker created (stable addresses)
+    std::vector<RayStream*> pending;    // children of the task being processed
+    TaskScratch scratch;
+    FrameStats stats;
+    uint64_t empty_polls = 0;
+    uint64_t primary = 0;
+    size_t borrow = 0;
+    size_t borrow_shell = 0;
+  };
+
+  static Q MakeQueue(int n) {
+    if constexpr (Q::kKind == QueueKind::kLockFree) {
+      return Q(n, /*reserve_nodes=*/4096);
+    } else {
+      return Q(n);
+    }
+  }
+
+  // Listing 2, lines 4-10, on thread w.
+  void Work(int w) {
+    Worker& me = *workers_[static_cast<size_t>(w)];
+    RayStream* task = nullptr;
+    int spins = 0;
+    for (;;) {
+      if (queue_.TryPop(w, task)) {
+        spins = 0;
+        try {
+          ProcessTask(ctx_, task->view(), *fb_, me, me.scratch, me.stats);
+          const int64_t k = static_cast<int64_t>(me.pending.size());
+          if constexpr (kShared) outstanding_.fetch_add(k - 1, std::memory_order_acq_rel);
+          for (RayStream* child : me.pending) queue_.Push(w, std::move(child));
+        } catch (...) {
+          // Other threads stop polling; the frame is abandoned (End drains the queues).
+          abort_.store(true, std::memory_order_relaxed);
+          for (RayStream* child : me.pending) me.Retire(child);
+          me.pending.clear();
+          me.Retire(task);
+          throw;
+        }
+        me.pending.clear();
+        me.Retire(task);
+        continue;
+      }
+      ++me.empty_polls;
+      if constexpr (!kShared) return;  // LOCAL: nobody else feeds this queue
+      if (outstanding_.load(std::memory_order_acquire) == 0) return;
+      if (abort_.load(std::memory_order_relaxed)) return;
+      // Others are still processing tasks that may spawn children. Pause, and give the core
+      // away now and then: with more threads than cores the producer may be descheduled.
+      if (++spins < 64) {
+        queue_detail::CpuRelax();
+      } else {
+        spins = 0;
+        std::this_thread::yield();
+      }
+    }
+  }
+
+  // Application thread, threads parked: empties the queues after an aborted frame.
+  void Drain() {
+    const int n = options_.threads;
+    RayStream* task = nullptr;
+    for (int w = 0; w < n; ++w) {
+      while (queue_.TryPop(w, task)) workers_[static_cast<size_t>(w)]->Retire(task);
+    }
+    outstanding_.store(0, std::memory_order_relaxed);
+  }
+
+  Q queue_;
+  std::vector<std::unique_ptr<Worker>> workers_;  // [0, n) render threads, n = application
+  alignas(kQueueFalseSharing) std::atomic<int64_t> outstanding_{0};
+  alignas(kQueueFalseSharing) std::atomic<bool> abort_{false};
+  std::unique_ptr<FrameLoop> loop_;  // last: its threads use everything above
+};
+
+// ---------------------------------------------------------------------------------------------
+// tiles: an atomic tile counter (Benthin et al. 3.9) or PBT tile lists (Cosenza et al.).
+
+class TilesImpl final : public HostRenderer::Impl {
+ public:
+  explicit TilesImpl(const BackendOptions& options) : Impl(options) {
+    for (int w = 0; w < options.threads; ++w) workers_.push_back(std::make_unique<Worker>());
+    loop_ = std::make_unique<FrameLoop>(options.threads, [this](int w) { Work(w); });
+  }
+  ~TilesImpl() override { loop_.reset(); }
+
+  const Pbt* pbt() const override { return pbt_.get(); }
+
+  void Begin(const std::vector<Tile>* tiles) override {
+    const bool use_pbt = options_.pbt_tiles_per_worker > 0;
+    if (use_pbt && tiles != nullptr) {
+      throw Error("tiles backend: explicit tiles cannot be combined with PBT tiling");
+    }
+    if (use_pbt) {
+      PreparePbt();
+    } else if (tiles != nullptr) {
+      tiles_ = *tiles;
+    } else {
+      tiles_ = GridTiles(ctx_.options.width, ctx_.options.height, options_.tile_width,
+                         options_.tile_height);
+    }
+    records_.assign(tiles_.size(), TileRecord{});
+    for (auto& w : workers_) {
+      w->stats = FrameStats();
+      w->ticks = 0;
+      w->ops = 0;
+      w->tiles = 0;
+    }
+    next_.store(0, std::memory_order_relaxed);  // published by the opening barrier
+    loop_->Release();
+  }
+
+  void End() override {
+    std::exception_ptr error;
+    try {
+      loop_->Wait();
+    } catch (...) {
+      error = std::current_exception();
+    }
+    const int n = options_.threads;
+    stats_.threads.assign(static_cast<size_t>(n), ThreadStats{});
+    FrameStats total;
+    const double tick = QueueClock::SecondsPerTick();
+    for (int w = 0; w < n; ++w) {
+      const Worker& me = *workers_[static_cast<size_t>(w)];
+      ThreadStats& t = stats_.threads[static_cast<size_t>(w)];
+      t.work = me.stats;
+      t.busy_seconds = loop_->times()[static_cast<size_t>(w)].busy_seconds;
+      t.idle_seconds = loop_->times()[static_cast<size_t>(w)].idle_seconds;
+      t.queue_seconds = static_cast<double>(me.ticks) * tick;
+      t.queue_ops = me.ops;
+      t.tiles = me.tiles;
+      total.Merge(me.stats);
+    }
+    stats_.total = total;
+    stats_.tiles = records_;
+    stats_.primary_tasks = 0;
+    stats_.app_queue_seconds = 0;
+    if (error) std::rethrow_exception(error);
+    if (options_.pbt_tiles_per_worker > 0) FinishPbt();
+  }
+
+ private:
+  struct alignas(kQueueFalseSharing) Worker {
+    LocalFifo fifo;
+    FrameStats stats;
+    uint64_t ticks = 0;  // QueueClock ticks inside the tile counter
+    uint64_t ops = 0;
+    uint64_t tiles = 0;
+  };
+
+  // tw x th tiles in row-major order (partial at the right and bottom), clamped to the image.
+  static std::vector<Tile> GridTiles(int width, int height, int tw, int th) {
+    std::vector<Tile> tiles;
+    tw = std::min(tw, width);
+    th = std::min(th, height);
+    for (int y = 0; y < height; y += th) {
+      for (int x = 0; x < width; x += tw) {
+        tiles.push_back(Tile{x, y, std::min(x + tw, width), std::min(y + th, height)});
+      }
+    }
+    return tiles;
+  }
+
+  void RenderTile(Worker& me, int thread, int worker, size_t i) {
+    const Clock::time_point wall0 = Clock::now();
+    const double cpu0 = ThreadCpuSeconds();
+    const uint64_t rays0 = me.stats.TotalRays();
+    me.fifo.RenderTile(ctx_, tiles_[i], *fb_, me.stats);
+    TileRecord& r = records_[i];  // this tile is ours alone (counter RMW or assignment)
+    r.tile = tiles_[i];
+    r.thread = thread;
+    r.worker = worker;
+    r.cpu_seconds = ThreadCpuSeconds() - cpu0;
+    r.seconds = Seconds(wall0, Clock::now());
+    r.predicted = i < predicted_.size() ? predicted_[i] : -1.0;
+    r.rays = me.stats.TotalRays() - rays0;
+    ++me.tiles;
+  }
+
+  void Work(int w) {
+    Worker& me = *workers_[static_cast<size_t>(w)];
+    if (options_.pbt_tiles_per_worker > 0) {
+      // Thread w runs the lists of (virtual) workers w, w + threads, ... in list order.
+      const size_t lists = assignment_.tiles.size();
+      for (size_t v = static_cast<size_t>(w); v < lists; v += workers_.size()) {
+        for (const int32_t i : assignment_.tiles[v]) {
+          RenderTile(me, w, static_cast<int>(v), static_cast<size_t>(i));
+        }
+      }
+      return;
+    }
+    const size_t count = tiles_.size();
+    for (;;) {
+      // The counter only has to hand each index to one thread: relaxed RMW. The tile list was
+      // published by the opening barrier, the records are read after the closing one.
+      const uint64_t t0 = options_.queue_stats ? QueueClock::Now() : 0;
+      const size_t i = next_.fetch_add(1, std::memory_order_relaxed);
+      if (options_.queue_stats) me.ticks += QueueClock::Now() - t0;
+      ++me.ops;
+      if (i >= count) return;
+      RenderTile(me, w, w, i);
+    }
+  }
+
+  int PbtWorkers() const {
+    return options_.pbt_workers > 0 ? options_.pbt_workers : options_.threads;
+  }
+
+  Assignment Assign(uint64_t frame) const {
+    const int n = PbtWorkers();
+    switch (options_.assign) {
+      case PbtAssign::kGreedy:
+        return AssignPbtGreedy(*pbt_);
+      case PbtAssign::kVisit:
+        return AssignPbtVisit(*pbt_);
+      case PbtAssign::kStatic:
+        return AssignRandom(pbt_->Estimates(), n, options_.seed);
+      case PbtAssign::kRandom:
+        break;
+    }
+    // A different permutation each frame (splitmix-style mix of seed and frame).
+    return AssignPbtRandom(*pbt_, options_.seed ^ (0x9E3779B97F4A7C15ull * (frame + 1)));
+  }
+
+  void PreparePbt() {
+    const int width = ctx_.options.width;
+    const int height = ctx_.options.height;
+    if (!pbt_ || pbt_->width() != width || pbt_->height() != height) {
+      pbt_ = std::make_unique<Pbt>(width, height, PbtWorkers(), options_.pbt_tiles_per_worker);
+      assignment_ = Assign(0);
+      has_prediction_ = false;
+      static_times_.clear();
+    }
+    tiles_ = pbt_->Tiles();
+    predicted_.assign(tiles_.size(), -1.0);
+    if (has_prediction_) {
+      if (options_.assign == PbtAssign::kStatic) {
+        predicted_ = static_times_;  // the same tile's time in the previous frame
+      } else {
+        predicted_ = pbt_->Estimates();
+      }
+    }
+  }
+
+  void FinishPbt() {
+    std::vector<double> measured(records_.size());
+    for (size_t i = 0; i < records_.size(); ++i) {
+      measured[i] = options_.pbt_cpu_time ? records_[i].cpu_seconds : records_[i].seconds;
+    }
+    stats_.pbt = true;
+    stats_.has_prediction = has_prediction_;
+    stats_.accuracy = PredictionAccuracy{};
+    if (has_prediction_) stats_.accuracy = MeasurePredictionAccuracy(predicted_, measured);
+    stats_.worker_imbalance = FrameImbalance(WorkerTimes(assignment_, measured));
+    stats_.predicted_makespan = has_prediction_ ? assignment_.PredictedMakespan() : 0.0;
+    stats_.update = PbtUpdateStats{};
+    if (options_.assign == PbtAssign::kStatic) {
+      static_times_ = measured;  // tiling and assignment stay as they are
+    } else {
+      stats_.update = pbt_->Update(measured);  // Algorithm 1 between frames
+      assignment_ = Assign(frames_ + 1);
+    }
+    has_prediction_ = true;
+  }
+
+  std::vector<std::unique_ptr<Worker>> workers_;
+  std::vector<Tile> tiles_;
+  std::vector<TileRecord> records_;
+  std::vector<double> predicted_;
+  alignas(kQueueFalseSharing) std::atomic<size_t> next_{0};
+  std::unique_ptr<Pbt> pbt_;
+  Assignment assignment_;
+  std::vector<double> static_times_;
+  bool has_prediction_ = false;
+  std::unique_ptr<FrameLoop> loop_;  // last: its threads use everything above
+};
+
+template <template <class, class> class Queue>
+std::unique_ptr<HostRenderer::Impl> MakeQueueImpl(const BackendOptions& o) {
+  if (o.queue_stats) return std::make_unique<QueueImpl<Queue<RayStream*, QueueTimeStats>>>(o);
+  return std::make_unique<QueueImpl<Queue<RayStream*, NoQueueStats>>>(o);
+}
+
+// Unconstrained two-parameter aliases, so the three queues fit one template template parameter.
+template <class T, class S>
+using LockQueueOf = LockQueue<T, S>;
+template <class T, class S>
+using LockFreeQueueOf = LockFreeQueue<T, S>;
+template <class T, class S>
+using LocalQueuesOf = LocalQueues<T, S>;
+
+}  // namespace
+
+// ---------------------------------------------------------------------------------------------
+// HostRenderer.
+
+HostRenderer::HostRenderer(const BackendOptions& options) {
+  ValidateBackendOptions(options);
+  switch (options.kind) {
+    case BackendKind::kSerial:
+      impl_ = std::make_unique<SerialImpl>(options);
+      break;
+    case BackendKind::kLock:
+      impl_ = MakeQueueImpl<LockQueueOf>(options);
+      break;
+    case BackendKind::kLockFree:
+      impl_ = MakeQueueImpl<LockFreeQueueOf>(options);
+      break;
+    case BackendKind::kLocal:
+      impl_ = MakeQueueImpl<LocalQueuesOf>(options);
+      break;
+    case BackendKind::kTiles:
+      impl_ = std::make_unique<TilesImpl>(options);
+      break;
+  }
+}
+
+HostRenderer::~HostRenderer() = default;
+
+const BackendOptions& HostRenderer::options() const { return impl_->options_; }
+bool HostRenderer::in_frame() const { return impl_->in_frame_; }
+uint64_t HostRenderer::frames() const { return impl_->frames_; }
+const Pbt* HostRenderer::pbt() const { return impl_->pbt(); }
+
+namespace {
+
+void CheckFrame(const FrameContext& ctx, const Framebuffer& fb, bool in_frame) {
+  if (in_frame) throw Error("renderer: BeginFrame while a frame is running (call EndFrame)");
+  if (ctx.scene == nullptr || ctx.accel == nullptr) {
+    throw Error("renderer: frame context without scene or acceleration structure");
+  }
+  if (fb.width() != ctx.options.width || fb.height() != ctx.options.height) {
+    throw Error(fmt::format("renderer: framebuffer {}x{} does not match the image {}x{}",
+                            fb.width(), fb.height(), ctx.options.width, ctx.options.height));
+  }
+}
+
+}  // namespace
+
+void HostRenderer::BeginFrame(const FrameContext& ctx, Framebuffer& fb) {
+  CheckFrame(ctx, fb, impl_->in_frame_);
+  impl_->begin_ = Clock::now();
+  impl_->ctx_ = ctx;
+  impl_->fb_ = &fb;
+  impl_->Begin(nullptr);
+  impl_->in_frame_ = true;
+}
+
+void HostRenderer::BeginFrame(const FrameContext& ctx, Framebuffer& fb,
+                              std::span<const Tile> tiles) {
+  CheckFrame(ctx, fb, impl_->in_frame_);
+  std::vector<Tile> list(tiles.begin(), tiles.end());
+  for (size_t i = 0; i < list.size(); ++i) {
+    const Tile& t = list[i];
+    const bool empty = t.x1 <= t.x0 || t.y1 <= t.y0;
+    if (!empty && (t.x0 < 0 || t.y0 < 0 || t.x1 > ctx.options.width || t.y1 > ctx.options.height)) {
+      throw Error(fmt::format("renderer: tile {} [{}, {}) x [{}, {}) is outside the {}x{} image",
+                              i, t.x0, t.x1, t.y0, t.y1, ctx.options.width, ctx.options.height));
+    }
+  }
+  impl_->begin_ = Clock::now();
+  impl_->ctx_ = ctx;
+  impl_->fb_ = &fb;
+  impl_->Begin(&list);
+  impl_->in_frame_ = true;
+}
+
+const HostFrameStats& HostRenderer::EndFrame() {
+  if (!impl_->in_frame_) throw Error("renderer: EndFrame without BeginFrame");
+  impl_->in_frame_ = false;
+  HostFrameStats& s = impl_->stats_;
+  s = HostFrameStats{};
+  s.frame = impl_->frames_;
+  s.backend = impl_->options_.kind;
+  struct Count {  // frames_ advances even when End rethrows
+    uint64_t& frames;
+    ~Count() { ++frames; }
+  } count{impl_->frames_};
+  impl_->End();
+  const Clock::time_point done = Clock::now();
+  s.total.total_seconds = Seconds(impl_->begin_, done);
+  s.render_seconds = 0;
+  if (impl_->options_.kind != BackendKind::kSerial) {
+    double render = 0;
+    for (const ThreadStats& t : s.threads) render = std::max(render, t.busy_seconds + t.idle_seconds);
+    s.render_seconds = render;
+  }
+  s.imbalance = Imbalance(s.threads);
+  return s;
+}
+
+const HostFrameStats& HostRenderer::RenderFrame(const FrameContext& ctx, Framebuffer& fb,
+                                                const std::function<void()>& app_logic) {
+  BeginFrame(ctx, fb);
+  if (app_logic) {
+    try {
+      app_logic();
+    } catch (...) {
+      try {
+        EndFrame();
+      } catch (...) {
+      }
+      throw;
+    }
+  }
+  return EndFrame();
+}
+
+// ---------------------------------------------------------------------------------------------
+// Export.
+
+namespace {
+
+using Json = nlohmann::ordered_json;
+
+bool EndsWith(const std::string& s, std::string_view suffix) {
+  if (s.size() < suffix.size()) return false;
+  for (size_t i = 0; i < suffix.size(); ++i) {
+    const char c = s[s.size() - suffix.size() + i];
+    const char l = (c >= 'A' && c <= 'Z') ? static_cast<char>(c - 'A' + 'a') : c;
+    if (l != suffix[i]) return false;
+  }
+  return true;
+}
+
+Json RaysJson(const FrameStats& s) {
+  Json rays = Json::object();
+  for (int k = 0; k < kNumRayKinds; ++k) rays[RayKindName(RayKind(k))] = s.rays[k];
+  return rays;
+}
+
+Json FrameJson(const HostFrameStats& f) {
+  const FrameStats& s = f.total;
+  Json j{{"frame", f.frame},
+         {"rays", RaysJson(s)},
+         {"tasks", s.tasks},
+         {"cell_steps", s.trace.cell_steps},
+         {"triangle_tests", s.trace.triangle_tests},
+         {"seconds", s.total_seconds},
+         {"fps", f.FramesPerSecond()},
+         {"render_seconds", f.render_seconds},
+         {"generate_seconds", s.generate_seconds},
+         {"trace_seconds", s.trace_seconds},
+         {"shade_seconds", s.shade_seconds},
+         {"mrays_per_second", s.MraysPerSecond()},
+         {"primary_tasks", f.primary_tasks},
+         {"idle_seconds", f.IdleSeconds()},
+         {"queue_seconds", f.QueueSeconds()},
+         {"app_queue_seconds", f.app_queue_seconds},
+         {"imbalance", f.imbalance}};
+  Json threads = Json::array();
+  for (size_t w = 0; w < f.threads.size(); ++w) {
+    const ThreadStats& t = f.threads[w];
+    threads.push_back(Json{{"thread", w},
+                           {"busy_seconds", t.busy_seconds},
+                           {"idle_seconds", t.idle_seconds},
+                           {"queue_seconds", t.queue_seconds},
+                           {"queue_ops", t.queue_ops},
+                           {"empty_polls", t.empty_polls},
+                           {"tasks", t.work.tasks},
+                           {"tiles", t.tiles},
+                           {"rays", RaysJson(t.work)},
+                           {"trace_seconds", t.work.trace_seconds},
+                           {"shade_seconds", t.work.shade_seconds}});
+  }
+  j["threads"] = threads;
+  if (!f.tiles.empty()) {
+    Json tiles = Json::array();
+    for (const TileRecord& r : f.tiles) {
+      tiles.push_back(Json{{"x0", r.tile.x0},
+                           {"y0", r.tile.y0},
+                           {"x1", r.tile.x1},
+                           {"y1", r.tile.y1},
+                           {"thread", r.thread},
+                           {"worker", r.worker},
+                           {"seconds", r.seconds},
+                           {"cpu_seconds", r.cpu_seconds},
+                           {"predicted_seconds", r.predicted},
+                           {"rays", r.rays}});
+    }
+    j["tiles"] = tiles;
+  }
+  if (f.pbt) {
+    Json pbt{{"has_prediction", f.has_prediction},
+             {"worker_imbalance", f.worker_imbalance},
+             {"predicted_makespan", f.predicted_makespan},
+             {"update_steps", f.update.steps},
+             {"variance_before", f.update.variance_before},
+             {"variance_after", f.update.variance_after}};
+    if (f.has_prediction) {
+      pbt["within5"] = f.accuracy.within5;
+      pbt["within10"] = f.accuracy.within10;
+      pbt["within15"] = f.accuracy.within15;
+    }
+    j["pbt"] = pbt;
+  }
+  return j;
+}
+
+// CSV: one header, then per frame the rows
+//   scope=frame  (index -1; seconds = frame wall time, busy = render time, idle/queue = sums)
+//   scope=app    (index -1; seconds = primary generation, queue = PushPrimary time,
+//                 tasks = primary tasks)
+//   scope=thread (index = thread)
+//   scope=tile   (index = tile; seconds = wall time, worker = PBT worker, predicted, cpu)
+// Columns that do not apply are empty.
+enum CsvColumn : int {
+  kFrame, kScope, kIndex, kThread, kWorker, kSeconds, kBusy, kIdle, kQueue, kQueueOps,
+  kEmptyPolls, kTasks, kTiles, kRays, kPrimary, kShadow, kReflection, kRefraction, kX0, kY0,
+  kX1, kY1, kCpu, kPredicted, kImbalance, kWorkerImbalance, kWithin5, kWithin10, kWithin15,
+  kNumCsvColumns
+};
+constexpr const char* kCsvNames[kNumCsvColumns] = {
+    "frame", "scope", "index", "thread", "worker", "seconds", "busy_seconds", "idle_seconds",
+    "queue_seconds", "queue_ops", "empty_polls", "tasks", "tiles", "rays", "primary", "shadow",
+    "reflection", "refraction", "x0", "y0", "x1", "y1", "cpu_seconds", "predicted_seconds",
+    "imbalance", "worker_imbalance", "within5", "within10", "within15"};
+
+class CsvRow {
+ public:
+  template <class T>
+  CsvRow& Set(CsvColumn c, const T& value) {
+    cells_[c] = fmt::format("{}", value);
+    return *this;
+  }
+  CsvRow& SetRays(const FrameStats& s) {
+    Set(kRays, s.TotalRays());
+    for (int k = 0; k < kNumRayKinds; ++k) Set(static_cast<CsvColumn>(kPrimary + k), s.rays[k]);
+    return *this;
+  }
+  void Write(std::ostream& out) const {
+    for (int c = 0; c < kNumCsvColumns; ++c) out << (c ? "," : "") << cells_[c];
+    out << "\n";
+  }
+
+ private:
+  std::string cells_[kNumCsvColumns];
+};
+
+void WriteCsv(std::ostream& out, std::span<const HostFrameStats> frames) {
+  for (int c = 0; c < kNumCsvColumns; ++c) out << (c ? "," : "") << kCsvNames[c];
+  out << "\n";
+  for (const HostFrameStats& f : frames) {
+    const FrameStats& s = f.total;
+    CsvRow frame;
+    frame.Set(kFrame, f.frame).Set(kScope, "frame").Set(kIndex, -1).Set(kSeconds, s.total_seconds);
+    frame.Set(kBusy, f.render_seconds).Set(kIdle, f.IdleSeconds()).Set(kQueue, f.QueueSeconds());
+    frame.Set(kTasks, s.tasks).Set(kTiles, f.tiles.size()).SetRays(s).Set(kImbalance, f.imbalance);
+    if (f.pbt) {
+      frame.Set(kWorkerImbalance, f.worker_imbalance);
+      if (f.has_prediction) {
+        frame.Set(kWithin5, f.accuracy.within5).Set(kWithin10, f.accuracy.within10);
+        frame.Set(kWithin15, f.accuracy.within15);
+      }
+    }
+    frame.Write(out);
+    CsvRow app;
+    app.Set(kFrame, f.frame).Set(kScope, "app").Set(kIndex, -1).Set(kSeconds, s.generate_seconds);
+    app.Set(kQueue, f.app_queue_seconds).Set(kTasks, f.primary_tasks).Write(out);
+    for (size_t w = 0; w < f.threads.size(); ++w) {
+      const ThreadStats& t = f.threads[w];
+      CsvRow row;
+      row.Set(kFrame, f.frame).Set(kScope, "thread").Set(kIndex, w).Set(kThread, w);
+      row.Set(kBusy, t.busy_seconds).Set(kIdle, t.idle_seconds).Set(kQueue, t.queue_seconds);
+      row.Set(kQueueOps, t.queue_ops).Set(kEmptyPolls, t.empty_polls).Set(kTasks, t.work.tasks);
+      row.Set(kTiles, t.tiles).SetRays(t.work).Write(out);
+    }
+    for (size_t i = 0; i < f.tiles.size(); ++i) {
+      const TileRecord& r = f.tiles[i];
+      CsvRow row;
+      row.Set(kFrame, f.frame).Set(kScope, "tile").Set(kIndex, i).Set(kThread, r.thread);
+      row.Set(kWorker, r.worker).Set(kSeconds, r.seconds).Set(kRays, r.rays);
+      row.Set(kX0, r.tile.x0).Set(kY0, r.tile.y0).Set(kX1, r.tile.x1).Set(kY1, r.tile.y1);
+      row.Set(kCpu, r.cpu_seconds);
+      if (r.predicted >= 0) row.Set(kPredicted, r.predicted);
+      row.Write(out);
+    }
+  }
+}
+
+}  // namespace
+
+bool StatsFileFormatOk(const std::string& path) {
+  return EndsWith(path, ".json") || EndsWith(path, ".csv");
+}
+
+void WriteHostStats(const std::string& path, const std::string& scene,
+                    const BackendOptions& options, std::span<const HostFrameStats> frames) {
+  if (!StatsFileFormatOk(path)) {
+    throw Error(fmt::format("{}: statistics file must end in .json or .csv", path));
+  }
+  std::ofstream f(path);
+  if (!f) throw Error(fmt::format("{}: cannot write statistics file", path));
+  if (EndsWith(path, ".csv")) {
+    WriteCsv(f, frames);
+  } else {
+    Json backend{{"name", BackendName(options.kind)}, {"threads", options.threads}};
+    if (options.kind == BackendKind::kTiles) {
+      backend["tile"] = fmt::format("{}x{}", options.tile_width, options.tile_height);
+      backend["pbt_tiles_per_worker"] = options.pbt_tiles_per_worker;
+      if (options.pbt_tiles_per_worker > 0) {
+        backend["pbt_workers"] = options.pbt_workers > 0 ? options.pbt_workers : options.threads;
+        backend["assign"] = PbtAssignName(options.assign);
+        backend["pbt_time"] = options.pbt_cpu_time ? "cpu" : "wall";
+      }
+    }
+    Json j{{"scene", scene},
+           {"backend", BackendName(options.kind)},
+           {"threads", options.threads},
+           {"hardware_threads", std::thread::hardware_concurrency()},
+           {"options", backend}};
+    Json list = Json::array();
+    for (const HostFrameStats& frame : frames) list.push_back(FrameJson(frame));
+    j["frames"] = list;
+    f << j.dump(2) << "\n";
+  }
+  f.flush();
+  if (!f) throw Error(fmt::format("{}: cannot write statistics file", path));
+}
+
+}  // namespace rs

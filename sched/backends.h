@@ -1,0 +1,187 @@
+// Host scheduling backends behind one renderer: serial (the reference), the iRT queues LOCK /
+// LFREE / LOCAL (Nunes & Santos) on the FrameLoop, and image tiles handed out by an atomic counter
+// (Benthin et al. 3.9) or assigned from a Prediction Binary Tree (Cosenza et al.). All run
+// ProcessTask on the same rays, so they produce the same framebuffer bit for bit.
+#pragma once
+
+#include <cstddef>
+#include <cstdint>
+#include <functional>
+#include <memory>
+#include <span>
+#include <string>
+#include <string_view>
+#include <vector>
+
+#include "sched/framebuffer.h"
+#include "sched/pbt.h"
+#include "sched/render.h"
+#include "streams/raygen.h"
+
+namespace rs {
+
+enum class BackendKind : int {
+  kSerial = 0,    // SerialRenderer on the calling thread (no render threads)
+  kLock = 1,      // one shared two-lock FIFO (queue_lock.h)
+  kLockFree = 2,  // one shared Michael-Scott lock-free FIFO (queue_lockfree.h)
+  kLocal = 3,     // one private FIFO per thread, primary tasks dealt round-robin (queue_local.h)
+  kTiles = 4,     // image tiles: atomic tile counter, or PBT tiling with per-worker tile lists
+};
+
+// "serial", "lock", "lfree", "local", "tiles" (ParseBackendKind also takes upper case and
+// "lockfree"). Parse returns false for anything else and leaves *kind unchanged.
+const char* BackendName(BackendKind kind);
+bool ParseBackendKind(std::string_view name, BackendKind* kind);
+std::vector<std::string> BackendNames();
+
+// How the tiles backend assigns PBT tiles to workers (only with pbt_tiles_per_worker > 0).
+enum class PbtAssign : int {
+  kRandom = 0,  // PBT-Random: PBT updated every frame, tiles dealt by a seeded permutation
+                // (a different seed each frame)
+  kGreedy = 1,  // PBT-Greedy: PBT updated, each tile to its affine worker (pbt.h)
+  kVisit = 2,   // PBT-Visit: PBT updated, in-order runs of equal predicted load
+  kStatic = 3,  // baseline: the initial PBT tiling, never updated, random assignment with the
+                // same seed every frame (the paper's "static random assignment")
+};
+const char* PbtAssignName(PbtAssign assign);
+bool ParsePbtAssign(std::string_view name,
+                    PbtAssign* assign);  // "random" "greedy" "visit" "static"
+
+struct BackendOptions {
+  BackendKind kind = BackendKind::kSerial;
+  int threads = 1;  // render threads, [1, FrameLoop::kMaxThreads]; serial needs 1
+  // Tiles backend without PBT: tile_width x tile_height tiles in row-major order (partial at the
+  // right and bottom; clamped to the image), handed out by an atomic counter. Any shape works:
+  // 8x8, 32x32, 40x32, 640x2, W x 1 (single rows).
+  int tile_width = 32;
+  int tile_height = 32;
+  // Tiles backend: k > 0 switches to a PBT tiling of m = k * n tiles, n = pbt_workers (0: n =
+  // threads). The PBT's n worker lists are run by the threads in turn: thread t runs the lists
+  // of workers t, t + threads, ... (each in list order). No stealing between lists: a thread
+  // that finishes early idles at the barrier, as in the paper's static assignment.
+  int pbt_tiles_per_worker = 0;
+  int pbt_workers = 0;
+  PbtAssign assign = PbtAssign::kRandom;
+  uint64_t seed = 1;  // PBT-Random / static assignment
+  // Which tile time PBT-Update gets: wall-clock (false, the paper's) or the rendering thread's
+  // CPU time (true; steadier when threads outnumber cores or the machine is shared).
+  bool pbt_cpu_time = false;
+  // Time queue operations (LOCK/LFREE/LOCAL) and tile-counter accesses (tiles), the paper's
+  // Fig. 7. Costs two time-stamp reads per operation.
+  bool queue_stats = true;
+};
+
+// Throws rs::Error naming the option: threads outside [1, FrameLoop::kMaxThreads], serial with
+// threads != 1, tile sizes < 1, pbt_tiles_per_worker < 0 or > 4096, pbt_workers < 0 or > 65536,
+// PBT options on a backend other than tiles, unknown enum values.
+void ValidateBackendOptions(const BackendOptions& options);
+
+// Per render thread, one frame.
+struct ThreadStats {
+  FrameStats work;           // rays by kind, tasks, trace/shade times of what this thread ran
+  double busy_seconds = 0;   // release -> arrival at the closing barrier (FrameLoopTimes)
+  double idle_seconds = 0;   // at the closing barrier (paper Fig. 6)
+  double queue_seconds = 0;  // inside queue operations / tile-counter accesses (Fig. 7)
+  uint64_t queue_ops = 0;
+  uint64_t empty_polls = 0;  // TryPop calls that found EMPTY
+  uint64_t tiles = 0;        // tiles rendered (tiles backend)
+};
+
+// One tile of the tiles backend, one frame.
+struct TileRecord {
+  Tile tile;
+  int32_t thread = -1;     // render thread that ran it
+  int32_t worker = -1;     // PBT: the (virtual) worker whose list held it; else = thread
+  double seconds = 0;      // wall time: primary generation + the tile's whole ray tree
+  double cpu_seconds = 0;  // the thread's CPU time for the same span
+  double predicted = -1;   // PBT: the estimate e(l) this frame was tiled with (-1: none)
+  uint64_t rays = 0;       // rays traced for this tile, all kinds
+};
+
+struct HostFrameStats {
+  uint64_t frame = 0;  // frames rendered before this one by the renderer
+  BackendKind backend = BackendKind::kSerial;
+  // Merged over the threads and the application thread (generate_seconds = the application's
+  // primary generation); total_seconds = BeginFrame start -> closing barrier completion.
+  FrameStats total;
+  double render_seconds = 0;     // opening -> closing barrier completion (0 for serial)
+  double app_queue_seconds = 0;  // application thread inside PushPrimary
+  uint64_t primary_tasks = 0;
+  std::vector<ThreadStats> threads;  // one per render thread (serial: one)
+  std::vector<TileRecord> tiles;     // tiles backend: one per tile, in tile order
+  // max / mean of the threads' busy_seconds (>= 1; 1 when the mean is 0).
+  double imbalance = 1.0;
+
+  // PBT (tiles backend with pbt_tiles_per_worker > 0).
+  bool pbt = false;
+  bool has_prediction = false;    // tiles carry predictions (not the first PBT frame)
+  PredictionAccuracy accuracy;    // predicted vs measured tile times (if has_prediction)
+  double worker_imbalance = 1.0;  // FrameImbalance(WorkerTimes(assignment, tile times))
+  double predicted_makespan = 0;  // the assignment's predicted max worker load
+  PbtUpdateStats update;          // the PBT-Update run after this frame (not for static)
+
+  double FramesPerSecond() const { return total.total_seconds > 0 ? 1.0 / total.total_seconds : 0; }
+  double IdleSeconds() const;   // sum over threads
+  double QueueSeconds() const;  // sum over threads + application (aggregate, Fig. 7)
+};
+
+// The renderer an application drives (listing 3):
+//   HostRenderer r({.kind = BackendKind::kLockFree, .threads = 4});
+//   while (running) {
+//     FrameContext ctx = MakeFrameContext(scene, accel, camera, options);
+//     fb.Clear();
+//     r.BeginFrame(ctx, fb);         // primary tasks into the queue(s), threads released
+//     application_logic();           // runs while the threads render
+//     const HostFrameStats& s = r.EndFrame();   // closing barrier; fb complete
+//   }                                // ~HostRenderer: END flag, threads joined
+// or RenderFrame(ctx, fb, logic) for the three steps. Single application thread; not
+// thread-safe otherwise. The render threads are created once in the constructor.
+class HostRenderer {
+ public:
+  // Throws rs::Error (ValidateBackendOptions), std::system_error if threads cannot start.
+  explicit HostRenderer(const BackendOptions& options);
+  ~HostRenderer();
+  HostRenderer(const HostRenderer&) = delete;
+  HostRenderer& operator=(const HostRenderer&) = delete;
+
+  const BackendOptions& options() const;
+
+  // Starts a frame of the whole image: ctx is copied (its scene and accel must outlive
+  // EndFrame), fb (ctx.options.width x height, not cleared) must outlive EndFrame. Throws
+  // rs::Error if fb's size differs from ctx or a frame is already running; PBT tiles: rs::Error
+  // if the image has fewer pixels than tiles.
+  void BeginFrame(const FrameContext& ctx, Framebuffer& fb);
+  // The same for an explicit set of tiles (inside the image; may be empty: a frame with no
+  // rays). Not with PBT (throws rs::Error). Queue backends cut each tile into primary tasks; the
+  // tiles backend hands these tiles out.
+  void BeginFrame(const FrameContext& ctx, Framebuffer& fb, std::span<const Tile> tiles);
+
+  // Waits for the frame (closing barrier), gathers the statistics and, with PBT, runs
+  // PBT-Update on the measured tile times and assigns the next frame's tiles. Rethrows an
+  // exception a render thread met (the frame's image is then incomplete). The reference stays
+  // valid until the next BeginFrame.
+  const HostFrameStats& EndFrame();
+
+  // BeginFrame, app_logic() (if any) while the threads render, EndFrame.
+  const HostFrameStats& RenderFrame(const FrameContext& ctx, Framebuffer& fb,
+                                    const std::function<void()>& app_logic = {});
+
+  bool in_frame() const;
+  uint64_t frames() const;  // completed frames
+  // The PBT the next frame will be tiled with (nullptr without PBT).
+  const Pbt* pbt() const;
+
+  class Impl;
+
+ private:
+  std::unique_ptr<Impl> impl_;
+};
+
+// Writes per-frame statistics: JSON if path ends in ".json", CSV if ".csv" (one row per frame,
+// application thread, render thread and tile; see backends.cc for the columns). Throws
+// rs::Error for another extension (StatsFileFormatOk checks it up front) or an unwritable file.
+void WriteHostStats(const std::string& path, const std::string& scene,
+                    const BackendOptions& options, std::span<const HostFrameStats> frames);
+bool StatsFileFormatOk(const std::string& path);
+
+}  // namespace rs

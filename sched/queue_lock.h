@@ -1,0 +1,148 @@
+// LOCK: the two-lock unbounded FIFO of Michael & Scott (PODC 1996) / Herlihy & Shavit's
+// "unbounded total queue" (paper listing 4): a dummy head node, one lock for Push and one for
+// TryPop, so producers and consumers only meet on the dummy's `next` pointer.
+#pragma once
+
+#include <atomic>
+#include <cstddef>
+#include <memory>
+#include <mutex>
+#include <new>
+#include <type_traits>
+#include <utility>
+
+#include "sched/queue.h"
+
+namespace rs {
+
+// Multi-producer multi-consumer unbounded FIFO. Pushes serialize on tail_mutex, pops on
+// head_mutex; a push and a pop proceed in parallel unless the queue is empty.
+//
+// Nodes are recycled without a third lock or a free list (Sutter's "first/divider" scheme):
+// the producers own the consumed prefix of the list, [first_, head_), and reuse its nodes for new
+// tasks; consumers only advance head_. head_ is therefore an atomic that consumers store with
+// release (after moving the task out) and producers load with acquire (before reusing a node).
+// So after warm-up a push neither allocates nor frees, and the node memory of a frame's peak
+// queue length is kept until the queue is destroyed.
+//
+// Note: the paper's listing 4 returns `actual->value`, the value of the old dummy; the task is
+// in the new head node (head->next), as in Herlihy & Shavit. TryPop below reads the right node.
+//
+// Mutex: std::mutex (default) or rs::SpinLock. The queue's critical sections are ~50 ns, and
+// std::mutex (a futex) costs one uncontended CAS to lock and one to unlock, like the spinlock,
+// but sleeps when the holder is preempted, which matters when threads outnumber cores (this
+// machine: 2 cores). bench/queue_bench.cc measures both (LOCK vs LOCK_spin).
+template <QueueTask T, class Stats = NoQueueStats, class Mutex = std::mutex>
+class LockQueue {
+ public:
+  using value_type = T;
+  using stats_type = Stats;
+  static constexpr QueueKind kKind = QueueKind::kLock;
+
+  // num_workers >= 1 threads will pass worker ids in [0, num_workers). Throws std::bad_alloc.
+  explicit LockQueue(int num_workers) : num_workers_(num_workers), stats_(num_workers) {
+    Node* dummy = new Node;
+    head_.store(dummy, std::memory_order_relaxed);
+    tail_ = dummy;
+    first_ = dummy;
+  }
+
+  // Destroys the remaining tasks and frees every node. Not concurrent with other operations.
+  ~LockQueue() {
+    Node* node = first_;
+    Node* const head = head_.load(std::memory_order_acquire);
+    bool after_head = false;
+    while (node != nullptr) {
+      Node* next = node->next.load(std::memory_order_acquire);
+      if (after_head) std::destroy_at(node->Ptr());
+      if (node == head) after_head = true;
+      delete node;
+      node = next;
+    }
+  }
+
+  LockQueue(const LockQueue&) = delete;
+  LockQueue& operator=(const LockQueue&) = delete;
+
+  // addRays: appends the task. Any thread; worker selects the statistics slot (so with
+  // QueueTimeStats, one thread per worker id at a time, as for every WorkQueue). Throws
+  // std::bad_alloc (queue unchanged) if no consumed node can be reused and `new` fails.
+  void Push(int worker, T&& task) {
+    [[maybe_unused]] auto scope = stats_.Measure(worker);
+    Enqueue(std::move(task));
+  }
+  void Push(int worker, const T& task) requires std::copy_constructible<T> {
+    [[maybe_unused]] auto scope = stats_.Measure(worker);
+    if constexpr (std::is_nothrow_copy_constructible_v<T>) {
+      Enqueue(task);  // copied straight into the node
+    } else {
+      T copy(task);  // a throwing copy happens outside the lock, before any node is taken
+      Enqueue(std::move(copy));
+    }
+  }
+  // The application thread's push of a primary task (timed in the application slot).
+  void PushPrimary(T&& task) {
+    [[maybe_unused]] auto scope = stats_.Measure(num_workers_);
+    Enqueue(std::move(task));
+  }
+
+  // getRays: moves the oldest task into `out` and returns true, or returns false (EMPTY; `out`
+  // untouched). Any thread, as for Push.
+  bool TryPop(int worker, T& out) noexcept {
+    [[maybe_unused]] auto scope = stats_.Measure(worker);
+    std::lock_guard<Mutex> lock(head_mutex_);
+    Node* const head = head_.load(std::memory_order_relaxed);  // only consumers write head_
+    // acquire pairs with the producer's release store of `next`: the task is fully built.
+    Node* const next = head->next.load(std::memory_order_acquire);
+    if (next == nullptr) return false;
+    // The task is moved out under the lock: once head_ moves past `next`, a later pop could
+    // make `next` reusable by producers.
+    T* task = next->Ptr();
+    out = std::move(*task);
+    std::destroy_at(task);
+    // release: producers that see the new head may reuse the old dummy and everything before.
+    head_.store(next, std::memory_order_release);
+    return true;
+  }
+
+  int num_workers() const { return num_workers_; }
+  const Stats& stats() const { return stats_; }
+  Stats& stats() { return stats_; }
+
+ private:
+  struct Node {
+    std::atomic<Node*> next{nullptr};
+    alignas(T) std::byte storage[sizeof(T)];
+    T* Ptr() { return std::launder(reinterpret_cast<T*>(storage)); }
+  };
+
+  // U is T (moved) or const T& (copied; only when that copy cannot throw).
+  template <class U>
+  void Enqueue(U&& task) {
+    std::lock_guard<Mutex> lock(tail_mutex_);
+    Node* node = first_;
+    if (node != head_.load(std::memory_order_acquire)) {
+      // Reuse the oldest consumed node. Its `next` was written by a producer under this lock.
+      first_ = node->next.load(std::memory_order_relaxed);
+      node->next.store(nullptr, std::memory_order_relaxed);
+    } else {
+      node = new Node;  // may throw; nothing changed yet
+    }
+    std::construct_at(node->Ptr(), std::forward<U>(task));
+    // release: a consumer that loads this pointer with acquire sees the constructed task.
+    tail_->next.store(node, std::memory_order_release);
+    tail_ = node;
+  }
+
+  // Consumer side.
+  alignas(kQueueFalseSharing) Mutex head_mutex_;
+  std::atomic<Node*> head_;  // the dummy; written under head_mutex_, read by producers
+  // Producer side.
+  alignas(kQueueFalseSharing) Mutex tail_mutex_;
+  Node* tail_;   // last node, under tail_mutex_
+  Node* first_;  // oldest node not yet reused, under tail_mutex_
+  alignas(kQueueFalseSharing) int num_workers_;
+  [[no_unique_address]] Stats stats_;
+};
+
+}  // namespace rs

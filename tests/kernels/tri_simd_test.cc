@@ -1,0 +1,912 @@
+// Triangle packets and the SIMD ray/triangle kernels (kernels/tri_intersect.h) on every compiled
+// target vs their scalar oracles, bit for bit: random rays at unit, huge-offset and tiny scales,
+// shared edges and vertices, degenerate and padding lanes, NaN/Inf rays, (tmin, tmax] bounds,
+// stream padding sentinels, and a watertightness stress on a closed icosphere at 1e5.
+#include <doctest/doctest.h>
+
+#include <algorithm>
+#include <array>
+#include <cfloat>
+#include <cmath>
+#include <cstdint>
+#include <cstring>
+#include <limits>
+#include <map>
+#include <numeric>
+#include <string>
+#include <utility>
+#include <vector>
+
+#include "kernels/grid.h"
+#include "kernels/tri_intersect.h"
+#include "kernels/tri_packets.h"
+#include "kernels/triangle.h"
+#include "streams/ray_stream.h"
+#include "tests/kernels/geometry_util.h"
+#include "tests/test_util.h"
+
+namespace rs {
+namespace {
+
+using test::F;
+using test::Rng;
+using test::Soup;
+
+constexpr float kInf = std::numeric_limits<float>::infinity();
+constexpr float kNaN = std::numeric_limits<float>::quiet_NaN();
+constexpr TriTest kTests[] = {TriTest::kWatertight, TriTest::kMollerTrumbore};
+constexpr PacketWidth kWidths[] = {PacketWidth::kAuto, PacketWidth::kOne, PacketWidth::kTwo,
+                                   PacketWidth::kFour};
+
+std::string TestName(TriTest t) { return t == TriTest::kWatertight ? "watertight" : "moller"; }
+int WidthLanes(PacketWidth w) { return w == PacketWidth::kAuto ? 0 : int(w) * 4; }
+
+uint32_t Bits(float x) {
+  uint32_t b;
+  std::memcpy(&b, &x, sizeof(b));
+  return b;
+}
+bool SameHit(const PacketHit& a, const PacketHit& b) {
+  return Bits(a.t) == Bits(b.t) && Bits(a.u) == Bits(b.u) && Bits(a.v) == Bits(b.v) &&
+         a.prim == b.prim;
+}
+std::string HitString(const PacketHit& h) {
+  return "{t " + std::to_string(h.t) + " u " + std::to_string(h.u) + " v " + std::to_string(h.v) +
+         " prim " + std::to_string(h.prim) + "}";
+}
+
+// A triangle soup gathered into TriangleSoA, with packets for id lists.
+struct Scene {
+  Soup soup;
+  TriangleSoA tris;
+  void Finish() { BuildTriangleSoA(soup.view(), &tris); }
+};
+
+// The scalar watertight test's edge functions of one ray and triangle, in float: true if one
+// is exactly 0 (the double fallback runs). Used to prove the fallback path is exercised.
+bool HasZeroEdge(const WatertightRay& r, const float p[3][3]) {
+  const int k[3] = {r.kx, r.ky, r.kz};
+  float x[3], y[3];
+  for (int i = 0; i < 3; ++i) {
+    const float z = p[i][k[2]] - r.o[2];
+    x[i] = (p[i][k[0]] - r.o[0]) - r.sx * z;
+    y[i] = (p[i][k[1]] - r.o[1]) - r.sy * z;
+  }
+  const float u = x[2] * y[1] - y[2] * x[1], v = x[0] * y[2] - y[0] * x[2];
+  const float w = x[1] * y[0] - y[1] * x[0];
+  return u == 0.0f || v == 0.0f || w == 0.0f;
+}
+
+// Mismatch counter with the first failure's description.
+struct Mismatches {
+  size_t count = 0;
+  size_t checked = 0;
+  std::string first;
+  void Add(bool ok, const std::string& what) {
+    ++checked;
+    if (ok) return;
+    if (count++ == 0) first = what;
+  }
+};
+
+// Runs IntersectPackets and OccludedPackets with every test and width on the current target and
+// compares with ref:: bit for bit. Returns the oracle's closest hits (per test) in *want.
+void ComparePackets(const TriPacketSpan& span, const PacketRay& ray, float tmin, float tmax,
+                    const PacketHit& prior, Mismatches* mm, PacketHit want[2] = nullptr) {
+  for (const TriTest test : kTests) {
+    PacketHit ref_hit = prior;
+    const bool ref_changed = ref::IntersectPackets(ray, span, tmin, tmax, test, &ref_hit);
+    const bool ref_any = ref::OccludedPackets(ray, span, tmin, tmax, test);
+    if (want != nullptr) want[int(test)] = ref_hit;
+    for (const PacketWidth width : kWidths) {
+      PacketHit got = prior;
+      const bool changed = IntersectPackets(ray, span, tmin, tmax, test, width, &got);
+      const bool any = OccludedPackets(ray, span, tmin, tmax, test, width);
+      const std::string what =
+          std::string(TestName(test)) + " width " + std::to_string(WidthLanes(width)) + " ray o (" +
+          std::to_string(ray.o[0]) + ", " + std::to_string(ray.o[1]) + ", " +
+          std::to_string(ray.o[2]) + ") got " + HitString(got) + " want " + HitString(ref_hit);
+      mm->Add(changed == ref_changed && SameHit(got, ref_hit) && any == ref_any, what);
+    }
+  }
+}
+
+// A random ray through a random point of a random triangle of `s` (origin 0.5..3 sizes
+// before it), or with probability 1/4 a random ray near the triangles.
+PacketRay RandomRay(Rng& rng, const Scene& s, double offset, double scale, float* tmin,
+                    float* tmax) {
+  float d[3];
+  rng.Direction(d);
+  double p[3];
+  if (rng.Below(4) != 0) {
+    const uint32_t id = rng.Below(uint32_t(s.tris.size));
+    double b1 = rng.Uniform(-0.05, 1.05), b2 = rng.Uniform(-0.05, 1.05);
+    if (b1 + b2 > 1.1) {
+      b1 = 1.0 - b1;
+      b2 = 1.0 - b2;
+    }
+    for (int a = 0; a < 3; ++a) {
+      p[a] = s.tris.p[0][a][id] + b1 * (s.tris.p[1][a][id] - s.tris.p[0][a][id]) +
+             b2 * (s.tris.p[2][a][id] - s.tris.p[0][a][id]);
+    }
+  } else {
+    for (double& x : p) x = offset + rng.Uniform(-2, 2) * scale;
+  }
+  const double back = rng.Uniform(0.5, 3.0) * scale;
+  float o[3];
+  for (int a = 0; a < 3; ++a) o[a] = F(p[a] - back * d[a]);
+  // mostly (0, inf); sometimes a window around the hit
+  *tmin = 0.0f;
+  *tmax = kInf;
+  const uint32_t kind = rng.Below(8);
+  if (kind == 0) *tmin = F(back * rng.Uniform(0.5, 1.5));
+  if (kind == 1) *tmax = F(back * rng.Uniform(0.5, 1.5));
+  if (kind == 2) *tmin = -kInf;
+  return MakePacketRay(o[0], o[1], o[2], d[0], d[1], d[2]);
+}
+
+TEST_CASE("packets from a grid: per-cell ranges, id order, components, NaN padding lanes") {
+  Rng rng(3);
+  Scene s;
+  s.soup = test::RandomSoup(rng, 500, -10, 10, 2.5);
+  // a few degenerate triangles: never binned, so never in a packet
+  const float a[3] = {1, 2, 3}, b[3] = {2, 3, 4}, c[3] = {3, 4, 5};
+  s.soup.AddTriangle(a, a, b);
+  s.soup.AddTriangle(a, b, c);  // collinear
+  s.Finish();
+  REQUIRE(s.tris.num_degenerate == 2);
+  Grid grid;
+  BuildGrid(s.tris, 2.0f, 64, &grid);
+  TriPackets packets;
+  BuildTriPackets(grid, s.tris, &packets);
+  REQUIRE(packets.num_cells == grid.num_cells);
+  CHECK(packets.num_triangles == grid.num_refs);
+  size_t total = 0, bad = 0, padding = 0;
+  for (size_t cell = 0; cell < grid.num_cells; ++cell) {
+    const size_t n = grid.cell_begin[cell + 1] - grid.cell_begin[cell];
+    const TriPacketSpan span = packets.Cell(cell);
+    bad += span.count != (n + 3) / 4;
+    bad += reinterpret_cast<uintptr_t>(span.block) % 16 != 0;
+    total += span.count;
+    for (size_t j = 0; j < span.lanes(); ++j) {
+      if (j < n) {
+        const uint32_t id = grid.tri_ids[grid.cell_begin[cell] + j];
+        bad += span.ids[j] != int32_t(id);
+        for (int v = 0; v < 3; ++v) {
+          for (int ax = 0; ax < 3; ++ax) {
+            bad += Bits(span.Component(v, ax)[j]) != Bits(s.tris.p[v][ax][id]);
+          }
+        }
+      } else {
+        ++padding;
+        bad += span.ids[j] != -1;
+        for (int v = 0; v < 3; ++v) {
+          for (int ax = 0; ax < 3; ++ax) bad += !std::isnan(span.Component(v, ax)[j]);
+        }
+      }
+    }
+  }
+  CHECK(bad == 0);
+  CHECK(total == packets.num_packets);
+  CHECK(padding > 0);
+  CHECK(packets.cell_begin[grid.num_cells] == packets.num_packets);
+  MESSAGE("grid ", grid.res[0], "x", grid.res[1], "x", grid.res[2], ": ", grid.num_refs,
+          " refs in ", packets.num_packets, " packets (", padding, " padding lanes), ",
+          packets.Bytes(), " B");
+
+  // a list with degenerate ids: NaN vertices (never hit) but the id is kept; rebuild reuses
+  const uint32_t ids[] = {500, 3, 501, 3, 7};
+  BuildTriPacketList(s.tris, ids, 5, &packets);
+  REQUIRE(packets.num_cells == 1);
+  const TriPacketSpan span = packets.Cell(0);
+  REQUIRE(span.count == 2);
+  CHECK(span.ids[0] == 500);
+  CHECK(span.ids[3] == 3);
+  CHECK(span.ids[5] == -1);
+  CHECK(std::isnan(span.Component(1, 2)[0]));
+  CHECK(std::isnan(span.Component(0, 0)[2]));
+  CHECK(span.Component(2, 1)[1] == s.tris.p[2][1][3]);
+  CHECK(span.Component(2, 1)[4] == s.tris.p[2][1][7]);
+  // empty grid and empty list
+  Grid empty;
+  BuildTriPackets(empty, s.tris, &packets);
+  CHECK(packets.num_cells == 0);
+  CHECK(packets.num_packets == 0);
+  BuildTriPacketList(s.tris, ids, 0, &packets);
+  CHECK(packets.Cell(0).count == 0);
+  test::ForEachTarget([&](const char* target_name) {
+    const std::string target = target_name;
+    INFO("target: ", target);
+    PacketHit h;
+    const PacketRay ray = MakePacketRay(0, 0, 0, 1, 0, 0);
+    CHECK_FALSE(IntersectPackets(ray, packets.Cell(0), 0.0f, kInf, TriTest::kWatertight,
+                                 PacketWidth::kAuto, &h));
+    CHECK(h.prim == -1);
+  });
+}
+
+// Random rays against spans of 1..37 triangles (all step-downs of the wide loops), at unit
+// scale, a 1e5 offset, a 1e-4 scale and a 1e3 scale at -3e4, with fresh and prior hits.
+TEST_CASE("1 ray x packets: random rays and triangles match the scalar tests bit for bit") {
+  struct Config {
+    double offset, scale;
+  };
+  const Config configs[] = {{0.0, 1.0}, {1e5, 1.0}, {0.0, 1e-4}, {-3e4, 1e3}};
+  const size_t sizes[] = {1, 2, 3, 4, 5, 7, 8, 9, 12, 15, 16, 17, 20, 31, 37};
+  Rng rng(101);
+  for (const Config& cfg : configs) {
+    INFO("offset ", cfg.offset, " scale ", cfg.scale);
+    Scene s;
+    s.soup = test::RandomSoup(rng, 37, cfg.offset - 2 * cfg.scale, cfg.offset + 2 * cfg.scale,
+                              cfg.scale);
+    s.Finish();
+    std::vector<TriPackets> spans(std::size(sizes));
+    for (size_t k = 0; k < std::size(sizes); ++k) {
+      // ids in a shuffled order (a list may hold any order; ties must still pick the lowest id)
+      std::vector<uint32_t> ids(sizes[k]);
+      for (size_t j = 0; j < ids.size(); ++j) ids[j] = rng.Below(uint32_t(s.tris.size));
+      BuildTriPacketList(s.tris, ids.data(), ids.size(), &spans[k]);
+    }
+    std::vector<PacketRay> rays;
+    std::vector<std::array<float, 2>> bounds;
+    size_t zero_edges = 0;
+    for (int i = 0; i < 400; ++i) {
+      float tmin, tmax;
+      rays.push_back(RandomRay(rng, s, cfg.offset, cfg.scale, &tmin, &tmax));
+      bounds.push_back({tmin, tmax});
+    }
+    test::ForEachTarget([&](const char* target_name) {
+      const std::string target = target_name;
+      INFO("target: ", target);
+      Mismatches mm;
+      size_t hits = 0;
+      for (size_t i = 0; i < rays.size(); ++i) {
+        for (const TriPackets& p : spans) {
+          PacketHit want[2];
+          ComparePackets(p.Cell(0), rays[i], bounds[i][0], bounds[i][1], PacketHit{}, &mm, want);
+          hits += want[0].prim >= 0;
+          // a prior hit from another cell: exactly tied (the lower id must win), or closer
+          if (want[0].prim >= 0) {
+            PacketHit tie = want[0];
+            tie.prim = rng.Below(4) == 0 ? -1 : tie.prim + 1 - int32_t(rng.Below(3));
+            ComparePackets(p.Cell(0), rays[i], bounds[i][0], bounds[i][1], tie, &mm);
+            PacketHit closer = want[0];
+            closer.t = want[0].t * 0.999f;
+            closer.prim = 1000;
+            ComparePackets(p.Cell(0), rays[i], bounds[i][0], bounds[i][1], closer, &mm);
+          }
+        }
+      }
+      INFO("first mismatch: ", mm.first);
+      CHECK(mm.count == 0);
+      CHECK(hits > rays.size());  // the test is not vacuous
+    });
+    // exact-zero edge functions occur at these scales (the double fallback is exercised below
+    // by the edge/vertex cases; here we only report how often)
+    for (size_t i = 0; i < rays.size(); ++i) {
+      for (size_t id = 0; id < s.tris.size; ++id) {
+        float p[3][3];
+        for (int v = 0; v < 3; ++v) {
+          for (int a = 0; a < 3; ++a) p[v][a] = s.tris.p[v][a][id];
+        }
+        zero_edges += HasZeroEdge(rays[i].wt, p);
+      }
+    }
+    MESSAGE("offset ", cfg.offset, " scale ", cfg.scale, ": ", zero_edges,
+            " ray/triangle pairs with an exact-zero edge function");
+  }
+}
+
+// Ties inside one vector: duplicated geometry under several ids, listed in descending order.
+TEST_CASE("1 ray x packets: equal t in several lanes -> the lowest id wins, on every width") {
+  Scene s;
+  const float p0[3] = {0, 0, 0}, p1[3] = {1, 0, 0}, p2[3] = {0, 1, 0};
+  for (int k = 0; k < 12; ++k) s.soup.AddTriangle(p0, p1, p2);
+  s.Finish();
+  const uint32_t ids[] = {11, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 0};
+  TriPackets packets;
+  for (size_t n : {2, 5, 9, 12}) {
+    BuildTriPacketList(s.tris, ids + 12 - n, n, &packets);  // the n lowest ids, descending
+    const PacketRay ray = MakePacketRay(0.25f, 0.25f, 1.0f, 0.0f, 0.0f, -1.0f);
+    test::ForEachTarget([&](const char* target_name) {
+      const std::string target = target_name;
+      INFO("target: ", target, " n ", n);
+      for (const TriTest test : kTests) {
+        for (const PacketWidth width : kWidths) {
+          PacketHit h;
+          CHECK(IntersectPackets(ray, packets.Cell(0), 0.0f, kInf, test, width, &h));
+          CHECK(h.prim == 0);
+          CHECK(h.t == 1.0f);
+          // a prior hit at the same t with a lower id is kept
+          PacketHit prior;
+          prior.t = 1.0f;
+          prior.prim = 0;
+          CHECK_FALSE(IntersectPackets(ray, packets.Cell(0), 0.0f, kInf, test, width, &prior));
+        }
+      }
+    });
+  }
+}
+
+// Two triangles sharing an edge, a fan sharing a vertex: rays exactly through the shared
+// points. Watertight: some triangle is hit every time (and the hit matches the scalar test,
+// which exercises the double fallback: the edge function of the shared edge is exactly 0).
+TEST_CASE("1 ray x packets: rays through shared edges and vertices never miss (watertight)") {
+  Scene s;
+  // quad split along its diagonal, and a 6-triangle fan around (0.5, 0.5, 2)
+  const float q0[3] = {0, 0, 0}, q1[3] = {1, 0, 0}, q2[3] = {1, 1, 0}, q3[3] = {0, 1, 0};
+  s.soup.AddTriangle(q0, q1, q2);
+  s.soup.AddTriangle(q0, q2, q3);
+  const float apex[3] = {0.5f, 0.5f, 2.0f};
+  float ring[6][3];
+  for (int i = 0; i < 6; ++i) {
+    const double a = 6.283185307179586 * (i + 0.1 * (i % 3)) / 6;
+    ring[i][0] = F(std::round((0.5 + std::cos(a)) * 256) / 256);
+    ring[i][1] = F(std::round((0.5 + std::sin(a)) * 256) / 256);
+    ring[i][2] = 2.0f + 0.25f * float(i % 2);
+  }
+  for (int i = 0; i < 6; ++i) s.soup.AddTriangle(apex, ring[i], ring[(i + 1) % 6]);
+  s.Finish();
+  const uint32_t quad[] = {0, 1}, fan[] = {2, 3, 4, 5, 6, 7};
+  TriPackets quad_packets, fan_packets;
+  BuildTriPacketList(s.tris, quad, 2, &quad_packets);
+  BuildTriPacketList(s.tris, fan, 6, &fan_packets);
+  Rng rng(17);
+  std::vector<std::pair<PacketRay, int>> rays;  // ray, 0 = quad diagonal, 1 = fan apex
+  size_t zero_edges = 0;
+  for (int k = 0; k < 300; ++k) {
+    // origins on a 2^-8 lattice, targets exact: o + d hits the target exactly
+    const float o[3] = {F(std::round(rng.Uniform(-2, 3) * 256) / 256),
+                        F(std::round(rng.Uniform(-2, 3) * 256) / 256),
+                        F(std::round(rng.Uniform(1, 4) * 256) / 256)};
+    const float along = F(std::round(rng.Uniform(0, 1) * 256) / 256);
+    const float diag[3] = {along, along, 0.0f};  // on the shared diagonal q0-q2
+    const float dd[3] = {diag[0] - o[0], diag[1] - o[1], diag[2] - o[2]};
+    rays.push_back({MakePacketRay(o[0], o[1], o[2], dd[0], dd[1], dd[2]), 0});
+    const float oa[3] = {o[0], o[1], o[2] + 2.5f};  // above the fan
+    const float da[3] = {apex[0] - oa[0], apex[1] - oa[1], apex[2] - oa[2]};
+    rays.push_back({MakePacketRay(oa[0], oa[1], oa[2], da[0], da[1], da[2]), 1});
+  }
+  for (const auto& [ray, which] : rays) {
+    const auto& list = which == 0 ? quad : fan;
+    const size_t n = which == 0 ? 2 : 6;
+    for (size_t j = 0; j < n; ++j) {
+      float p[3][3];
+      for (int v = 0; v < 3; ++v) {
+        for (int a = 0; a < 3; ++a) p[v][a] = s.tris.p[v][a][list[j]];
+      }
+      zero_edges += HasZeroEdge(ray.wt, p);
+    }
+  }
+  MESSAGE(zero_edges, " ray/triangle pairs with an exact-zero edge function");
+  CHECK(zero_edges > 100);  // the double fallback really runs
+  test::ForEachTarget([&](const char* target_name) {
+    const std::string target = target_name;
+    INFO("target: ", target);
+    Mismatches mm;
+    size_t misses = 0, moller_misses = 0;
+    for (const auto& [ray, which] : rays) {
+      const TriPacketSpan span = which == 0 ? quad_packets.Cell(0) : fan_packets.Cell(0);
+      PacketHit want[2];
+      ComparePackets(span, ray, 0.0f, kInf, PacketHit{}, &mm, want);
+      for (const PacketWidth width : kWidths) {
+        PacketHit h;
+        misses += !IntersectPackets(ray, span, 0.0f, kInf, TriTest::kWatertight, width, &h);
+        misses += !OccludedPackets(ray, span, 0.0f, kInf, TriTest::kWatertight, width);
+      }
+      moller_misses += want[1].prim < 0;
+    }
+    INFO("first mismatch: ", mm.first);
+    CHECK(mm.count == 0);
+    CHECK(misses == 0);
+    MESSAGE(target, ": Moller-Trumbore misses through shared edges/vertices: ", moller_misses,
+            " of ", rays.size());
+  });
+}
+
+TEST_CASE("1 ray x packets: NaN/Inf/zero rays, NaN bounds and (tmin, tmax] limits") {
+  Scene s;
+  const float p0[3] = {0, 0, 0}, p1[3] = {1, 0, 0}, p2[3] = {0, 1, 0};
+  s.soup.AddTriangle(p0, p1, p2);
+  s.Finish();
+  const uint32_t id0 = 0;
+  TriPackets packets;
+  BuildTriPacketList(s.tris, &id0, 1, &packets);
+  const TriPacketSpan span = packets.Cell(0);
+  // the hit of (0.25, 0.25, 2) + t (0, 0, -1) is t = 2 exactly
+  const float two_below = std::nextafter(2.0f, 0.0f);
+  struct Case {
+    float o[3], d[3], tmin, tmax;
+    bool hit;
+  };
+  const Case cases[] = {
+      {{0.25f, 0.25f, 2}, {0, 0, -1}, 0, kInf, true},
+      {{0.25f, 0.25f, 2}, {0, 0, -1}, 0, 2.0f, true},        // tmax inclusive
+      {{0.25f, 0.25f, 2}, {0, 0, -1}, 0, two_below, false},  // just short
+      {{0.25f, 0.25f, 2}, {0, 0, -1}, 2.0f, kInf, false},    // tmin exclusive
+      {{0.25f, 0.25f, 2}, {0, 0, -1}, two_below, 3.0f, true},
+      {{0.25f, 0.25f, 2}, {0, 0, -1}, 3.0f, 1.0f, false},  // empty interval
+      {{0.25f, 0.25f, 2}, {0, 0, -1}, kNaN, kInf, false},
+      {{0.25f, 0.25f, 2}, {0, 0, -1}, 0, kNaN, false},
+      {{kNaN, 0.25f, 2}, {0, 0, -1}, 0, kInf, false},
+      {{0.25f, kInf, 2}, {0, 0, -1}, 0, kInf, false},
+      {{0.25f, 0.25f, 2}, {0, kNaN, -1}, 0, kInf, false},
+      {{0.25f, 0.25f, 2}, {0, 0, -kInf}, 0, kInf, false},
+      {{0.25f, 0.25f, 2}, {0, 0, 0}, 0, kInf, false},        // zero direction
+      {{0.25f, 0.25f, 2}, {0, 0, -1e-31f}, 0, kInf, false},  // |d| < kMinDirection
+      {{0.25f, 0.25f, 2}, {0, 0, -1e-20f}, 0, kInf, true},   // tiny but valid: t = 2e20
+      {{0.25f, 0.25f, 2}, {0, 0, -1e-38f}, 0, kInf, false},  // t would overflow
+      {{0.25f, 0.25f, 2}, {0, 0, 1}, 0, kInf, false},        // pointing away
+      {{0.25f, 0.25f, 2}, {0, 0, 1}, -kInf, kInf, true},     // ... but t < 0 allowed
+      {{0.25f, 0.25f, 0}, {1, 0, 0}, -kInf, kInf, false},    // in the plane (det = 0)
+  };
+  test::ForEachTarget([&](const char* target_name) {
+    const std::string target = target_name;
+    INFO("target: ", target);
+    for (const Case& c : cases) {
+      INFO("o ", c.o[0], " ", c.o[1], " ", c.o[2], " d ", c.d[0], " ", c.d[1], " ", c.d[2],
+           " tmin ", c.tmin, " tmax ", c.tmax);
+      const PacketRay ray = MakePacketRay(c.o[0], c.o[1], c.o[2], c.d[0], c.d[1], c.d[2]);
+      for (const TriTest test : kTests) {
+        INFO(TestName(test));
+        for (const PacketWidth width : kWidths) {
+          PacketHit h;
+          CHECK(IntersectPackets(ray, span, c.tmin, c.tmax, test, width, &h) == c.hit);
+          CHECK(OccludedPackets(ray, span, c.tmin, c.tmax, test, width) == c.hit);
+          CHECK((h.prim == 0) == c.hit);
+        }
+        PacketHit r;
+        CHECK(ref::IntersectPackets(ray, span, c.tmin, c.tmax, test, &r) == c.hit);
+      }
+    }
+  });
+}
+
+// Regression: Moller-Trumbore with a finite pvec but det = e1 . pvec overflowing to +inf gives
+// inv_det = 0 and u = v = t = 0, a bogus hit at t = 0 unless det is required to be finite.
+TEST_CASE("regression: Moller-Trumbore rejects an overflowed det; watertight matches scalar") {
+  Scene s;
+  const float p0[3] = {0, 0, 0}, p1[3] = {100, 0, 0}, p2[3] = {0, 10, 0};
+  s.soup.AddTriangle(p0, p1, p2);
+  s.Finish();
+  const uint32_t id0 = 0;
+  TriPackets packets;
+  BuildTriPacketList(s.tris, &id0, 1, &packets);
+  // pvec = d x e2 = (1e38, 0, 0); det = 100 * 1e38 = inf
+  const PacketRay ray = MakePacketRay(0.5f, 0.0f, 1.0f, 0.0f, 0.0f, -1e37f);
+  PacketHit want_wt;
+  const bool wt =
+      ref::IntersectPackets(ray, packets.Cell(0), -kInf, kInf, TriTest::kWatertight, &want_wt);
+  PacketHit want_mt;
+  CHECK_FALSE(
+      ref::IntersectPackets(ray, packets.Cell(0), -kInf, kInf, TriTest::kMollerTrumbore, &want_mt));
+  RayStream rays(1);
+  rays.Push(0.5f, 0.0f, 1.0f, 0.0f, 0.0f, -1e37f, -kInf, kInf, 0, 1, 1, 1, 0, RayKind::kPrimary);
+  HitStream hits(1);
+  hits.Resize(1);
+  test::ForEachTarget([&](const char* target_name) {
+    const std::string target = target_name;
+    INFO("target: ", target);
+    for (const PacketWidth width : kWidths) {
+      PacketHit h;
+      CHECK_FALSE(
+          IntersectPackets(ray, packets.Cell(0), -kInf, kInf, TriTest::kMollerTrumbore, width, &h));
+      CHECK_FALSE(
+          OccludedPackets(ray, packets.Cell(0), -kInf, kInf, TriTest::kMollerTrumbore, width));
+      PacketHit hw;
+      CHECK(IntersectPackets(ray, packets.Cell(0), -kInf, kInf, TriTest::kWatertight, width, &hw) ==
+            wt);
+      CHECK(SameHit(hw, want_wt));
+    }
+    hits.Reset();
+    IntersectStream(rays.view(), packets.Cell(0), TriTest::kMollerTrumbore, hits.view());
+    CHECK(hits.view().prim[0] == -1);
+  });
+}
+
+// ---------------------------------------------------------------------------------------------
+// N rays x triangles
+
+// Sentinels for the padding lanes of hit streams (dav1d's 0x88 trick): any write shows. The
+// t sentinel is beyond every hit and the prim sentinel is negative ("none"), so they do not
+// stop a kernel that ignores FirstN from writing there (the padding rays hit, too).
+constexpr float kSentinelT = 1.5e38f;
+constexpr float kSentinelUv = -777.0f;
+constexpr int32_t kSentinelPrim = int32_t(0x88888888u);
+
+struct StreamCase {
+  RayStream rays;
+  HitStream hits;
+  std::vector<float> t0, u0, v0;  // initial hits (copied to the stream before each run)
+  std::vector<int32_t> prim0;
+};
+
+// n rays: coherent (all d ~ -z: one permutation) or mixed; some rays invalid or with windows.
+// Padding rays are copies of ray 0 (valid, hitting): a kernel that ignores FirstN would write.
+void MakeStream(Rng& rng, const Scene& s, size_t n, bool coherent, bool prior, StreamCase* c) {
+  c->rays = RayStream(n);
+  for (size_t i = 0; i < n; ++i) {
+    float tmin, tmax;
+    PacketRay r = RandomRay(rng, s, 0.0, 1.0, &tmin, &tmax);
+    if (coherent) {
+      r = MakePacketRay(r.o[0], r.o[1], F(r.o[2] + 3.0), F(0.1 * r.d[0]), F(0.1 * r.d[1]), -1.0f);
+    }
+    if (rng.Below(16) == 0) r.o[rng.Below(3)] = rng.Below(2) ? kNaN : -kInf;
+    if (rng.Below(32) == 0) r.d[0] = r.d[1] = r.d[2] = 0.0f;
+    c->rays.Push(r.o[0], r.o[1], r.o[2], r.d[0], r.d[1], r.d[2], tmin, tmax, uint32_t(i), 1, 1, 1,
+                 0, RayKind::kPrimary);
+  }
+  RayStreamView v = c->rays.view();
+  const size_t cap = c->rays.capacity();
+  for (size_t i = n; i < cap; ++i) {
+    v.ox[i] = n > 0 ? v.ox[0] : 0.25f;
+    v.oy[i] = n > 0 ? v.oy[0] : 0.25f;
+    v.oz[i] = n > 0 ? v.oz[0] : 2.0f;
+    v.dx[i] = n > 0 ? v.dx[0] : 0.0f;
+    v.dy[i] = n > 0 ? v.dy[0] : 0.0f;
+    v.dz[i] = n > 0 ? v.dz[0] : -1.0f;
+    v.tmin[i] = 0.0f;
+    v.tmax[i] = kInf;
+  }
+  c->hits = HitStream(n);
+  c->hits.Resize(n);
+  c->hits.Reset();
+  const size_t hcap = PaddedSize(n);
+  c->t0.assign(hcap, kSentinelT);
+  c->u0.assign(hcap, kSentinelUv);
+  c->v0.assign(hcap, kSentinelUv);
+  c->prim0.assign(hcap, kSentinelPrim);
+  for (size_t i = 0; i < n; ++i) {
+    c->t0[i] = kInf;
+    c->u0[i] = c->v0[i] = 0.0f;
+    c->prim0[i] = -1;
+    if (prior && rng.Below(3) == 0) {  // a hit from an earlier cell
+      c->t0[i] = F(rng.Uniform(0.5, 3.0));
+      c->u0[i] = 0.5f;
+      c->prim0[i] = int32_t(rng.Below(40));
+    }
+  }
+}
+
+void LoadHits(StreamCase* c) {
+  const HitStreamView h = c->hits.view();
+  for (size_t i = 0; i < c->t0.size(); ++i) {
+    h.t[i] = c->t0[i];
+    h.u[i] = c->u0[i];
+    h.v[i] = c->v0[i];
+    h.prim[i] = c->prim0[i];
+  }
+}
+
+TEST_CASE("N rays x triangles: sizes 1, N-1, N+1, coherent and mixed rays, padding sentinels") {
+  Rng rng(202);
+  Scene s;
+  s.soup = test::RandomSoup(rng, 40, -2, 2, 1.0);
+  s.Finish();
+  std::vector<uint32_t> all(40);
+  std::iota(all.begin(), all.end(), 0u);
+  TriPackets one, several, everything;
+  BuildTriPacketList(s.tris, all.data() + 7, 1, &one);
+  BuildTriPacketList(s.tris, all.data() + 3, 6, &several);
+  BuildTriPacketList(s.tris, all.data(), 40, &everything);
+  const TriPackets* spans[] = {&one, &several, &everything};
+  // sizes around every vector width (1 lane on SCALAR, 4, 8, 16), and the empty stream
+  const size_t sizes[] = {0, 1, 2, 3, 4, 5, 7, 8, 9, 15, 16, 17, 31, 33, 200};
+  for (const size_t n : sizes) {
+    for (const bool coherent : {false, true}) {
+      for (const int prior : {0, 1, 2}) {  // fresh hits, earlier hits, exact ties
+        StreamCase c;
+        MakeStream(rng, s, n, coherent, prior == 1, &c);
+        for (const TriPackets* p : spans) {
+          for (const TriTest test : kTests) {
+            const HitStreamView h = c.hits.view();
+            if (prior == 2) {
+              // priors at exactly the oracle's t, with prim -1 (none: +inf), id - 1, id, id + 1
+              for (size_t i = 0; i < n; ++i) {
+                c.t0[i] = kInf;
+                c.prim0[i] = -1;
+              }
+              LoadHits(&c);
+              ref::IntersectStream(c.rays.view(), p->Cell(0), test, h);
+              for (size_t i = 0; i < n; ++i) {
+                if (h.prim[i] < 0) continue;
+                c.t0[i] = h.t[i];
+                c.prim0[i] = h.prim[i] + int32_t(rng.Below(3)) - 1;
+                if (rng.Below(4) == 0) c.prim0[i] = -1;
+              }
+            }
+            // the oracle's answers
+            LoadHits(&c);
+            ref::IntersectStream(c.rays.view(), p->Cell(0), test, h);
+            const std::vector<float> want_t(h.t, h.t + c.t0.size());
+            const std::vector<float> want_u(h.u, h.u + c.t0.size());
+            const std::vector<float> want_v(h.v, h.v + c.t0.size());
+            const std::vector<int32_t> want_prim(h.prim, h.prim + c.t0.size());
+            size_t changed = 0;
+            for (size_t i = 0; i < n; ++i) changed += want_prim[i] != c.prim0[i];
+            test::ForEachTarget([&](const char* target_name) {
+              const std::string target = target_name;
+              INFO("target: ", target, " n ", n, " coherent ", coherent, " prior ", prior,
+                   " triangles ", p->num_triangles, " ", TestName(test));
+              LoadHits(&c);
+              IntersectStream(c.rays.view(), p->Cell(0), test, h);
+              size_t bad = 0, bad_padding = 0;
+              for (size_t i = 0; i < c.t0.size(); ++i) {
+                const bool same = Bits(h.t[i]) == Bits(want_t[i]) &&
+                                  Bits(h.u[i]) == Bits(want_u[i]) &&
+                                  Bits(h.v[i]) == Bits(want_v[i]) && h.prim[i] == want_prim[i];
+                (i < n ? bad : bad_padding) += !same;
+                if (i >= n) {
+                  bad_padding += h.t[i] != kSentinelT || h.prim[i] != kSentinelPrim ||
+                                 h.u[i] != kSentinelUv || h.v[i] != kSentinelUv;
+                }
+              }
+              CHECK(bad == 0);
+              CHECK(bad_padding == 0);
+            });
+            if (n >= 31 && p == &everything && prior != 2) CHECK(changed > 0);  // not vacuous
+          }
+        }
+      }
+    }
+  }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Watertightness stress: a closed icosphere at (1e5, 1e5, 1e5).
+
+struct Icosphere {
+  std::vector<std::array<float, 3>> v;
+  std::vector<std::array<uint32_t, 3>> tri;
+};
+
+// Icosahedron subdivided `levels` times (20 * 4^levels triangles), radius r around c, vertices
+// snapped to multiples of 2^-6: with |coordinates| in [2^16, 2^17) every edge midpoint is then
+// exactly representable, and so is d = target - o for origins on the 2^-7 lattice.
+Icosphere MakeIcosphere(int levels, double r, double c) {
+  std::vector<std::array<double, 3>> p;
+  const double g = (1.0 + std::sqrt(5.0)) / 2.0;
+  const double base[12][3] = {{-1, g, 0}, {1, g, 0}, {-1, -g, 0}, {1, -g, 0},
+                              {0, -1, g}, {0, 1, g}, {0, -1, -g}, {0, 1, -g},
+                              {g, 0, -1}, {g, 0, 1}, {-g, 0, -1}, {-g, 0, 1}};
+  for (const auto& b : base) p.push_back({b[0], b[1], b[2]});
+  std::vector<std::array<uint32_t, 3>> tri = {
+      {0, 11, 5},  {0, 5, 1},  {0, 1, 7},  {0, 7, 10}, {0, 10, 11}, {1, 5, 9}, {5, 11, 4},
+      {11, 10, 2}, {10, 7, 6}, {7, 1, 8},  {3, 9, 4},  {3, 4, 2},   {3, 2, 6}, {3, 6, 8},
+      {3, 8, 9},   {4, 9, 5},  {2, 4, 11}, {6, 2, 10}, {8, 6, 7},   {9, 8, 1}};
+  for (int l = 0; l < levels; ++l) {
+    std::map<std::pair<uint32_t, uint32_t>, uint32_t> mid;
+    auto midpoint = [&](uint32_t a, uint32_t b) {
+      const auto key = std::minmax(a, b);
+      const auto it = mid.find(key);
+      if (it != mid.end()) return it->second;
+      p.push_back({(p[a][0] + p[b][0]) / 2, (p[a][1] + p[b][1]) / 2, (p[a][2] + p[b][2]) / 2});
+      const uint32_t m = uint32_t(p.size() - 1);
+      mid.emplace(key, m);
+      return m;
+    };
+    std::vector<std::array<uint32_t, 3>> next;
+    for (const auto& t : tri) {
+      const uint32_t a = midpoint(t[0], t[1]), b = midpoint(t[1], t[2]), m = midpoint(t[2], t[0]);
+      next.push_back({t[0], a, m});
+      next.push_back({t[1], b, a});
+      next.push_back({t[2], m, b});
+      next.push_back({a, b, m});
+    }
+    tri = std::move(next);
+  }
+  Icosphere s;
+  for (const auto& q : p) {
+    const double len = std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2]);
+    std::array<float, 3> f;
+    for (int a = 0; a < 3; ++a) f[a] = F(std::round((c + r * q[a] / len) * 64.0) / 64.0);
+    s.v.push_back(f);
+  }
+  s.tri = std::move(tri);
+  return s;
+}
+
+TEST_CASE(
+    "watertight stress: 1e5 rays from inside a closed icosphere at 1e5 through its "
+    "vertices and edge midpoints") {
+  constexpr double kCentre = 1e5, kRadius = 100.0;
+  const Icosphere ico = MakeIcosphere(5, kRadius, kCentre);
+  REQUIRE(ico.tri.size() == 20480);
+  Scene s;
+  for (const auto& v : ico.v) s.soup.AddVertex(v[0], v[1], v[2]);
+  for (const auto& t : ico.tri) s.soup.indices.insert(s.soup.indices.end(), {t[0], t[1], t[2]});
+  s.Finish();
+  REQUIRE(s.tris.num_degenerate == 0);
+  // "cells": the fan of each vertex, then the two triangles of each edge (CSR, ascending ids),
+  // packed with BuildTriPackets through a hand-made Grid
+  std::vector<std::vector<uint32_t>> fans(ico.v.size());
+  std::map<std::pair<uint32_t, uint32_t>, std::vector<uint32_t>> edges;
+  for (uint32_t t = 0; t < ico.tri.size(); ++t) {
+    for (int k = 0; k < 3; ++k) {
+      fans[ico.tri[t][k]].push_back(t);
+      edges[std::minmax(ico.tri[t][k], ico.tri[t][(k + 1) % 3])].push_back(t);
+    }
+  }
+  std::vector<std::array<float, 3>> targets;  // one per cell
+  Grid grid;
+  grid.num_cells = fans.size() + edges.size();
+  grid.cell_begin = hwy::AllocateAligned<uint32_t>(grid.num_cells + 1);
+  std::vector<uint32_t> lists;
+  grid.cell_begin[0] = 0;
+  size_t cell = 0;
+  for (size_t v = 0; v < fans.size(); ++v) {
+    lists.insert(lists.end(), fans[v].begin(), fans[v].end());
+    grid.cell_begin[++cell] = uint32_t(lists.size());
+    targets.push_back(ico.v[v]);
+  }
+  for (const auto& [e, tris] : edges) {
+    REQUIRE(tris.size() == 2);  // closed: every edge has exactly two triangles
+    lists.insert(lists.end(), tris.begin(), tris.end());
+    grid.cell_begin[++cell] = uint32_t(lists.size());
+    const auto& a = ico.v[e.first];
+    const auto& b = ico.v[e.second];
+    targets.push_back({(a[0] + b[0]) * 0.5f, (a[1] + b[1]) * 0.5f, (a[2] + b[2]) * 0.5f});
+  }
+  grid.num_refs = lists.size();
+  grid.tri_ids = hwy::AllocateAligned<uint32_t>(lists.size());
+  std::copy(lists.begin(), lists.end(), grid.tri_ids.get());
+  TriPackets packets;
+  BuildTriPackets(grid, s.tris, &packets);
+
+  // Rays: 4 origins per vertex, 2 per edge midpoint (~1e5), on the 2^-7 lattice within
+  // 0.5 r of the centre, so o + d == target exactly and the ray crosses the surface there.
+  struct Ray {
+    float o[3], d[3];
+    uint32_t cell;
+  };
+  Rng rng(55);
+  std::vector<Ray> rays;
+  for (uint32_t c = 0; c < grid.num_cells; ++c) {
+    const int per = c < fans.size() ? 4 : 2;
+    for (int k = 0; k < per; ++k) {
+      Ray r;
+      double q[3], len2;
+      do {
+        for (double& x : q) x = rng.Uniform(-1, 1);
+        len2 = q[0] * q[0] + q[1] * q[1] + q[2] * q[2];
+      } while (len2 > 1.0);
+      for (int a = 0; a < 3; ++a) {
+        r.o[a] = F(std::round((kCentre + 0.5 * kRadius * q[a]) * 128.0) / 128.0);
+        r.d[a] = targets[c][a] - r.o[a];
+      }
+      REQUIRE((r.o[0] + r.d[0] == targets[c][0] && r.o[1] + r.d[1] == targets[c][1] &&
+               r.o[2] + r.d[2] == targets[c][2]));
+      r.cell = c;
+      rays.push_back(r);
+    }
+  }
+  REQUIRE(rays.size() > 100000);
+  // the oracle's answers (and Moller-Trumbore's leaks) once
+  std::vector<PacketHit> want[2];
+  size_t ref_leaks = 0, moller_leaks = 0, zero_edges = 0;
+  for (const Ray& r : rays) {
+    const PacketRay pr = MakePacketRay(r.o[0], r.o[1], r.o[2], r.d[0], r.d[1], r.d[2]);
+    for (const TriTest test : kTests) {
+      PacketHit h;
+      ref::IntersectPackets(pr, packets.Cell(r.cell), 0.0f, kInf, test, &h);
+      want[int(test)].push_back(h);
+    }
+    ref_leaks += want[0].back().prim < 0;
+    moller_leaks += want[1].back().prim < 0;
+    const TriPacketSpan span = packets.Cell(r.cell);
+    for (size_t j = 0; j < span.lanes(); ++j) {
+      if (span.ids[j] < 0) continue;
+      float p[3][3];
+      for (int v = 0; v < 3; ++v) {
+        for (int a = 0; a < 3; ++a) p[v][a] = span.Component(v, a)[j];
+      }
+      zero_edges += HasZeroEdge(pr.wt, p);
+    }
+  }
+  MESSAGE(rays.size(),
+          " rays through vertices/edge midpoints of a closed 20480-triangle "
+          "icosphere at 1e5: scalar watertight leaks ",
+          ref_leaks, ", Moller-Trumbore leaks ", moller_leaks, "; ", zero_edges,
+          " pairs took the double fallback");
+  CHECK(ref_leaks == 0);
+
+  // streams: all rays of a cell as one stream against the cell's triangles
+  std::vector<std::pair<size_t, size_t>> cell_rays;  // [first, end) in `rays` per cell
+  for (size_t i = 0; i < rays.size();) {
+    size_t j = i;
+    while (j < rays.size() && rays[j].cell == rays[i].cell) ++j;
+    cell_rays.push_back({i, j});
+    i = j;
+  }
+  RayStream stream(8);
+  HitStream hits(8);
+  test::ForEachTarget([&](const char* target_name) {
+    const std::string target = target_name;
+    INFO("target: ", target);
+    for (const TriTest test : kTests) {
+      INFO(TestName(test));
+      size_t leaks = 0, bad = 0, bad_stream = 0, stream_leaks = 0;
+      for (size_t i = 0; i < rays.size(); ++i) {
+        const Ray& r = rays[i];
+        const PacketRay pr = MakePacketRay(r.o[0], r.o[1], r.o[2], r.d[0], r.d[1], r.d[2]);
+        for (const PacketWidth width : {PacketWidth::kAuto, PacketWidth::kOne}) {
+          PacketHit h;
+          IntersectPackets(pr, packets.Cell(r.cell), 0.0f, kInf, test, width, &h);
+          leaks += h.prim < 0;
+          bad += !SameHit(h, want[int(test)][i]);
+        }
+      }
+      for (const auto& [first, end] : cell_rays) {
+        stream.Clear();
+        for (size_t i = first; i < end; ++i) {
+          const Ray& r = rays[i];
+          stream.Push(r.o[0], r.o[1], r.o[2], r.d[0], r.d[1], r.d[2], 0.0f, kInf, 0, 1, 1, 1, 0,
+                      RayKind::kPrimary);
+        }
+        stream.FillPadding();
+        hits.Resize(stream.size());
+        hits.Reset();
+        IntersectStream(stream.view(), packets.Cell(rays[first].cell), test, hits.view());
+        const HitStreamView h = hits.view();
+        for (size_t i = first; i < end; ++i) {
+          PacketHit got;
+          got.t = h.t[i - first];
+          got.u = h.u[i - first];
+          got.v = h.v[i - first];
+          got.prim = h.prim[i - first];
+          stream_leaks += got.prim < 0;
+          bad_stream += !SameHit(got, want[int(test)][i]);
+        }
+      }
+      CHECK(bad == 0);
+      CHECK(bad_stream == 0);
+      if (test == TriTest::kWatertight) {
+        CHECK(leaks == 0);
+        CHECK(stream_leaks == 0);
+      } else {
+        MESSAGE(target, ": Moller-Trumbore leaks 1x4 ", leaks / 2, ", N x 1 ", stream_leaks, " of ",
+                rays.size());
+      }
+    }
+  });
+
+  // a subset against the whole sphere (all 5120 packets in one span): every width
+  std::vector<uint32_t> all(ico.tri.size());
+  std::iota(all.begin(), all.end(), 0u);
+  TriPackets whole;
+  BuildTriPacketList(s.tris, all.data(), all.size(), &whole);
+  std::vector<size_t> subset;
+  for (size_t i = 0; i < rays.size(); i += rays.size() / 150) subset.push_back(i);
+  std::vector<PacketHit> whole_want[2];
+  for (const size_t i : subset) {
+    const Ray& r = rays[i];
+    const PacketRay pr = MakePacketRay(r.o[0], r.o[1], r.o[2], r.d[0], r.d[1], r.d[2]);
+    for (const TriTest test : kTests) {
+      PacketHit h;
+      ref::IntersectPackets(pr, whole.Cell(0), 0.0f, kInf, test, &h);
+      whole_want[int(test)].push_back(h);
+    }
+    CHECK(whole_want[0].back().prim >= 0);
+    CHECK(std::fabs(whole_want[0].back().t - 1.0f) < 1e-3f);
+  }
+  test::ForEachTarget([&](const char* target_name) {
+    const std::string target = target_name;
+    INFO("target: ", target);
+    size_t bad = 0;
+    for (size_t k = 0; k < subset.size(); ++k) {
+      const Ray& r = rays[subset[k]];
+      const PacketRay pr = MakePacketRay(r.o[0], r.o[1], r.o[2], r.d[0], r.d[1], r.d[2]);
+      for (const TriTest test : kTests) {
+        for (const PacketWidth width : kWidths) {
+          PacketHit h;
+          IntersectPackets(pr, whole.Cell(0), 0.0f, kInf, test, width, &h);
+          bad += !SameHit(h, whole_want[int(test)][k]);
+        }
+      }
+    }
+    CHECK(bad == 0);
+  });
+}
+
+}  // namespace
+}  // namespace rs
