@@ -220,10 +220,13 @@ class RatioReporter : public benchmark::ConsoleReporter {
  public:
   explicit RatioReporter(OutputOptions options) : ConsoleReporter(options) {}
   void ReportRuns(const std::vector<Run>& runs) override {
+    // With --benchmark_repetitions the median aggregate (reported after the repetitions)
+    // replaces the single runs.
     for (const Run& run : runs) {
       const auto it = run.counters.find("items_per_second");
-      if (it != run.counters.end() && !run.error_occurred) {
-        rate_[run.benchmark_name()] = it->second.value;
+      if (it == run.counters.end() || run.error_occurred) continue;
+      if (run.run_type == Run::RT_Iteration || run.aggregate_name == "median") {
+        rate_[run.run_name.str()] = it->second.value;
       }
     }
     ConsoleReporter::ReportRuns(runs);
