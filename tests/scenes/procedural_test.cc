@@ -19,7 +19,10 @@ glm::vec3 GeometricNormal(const Scene& s, size_t t) {
                     s.positions[tri.z] - s.positions[tri.x]);
 }
 
-bool SameBits(const void* a, const void* b, size_t bytes) { return std::memcmp(a, b, bytes) == 0; }
+// memcmp must not see a null pointer, even for 0 bytes (empty vectors have data() == nullptr).
+bool SameBits(const void* a, const void* b, size_t bytes) {
+  return bytes == 0 || std::memcmp(a, b, bytes) == 0;
+}
 
 void CheckEqual(const Scene& a, const Scene& b) {
   REQUIRE(a.positions.size() == b.positions.size());

@@ -56,5 +56,42 @@ expect_error "unknown image extension" 'x\.bogus' "$rs" render --scene cornell -
 expect_error "unknown backend" 'backend' "$rs" render --scene cornell --backend nosuch --width 8 --height 8 --out "$tmp/y.png"
 expect_error "bad width" 'width' "$rs" render --scene cornell --width 0 --out "$tmp/z.png"
 
+# Host schedulers: every backend writes the serial image byte for byte; stats as JSON or CSV.
+"$rs" render --scene cornell --width 32 --height 24 --depth 3 --out "$tmp/b-serial.png" -q
+"$rs" render --scene cornell --width 32 --height 24 --depth 3 --frames 2 --out "$tmp/b-serial2.png" -q
+for b in "lock --threads 2" "lfree --threads 3" "local --threads 2" "tiles --threads 2 --tile 640x2" \
+         "tiles --threads 2 --tile 7x5" "tiles --threads 2 --pbt 2 --assign visit --frames 2"; do
+  name=$(echo "$b" | tr ' ' '_')
+  want="$tmp/b-serial.png"; case "$b" in *"--frames 2"*) want="$tmp/b-serial2.png";; esac
+  # shellcheck disable=SC2086
+  if "$rs" render --scene cornell --width 32 --height 24 --depth 3 --backend $b --out "$tmp/b-$name.png" -q \
+     && cmp -s "$want" "$tmp/b-$name.png"; then ok "backend $b: same image as serial"
+  else bad "backend $b: image differs from serial or render failed"; fi
+done
+if "$rs" render --scene erw6 --width 24 --height 24 --backend lfree --threads 2 --frames 2 --out "$tmp/l.png" \
+     --stats "$tmp/l.json" >"$tmp/out" 2>&1 \
+   && grep -q 'idle at the barrier' "$tmp/out" && grep -q 'Mrays/s' "$tmp/out" \
+   && python3 -c "import json,sys; d=json.load(open('$tmp/l.json')); f=d['frames']; sys.exit(0 if len(f)==2 and len(f[1]['threads'])==2 and d['backend']=='lfree' and f[0]['rays']['primary']==576 else 1)"; then
+  ok "lfree: summary with idle/queue times, per-thread JSON stats"
+else bad "lfree stats"; cat "$tmp/out"; fi
+if "$rs" render --scene erw6 --width 24 --height 24 --backend tiles --threads 2 --pbt 2 --assign greedy --frames 3 \
+     --speed 2 --out "$tmp/p.png" --stats "$tmp/p.csv" -q \
+   && head -1 "$tmp/p.csv" | grep -q '^frame,scope,index' \
+   && [ "$(grep -c '^[0-9]*,tile,' "$tmp/p.csv")" -eq 12 ] && [ "$(grep -c '^[0-9]*,thread,' "$tmp/p.csv")" -eq 6 ]; then
+  ok "tiles + PBT: CSV stats with 12 tile rows and 6 thread rows"
+else bad "tiles + PBT CSV stats"; head -3 "$tmp/p.csv"; fi
+if "$rs" render --scene cornell --width 16 --height 16 --backend local --threads 4 --out "$tmp/o.png" 2>&1 \
+   | grep -q 'oversubscribe\|idle'; then ok "4 threads: runs (oversubscription noted when threads > cores)"
+else bad "local 4 threads"; fi
+expect_error "unknown backend lists the choices" 'nosuch.*(lock|lfree|local|tiles)' "$rs" render --scene cornell --backend nosuch --width 8 --height 8 --out "$tmp/y.png"
+expect_error "bad tile shape" 'tile.*WIDTHxHEIGHT|--tile' "$rs" render --scene cornell --backend tiles --tile 32 --width 8 --height 8 --out "$tmp/y.png"
+expect_error "zero tile size" '\-\-tile 0x4' "$rs" render --scene cornell --backend tiles --tile 0x4 --width 8 --height 8 --out "$tmp/y.png"
+expect_error "PBT needs the tiles backend" 'pbt.*tiles' "$rs" render --scene cornell --backend lock --pbt 2 --width 8 --height 8 --out "$tmp/y.png"
+expect_error "unknown PBT assignment" 'assign' "$rs" render --scene cornell --backend tiles --pbt 1 --assign lpt --width 8 --height 8 --out "$tmp/y.png"
+expect_error "serial with threads" 'threads' "$rs" render --scene cornell --threads 2 --width 8 --height 8 --out "$tmp/y.png"
+expect_error "more PBT tiles than pixels" '(tile|pixel)' "$rs" render --scene cornell --backend tiles --threads 2 --pbt 64 --width 8 --height 8 --out "$tmp/y.png"
+expect_error "stats file extension" 'stats.*(json|csv)' "$rs" render --scene cornell --width 8 --height 8 --stats "$tmp/s.txt" --out "$tmp/y2.png"
+[ -e "$tmp/y2.png" ] && bad "image written despite a bad --stats name" || ok "bad --stats name: checked before rendering"
+
 echo "cli_test: $((checks-fails)) of $checks checks passed"
 [ $fails -eq 0 ]
