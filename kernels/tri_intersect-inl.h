@@ -69,6 +69,9 @@ struct WatertightLanes {
 // sx, sy, sz: shear. Returns the hit mask for t in (tmin, tmax]; *out is valid only if the mask
 // has a lane set. kFma fuses the shear and the t products (never the edge functions: U(b, c)
 // must be the exact negation of U(c, b) for the triangle on the other side of an edge).
+// The exported kernels use kFma = false: fusing saved only 4-8% per ray/triangle test on AVX2
+// and AVX3 (bunny cells, 2 packets per vector) and would make t, u, v differ from the scalar
+// oracle in the last bits; without it every target is bit-identical to the scalar code.
 template <bool kFma, class D, class V = hn::Vec<D>>
 HWY_INLINE hn::Mask<D> WatertightTest(D d, V a0, V a1, V a2, V b0, V b1, V b2, V c0, V c1, V c2,
                                       V o0, V o1, V o2, V sx, V sy, V sz, V tmin, V tmax,
@@ -170,11 +173,16 @@ HWY_INLINE hn::Mask<D> MollerTest(D d, V p0x, V p0y, V p0z, V e1x, V e1y, V e1z,
 // ---------------------------------------------------------------------------------------------
 // 1 ray x packets
 
-// Per-call state of the 1-ray kernels: the 9 component pointers of the span (for the watertight
-// test permuted into the ray's (kx, ky, kz) order: the permutation is pure address arithmetic,
-// so no per-ray copies of the triangles and no shuffles), and the current upper bound.
+// Per-call state of the 1-ray kernels. The watertight test reads the vertex components in the
+// ray's (kx, ky, kz) order: the permutation is pure address arithmetic (axis a of vertex v is
+// at axis[a] + v * vertex_stride), so there are no per-ray copies of the triangles and no
+// shuffles. Three named pointers rather than an array of nine: GCC's SLP vectorizer turned the
+// array's address arithmetic into zmm multiplies (vpmullq) in the AVX3 prologue.
 struct PacketCall {
-  const float* comp[9];
+  const float* axis0;  // vertex 0, axis kx (Moller-Trumbore: x)
+  const float* axis1;  // vertex 0, axis ky (y)
+  const float* axis2;  // vertex 0, axis kz (z)
+  size_t vertex_stride;
   const int32_t* ids;
   float tmin;
   float upper;  // min(tmax, best t so far), finite
@@ -182,7 +190,7 @@ struct PacketCall {
 
 // True if lane j (t, id) beats the closest hit so far: t < hit.t, or equal t and a lower id
 // (prim -1 = none, counts as +inf through the unsigned compare).
-inline bool Beats(float t, int32_t id, const PacketHit& hit) {
+HWY_INLINE bool Beats(float t, int32_t id, const PacketHit& hit) {
   return t < hit.t || uint32_t(id) < uint32_t(hit.prim);
 }
 
@@ -192,27 +200,29 @@ inline bool Beats(float t, int32_t id, const PacketHit& hit) {
 template <TriTest kTest, bool kAny, bool kFma, class D>
 HWY_INLINE bool PacketGroup(D d, const PacketRay& ray, PacketCall* call, size_t i, PacketHit* hit) {
   using V = hn::Vec<D>;
-  const float* const* c = call->comp;
+  const float* p0 = call->axis0 + i;
+  const float* p1 = call->axis1 + i;
+  const float* p2 = call->axis2 + i;
+  const size_t vs = call->vertex_stride;
   const V tmin = hn::Set(d, call->tmin), tmax = hn::Set(d, call->upper);
   hn::Mask<D> m;
   WatertightLanes<D> wt;
   MollerLanes<D> mt;
   if constexpr (kTest == TriTest::kWatertight) {
     m = WatertightTest<kFma>(
-        d, hn::LoadU(d, c[0] + i), hn::LoadU(d, c[1] + i), hn::LoadU(d, c[2] + i),
-        hn::LoadU(d, c[3] + i), hn::LoadU(d, c[4] + i), hn::LoadU(d, c[5] + i),
-        hn::LoadU(d, c[6] + i), hn::LoadU(d, c[7] + i), hn::LoadU(d, c[8] + i),
-        hn::Set(d, ray.wt.o[0]), hn::Set(d, ray.wt.o[1]), hn::Set(d, ray.wt.o[2]),
-        hn::Set(d, ray.wt.sx), hn::Set(d, ray.wt.sy), hn::Set(d, ray.wt.sz), tmin, tmax, &wt);
+        d, hn::LoadU(d, p0), hn::LoadU(d, p1), hn::LoadU(d, p2), hn::LoadU(d, p0 + vs),
+        hn::LoadU(d, p1 + vs), hn::LoadU(d, p2 + vs), hn::LoadU(d, p0 + 2 * vs),
+        hn::LoadU(d, p1 + 2 * vs), hn::LoadU(d, p2 + 2 * vs), hn::Set(d, ray.wt.o[0]),
+        hn::Set(d, ray.wt.o[1]), hn::Set(d, ray.wt.o[2]), hn::Set(d, ray.wt.sx),
+        hn::Set(d, ray.wt.sy), hn::Set(d, ray.wt.sz), tmin, tmax, &wt);
   } else {
-    const V p0x = hn::LoadU(d, c[0] + i), p0y = hn::LoadU(d, c[1] + i);
-    const V p0z = hn::LoadU(d, c[2] + i);
-    m = MollerTest(d, p0x, p0y, p0z, hn::Sub(hn::LoadU(d, c[3] + i), p0x),
-                   hn::Sub(hn::LoadU(d, c[4] + i), p0y), hn::Sub(hn::LoadU(d, c[5] + i), p0z),
-                   hn::Sub(hn::LoadU(d, c[6] + i), p0x), hn::Sub(hn::LoadU(d, c[7] + i), p0y),
-                   hn::Sub(hn::LoadU(d, c[8] + i), p0z), hn::Set(d, ray.o[0]), hn::Set(d, ray.o[1]),
-                   hn::Set(d, ray.o[2]), hn::Set(d, ray.d[0]), hn::Set(d, ray.d[1]),
-                   hn::Set(d, ray.d[2]), tmin, tmax, &mt);
+    const V p0x = hn::LoadU(d, p0), p0y = hn::LoadU(d, p1), p0z = hn::LoadU(d, p2);
+    m = MollerTest(d, p0x, p0y, p0z, hn::Sub(hn::LoadU(d, p0 + vs), p0x),
+                   hn::Sub(hn::LoadU(d, p1 + vs), p0y), hn::Sub(hn::LoadU(d, p2 + vs), p0z),
+                   hn::Sub(hn::LoadU(d, p0 + 2 * vs), p0x), hn::Sub(hn::LoadU(d, p1 + 2 * vs), p0y),
+                   hn::Sub(hn::LoadU(d, p2 + 2 * vs), p0z), hn::Set(d, ray.o[0]),
+                   hn::Set(d, ray.o[1]), hn::Set(d, ray.o[2]), hn::Set(d, ray.d[0]),
+                   hn::Set(d, ray.d[1]), hn::Set(d, ray.d[2]), tmin, tmax, &mt);
   }
   if (hn::AllFalse(d, m)) return false;
   if constexpr (kAny) {
@@ -261,15 +271,16 @@ HWY_INLINE bool PacketsT(const PacketRay& ray, const TriPacketSpan& tris, float 
   call.upper = (!kAny && hit->t < tmax_f) ? hit->t : tmax_f;
   if (!(tmin < call.upper)) return false;  // empty (tmin, upper]: no t can pass
   call.ids = tris.ids;
+  const size_t stride = tris.stride();
+  call.vertex_stride = 3 * stride;
   if constexpr (kTest == TriTest::kWatertight) {
-    const int k[3] = {ray.wt.kx, ray.wt.ky, ray.wt.kz};
-    for (int vtx = 0; vtx < 3; ++vtx) {
-      for (int a = 0; a < 3; ++a) call.comp[3 * vtx + a] = tris.Component(vtx, k[a]);
-    }
+    call.axis0 = tris.block + size_t(ray.wt.kx) * stride;
+    call.axis1 = tris.block + size_t(ray.wt.ky) * stride;
+    call.axis2 = tris.block + size_t(ray.wt.kz) * stride;
   } else {
-    for (int vtx = 0; vtx < 3; ++vtx) {
-      for (int a = 0; a < 3; ++a) call.comp[3 * vtx + a] = tris.Component(vtx, a);
-    }
+    call.axis0 = tris.block;
+    call.axis1 = tris.block + stride;
+    call.axis2 = tris.block + 2 * stride;
   }
   PacketHit dummy;
   PacketHit* out = kAny ? &dummy : hit;
@@ -298,8 +309,11 @@ HWY_INLINE bool PacketsT(const PacketRay& ray, const TriPacketSpan& tris, float 
   return found;
 }
 
-// The width kAuto picks on this target (measured: see tri_intersect.cc).
-inline constexpr size_t kAutoPacketLanes = HWY_MAX_BYTES >= 32 ? 8 : 4;
+// The width kAuto picks on this target: the widest vector, up to 4 packets. Measured on the
+// bunny's grid cells (warm caches, ns per ray/triangle test, AVX3 / AVX2): 1 packet per vector
+// 1.9 / 2.0, 2 packets 1.3 / 1.3, 4 packets 1.1 / (= 2) in cells of 46 triangles, and
+// 3.0 / 3.6, 2.6 / 2.6, 2.5 / (= 2) in cells of 11 (scalar DDA loop: 12-16).
+inline constexpr size_t kAutoPacketLanes = HWY_MAX_BYTES >= 64 ? 16 : HWY_MAX_BYTES >= 32 ? 8 : 4;
 
 template <TriTest kTest, bool kAny, bool kFma = false>
 HWY_INLINE bool PacketsWidth(const PacketRay& ray, const TriPacketSpan& tris, float tmin,
@@ -338,10 +352,11 @@ HWY_INLINE V PickAxis(M is_x, M is_y, V x, V y, V z) {
 }
 
 // Closest hit so far of a vector of rays (registers; stored once per vector of rays).
+// Watertight: (a, b, w) = (det, V, W) of the winner, divided once at the end; Moller-Trumbore:
+// (a, b) = (u, v). changed: lanes whose hit must be written back.
 template <class D>
 struct StreamBest {
-  hn::Vec<D> t, a, b;  // watertight: a = det, b.. see below; Moller-Trumbore: a = u, b = v
-  hn::Vec<D> w;        // watertight: (a, b, w) = (det, V, W) of the winner
+  hn::Vec<D> t, a, b, w;
   hn::Vec<hn::RebindToSigned<D>> prim;
   hn::Mask<D> changed;
 };

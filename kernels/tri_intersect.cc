@@ -17,21 +17,44 @@ HWY_BEFORE_NAMESPACE();
 namespace rs {
 namespace HWY_NAMESPACE {
 
-// One switch per call (per cell): the (test, width) pair selects an instantiation.
+// One out-of-line function per (test, any, width), so the exported function is only a switch
+// and each loop is compiled on its own (registers, code layout).
+template <TriTest kTest, bool kAny, size_t kLanes>
+HWY_NOINLINE bool PacketsEntry(const PacketRay& ray, const TriPacketSpan& tris, float tmin,
+                               float tmax, PacketHit* hit) {
+  return PacketsT<kTest, kAny, /*kFma=*/false, kLanes>(ray, tris, tmin, tmax, hit);
+}
+
+template <TriTest kTest, bool kAny>
+HWY_INLINE bool PacketsSwitch(const PacketRay& ray, const TriPacketSpan& tris, float tmin,
+                              float tmax, PacketWidth width, PacketHit* hit) {
+  switch (width) {
+    case PacketWidth::kOne:
+      return PacketsEntry<kTest, kAny, 4>(ray, tris, tmin, tmax, hit);
+    case PacketWidth::kTwo:
+      return PacketsEntry<kTest, kAny, 8>(ray, tris, tmin, tmax, hit);
+    case PacketWidth::kFour:
+      return PacketsEntry<kTest, kAny, 16>(ray, tris, tmin, tmax, hit);
+    case PacketWidth::kAuto:
+      break;
+  }
+  return PacketsEntry<kTest, kAny, kAutoPacketLanes>(ray, tris, tmin, tmax, hit);
+}
+
 bool IntersectPackets(const PacketRay& ray, const TriPacketSpan& tris, float tmin, float tmax,
                       TriTest test, PacketWidth width, PacketHit* hit) {
   if (test == TriTest::kWatertight) {
-    return PacketsWidth<TriTest::kWatertight, false>(ray, tris, tmin, tmax, width, hit);
+    return PacketsSwitch<TriTest::kWatertight, false>(ray, tris, tmin, tmax, width, hit);
   }
-  return PacketsWidth<TriTest::kMollerTrumbore, false>(ray, tris, tmin, tmax, width, hit);
+  return PacketsSwitch<TriTest::kMollerTrumbore, false>(ray, tris, tmin, tmax, width, hit);
 }
 
 bool OccludedPackets(const PacketRay& ray, const TriPacketSpan& tris, float tmin, float tmax,
                      TriTest test, PacketWidth width) {
   if (test == TriTest::kWatertight) {
-    return PacketsWidth<TriTest::kWatertight, true>(ray, tris, tmin, tmax, width, nullptr);
+    return PacketsSwitch<TriTest::kWatertight, true>(ray, tris, tmin, tmax, width, nullptr);
   }
-  return PacketsWidth<TriTest::kMollerTrumbore, true>(ray, tris, tmin, tmax, width, nullptr);
+  return PacketsSwitch<TriTest::kMollerTrumbore, true>(ray, tris, tmin, tmax, width, nullptr);
 }
 
 void IntersectStream(const RayStreamView& rays, const TriPacketSpan& tris, TriTest test,

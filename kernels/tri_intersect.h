@@ -21,8 +21,8 @@ enum class TriTest : int32_t {
 // Triangles per SIMD vector in the 1-ray kernels: kOne = one packet (4 lanes; 1 lane at a time
 // on the SCALAR target), kTwo = 2 packets (8 lanes) where vectors have >= 8 lanes, kFour = 4
 // packets (16 lanes, AVX-512 only; 8 lanes on AVX2). Each steps down to narrower vectors for a
-// cell's remaining packets. kAuto = the fastest measured on the chosen target (kTwo on AVX2
-// and AVX-512, see tri_intersect.cc). All widths give identical results.
+// cell's remaining packets. kAuto = the fastest measured on the chosen target: kFour on
+// AVX-512, kTwo on AVX2, kOne below (see kAutoPacketLanes). All widths give identical results.
 enum class PacketWidth : int32_t { kAuto = 0, kOne = 1, kTwo = 2, kFour = 4 };
 
 // Per-ray constants of the 1-ray kernels: the watertight shear (PrepareWatertightRay; rays
@@ -55,6 +55,13 @@ struct PacketHit {
   int32_t prim = -1;
 };
 
+// Calling from a traversal, per ray: PacketRay ray = MakePacketRay(o, d); PacketHit hit; then
+// per occupied cell: IntersectPackets(ray, packets.Cell(cell), tmin, tmax, kWatertight, kAuto,
+// &hit), and stop when hit.t <= the cell's exit t. Triangles met again in later cells need no
+// mailbox for correctness (same t, same id: no change). A SIMD traversal compiled with
+// foreach_target includes kernels/tri_intersect-inl.h and calls PacketsT<...> inline instead,
+// saving the dynamic dispatch per cell.
+//
 // 1 ray x the packets of `tris` (one grid cell), closest hit. A lane hits iff the scalar test
 // (TriTest) accepts it with t in (tmin, min(tmax, hit->t)] (+inf tmax is clamped to FLT_MAX,
 // as in the scalar tests); it replaces *hit iff t < hit->t, or t == hit->t and its id is lower

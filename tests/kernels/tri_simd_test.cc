@@ -207,6 +207,28 @@ TEST_CASE("packets from a grid: per-cell ranges, id order, components, NaN paddi
   CHECK(std::isnan(span.Component(0, 0)[2]));
   CHECK(span.Component(2, 1)[1] == s.tris.p[2][1][3]);
   CHECK(span.Component(2, 1)[4] == s.tris.p[2][1][7]);
+  // rays exactly through the degenerate triangles' points never report them
+  test::ForEachTarget([&](const char* target_name) {
+    const std::string target = target_name;
+    INFO("target: ", target);
+    Rng ray_rng(4);
+    size_t bad_hits = 0;
+    for (int k = 0; k < 50; ++k) {
+      const float o[3] = {F(std::round(ray_rng.Uniform(-4, 4) * 64) / 64),
+                          F(std::round(ray_rng.Uniform(-4, 4) * 64) / 64), 8.0f};
+      const float* target_point = k % 2 ? a : b;
+      const PacketRay ray = MakePacketRay(o[0], o[1], o[2], target_point[0] - o[0],
+                                          target_point[1] - o[1], target_point[2] - o[2]);
+      for (const TriTest test : kTests) {
+        for (const PacketWidth width : kWidths) {
+          PacketHit h;
+          IntersectPackets(ray, span, -kInf, kInf, test, width, &h);
+          bad_hits += h.prim == 500 || h.prim == 501;
+        }
+      }
+    }
+    CHECK(bad_hits == 0);
+  });
   // empty grid and empty list
   Grid empty;
   BuildTriPackets(empty, s.tris, &packets);
