@@ -1,5 +1,6 @@
-// rs::Accel: validates the caller's mesh, gathers its triangles, builds the uniform grid, and
-// traces ray streams with the scalar DDA (the SIMD stream kernels will plug in here).
+// rs::Accel: validates the caller's mesh, gathers its triangles, builds the uniform grid (and,
+// if it pays off or is asked for, the two-level grid), and traces ray streams with the SIMD
+// stream DDA (kernels/dda_simd.h); the scalar DDA stays as the oracle (rs::ref::AccelIntersect).
 #include <hwy/base.h>
 
 #include <chrono>
@@ -11,6 +12,8 @@
 #include "include/raystream/raystream.h"
 #include "kernels/accel_impl.h"
 #include "kernels/dda.h"
+#include "kernels/dda_simd.h"
+#include "kernels/two_level.h"
 
 namespace rs {
 namespace {
@@ -27,6 +30,14 @@ void ValidateMesh(const MeshView& mesh, const BuildOptions& options) {
   if (!(options.lambda > 0.0f) || !std::isfinite(options.lambda)) {
     throw Error("BuildOptions: lambda must be a positive finite number, got " +
                 FormatFloat(options.lambda));
+  }
+  if (options.grid != GridKind::kAuto && options.grid != GridKind::kUniform &&
+      options.grid != GridKind::kTwoLevel) {
+    throw Error("BuildOptions: unknown grid kind " + std::to_string(int(options.grid)));
+  }
+  if (options.micro_cache < 0 || options.micro_cache > kMaxMicroCache) {
+    throw Error("BuildOptions: micro_cache must be within 0.." + std::to_string(kMaxMicroCache) +
+                ", got " + std::to_string(options.micro_cache));
   }
   if (options.max_resolution < 1) {
     throw Error("BuildOptions: max_resolution must be >= 1, got " +
@@ -69,11 +80,33 @@ void ValidateMesh(const MeshView& mesh, const BuildOptions& options) {
 Accel::Accel(const MeshView& mesh, const BuildOptions& options) : impl_(std::make_unique<Impl>()) {
   ValidateMesh(mesh, options);
   const auto start = std::chrono::steady_clock::now();
-  // GridKind is not used yet: only the uniform grid exists.
-  BuildTriangleSoA(mesh, &impl_->triangles);
-  BuildGrid(impl_->triangles, options.lambda, options.max_resolution, &impl_->grid);
-  impl_->build_seconds =
-      std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  Impl& m = *impl_;
+  BuildTriangleSoA(mesh, &m.triangles);
+  const GridCostModel model;
+  m.lambda = options.lambda;
+  if (options.grid == GridKind::kAuto && options.auto_lambda) {
+    m.lambda = ChooseLambda(m.triangles, options.max_resolution, model);
+  }
+  BuildGrid(m.triangles, m.lambda, options.max_resolution, &m.grid);
+  const bool may_refine =
+      options.grid == GridKind::kTwoLevel ||
+      (options.grid == GridKind::kAuto &&
+       TwoLevelCostBound(m.grid, options.subgrid_threshold, model) <
+           kTwoLevelMinGain * FlatGridCost(m.grid, model));
+  if (may_refine) {
+    BuildTwoLevel(m.grid, m.triangles, options.subgrid_threshold,
+                  /*by_cost=*/options.grid == GridKind::kAuto, model, &m.two_level);
+    if (options.grid == GridKind::kAuto && !m.two_level.empty() &&
+        !(TwoLevelGridCost(m.grid, m.two_level, model) <
+          kTwoLevelMinGain * FlatGridCost(m.grid, model))) {
+      m.two_level = TwoLevelGrid();  // not worth it: stay flat
+    }
+  }
+  BuildDdaGrid(m.grid, &m.two_level, m.triangles, &m.dda);
+  m.dda_options.micro_cache = options.micro_cache;
+  m.flat_cost_estimate = FlatGridCost(m.grid, model);
+  m.cost_estimate = TwoLevelGridCost(m.grid, m.two_level, model);
+  m.build_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
 }
 
 Accel::~Accel() = default;
@@ -83,12 +116,24 @@ Accel& Accel::operator=(Accel&&) noexcept = default;
 void Accel::Intersect(const RayStreamView& rays, const HitStreamView& hits,
                       TraceStats* stats) const {
   HWY_ASSERT(hits.size == rays.size);
-  const Impl& m = *impl_;
+  IntersectStreamDda(impl_->dda, rays, hits, impl_->dda_options, stats);
+}
+
+void Accel::Occluded(const RayStreamView& rays, int32_t* occluded, TraceStats* stats) const {
+  OccludedStreamDda(impl_->dda, rays, occluded, impl_->dda_options, stats);
+}
+
+namespace ref {
+
+void AccelIntersect(const Accel::Impl& m, const RayStreamView& rays, const HitStreamView& hits,
+                    TraceStats* stats) {
+  HWY_ASSERT(hits.size == rays.size);
   TraceStats local;
   for (size_t i = 0; i < rays.size; ++i) {
     RayHit h;
-    TraceClosest(m.grid, m.triangles, rays.ox[i], rays.oy[i], rays.oz[i], rays.dx[i],
-                 rays.dy[i], rays.dz[i], rays.tmin[i], rays.tmax[i], &h, &local);
+    TraceClosestTwoLevel(m.grid, m.two_level, m.triangles, rays.ox[i], rays.oy[i], rays.oz[i],
+                         rays.dx[i], rays.dy[i], rays.dz[i], rays.tmin[i], rays.tmax[i], &h,
+                         &local);
     hits.t[i] = h.t;
     hits.u[i] = h.u;
     hits.v[i] = h.v;
@@ -101,12 +146,13 @@ void Accel::Intersect(const RayStreamView& rays, const HitStreamView& hits,
   }
 }
 
-void Accel::Occluded(const RayStreamView& rays, int32_t* occluded, TraceStats* stats) const {
-  const Impl& m = *impl_;
+void AccelOccluded(const Accel::Impl& m, const RayStreamView& rays, int32_t* occluded,
+                   TraceStats* stats) {
   TraceStats local;
   for (size_t i = 0; i < rays.size; ++i) {
-    occluded[i] = TraceAny(m.grid, m.triangles, rays.ox[i], rays.oy[i], rays.oz[i], rays.dx[i],
-                           rays.dy[i], rays.dz[i], rays.tmin[i], rays.tmax[i], &local)
+    occluded[i] = TraceAnyTwoLevel(m.grid, m.two_level, m.triangles, rays.ox[i], rays.oy[i],
+                                   rays.oz[i], rays.dx[i], rays.dy[i], rays.dz[i], rays.tmin[i],
+                                   rays.tmax[i], &local)
                       ? 1
                       : 0;
   }
@@ -116,6 +162,8 @@ void Accel::Occluded(const RayStreamView& rays, int32_t* occluded, TraceStats* s
     stats->triangle_tests += local.triangle_tests;
   }
 }
+
+}  // namespace ref
 
 AccelInfo Accel::Info() const {
   const Impl& m = *impl_;
@@ -132,8 +180,14 @@ AccelInfo Accel::Info() const {
   info.references = m.grid.num_refs;
   info.max_per_cell = m.grid.max_per_cell;
   info.build_seconds = m.build_seconds;
-  info.bytes = m.triangles.Bytes() + m.grid.Bytes();
-  info.kind = "uniform";
+  info.bytes = m.triangles.Bytes() + m.grid.Bytes() + m.two_level.Bytes() + m.dda.Bytes();
+  info.kind = m.two_level.empty() ? "uniform" : "two-level";
+  info.lambda = m.lambda;
+  info.subgrids = m.two_level.num_records;
+  info.sub_references = m.two_level.sub_refs;
+  info.cost_estimate = m.cost_estimate;
+  info.flat_cost_estimate = m.flat_cost_estimate;
+  info.simd_target = DdaTargetName();
   return info;
 }
 

@@ -53,10 +53,36 @@ struct Grid {
 void ComputeGridResolution(const double extent[3], size_t num_triangles, double lambda,
                            int max_resolution, int res[3]);
 
+// The grid bounds: the float min/max of the non-degenerate triangles' vertices, enlarged by the
+// pad described at Grid::lo and rounded outwards; num_valid = non-degenerate triangles.
+struct GridBounds {
+  float lo[3] = {0.0f, 0.0f, 0.0f};
+  float hi[3] = {0.0f, 0.0f, 0.0f};
+  size_t num_valid = 0;
+};
+GridBounds ComputeGridBounds(const TriangleSoA& tris);
+
+// Resets *grid and fills its geometry for `lambda` (bounds, res, cell sizes, margin, num_cells),
+// without lists: what BuildGrid does before binning. num_valid = 0 gives an empty grid.
+void SetGridGeometry(const GridBounds& bounds, float lambda, int max_resolution, Grid* grid);
+
+// Bounding-box statistics of the triangles on a grid geometry, without building lists: the sum
+// of bounding-box cell counts (>= the references BuildGrid makes) and the cells some box touches
+// (>= occupied). Cheap enough to compare several lambdas before building one grid.
+struct GridBoxCounts {
+  size_t cells = 0;
+  size_t occupied = 0;
+  size_t refs = 0;
+};
+GridBoxCounts CountGridBoxes(const TriangleSoA& tris, const Grid& geometry);
+
 // Builds the grid over the non-degenerate triangles of `tris`. With none, the grid is empty
 // (num_cells = 0, never hit). Binning is conservative: each triangle goes into every cell its
 // bounding box overlaps that also passes a triangle/box separating-axis test in double
-// (Akenine-Moller 2001: plane + 9 edge axes) against the cell enlarged by `margin`.
+// (Akenine-Moller 2001: plane + 9 edge axes) against the cell enlarged by `margin`. The box
+// ranges come from a SIMD float pass widened by a proven slack, and the SAT runs only on the
+// axes that span more than one cell (kernels/grid_binning.h), so a triangle may also be listed
+// in a cell its box reaches within ~1e-6 (res + 3) cells; ids ascend within each cell.
 // Preconditions: lambda > 0 and finite, max_resolution >= 1 (Accel checks them).
 // Throws rs::Error if the references do not fit 32-bit offsets.
 void BuildGrid(const TriangleSoA& tris, float lambda, int max_resolution, Grid* grid);

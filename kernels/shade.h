@@ -1,6 +1,7 @@
 // Shading of a hit stream: background for misses, ambient + phong lights (as shadow rays whose
 // weight is the contribution), mirror reflection and refraction rays, robust secondary origins.
-// Scalar reference now (rs::ref::Shade); a Highway version will sit beside it in shade.cc.
+// rs::Shade is the Highway SIMD kernel (one specialization per stage set, see ShadeStage);
+// rs::ref::Shade is the scalar oracle it matches bit for bit on every target.
 #pragma once
 
 #include <glm/glm.hpp>
@@ -17,10 +18,35 @@
 
 namespace rs {
 
+// Optional pipeline stages of Shade. A frame runs only the stages its scene needs
+// (ShadeStagesFor, chosen once per frame by MakeFrameContext); the SIMD kernel is compiled once
+// per stage set, so a stage that is off costs nothing, not even a branch per ray.
+enum ShadeStage : uint32_t {
+  kShadeStageShadow = 1u << 0,      // per light: phong diffuse term, shadow-ray spawn
+  kShadeStageSpecular = 1u << 1,    // phong highlight (PhongPow); only with kShadeStageShadow
+  kShadeStageTexture = 1u << 2,     // bilinear texture fetch modulating the diffuse colour
+  kShadeStageReflection = 1u << 3,  // mirror reflection rays
+  kShadeStageRefraction = 1u << 4,  // refraction rays (total internal reflection included)
+};
+inline constexpr int kNumShadeStages = 5;
+inline constexpr uint32_t kShadeAllStages = (1u << kNumShadeStages) - 1;  // the general pipeline
+inline constexpr uint32_t kShadeStagesAuto = ~0u;  // ShadeOptions::stages: ShadeStagesFor per call
+// "shadow", "specular", "texture", "reflection", "refraction" for stage index 0..4.
+const char* ShadeStageName(int stage_index);
+
 struct ShadeOptions {
   int max_depth = 4;            // a ray of depth d spawns bounces (depth d + 1) only if d < max
   float weight_cutoff = 1e-3f;  // bounce rays with max(weight channel) below this are dropped
+  // Appended: the stage set (ShadeStage bits) to run, or kShadeStagesAuto for
+  // ShadeStagesFor(scene, *this) on every call. Any superset of ShadeStagesFor gives the same
+  // image, contributions and rays (up to their order in the output stream); kShadeAllStages is
+  // the general pipeline. A subset drops the missing terms.
+  uint32_t stages = kShadeStagesAuto;
 };
+
+// The stages `scene` needs (from scene.features, plus textures only with UVs and bounces only
+// when options.max_depth > 0). Depths of rays given to Shade are assumed >= 0.
+uint32_t ShadeStagesFor(const Scene& scene, const ShadeOptions& options);
 
 // Work counters, accumulated (never reset) by Shade.
 struct ShadeStats {
@@ -31,6 +57,12 @@ struct ShadeStats {
   uint64_t texture_fetches = 0;  // bilinear texture samples
   uint64_t culled = 0;           // bounce rays not spawned: weight below the cutoff
   uint64_t spawned[kNumRayKinds] = {};  // secondary rays emitted, by RayKind
+  // Appended: what the pipeline ran. A block is one SIMD vector of rays in rs::Shade and one
+  // ray in ref::Shade; the per-lane counters above are the same for both.
+  uint64_t highlights = 0;                     // PhongPow evaluations (lanes)
+  uint64_t blocks = 0;                         // blocks holding at least one hit
+  uint64_t stage_runs[kNumShadeStages] = {};   // blocks that ran stage i (bit 1 << i)
+  uint32_t stages = 0;                         // OR of the stage sets Shade ran with
   void Merge(const ShadeStats& o);
 };
 
@@ -51,10 +83,20 @@ inline constexpr float kShadowTmax = 1.0f - 1e-4f;
 //         and a refraction ray (w * transmission; total internal reflection emits it as a
 //         reflection ray instead) are appended when their max channel >= weight_cutoff.
 // Stages the scene does not have (SceneFeatures: lights, specular, reflection, transmission,
-// textures) are never run. Contributions go to `fb` via atomic adds; secondary rays are
-// appended to `secondary` (grown as needed; its padding is not refilled). The contributions and
-// rays of one input ray depend on that ray and its hit only, never on the stream around it.
+// textures) are never run (options.stages; see ShadeStage). Contributions go to `fb` via atomic
+// adds; secondary rays are appended to `secondary` (grown as needed; its padding is not refilled
+// and may hold garbage afterwards). The contributions and rays of one input ray depend on that
+// ray and its hit only, never on the stream around it, the SIMD target or the stage set.
 // Scene indices must be valid (ValidateScene). Rays whose prim < 0 are misses.
+// Streams: padded and aligned (ray_stream.h); lanes >= size are never read into results.
+// Precision: bit-identical to ref::Shade on every Highway target (no FMA, the same operation
+// order, IEEE add/mul/div/sqrt; the phong exponent uses PhongPow in both). NaN inputs (u, v,
+// direction) give the same NaN-carrying rays as ref::, and the framebuffer drops the same
+// NaN contributions. Within one call, the SIMD kernel emits the rays of each vector of input
+// rays stage by stage (shadow rays light by light, then reflection, then refraction), so the
+// output ORDER differs from ref:: (which emits ray by ray); the multiset of rays is identical.
+// Textures must be smaller than 2^22 texels per side and 2^31 floats (larger ones are sampled
+// per lane with SampleTexture: same result, slower).
 void Shade(const Scene& scene, const ShadeOptions& options, const RayStreamView& rays,
            const HitStreamView& hits, Framebuffer& fb, RayStream& secondary,
            ShadeStats* stats = nullptr);
@@ -101,8 +143,19 @@ inline bool Refract(const glm::vec3& d, const glm::vec3& n, float eta, glm::vec3
 // An empty texture returns white.
 glm::vec3 SampleTexture(const Texture& texture, glm::vec2 uv);
 
+// x^e for the phong highlight, shared by rs::Shade (vectorized, the same operations lane by
+// lane) and ref::Shade, so both round identically. log2 by the atanh series on the mantissa in
+// [sqrt(1/2), sqrt(2)), exp2 by a degree-8 Taylor polynomial on [-1/2, 1/2] scaled by 2^n; only
+// IEEE add/mul/div and exact bit operations. Within 1e-6 + 1.2e-7 * |e log2 x| relative of the
+// exact power for e log2 x >= -126 (e log2 x is rounded to float; its error grows with |e log2 x|). Defined results: x <= 0 or NaN -> 0; e log2 x < -126 -> 0
+// (below 1.2e-38: invisible in the 2^-32 fixed-point framebuffer); e log2 x NaN (x = 1, e = inf)
+// -> 1; e log2 x >= 127 saturates near 2^127. Meant for x in [0, 1] and finite e > 0.
+float PhongPow(float x, float e);
+
 namespace ref {
-// The scalar reference (the oracle for SIMD versions). Same contract as rs::Shade.
+// The scalar reference (the oracle for SIMD versions). Same contract as rs::Shade, including
+// options.stages; it emits a ray's shadow rays (light by light), reflection and refraction ray
+// in that order, ray by ray. Its block counters count rays.
 void Shade(const Scene& scene, const ShadeOptions& options, const RayStreamView& rays,
            const HitStreamView& hits, Framebuffer& fb, RayStream& secondary, ShadeStats* stats);
 }  // namespace ref

@@ -5,7 +5,6 @@
 
 #include <fmt/core.h>
 #include <nlohmann/json.hpp>
-#include <time.h>
 
 #include <algorithm>
 #include <atomic>
@@ -75,8 +74,8 @@ const char* PbtAssignName(PbtAssign assign) {
 }
 
 bool ParsePbtAssign(std::string_view name, PbtAssign* assign) {
-  for (const PbtAssign a : {PbtAssign::kRandom, PbtAssign::kGreedy, PbtAssign::kVisit,
-                            PbtAssign::kStatic}) {
+  for (const PbtAssign a :
+       {PbtAssign::kRandom, PbtAssign::kGreedy, PbtAssign::kVisit, PbtAssign::kStatic}) {
     if (name == PbtAssignName(a)) {
       *assign = a;
       return true;
@@ -109,8 +108,11 @@ void ValidateBackendOptions(const BackendOptions& o) {
     fail(fmt::format("pbt workers {} must be in [0, 65536]", o.pbt_workers));
   }
   if (o.pbt_tiles_per_worker > 0 && o.kind != BackendKind::kTiles) {
-    fail(fmt::format("PBT tiling (k = {}) needs the tiles backend, not {}",
-                     o.pbt_tiles_per_worker, name));
+    fail(fmt::format("PBT tiling (k = {}) needs the tiles backend, not {}", o.pbt_tiles_per_worker,
+                     name));
+  }
+  if (o.pbt_steal && o.pbt_tiles_per_worker == 0) {
+    fail("pbt_steal needs a PBT tiling (pbt_tiles_per_worker > 0)");
   }
   const int assign = static_cast<int>(o.assign);
   if (assign < 0 || assign > static_cast<int>(PbtAssign::kStatic)) {
@@ -122,6 +124,15 @@ double HostFrameStats::IdleSeconds() const {
   double s = 0;
   for (const ThreadStats& t : threads) s += t.idle_seconds;
   return s;
+}
+
+double HostFrameStats::ContentionFreeSeconds(int cores) const {
+  double slowest = 0, sum = 0;
+  for (const ThreadStats& t : threads) {
+    slowest = std::max(slowest, t.cpu_seconds);
+    sum += t.cpu_seconds;
+  }
+  return app_cpu_seconds + std::max(slowest, sum / std::max(cores, 1));
 }
 
 double HostFrameStats::QueueSeconds() const {
@@ -139,13 +150,6 @@ using Clock = std::chrono::steady_clock;
 
 double Seconds(Clock::time_point a, Clock::time_point b) {
   return std::chrono::duration<double>(b - a).count();
-}
-
-// CPU time of the calling thread (Linux: per-thread clock, ~1 us per call, ns resolution).
-double ThreadCpuSeconds() {
-  timespec ts{};
-  if (clock_gettime(CLOCK_THREAD_CPUTIME_ID, &ts) != 0) return 0.0;
-  return static_cast<double>(ts.tv_sec) + 1e-9 * static_cast<double>(ts.tv_nsec);
 }
 
 double Imbalance(const std::vector<ThreadStats>& threads) {
@@ -191,8 +195,9 @@ class HostRenderer::Impl {
   // Called by BeginFrame on the application thread with ctx_, fb_, begin_ set. `tiles` is the
   // explicit tile set or nullptr for the whole image. Loads the frame and releases the threads.
   virtual void Begin(const std::vector<Tile>* tiles) = 0;
-  // Called by EndFrame: waits for the frame and fills stats_ (frame, backend and total are set
-  // by the caller afterwards... see EndFrame). Rethrows a render thread's exception.
+  // Called by EndFrame: waits for the frame and fills stats_.threads, total (counters),
+  // primary_tasks, tiles and the PBT fields; EndFrame sets frame, backend, the frame's wall
+  // time and the imbalance. Rethrows a render thread's exception.
   virtual void End() = 0;
   virtual const Pbt* pbt() const { return nullptr; }
 
@@ -200,6 +205,7 @@ class HostRenderer::Impl {
   FrameContext ctx_;
   Framebuffer* fb_ = nullptr;
   Clock::time_point begin_{};
+  double app_cpu_ = 0;  // application thread's CPU time in Begin
   HostFrameStats stats_;
   uint64_t frames_ = 0;
   bool in_frame_ = false;
@@ -224,6 +230,7 @@ class SerialImpl final : public HostRenderer::Impl {
   }
 
   void End() override {
+    const double cpu0 = ThreadCpuSeconds();
     FrameStats work;
     if (whole_) {
       work = renderer_.Render(ctx_, *fb_);
@@ -234,6 +241,7 @@ class SerialImpl final : public HostRenderer::Impl {
     ThreadStats& t = stats_.threads[0];
     t.work = work;
     t.busy_seconds = Seconds(begin_, Clock::now());
+    t.cpu_seconds = ThreadCpuSeconds() - cpu0;
     stats_.total = work;
     stats_.primary_tasks = 0;
   }
@@ -256,27 +264,9 @@ class SerialImpl final : public HostRenderer::Impl {
 // streams round-robin from the threads' free lists while they are parked, so the total number
 // of streams stays at the peak number of live tasks instead of growing every frame.
 //
-// Termination with shared queues (LOCK, LFREE). EMPTY does not mean the frame is done: another
-// thread may be processing a task whose children are not pushed yet. `outstanding_` counts the
-// tasks pushed and not yet fully processed:
-//   application: outstanding_ = number of primary tasks, stored before the opening barrier
-//                (the barrier publishes it; relaxed store);
-//   worker:      pop a task; ProcessTask collects its k children in `pending`;
-//                outstanding_.fetch_add(k - 1) (the k children counted, the parent retired, in
-//                ONE read-modify-write, before any child is visible); then push the k children;
-//   worker:      on EMPTY, leave the frame iff outstanding_ == 0, else pause / yield and retry.
-// Why the count reaches 0 only when every task is done: all updates are read-modify-writes on
-// one atomic, so they form one modification order. A child's increment is in its parent's
-// fetch_add, which is sequenced before the child's Push; that Push synchronizes with the Pop
-// of the child (queue release/acquire), which is sequenced before the child's own fetch_add.
-// So the parent's update precedes the child's in the modification order (write-write
-// coherence), and the running sum counts every child from before it can be popped until after
-// it was processed: it is >= 1 while any task exists and never rises again after 0.
-// Memory orders: fetch_add is acq_rel and the zero test an acquire load, so a thread that sees
-// 0 also sees all effects of every processed task (not needed for the image, which the closing
-// barrier orders, but it keeps the argument local). Correctness of the counting itself needs
-// only the atomicity of the RMW. One RMW per task (not one per push) keeps the counter's
-// cache line traffic at the level of the queue's own.
+// Termination with shared queues (LOCK, LFREE): TaskCount (frame_loop.h), one Retire(k) per
+// processed task before its k children are pushed; a thread leaves at EMPTY only when the count
+// is 0.
 // LOCAL needs no counter: nobody else pushes into a thread's queue, so EMPTY means done.
 
 template <class Q>
@@ -311,7 +301,8 @@ class QueueImpl final : public HostRenderer::Impl {
     // Listing 3 line 6: Generate_PrimRays into the queue(s).
     try {
       if (tiles == nullptr) {
-        for (const Tile& tile : WholeImageTiles(ctx_)) GeneratePrimaryTasks(ctx_, tile, app, app.stats);
+        for (const Tile& tile : WholeImageTiles(ctx_))
+          GeneratePrimaryTasks(ctx_, tile, app, app.stats);
       } else {
         for (const Tile& tile : *tiles) GeneratePrimaryTasks(ctx_, tile, app, app.stats);
       }
@@ -320,7 +311,7 @@ class QueueImpl final : public HostRenderer::Impl {
       throw;
     }
     // Published to the threads by the opening barrier (Release), hence relaxed.
-    outstanding_.store(static_cast<int64_t>(app.primary), std::memory_order_relaxed);
+    outstanding_.Reset(static_cast<int64_t>(app.primary));
     loop_->Release();  // line 7
   }
 
@@ -341,6 +332,7 @@ class QueueImpl final : public HostRenderer::Impl {
       t.work = me.stats;
       t.busy_seconds = loop_->times()[static_cast<size_t>(w)].busy_seconds;
       t.idle_seconds = loop_->times()[static_cast<size_t>(w)].idle_seconds;
+      t.cpu_seconds = loop_->times()[static_cast<size_t>(w)].cpu_seconds;
       t.empty_polls = me.empty_polls;
       if constexpr (kTimed) {
         t.queue_seconds = queue_.stats().Seconds(w);
@@ -427,10 +419,10 @@ class QueueImpl final : public HostRenderer::Impl {
     QueueImpl* owner;
     int id;
     bool app;
-    std::vector<RayStream> free;        // streams with buffers, cleared
-    std::vector<RayStream*> shells;     // empty RayStream objects in some arena
-    std::deque<RayStream> arena;        // shells this worker created (stable addresses)
-    std::vector<RayStream*> pending;    // children of the task being processed
+    std::vector<RayStream> free;      // streams with buffers, cleared
+    std::vector<RayStream*> shells;   // empty RayStream objects in some arena
+    std::deque<RayStream> arena;      // shells this worker created (stable addresses)
+    std::vector<RayStream*> pending;  // children of the task being processed
     TaskScratch scratch;
     FrameStats stats;
     uint64_t empty_polls = 0;
@@ -458,7 +450,7 @@ class QueueImpl final : public HostRenderer::Impl {
         try {
           ProcessTask(ctx_, task->view(), *fb_, me, me.scratch, me.stats);
           const int64_t k = static_cast<int64_t>(me.pending.size());
-          if constexpr (kShared) outstanding_.fetch_add(k - 1, std::memory_order_acq_rel);
+          if constexpr (kShared) outstanding_.Retire(k);
           for (RayStream* child : me.pending) queue_.Push(w, std::move(child));
         } catch (...) {
           // Other threads stop polling; the frame is abandoned (End drains the queues).
@@ -474,7 +466,7 @@ class QueueImpl final : public HostRenderer::Impl {
       }
       ++me.empty_polls;
       if constexpr (!kShared) return;  // LOCAL: nobody else feeds this queue
-      if (outstanding_.load(std::memory_order_acquire) == 0) return;
+      if (outstanding_.Done()) return;
       if (abort_.load(std::memory_order_relaxed)) return;
       // Others are still processing tasks that may spawn children. Pause, and give the core
       // away now and then: with more threads than cores the producer may be descheduled.
@@ -494,12 +486,12 @@ class QueueImpl final : public HostRenderer::Impl {
     for (int w = 0; w < n; ++w) {
       while (queue_.TryPop(w, task)) workers_[static_cast<size_t>(w)]->Retire(task);
     }
-    outstanding_.store(0, std::memory_order_relaxed);
+    outstanding_.Reset(0);
   }
 
   Q queue_;
   std::vector<std::unique_ptr<Worker>> workers_;  // [0, n) render threads, n = application
-  alignas(kQueueFalseSharing) std::atomic<int64_t> outstanding_{0};
+  TaskCount outstanding_;  // shared queues: tasks pushed and not yet processed
   alignas(kQueueFalseSharing) std::atomic<bool> abort_{false};
   std::unique_ptr<FrameLoop> loop_;  // last: its threads use everything above
 };
@@ -536,6 +528,7 @@ class TilesImpl final : public HostRenderer::Impl {
       w->ticks = 0;
       w->ops = 0;
       w->tiles = 0;
+      w->steals = 0;
     }
     next_.store(0, std::memory_order_relaxed);  // published by the opening barrier
     loop_->Release();
@@ -558,9 +551,11 @@ class TilesImpl final : public HostRenderer::Impl {
       t.work = me.stats;
       t.busy_seconds = loop_->times()[static_cast<size_t>(w)].busy_seconds;
       t.idle_seconds = loop_->times()[static_cast<size_t>(w)].idle_seconds;
+      t.cpu_seconds = loop_->times()[static_cast<size_t>(w)].cpu_seconds;
       t.queue_seconds = static_cast<double>(me.ticks) * tick;
       t.queue_ops = me.ops;
       t.tiles = me.tiles;
+      t.steals = me.steals;
       total.Merge(me.stats);
     }
     stats_.total = total;
@@ -578,6 +573,7 @@ class TilesImpl final : public HostRenderer::Impl {
     uint64_t ticks = 0;  // QueueClock ticks inside the tile counter
     uint64_t ops = 0;
     uint64_t tiles = 0;
+    uint64_t steals = 0;
   };
 
   // tw x th tiles in row-major order (partial at the right and bottom), clamped to the image.
@@ -615,11 +611,28 @@ class TilesImpl final : public HostRenderer::Impl {
       // Thread w runs the lists of (virtual) workers w, w + threads, ... in list order.
       const size_t lists = assignment_.tiles.size();
       for (size_t v = static_cast<size_t>(w); v < lists; v += workers_.size()) {
-        for (const int32_t i : assignment_.tiles[v]) {
-          RenderTile(me, w, static_cast<int>(v), static_cast<size_t>(i));
+        const std::vector<int32_t>& list = assignment_.tiles[v];
+        if (!options_.pbt_steal) {
+          for (const int32_t i : list)
+            RenderTile(me, w, static_cast<int>(v), static_cast<size_t>(i));
+          continue;
+        }
+        uint32_t pos = 0;
+        while (Take(v, /*front=*/true, &pos)) {
+          RenderTile(me, w, static_cast<int>(v), static_cast<size_t>(list[pos]));
         }
       }
-      return;
+      if (!options_.pbt_steal) return;
+      // Demand-driven: steal from the list with the most predicted work still waiting.
+      for (;;) {
+        const size_t victim = RichestList();
+        if (victim == lists) return;
+        uint32_t pos = 0;
+        if (!Take(victim, /*front=*/false, &pos)) continue;  // raced with its owner; look again
+        ++me.steals;
+        RenderTile(me, w, static_cast<int>(victim),
+                   static_cast<size_t>(assignment_.tiles[victim][pos]));
+      }
     }
     const size_t count = tiles_.size();
     for (;;) {
@@ -632,6 +645,50 @@ class TilesImpl final : public HostRenderer::Impl {
       if (i >= count) return;
       RenderTile(me, w, w, i);
     }
+  }
+
+  // List v's waiting tiles are [head, tail) of assignment_.tiles[v], packed in one word so the
+  // owner (front) and thieves (back) arbitrate the last tile with one CAS. Relaxed: the CAS only
+  // decides who renders a tile; the lists were published by the opening barrier and the
+  // records are read after the closing one.
+  static uint64_t PackRange(uint32_t head, uint32_t tail) {
+    return static_cast<uint64_t>(head) | (static_cast<uint64_t>(tail) << 32);
+  }
+  bool Take(size_t v, bool front, uint32_t* pos) {
+    std::atomic<uint64_t>& range = ranges_[v].word;
+    uint64_t r = range.load(std::memory_order_relaxed);
+    for (;;) {
+      const uint32_t head = static_cast<uint32_t>(r);
+      const uint32_t tail = static_cast<uint32_t>(r >> 32);
+      if (head >= tail) return false;
+      const uint64_t next = front ? PackRange(head + 1, tail) : PackRange(head, tail - 1);
+      if (range.compare_exchange_weak(r, next, std::memory_order_relaxed,
+                                      std::memory_order_relaxed)) {
+        *pos = front ? head : tail - 1;
+        return true;
+      }
+    }
+  }
+  // The list with the most predicted work waiting (ties: lowest index), or lists.size() if all
+  // are empty. Racy snapshot by design: a stale choice only costs one failed Take.
+  size_t RichestList() const {
+    const size_t lists = assignment_.tiles.size();
+    size_t best = lists;
+    double best_work = -1.0;
+    for (size_t v = 0; v < lists; ++v) {
+      const uint64_t r = ranges_[v].word.load(std::memory_order_relaxed);
+      const uint32_t head = static_cast<uint32_t>(r);
+      const uint32_t tail = static_cast<uint32_t>(r >> 32);
+      if (head >= tail) continue;
+      double work = 0;
+      for (uint32_t p = head; p < tail; ++p)
+        work += weight_[static_cast<size_t>(assignment_.tiles[v][p])];
+      if (work > best_work) {
+        best_work = work;
+        best = v;
+      }
+    }
+    return best;
   }
 
   int PbtWorkers() const {
@@ -672,6 +729,21 @@ class TilesImpl final : public HostRenderer::Impl {
         predicted_ = pbt_->Estimates();
       }
     }
+    if (options_.pbt_steal) {
+      const size_t lists = assignment_.tiles.size();
+      if (lists != num_ranges_) {
+        ranges_ = std::make_unique<Range[]>(lists);
+        num_ranges_ = lists;
+      }
+      for (size_t v = 0; v < lists; ++v) {
+        ranges_[v].word.store(PackRange(0, static_cast<uint32_t>(assignment_.tiles[v].size())),
+                              std::memory_order_relaxed);  // published by the opening barrier
+      }
+      weight_.resize(tiles_.size());
+      for (size_t i = 0; i < tiles_.size(); ++i) {
+        weight_[i] = has_prediction_ ? predicted_[i] : static_cast<double>(tiles_[i].NumPixels());
+      }
+    }
   }
 
   void FinishPbt() {
@@ -704,6 +776,12 @@ class TilesImpl final : public HostRenderer::Impl {
   Assignment assignment_;
   std::vector<double> static_times_;
   bool has_prediction_ = false;
+  struct alignas(kQueueFalseSharing) Range {
+    std::atomic<uint64_t> word{0};
+  };
+  std::unique_ptr<Range[]> ranges_;  // pbt_steal: per list {head, tail}
+  size_t num_ranges_ = 0;
+  std::vector<double> weight_;       // pbt_steal: per tile, predicted work (or pixels)
   std::unique_ptr<FrameLoop> loop_;  // last: its threads use everything above
 };
 
@@ -774,7 +852,9 @@ void HostRenderer::BeginFrame(const FrameContext& ctx, Framebuffer& fb) {
   impl_->begin_ = Clock::now();
   impl_->ctx_ = ctx;
   impl_->fb_ = &fb;
+  const double cpu0 = ThreadCpuSeconds();
   impl_->Begin(nullptr);
+  impl_->app_cpu_ = ThreadCpuSeconds() - cpu0;
   impl_->in_frame_ = true;
 }
 
@@ -786,14 +866,16 @@ void HostRenderer::BeginFrame(const FrameContext& ctx, Framebuffer& fb,
     const Tile& t = list[i];
     const bool empty = t.x1 <= t.x0 || t.y1 <= t.y0;
     if (!empty && (t.x0 < 0 || t.y0 < 0 || t.x1 > ctx.options.width || t.y1 > ctx.options.height)) {
-      throw Error(fmt::format("renderer: tile {} [{}, {}) x [{}, {}) is outside the {}x{} image",
-                              i, t.x0, t.x1, t.y0, t.y1, ctx.options.width, ctx.options.height));
+      throw Error(fmt::format("renderer: tile {} [{}, {}) x [{}, {}) is outside the {}x{} image", i,
+                              t.x0, t.x1, t.y0, t.y1, ctx.options.width, ctx.options.height));
     }
   }
   impl_->begin_ = Clock::now();
   impl_->ctx_ = ctx;
   impl_->fb_ = &fb;
+  const double cpu0 = ThreadCpuSeconds();
   impl_->Begin(&list);
+  impl_->app_cpu_ = ThreadCpuSeconds() - cpu0;
   impl_->in_frame_ = true;
 }
 
@@ -814,10 +896,12 @@ const HostFrameStats& HostRenderer::EndFrame() {
   s.render_seconds = 0;
   if (impl_->options_.kind != BackendKind::kSerial) {
     double render = 0;
-    for (const ThreadStats& t : s.threads) render = std::max(render, t.busy_seconds + t.idle_seconds);
+    for (const ThreadStats& t : s.threads)
+      render = std::max(render, t.busy_seconds + t.idle_seconds);
     s.render_seconds = render;
   }
   s.imbalance = Imbalance(s.threads);
+  s.app_cpu_seconds = impl_->app_cpu_;
   return s;
 }
 
@@ -879,6 +963,7 @@ Json FrameJson(const HostFrameStats& f) {
          {"idle_seconds", f.IdleSeconds()},
          {"queue_seconds", f.QueueSeconds()},
          {"app_queue_seconds", f.app_queue_seconds},
+         {"app_cpu_seconds", f.app_cpu_seconds},
          {"imbalance", f.imbalance}};
   Json threads = Json::array();
   for (size_t w = 0; w < f.threads.size(); ++w) {
@@ -886,11 +971,13 @@ Json FrameJson(const HostFrameStats& f) {
     threads.push_back(Json{{"thread", w},
                            {"busy_seconds", t.busy_seconds},
                            {"idle_seconds", t.idle_seconds},
+                           {"cpu_seconds", t.cpu_seconds},
                            {"queue_seconds", t.queue_seconds},
                            {"queue_ops", t.queue_ops},
                            {"empty_polls", t.empty_polls},
                            {"tasks", t.work.tasks},
                            {"tiles", t.tiles},
+                           {"steals", t.steals},
                            {"rays", RaysJson(t.work)},
                            {"trace_seconds", t.work.trace_seconds},
                            {"shade_seconds", t.work.shade_seconds}});
@@ -913,12 +1000,10 @@ Json FrameJson(const HostFrameStats& f) {
     j["tiles"] = tiles;
   }
   if (f.pbt) {
-    Json pbt{{"has_prediction", f.has_prediction},
-             {"worker_imbalance", f.worker_imbalance},
-             {"predicted_makespan", f.predicted_makespan},
-             {"update_steps", f.update.steps},
-             {"variance_before", f.update.variance_before},
-             {"variance_after", f.update.variance_after}};
+    Json pbt{
+        {"has_prediction", f.has_prediction},          {"worker_imbalance", f.worker_imbalance},
+        {"predicted_makespan", f.predicted_makespan},  {"update_steps", f.update.steps},
+        {"variance_before", f.update.variance_before}, {"variance_after", f.update.variance_after}};
     if (f.has_prediction) {
       pbt["within5"] = f.accuracy.within5;
       pbt["within10"] = f.accuracy.within10;
@@ -937,16 +1022,66 @@ Json FrameJson(const HostFrameStats& f) {
 //   scope=tile   (index = tile; seconds = wall time, worker = PBT worker, predicted, cpu)
 // Columns that do not apply are empty.
 enum CsvColumn : int {
-  kFrame, kScope, kIndex, kThread, kWorker, kSeconds, kBusy, kIdle, kQueue, kQueueOps,
-  kEmptyPolls, kTasks, kTiles, kRays, kPrimary, kShadow, kReflection, kRefraction, kX0, kY0,
-  kX1, kY1, kCpu, kPredicted, kImbalance, kWorkerImbalance, kWithin5, kWithin10, kWithin15,
+  kFrame,
+  kScope,
+  kIndex,
+  kThread,
+  kWorker,
+  kSeconds,
+  kBusy,
+  kIdle,
+  kQueue,
+  kQueueOps,
+  kEmptyPolls,
+  kTasks,
+  kTiles,
+  kRays,
+  kPrimary,
+  kShadow,
+  kReflection,
+  kRefraction,
+  kX0,
+  kY0,
+  kX1,
+  kY1,
+  kCpu,
+  kPredicted,
+  kImbalance,
+  kWorkerImbalance,
+  kWithin5,
+  kWithin10,
+  kWithin15,
   kNumCsvColumns
 };
-constexpr const char* kCsvNames[kNumCsvColumns] = {
-    "frame", "scope", "index", "thread", "worker", "seconds", "busy_seconds", "idle_seconds",
-    "queue_seconds", "queue_ops", "empty_polls", "tasks", "tiles", "rays", "primary", "shadow",
-    "reflection", "refraction", "x0", "y0", "x1", "y1", "cpu_seconds", "predicted_seconds",
-    "imbalance", "worker_imbalance", "within5", "within10", "within15"};
+constexpr const char* kCsvNames[kNumCsvColumns] = {"frame",
+                                                   "scope",
+                                                   "index",
+                                                   "thread",
+                                                   "worker",
+                                                   "seconds",
+                                                   "busy_seconds",
+                                                   "idle_seconds",
+                                                   "queue_seconds",
+                                                   "queue_ops",
+                                                   "empty_polls",
+                                                   "tasks",
+                                                   "tiles",
+                                                   "rays",
+                                                   "primary",
+                                                   "shadow",
+                                                   "reflection",
+                                                   "refraction",
+                                                   "x0",
+                                                   "y0",
+                                                   "x1",
+                                                   "y1",
+                                                   "cpu_seconds",
+                                                   "predicted_seconds",
+                                                   "imbalance",
+                                                   "worker_imbalance",
+                                                   "within5",
+                                                   "within10",
+                                                   "within15"};
 
 class CsvRow {
  public:
@@ -1034,6 +1169,7 @@ void WriteHostStats(const std::string& path, const std::string& scene,
         backend["pbt_workers"] = options.pbt_workers > 0 ? options.pbt_workers : options.threads;
         backend["assign"] = PbtAssignName(options.assign);
         backend["pbt_time"] = options.pbt_cpu_time ? "cpu" : "wall";
+        backend["steal"] = options.pbt_steal;
       }
     }
     Json j{{"scene", scene},

@@ -57,10 +57,17 @@ struct BackendOptions {
   int tile_height = 32;
   // Tiles backend: k > 0 switches to a PBT tiling of m = k * n tiles, n = pbt_workers (0: n =
   // threads). The PBT's n worker lists are run by the threads in turn: thread t runs the lists
-  // of workers t, t + threads, ... (each in list order). No stealing between lists: a thread
-  // that finishes early idles at the barrier, as in the paper's static assignment.
+  // of workers t, t + threads, ... (each in list order). By default there is no stealing
+  // between lists (the brief's reading of the paper: assigned lists; a thread that finishes
+  // early idles at the barrier).
   int pbt_tiles_per_worker = 0;
   int pbt_workers = 0;
+  // Demand-driven with affinity, the paper's master-worker of §2 with §4's affine tiles as the
+  // preference (what SimulateDemandDriven in pbt.h models): a thread whose own lists are done
+  // takes the LAST waiting tile of the list with the most predicted work waiting (tile pixels
+  // before the first prediction), so the owner keeps its spatial order. Lock-free: each list is
+  // one 64-bit {head, tail} word; the owner CASes head forward, thieves CAS tail back.
+  bool pbt_steal = false;
   PbtAssign assign = PbtAssign::kRandom;
   uint64_t seed = 1;  // PBT-Random / static assignment
   // Which tile time PBT-Update gets: wall-clock (false, the paper's) or the rendering thread's
@@ -73,7 +80,8 @@ struct BackendOptions {
 
 // Throws rs::Error naming the option: threads outside [1, FrameLoop::kMaxThreads], serial with
 // threads != 1, tile sizes < 1, pbt_tiles_per_worker < 0 or > 4096, pbt_workers < 0 or > 65536,
-// PBT options on a backend other than tiles, unknown enum values.
+// PBT options (k > 0, pbt_steal) on a backend other than tiles, pbt_steal without k > 0,
+// unknown enum values.
 void ValidateBackendOptions(const BackendOptions& options);
 
 // Per render thread, one frame.
@@ -81,10 +89,12 @@ struct ThreadStats {
   FrameStats work;           // rays by kind, tasks, trace/shade times of what this thread ran
   double busy_seconds = 0;   // release -> arrival at the closing barrier (FrameLoopTimes)
   double idle_seconds = 0;   // at the closing barrier (paper Fig. 6)
+  double cpu_seconds = 0;    // the thread's CPU time in the frame (FrameLoopTimes::cpu_seconds)
   double queue_seconds = 0;  // inside queue operations / tile-counter accesses (Fig. 7)
   uint64_t queue_ops = 0;
   uint64_t empty_polls = 0;  // TryPop calls that found EMPTY
   uint64_t tiles = 0;        // tiles rendered (tiles backend)
+  uint64_t steals = 0;       // PBT with pbt_steal: tiles taken from another worker's list
 };
 
 // One tile of the tiles backend, one frame.
@@ -106,6 +116,7 @@ struct HostFrameStats {
   FrameStats total;
   double render_seconds = 0;     // opening -> closing barrier completion (0 for serial)
   double app_queue_seconds = 0;  // application thread inside PushPrimary
+  double app_cpu_seconds = 0;    // application thread's CPU time in BeginFrame (generation)
   uint64_t primary_tasks = 0;
   std::vector<ThreadStats> threads;  // one per render thread (serial: one)
   std::vector<TileRecord> tiles;     // tiles backend: one per tile, in tile order
@@ -123,6 +134,11 @@ struct HostFrameStats {
   double FramesPerSecond() const { return total.total_seconds > 0 ? 1.0 / total.total_seconds : 0; }
   double IdleSeconds() const;   // sum over threads
   double QueueSeconds() const;  // sum over threads + application (aggregate, Fig. 7)
+  // Frame time this frame would take on an idle machine with `cores` cores, from CPU times:
+  // app_cpu_seconds + max(slowest thread's CPU, all threads' CPU / cores). Barrier wake-ups and
+  // memory-bandwidth limits are not modelled; spinning on an EMPTY queue counts as work. Use it
+  // where other processes share the machine and wall-clock times mostly measure the CPU share.
+  double ContentionFreeSeconds(int cores) const;
 };
 
 // The renderer an application drives (listing 3):
@@ -140,6 +156,7 @@ class HostRenderer {
  public:
   // Throws rs::Error (ValidateBackendOptions), std::system_error if threads cannot start.
   explicit HostRenderer(const BackendOptions& options);
+  // END flag, threads joined. A running frame is waited for first (its fb must still exist).
   ~HostRenderer();
   HostRenderer(const HostRenderer&) = delete;
   HostRenderer& operator=(const HostRenderer&) = delete;

@@ -2,6 +2,8 @@
 // application side of listing 3, with per-thread busy and idle times.
 #include "sched/frame_loop.h"
 
+#include <time.h>
+
 #include <string>
 #include <system_error>
 #include <utility>
@@ -22,6 +24,12 @@ double Seconds(FrameBarrier::Clock::time_point a, FrameBarrier::Clock::time_poin
 constexpr int kBarrierSpins = 100;
 
 }  // namespace
+
+double ThreadCpuSeconds() {
+  timespec ts{};
+  if (clock_gettime(CLOCK_THREAD_CPUTIME_ID, &ts) != 0) return 0.0;
+  return static_cast<double>(ts.tv_sec) + 1e-9 * static_cast<double>(ts.tv_nsec);
+}
 
 FrameBarrier::FrameBarrier(int participants) : participants_(participants < 1 ? 1 : participants) {}
 
@@ -96,13 +104,15 @@ FrameLoop::~FrameLoop() { Shutdown(); }
 void FrameLoop::ThreadMain(int worker) {
   Slot& slot = slots_[static_cast<size_t>(worker)];
   for (;;) {
-    open_.ArriveAndWait();                          // listing 2, line 3
+    open_.ArriveAndWait();                             // listing 2, line 3
     if (end_.load(std::memory_order_relaxed)) return;  // ordered by the barrier
+    const double cpu0 = ThreadCpuSeconds();
     try {
       work_(worker);  // lines 4-10: drain the queue
     } catch (...) {
       slot.error = std::current_exception();
     }
+    slot.cpu_seconds = ThreadCpuSeconds() - cpu0;
     slot.arrival = Clock::now();
     close_.ArriveAndWait();  // line 11
   }
@@ -128,6 +138,7 @@ FrameLoop::Clock::time_point FrameLoop::Wait() {
     FrameLoopTimes& t = times_[static_cast<size_t>(w)];
     t.busy_seconds = Seconds(release_time_, slot.arrival);
     t.idle_seconds = Seconds(slot.arrival, done);
+    t.cpu_seconds = slot.cpu_seconds;
     if (slot.error && !error) error = slot.error;
     slot.error = nullptr;
   }

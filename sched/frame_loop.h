@@ -59,13 +59,54 @@ class FrameBarrier {
   Clock::time_point completion_{};  // written under mutex_ before phase_ advances
 };
 
+// Termination detection for a frame whose tasks create tasks, with shared queues (LOCK, LFREE):
+// EMPTY does not mean done, because another thread may be processing a task whose children are
+// not pushed yet. The count is the number of tasks pushed and not yet fully processed:
+//   application: Reset(primary tasks) before the opening barrier (the barrier publishes it);
+//   worker:      pop a task, process it, collect its k children; Retire(k) (the k children
+//                counted and the parent retired in ONE read-modify-write, before any child is
+//                visible); then push the children;
+//   worker:      on EMPTY, leave the frame iff Done(); otherwise pause / yield and poll again.
+// Why Done() becomes true only when every task is finished: all updates are RMWs on one atomic,
+// so they form one modification order. A child is counted by its parent's Retire, which is
+// sequenced before the child's Push; the Push synchronizes with the child's Pop (the queues'
+// release/acquire), which is sequenced before the child's own Retire. So the parent's update
+// precedes the child's in the modification order (write-write coherence), the running value
+// includes every child from before it can be popped until after it was processed, it is >= 1
+// while any task exists, and it never leaves 0 again once there.
+// Memory orders: Retire is acq_rel and Done an acquire load, so a thread that sees 0 also sees
+// every processed task's effects (the image does not need it, the closing barrier orders those,
+// but it keeps the argument local); the counting itself needs only the RMW's atomicity.
+// One RMW per task (not one per push) keeps its cache-line traffic at the queue's own level.
+// Without the count, a thread leaving at the first EMPTY still yields a complete image (the
+// pusher keeps polling its own children) but idles at the barrier while others still work.
+class TaskCount {
+ public:
+  // Application thread, before the opening barrier (relaxed: the barrier publishes it).
+  void Reset(int64_t tasks) { count_.store(tasks, std::memory_order_relaxed); }
+  // A task is fully processed and its `children` are about to be pushed.
+  void Retire(int64_t children) { count_.fetch_add(children - 1, std::memory_order_acq_rel); }
+  // No task is queued or being processed: leave the frame.
+  bool Done() const { return count_.load(std::memory_order_acquire) == 0; }
+  int64_t value() const { return count_.load(std::memory_order_relaxed); }
+
+ private:
+  alignas(128) std::atomic<int64_t> count_{0};
+};
+
 // Per render thread, one frame.
 struct FrameLoopTimes {
   double busy_seconds = 0;  // opening-barrier completion -> this thread's arrival at the closing
                             // barrier (includes its wake-up latency)
   double idle_seconds = 0;  // its arrival at the closing barrier -> that barrier's completion
                             // (waiting for the other threads and the application: Fig. 6)
+  double cpu_seconds = 0;   // the thread's CPU time inside work(worker) (CLOCK_THREAD_CPUTIME_ID):
+                            // equals busy_seconds on an idle machine with a core per thread;
+                            // less when the thread was preempted (other load, oversubscription)
 };
+
+// CPU time consumed so far by the calling thread, in seconds (0 if the clock is unavailable).
+double ThreadCpuSeconds();
 
 // Owns the render threads. Usage (listing 3), from ONE application thread:
 //   FrameLoop loop(n, [&](int worker) { ... drain the queue ... });
@@ -123,6 +164,7 @@ class FrameLoop {
 
   struct alignas(128) Slot {  // written by its thread only, read after a barrier
     Clock::time_point arrival{};
+    double cpu_seconds = 0;
     std::exception_ptr error;
   };
 

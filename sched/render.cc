@@ -137,6 +137,7 @@ FrameContext MakeFrameContext(const Scene& scene, const Accel& accel, const Came
   ctx.options = options;
   ctx.shade.max_depth = options.max_depth;
   ctx.shade.weight_cutoff = options.weight_cutoff;
+  ctx.shade.stages = ShadeStagesFor(scene, ctx.shade);  // the shading pipeline, once per frame
   return ctx;
 }
 

@@ -18,6 +18,8 @@
 #include "scenes/load.h"
 #include "sched/backends.h"
 #include "sched/render.h"
+#include "sched/mpi_backend.h"     // --backend mpi
+#include "sim/cell_renderer.h"  // --backend cell
 
 namespace rs {
 namespace {
@@ -59,7 +61,13 @@ Json InfoJson(const Scene& scene, const AccelInfo& a) {
         {"triangles_per_occupied_cell", per_occupied},
         {"max_triangles_per_cell", a.max_per_cell},
         {"bytes", a.bytes},
-        {"build_seconds", a.build_seconds}}},
+        {"build_seconds", a.build_seconds},
+        {"lambda", a.lambda},
+        {"subgrids", a.subgrids},
+        {"sub_references", a.sub_references},
+        {"cost_estimate", a.cost_estimate},
+        {"flat_cost_estimate", a.flat_cost_estimate},
+        {"simd_target", a.simd_target}}},
       {"features", FeaturesJson(scene.features)}};
 }
 
@@ -89,6 +97,11 @@ void PrintInfo(const Json& j) {
              g["max_triangles_per_cell"].get<size_t>(), g["references"].get<size_t>());
   fmt::print("grid build   {:.2f} ms, {:.1f} MiB\n", 1e3 * g["build_seconds"].get<double>(),
              g["bytes"].get<size_t>() / 1048576.0);
+  fmt::print("grid choice  lambda {:.2g}, {} 8x8x8 sub-grids ({} references), cost {:.1f} per ray "
+             "(flat {:.1f}), traversal {}\n",
+             g["lambda"].get<double>(), g["subgrids"].get<size_t>(),
+             g["sub_references"].get<size_t>(), g["cost_estimate"].get<double>(),
+             g["flat_cost_estimate"].get<double>(), g["simd_target"].get<std::string>());
   fmt::print("features     lights={} specular={} reflection={} transmission={} textures={} "
              "large={}\n",
              f["lights"].get<bool>(), f["specular"].get<bool>(), f["reflection"].get<bool>(),
@@ -98,13 +111,21 @@ void PrintInfo(const Json& j) {
 struct InfoArgs {
   std::string scene = kDefaultScene;
   bool json = false;
-  float lambda = BuildOptions{}.lambda;
+  float lambda = 0.0f;  // 0: chosen by the grid cost model (BuildOptions::auto_lambda)
 };
+
+// --lambda: 0 (the default) lets the grid cost model choose; anything else is used as given.
+void SetLambda(float lambda, BuildOptions* build) {
+  if (lambda > 0.0f) {
+    build->lambda = lambda;
+    build->auto_lambda = false;
+  }
+}
 
 int RunInfo(const InfoArgs& args) {
   const Scene scene = LoadScene(args.scene);
   BuildOptions build;
-  build.lambda = args.lambda;
+  SetLambda(args.lambda, &build);
   const Accel accel(scene.mesh(), build);
   const Json j = InfoJson(scene, accel.Info());
   if (args.json) {
@@ -127,7 +148,7 @@ struct RenderArgs {
   int task_size = RenderOptions{}.task_size;
   std::string order = "scanline";
   float cutoff = RenderOptions{}.weight_cutoff;
-  float lambda = BuildOptions{}.lambda;
+  float lambda = 0.0f;  // 0: chosen by the grid cost model
   std::string stats;
   bool quiet = false;
   // Host schedulers (sched/backends.h).
@@ -138,7 +159,11 @@ struct RenderArgs {
   std::string assign = "random";
   std::string pbt_time = "wall";
   uint64_t seed = 1;
+  bool steal = false;
   bool queue_stats = true;
+  int spes = 6;  // --backend cell: simulated SPEs
+  double mpi_timeout = 120;  // --backend mpi: seconds a worker may hold a tile silently
+  std::string dump_raw;      // hidden: raw fixed-point framebuffer (sched/mpi_backend.h)
 };
 
 // "32x32", "640x2", "300x1" -> width, height. Throws rs::Error naming the option.
@@ -163,6 +188,7 @@ BackendOptions MakeBackendOptions(const RenderArgs& args) {
   if (!ParseBackendKind(args.backend, &o.kind)) {
     std::string names;
     for (const auto& n : BackendNames()) names += (names.empty() ? "" : ", ") + n;
+    names += ", cell, mpi";  // dispatched before this point (RunRenderCell, RunRenderMpi)
     throw Error(fmt::format("--backend {}: unknown backend (available: {})", args.backend, names));
   }
   o.threads = args.threads;
@@ -174,6 +200,7 @@ BackendOptions MakeBackendOptions(const RenderArgs& args) {
   }
   o.pbt_cpu_time = args.pbt_time == "cpu";
   o.seed = args.seed;
+  o.pbt_steal = args.steal;
   o.queue_stats = args.queue_stats;
   if (o.kind == BackendKind::kSerial && o.threads != 1) {
     throw Error(fmt::format("--threads {}: the serial backend runs one thread (use lock, lfree, "
@@ -181,6 +208,9 @@ BackendOptions MakeBackendOptions(const RenderArgs& args) {
   }
   if (o.pbt_tiles_per_worker > 0 && o.kind != BackendKind::kTiles) {
     throw Error(fmt::format("--pbt {}: PBT tiling needs --backend tiles", args.pbt));
+  }
+  if (o.pbt_steal && o.pbt_tiles_per_worker == 0) {
+    throw Error("--steal: needs a PBT tiling (--backend tiles --pbt k)");
   }
   ValidateBackendOptions(o);
   return o;
@@ -193,7 +223,139 @@ std::string FrameFileName(const std::string& pattern, int frame) {
   return pattern.substr(0, hash) + fmt::format("{:04d}", frame) + pattern.substr(hash + 1);
 }
 
+// --- Cell simulator backend (sim/cell_renderer.h): the paper's SPE ray pipeline on --spes
+// simulated SPEs, one host thread; the image equals the serial backend's bit for bit. ---------
+int RunRenderCell(const RenderArgs& args) {
+  sim::SimConfig config;
+  config.num_spes = args.spes;
+  ParseTileShape(args.tile, config.tile_width, config.tile_height);
+  config.pbt_tiles_per_spe = args.pbt;
+  sim::ValidateConfig(config);
+  if (args.threads != 1) {
+    throw Error(fmt::format("--threads {}: the cell backend simulates --spes SPEs on one host "
+                            "thread", args.threads));
+  }
+  const std::string& st = args.stats;
+  if (!st.empty() && (st.size() < 5 || st.compare(st.size() - 5, 5, ".json") != 0)) {
+    throw Error(fmt::format("--stats {}: the cell backend writes .json statistics", st));
+  }
+  if (args.width <= 0 || args.height <= 0 || args.width > 16384 || args.height > 16384) {
+    throw Error(fmt::format("--width/--height must be within 1..16384 (got {}x{})", args.width,
+                            args.height));
+  }
+  const std::string out = args.out.empty() ? args.scene + ".png" : args.out;
+  const auto t_load = std::chrono::steady_clock::now();
+  const Scene scene = LoadScene(args.scene);
+  const double load_seconds = Seconds(std::chrono::steady_clock::now() - t_load);
+  BuildOptions build;
+  SetLambda(args.lambda, &build);
+  std::string note;
+  const Accel accel = sim::BuildCellAccel(scene, build, config, args.width, &note);
+  if (!note.empty() && !args.quiet) fmt::print(stderr, "raystream: note: {}\n", note);
+  const AccelInfo info = accel.Info();
+  RenderOptions options;
+  options.width = args.width;
+  options.height = args.height;
+  options.max_depth = args.depth;
+  options.weight_cutoff = args.cutoff;
+  sim::CellRenderer renderer(config);
+  Framebuffer fb(args.width, args.height);
+  std::vector<float> rgb;
+  Json frames = Json::array();
+  sim::CellFrameStats last;
+  double image_seconds = 0;  // the PPE layout is built in the first frame only
+  for (int frame = 0; frame < args.frames; ++frame) {
+    const Camera camera = scene.path.At(frame, args.speed, scene.camera);
+    const FrameContext ctx = MakeFrameContext(scene, accel, camera, options);
+    fb.Clear();
+    last = renderer.Render(ctx, fb);
+    image_seconds += last.image_seconds;
+    if (frame + 1 == args.frames || out.find('#') != std::string::npos) {
+      fb.ToRgb(rgb);
+      WriteImage(FrameFileName(out, frame), args.width, args.height, rgb);
+    }
+    Json spes = Json::array();
+    for (const sim::SpeReport& r : last.spes) {
+      Json cycles;
+      for (int c = 0; c < sim::kNumCosts; ++c) cycles[sim::CostName(sim::Cost(c))] = r.cycles.cycles[c];
+      spes.push_back(Json{{"spe", r.id}, {"finish", r.finish}, {"cycles", cycles},
+                          {"rays", r.counters.TotalRays()}, {"visits", r.counters.visits},
+                          {"micro_cache_hits", r.counters.micro_cache_hits},
+                          {"dma_commands", r.mfc.commands}, {"dma_bytes", r.mfc.bytes},
+                          {"atomic_loads", r.atomic.getllar}, {"ls_bytes", r.ls_used}});
+    }
+    Json tiles = Json::array();
+    for (const sim::CellTileRecord& t : last.tiles) {
+      tiles.push_back(Json{{"x0", t.tile.x0}, {"y0", t.tile.y0}, {"x1", t.tile.x1},
+                           {"y1", t.tile.y1}, {"spe", t.spe}, {"cycles", t.cycles},
+                           {"predicted", t.predicted}});
+    }
+    frames.push_back(Json{{"frame", frame}, {"cycles", last.cycles},
+                          {"simulated_seconds", last.seconds}, {"host_seconds", last.host_seconds},
+                          {"rays", last.totals.TotalRays()}, {"mic_lines", last.mic_lines},
+                          {"mic_queue_cycles", last.mic_queue_cycles}, {"spes", spes},
+                          {"tiles", tiles}});
+    if (args.frames > 1 && !args.quiet) {
+      fmt::print(stderr, "frame {}/{}  {:.2f} ms simulated, {:.1f} ms host\n", frame + 1,
+                 args.frames, 1e3 * last.seconds, 1e3 * last.host_seconds);
+    }
+  }
+  if (!st.empty()) {
+    std::ofstream f(st);
+    f << Json{{"scene", scene.name}, {"backend", "cell"}, {"config", sim::DescribeConfig(config)},
+              {"frames", frames}}.dump(2)
+      << "\n";
+    if (!f) throw Error(fmt::format("--stats {}: cannot write the file", st));
+  }
+  if (!args.quiet) {
+    fmt::print("scene      {}: {} triangles, {} lights, grid {} {}x{}x{}\n", scene.name,
+               info.triangles, scene.lights.size(), info.kind, info.resolution[0],
+               info.resolution[1], info.resolution[2]);
+    fmt::print("load       {:.1f} ms, grid build {:.1f} ms, cell image {:.1f} ms ({:.1f} MiB)\n",
+               1e3 * load_seconds, 1e3 * info.build_seconds, 1e3 * image_seconds,
+               double(last.image_bytes) / 1048576.0);
+    fmt::print("image      {}x{}, depth {}, {} frame(s), backend cell, {} SPEs, {}\n", args.width,
+               args.height, args.depth, args.frames, config.num_spes,
+               config.pbt_tiles_per_spe > 0
+                   ? fmt::format("PBT k={}", config.pbt_tiles_per_spe)
+                   : fmt::format("tiles {}x{}", config.tile_width, config.tile_height));
+    fmt::print("{}", sim::FormatCellReport(last, config));
+    fmt::print("wrote      {}\n", FrameFileName(out, args.frames - 1));
+  }
+  return 0;
+}
+
+// --- Cluster backend (sched/mpi_backend.h): run under `mpirun -np N`; rank 0 is the master. ----
+int RunRenderMpi(const RenderArgs& args) {
+  MpiRenderConfig c;
+  c.scene = args.scene;
+  c.options.width = args.width;
+  c.options.height = args.height;
+  c.options.max_depth = args.depth;
+  c.options.task_size = args.task_size;
+  c.options.weight_cutoff = args.cutoff;
+  c.options.order = args.order == "block" ? RayOrder::kBlock4x2 : RayOrder::kScanline;
+  c.lambda = args.lambda;
+  c.frames = args.frames;
+  c.speed = args.speed;
+  c.out = args.out;
+  c.stats = args.stats;
+  c.dump_raw = args.dump_raw;
+  ParseTileShape(args.tile, c.tile_width, c.tile_height);
+  c.pbt_tiles_per_worker = args.pbt;
+  if (!ParsePbtAssign(args.assign, &c.assign)) {
+    throw Error(fmt::format("--assign {}: expected random, greedy, visit or static", args.assign));
+  }
+  c.seed = args.seed;
+  c.pbt_cpu_time = args.pbt_time == "cpu";
+  c.timeout_seconds = args.mpi_timeout;
+  c.quiet = args.quiet;
+  return RunMpiRender(c);
+}
+
 int RunRender(const RenderArgs& args) {
+  if (args.backend == "cell") return RunRenderCell(args);
+  if (args.backend == "mpi") return RunRenderMpi(args);
   const BackendOptions backend = MakeBackendOptions(args);
   if (!args.stats.empty() && !StatsFileFormatOk(args.stats)) {
     throw Error(fmt::format("--stats {}: statistics file must end in .json or .csv", args.stats));
@@ -210,7 +372,7 @@ int RunRender(const RenderArgs& args) {
   const double load_seconds = Seconds(std::chrono::steady_clock::now() - t_load);
 
   BuildOptions build;
-  build.lambda = args.lambda;
+  SetLambda(args.lambda, &build);
   const Accel accel(scene.mesh(), build);
   const AccelInfo info = accel.Info();
 
@@ -241,6 +403,7 @@ int RunRender(const RenderArgs& args) {
     if (write) {
       fb.ToRgb(rgb);
       WriteImage(FrameFileName(out, frame), args.width, args.height, rgb);
+      if (!args.dump_raw.empty()) WriteRawFramebuffer(FrameFileName(args.dump_raw, frame), fb);
     }
     if (args.frames > 1 && !args.quiet) {
       fmt::print(stderr, "{}frame {}/{}  {:.1f} ms  {:.2f} Mrays/s{}", tty ? "\r" : "",
@@ -262,8 +425,8 @@ int RunRender(const RenderArgs& args) {
     if (backend.kind != BackendKind::kSerial) how += fmt::format(", {} thread(s)", backend.threads);
     if (backend.kind == BackendKind::kTiles) {
       how += backend.pbt_tiles_per_worker > 0
-                 ? fmt::format(", PBT k={} assign {}", backend.pbt_tiles_per_worker,
-                               PbtAssignName(backend.assign))
+                 ? fmt::format(", PBT k={} assign {}{}", backend.pbt_tiles_per_worker,
+                               PbtAssignName(backend.assign), backend.pbt_steal ? " + steal" : "")
                  : fmt::format(", tiles {}x{}", backend.tile_width, backend.tile_height);
     }
     fmt::print("image      {}x{}, depth {}, {} frame(s), backend {}\n", args.width, args.height,
@@ -327,7 +490,11 @@ int Main(int argc, char** argv) {
   render->add_option("--out", r.out,
                      "output image (default SCENE.png); a '#' becomes the frame number and "
                      "writes every frame, otherwise only the last frame is written");
-  render->add_option("--backend", r.backend, "scheduler: serial, lock, lfree, local, tiles")
+  render->add_option("--backend", r.backend,
+                     "scheduler: serial, lock, lfree, local, tiles, cell, mpi (under mpirun)")
+      ->capture_default_str();
+  render->add_option("--spes", r.spes, "cell backend: simulated SPEs (--tile and --pbt apply)")
+      ->check(CLI::Range(1, 8))
       ->capture_default_str();
   render->add_option("--threads", r.threads, "render threads (lock, lfree, local, tiles)")
       ->check(CLI::Range(1, 1024))
@@ -346,6 +513,9 @@ int Main(int argc, char** argv) {
       ->check(CLI::IsMember({"wall", "cpu"}))
       ->capture_default_str();
   render->add_option("--seed", r.seed, "seed of the random tile assignments")->capture_default_str();
+  render->add_flag("--steal", r.steal,
+                   "PBT: a thread done with its tiles takes waiting tiles of the most loaded "
+                   "worker (demand-driven with affinity)");
   render->add_flag("!--no-queue-stats", r.queue_stats, "do not time queue operations");
   render->add_option("--task-size", r.task_size, "rays per task")
       ->check(CLI::Range(1, 1 << 20))
@@ -355,9 +525,15 @@ int Main(int argc, char** argv) {
       ->capture_default_str();
   render->add_option("--cutoff", r.cutoff, "drop secondary rays whose weight is below this")
       ->capture_default_str();
-  render->add_option("--lambda", r.lambda, "grid density: cells per triangle")
-      ->check(CLI::Range(0.01f, 64.0f))
+  render->add_option("--lambda", r.lambda, "grid density: cells per triangle (0: chosen by the grid cost model)")
+      ->check(CLI::Range(0.0f, 64.0f))
       ->capture_default_str();
+  render->add_option("--mpi-timeout", r.mpi_timeout,
+                     "mpi backend: a worker silent this many seconds while holding a tile ends "
+                     "the run with an error naming its rank")
+      ->check(CLI::Range(0.001, 1e6))
+      ->capture_default_str();
+  render->add_option("--dump-raw", r.dump_raw)->group("");  // hidden: exact framebuffer dump
   render->add_option("--stats", r.stats,
                      "write per-frame, per-thread and per-tile statistics to this file (.json or "
                      ".csv)");
@@ -367,8 +543,8 @@ int Main(int argc, char** argv) {
   CLI::App* info = app.add_subcommand("info", "print a scene's size, grid and features");
   info->add_option("--scene", i.scene, scene_help)->capture_default_str();
   info->add_flag("--json", i.json, "print JSON");
-  info->add_option("--lambda", i.lambda, "grid density: cells per triangle")
-      ->check(CLI::Range(0.01f, 64.0f))
+  info->add_option("--lambda", i.lambda, "grid density: cells per triangle (0: chosen by the grid cost model)")
+      ->check(CLI::Range(0.0f, 64.0f))
       ->capture_default_str();
 
   CLI::App* scenes = app.add_subcommand("scenes", "list built-in scenes and the search path");

@@ -76,7 +76,15 @@ enum class GridKind : int { kAuto = 0, kUniform = 1, kTwoLevel = 2 };
 struct BuildOptions {
   float lambda = 4.0f;    // grid density: cells ~= lambda * triangles (Cleary/Wyvill heuristic)
   int max_resolution = 512;  // per axis
+  // kUniform: one grid at `lambda`. kTwoLevel: the grid at `lambda`, and every cell holding more
+  // than subgrid_threshold triangles gets an 8x8x8 sub-grid (Cell paper 3.8). kAuto: lambda
+  // from the grid cost model when auto_lambda is set (else `lambda`), then only the cells whose
+  // sub-grid the cost model finds cheaper are refined; AccelInfo::kind says what was built.
   GridKind grid = GridKind::kAuto;
+  // Appended fields.
+  int subgrid_threshold = 32;  // kTwoLevel: refine cells with more triangles; kAuto: candidates
+  bool auto_lambda = true;     // kAuto only: choose lambda from the cost model
+  int micro_cache = 8;         // traversal micro-cache entries (0 = off, at most 16)
 };
 
 // Figures about a built structure, as printed by `raystream info`.
@@ -92,16 +100,28 @@ struct AccelInfo {
   size_t max_per_cell = 0;
   double build_seconds = 0;
   size_t bytes = 0;
-  const char* kind = "uniform";
+  const char* kind = "uniform";  // "uniform" or "two-level"
+  // Appended fields.
+  float lambda = 0.0f;            // the lambda the top-level grid was built with
+  size_t subgrids = 0;            // refined cells (8x8x8 sub-grids, one 128-B record each)
+  size_t sub_references = 0;      // triangle references held by sub-cells
+  double cost_estimate = 0.0;     // expected cost per ray, in empty cell steps (two_level.h)
+  double flat_cost_estimate = 0.0;  // the same for the top-level grid alone
+  const char* simd_target = "";   // the Highway target the traversal kernels dispatch to
 };
 
 struct TraceStats {
   uint64_t rays = 0;
-  uint64_t cell_steps = 0;
-  uint64_t triangle_tests = 0;
+  uint64_t cell_steps = 0;      // cells entered (top-level and sub-grid cells)
+  uint64_t triangle_tests = 0;  // ray/triangle tests (SIMD: packet lanes holding a triangle)
+  // Appended fields: the traversal micro-cache (BuildOptions::micro_cache).
+  uint64_t cache_lookups = 0;
+  uint64_t cache_hits = 0;
 };
 
-// The acceleration structure: a uniform grid with an occupancy bit array and CSR cell lists.
+// The acceleration structure: a uniform grid with an occupancy bit array and CSR cell lists,
+// optionally with 8x8x8 sub-grids in its densest cells (BuildOptions::grid), traced by SIMD
+// stream kernels (Highway dynamic dispatch; results identical on every CPU target).
 // Thread-safe for concurrent Intersect/Occluded calls once built.
 class Accel {
  public:

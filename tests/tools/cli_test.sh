@@ -60,7 +60,8 @@ expect_error "bad width" 'width' "$rs" render --scene cornell --width 0 --out "$
 "$rs" render --scene cornell --width 32 --height 24 --depth 3 --out "$tmp/b-serial.png" -q
 "$rs" render --scene cornell --width 32 --height 24 --depth 3 --frames 2 --out "$tmp/b-serial2.png" -q
 for b in "lock --threads 2" "lfree --threads 3" "local --threads 2" "tiles --threads 2 --tile 640x2" \
-         "tiles --threads 2 --tile 7x5" "tiles --threads 2 --pbt 2 --assign visit --frames 2"; do
+         "tiles --threads 2 --tile 7x5" "tiles --threads 2 --pbt 2 --assign visit --frames 2" \
+         "tiles --threads 2 --pbt 3 --pbt-workers 4 --assign greedy --steal"; do
   name=$(echo "$b" | tr ' ' '_')
   want="$tmp/b-serial.png"; case "$b" in *"--frames 2"*) want="$tmp/b-serial2.png";; esac
   # shellcheck disable=SC2086
@@ -87,6 +88,7 @@ expect_error "unknown backend lists the choices" 'nosuch.*(lock|lfree|local|tile
 expect_error "bad tile shape" 'tile.*WIDTHxHEIGHT|--tile' "$rs" render --scene cornell --backend tiles --tile 32 --width 8 --height 8 --out "$tmp/y.png"
 expect_error "zero tile size" '\-\-tile 0x4' "$rs" render --scene cornell --backend tiles --tile 0x4 --width 8 --height 8 --out "$tmp/y.png"
 expect_error "PBT needs the tiles backend" 'pbt.*tiles' "$rs" render --scene cornell --backend lock --pbt 2 --width 8 --height 8 --out "$tmp/y.png"
+expect_error "--steal needs PBT" 'steal' "$rs" render --scene cornell --backend tiles --steal --width 8 --height 8 --out "$tmp/y.png"
 expect_error "unknown PBT assignment" 'assign' "$rs" render --scene cornell --backend tiles --pbt 1 --assign lpt --width 8 --height 8 --out "$tmp/y.png"
 expect_error "serial with threads" 'threads' "$rs" render --scene cornell --threads 2 --width 8 --height 8 --out "$tmp/y.png"
 expect_error "more PBT tiles than pixels" '(tile|pixel)' "$rs" render --scene cornell --backend tiles --threads 2 --pbt 64 --width 8 --height 8 --out "$tmp/y.png"

@@ -1,0 +1,983 @@
+// SIMD 3D-DDA over SoA ray streams (one ray per lane, lanes refilled from the stream) and the
+// Cell paper's single-ray form (x y z in lanes). Per-target code; foreach_target re-includes
+// this file. Contracts in kernels/dda_simd.h.
+//
+// Stream kernel, per iteration of the lane loop (Lanes(d) rays in flight):
+//   1. free lanes take the next rays, whose setup (slab clip, start cell, boundary t, and the
+//      watertight test's shear) was done a vector of rays at a time into a staging area;
+//   2. one vector step: lanes whose current cell was handled check termination (candidate hit
+//      or segment end before the cell's exit), pick the axis of the nearest boundary (ties to
+//      the last axis, as the scalar DDA), step cell and index, recompute that boundary's t from
+//      the cell index (bit-identical to the scalar code, no drift), and gather the occupancy
+//      bit of the new cell (occupancy first: empty cells never touch cell data);
+//   3. lanes that reached an occupied cell are collected with CompressStore and go through a
+//      small visit pipeline, the CPU form of the paper's asynchronous loads (3.2, 3.4): the
+//      leaf's span entry is prefetched, one iteration later its packets are looked up and
+//      prefetched, one more iteration later they are tested with the 1-ray x 4-triangle packet
+//      kernel (kernels/tri_intersect-inl.h, inlined); meanwhile the other lanes keep stepping.
+//      Finished lanes become free and are refilled in step 1.
+// A lane never waits for the others: there is no "all lanes done" barrier, so the vector stays
+// full until the stream runs dry. Two-level grids: a lane that enters a refined cell switches
+// to the cell's 8x8x8 sub-grid (Descend) and keeps stepping in the same vector loop with that
+// level's geometry and occupancy bits (per-lane vectors instead of broadcasts); stepping out of
+// the sub-grid restores its top-level state. Sub-cell steps are therefore as cheap as top-level
+// ones, and the scalar oracle's TraverseSubGrid arithmetic is reproduced exactly.
+//
+// Micro-cache (Cell paper 3.5): the last `micro_cache` leaves looked up in this call, with their
+// packet spans, probed with one vector compare. On the SPE a hit saved a 128-B atomic load and a
+// DMA of the triangles into the local store (hundreds of cycles). On a CPU the triangles stay in
+// the hardware caches either way and the span lookup a hit replaces is two adjacent 32-bit
+// loads; what a hit does buy here is certainty that the leaf was touched a moment ago, so the
+// lane tests it at once instead of going through the prefetch pipeline (two iterations of
+// waiting). Measured (bench/dda_bench.cc): within noise on bunny primary rays (70 % hits) and
+// on incoherent rays (~0 % hits). It never changes a result.
+#include "kernels/dda_simd.h"
+
+#include <cfloat>
+#include <cmath>
+#include <cstring>
+#include <limits>
+
+#undef HWY_TARGET_INCLUDE
+#define HWY_TARGET_INCLUDE "kernels/dda_simd.cc"
+#include <hwy/foreach_target.h>  // IWYU pragma: keep
+#include <hwy/highway.h>         // must follow foreach_target.h
+
+#include <hwy/cache_control.h>
+
+#include "kernels/tri_intersect-inl.h"
+#include "kernels/two_level_dda.h"
+
+HWY_BEFORE_NAMESPACE();
+namespace rs {
+namespace HWY_NAMESPACE {
+namespace hn = hwy::HWY_NAMESPACE;
+
+// Lanes of the widest float vector of this target (array bounds).
+inline constexpr size_t kDdaMaxLanes = HWY_MAX_BYTES / sizeof(float);
+
+// Per-lane DDA state, SoA (one slot per lane). Also the staging area of freshly set-up rays.
+struct LaneSlots {
+  HWY_ALIGN int32_t ray[kDdaMaxLanes];    // ray index, -1 = free slot
+  HWY_ALIGN int32_t fresh[kDdaMaxLanes];  // 1: start cell not yet checked
+  HWY_ALIGN int32_t idx[kDdaMaxLanes];    // flat cell index
+  HWY_ALIGN int32_t cell[3][kDdaMaxLanes];
+  HWY_ALIGN int32_t step[3][kDdaMaxLanes];  // +1 / -1, 0 on parallel axes
+  HWY_ALIGN int32_t up[3][kDdaMaxLanes];    // 1 if step > 0: next boundary = cell + up
+  HWY_ALIGN int32_t didx[3][kDdaMaxLanes];  // index change of a step: +-stride, 0 if parallel
+  HWY_ALIGN int32_t enter_axis[kDdaMaxLanes];
+  HWY_ALIGN float o[3][kDdaMaxLanes];
+  HWY_ALIGN float d[3][kDdaMaxLanes];
+  HWY_ALIGN float inv[3][kDdaMaxLanes];     // 1 / d, 0 on parallel axes
+  HWY_ALIGN float t_next[3][kDdaMaxLanes];  // t of the next boundary per axis, +inf if parallel
+  HWY_ALIGN float t1[kDdaMaxLanes];         // end of the segment inside the grid
+  HWY_ALIGN float best[kDdaMaxLanes];       // candidate t (starts at finite tmax)
+  HWY_ALIGN float t_enter[kDdaMaxLanes];    // t where the ray entered its current cell
+  HWY_ALIGN float tmin[kDdaMaxLanes];
+  HWY_ALIGN float tmax[kDdaMaxLanes];       // finite (+inf clamped to FLT_MAX)
+  HWY_ALIGN int32_t stage[kDdaMaxLanes];    // cell visit pipeline: 0 stepping, 1, 2 (below)
+  int32_t prim[kDdaMaxLanes];               // candidate triangle, -1 none
+  int32_t leaf[kDdaMaxLanes];               // stage 1: the leaf to visit
+  TriPacketSpan span[kDdaMaxLanes];         // stage 2: the leaf's packets
+  // Two-level grids: the grid level each lane steps through (0 top, 1 the sub-grid of record
+  // rec), that level's geometry, the word offset of its occupancy bits in DdaGrid::bits, and
+  // the top-level state to resume when the lane leaves the sub-grid.
+  HWY_ALIGN int32_t level[kDdaMaxLanes];
+  HWY_ALIGN int32_t rec[kDdaMaxLanes];
+  HWY_ALIGN int32_t bits_base[kDdaMaxLanes];
+  HWY_ALIGN float glo[3][kDdaMaxLanes];
+  HWY_ALIGN float gcs[3][kDdaMaxLanes];
+  HWY_ALIGN int32_t gres_m1[3][kDdaMaxLanes];
+  HWY_ALIGN int32_t top_cell[3][kDdaMaxLanes];
+  HWY_ALIGN int32_t top_idx[kDdaMaxLanes];
+  HWY_ALIGN float top_t_next[3][kDdaMaxLanes];
+  PacketRay packet_ray[kDdaMaxLanes];       // watertight setup, once per ray (at refill)
+  // staging only: the watertight setup computed a vector at a time (PrepareWatertightRay)
+  HWY_ALIGN int32_t k[3][kDdaMaxLanes];     // kx, ky, kz
+  HWY_ALIGN float shear[3][kDdaMaxLanes];   // sx, sy, sz
+  HWY_ALIGN float ok[3][kDdaMaxLanes];      // origin in (kx, ky, kz) order
+};
+
+inline void CopySlot(const LaneSlots& from, size_t j, LaneSlots* to, size_t l) {
+  to->ray[l] = from.ray[j];
+  to->fresh[l] = 1;
+  to->idx[l] = from.idx[j];
+  for (int a = 0; a < 3; ++a) {
+    to->cell[a][l] = from.cell[a][j];
+    to->step[a][l] = from.step[a][j];
+    to->up[a][l] = from.up[a][j];
+    to->didx[a][l] = from.didx[a][j];
+    to->o[a][l] = from.o[a][j];
+    to->d[a][l] = from.d[a][j];
+    to->inv[a][l] = from.inv[a][j];
+    to->t_next[a][l] = from.t_next[a][j];
+  }
+  to->enter_axis[l] = -1;
+  to->t1[l] = from.t1[j];
+  to->best[l] = from.tmax[j];
+  to->t_enter[l] = from.t_enter[j];
+  to->tmin[l] = from.tmin[j];
+  to->tmax[l] = from.tmax[j];
+  to->prim[l] = -1;
+  to->stage[l] = 0;
+  to->level[l] = 0;
+  to->bits_base[l] = 0;
+  PacketRay& r = to->packet_ray[l];
+  for (int a = 0; a < 3; ++a) {
+    r.wt.o[a] = from.ok[a][j];
+    r.o[a] = from.o[a][j];
+    r.d[a] = from.d[a][j];
+  }
+  r.wt.sx = from.shear[0][j];
+  r.wt.sy = from.shear[1][j];
+  r.wt.sz = from.shear[2][j];
+  r.wt.kx = from.k[0][j];
+  r.wt.ky = from.k[1][j];
+  r.wt.kz = from.k[2][j];
+  r.valid = true;  // only valid rays are queued
+}
+
+// The last few leaves looked up, with their packet spans (see the file comment).
+class MicroCache {
+ public:
+  MicroCache(const TriPackets& packets, int size) : packets_(packets) {
+    size_ = size < 0 ? 0 : (size > kMaxMicroCache ? kMaxMicroCache : size);
+    for (int i = 0; i < kMaxMicroCache; ++i) keys_[i] = -1;
+  }
+  // True (and the span) if `leaf` is cached; counts a lookup. Off (size 0): always false.
+  bool Probe(int32_t leaf, TriPacketSpan* span) {
+    if (size_ == 0) return false;
+    ++lookups_;
+    // all entries in one compare per vector (the paper: 2 x 4 indices on the SPE)
+    const hn::CappedTag<int32_t, kMaxMicroCache> dk;
+    const auto key = hn::Set(dk, leaf);
+    for (int i = 0; i < size_; i += int(hn::Lanes(dk))) {
+      const intptr_t j = hn::FindFirstTrue(dk, hn::Eq(hn::Load(dk, keys_ + i), key));
+      if (j >= 0 && i + j < size_) {
+        ++hits_;
+        *span = spans_[i + j];
+        return true;
+      }
+    }
+    return false;
+  }
+  // The span of `leaf` from the packets, entered in the cache (replacing the oldest entry).
+  TriPacketSpan Insert(int32_t leaf) {
+    const TriPacketSpan span = packets_.Cell(size_t(leaf));
+    if (size_ == 0) return span;
+    keys_[next_] = leaf;
+    spans_[next_] = span;
+    next_ = next_ + 1 == size_ ? 0 : next_ + 1;
+    return span;
+  }
+  TriPacketSpan Lookup(int32_t leaf) {
+    TriPacketSpan span;
+    return Probe(leaf, &span) ? span : Insert(leaf);
+  }
+  uint64_t lookups() const { return lookups_; }
+  uint64_t hits() const { return hits_; }
+
+ private:
+  const TriPackets& packets_;
+  HWY_ALIGN int32_t keys_[kMaxMicroCache];
+  TriPacketSpan spans_[kMaxMicroCache];
+  int size_ = 0;
+  int next_ = 0;
+  uint64_t lookups_ = 0;
+  uint64_t hits_ = 0;
+};
+
+// Triangles (not padding lanes) in a leaf's packets.
+inline size_t SpanTriangles(const TriPacketSpan& s) {
+  if (s.count == 0) return 0;
+  const int32_t* last = s.ids + kPacketLanes * (s.count - 1);
+  return kPacketLanes * (s.count - 1) + size_t(last[0] >= 0) + size_t(last[1] >= 0) +
+         size_t(last[2] >= 0) + size_t(last[3] >= 0);
+}
+
+// Output of one kernel call: closest hits or occlusion flags.
+struct StreamOut {
+  HitStreamView hits;
+  int32_t* occluded = nullptr;
+};
+
+// DDA setup of rays [first, first + Lanes(d)) into `st` (slots 0..Lanes(d)-1), the scalar
+// code's arithmetic lane by lane (kernels/dda.cc). Rays that can never hit (invalid, empty
+// (tmin, tmax], missing the grid) get their result now; the others are appended to `queue`.
+// Returns the number queued. Unaligned loads: views at an offset into a padded stream (the
+// renderer's tasks) work too; lanes past `size` are read (padding) but never written.
+template <bool kAny, class D>
+HWY_INLINE size_t SetupVector(D d, const Grid& grid, const RayStreamView& rays, size_t first,
+                              const StreamOut& out, LaneSlots* st, int32_t* queue) {
+  using V = hn::Vec<D>;
+  const hn::RebindToSigned<D> di;
+  using VI = hn::Vec<decltype(di)>;
+  const V zero = hn::Zero(d), one = hn::Set(d, 1.0f);
+  const V inf = hn::Set(d, std::numeric_limits<float>::infinity());
+  const V flt_max = hn::Set(d, FLT_MAX), min_dir = hn::Set(d, kMinDirection);
+  const auto live = hn::FirstN(d, rays.size - first);
+  const V o[3] = {hn::LoadU(d, rays.ox + first), hn::LoadU(d, rays.oy + first),
+                  hn::LoadU(d, rays.oz + first)};
+  const V dir[3] = {hn::LoadU(d, rays.dx + first), hn::LoadU(d, rays.dy + first),
+                    hn::LoadU(d, rays.dz + first)};
+  const V tmin = hn::LoadU(d, rays.tmin + first), tmax = hn::LoadU(d, rays.tmax + first);
+  // results of rays that never hit, written now for every live lane (padding untouched)
+  const size_t n_live = hn::CountTrue(d, live);
+  if constexpr (kAny) {
+    for (size_t l = 0; l < n_live; ++l) out.occluded[first + l] = 0;  // not padded: scalar
+  } else {
+    hn::BlendedStore(inf, live, d, out.hits.t + first);
+    hn::BlendedStore(zero, live, d, out.hits.u + first);
+    hn::BlendedStore(zero, live, d, out.hits.v + first);
+    hn::BlendedStore(hn::Set(di, -1), hn::RebindMask(di, live), di, out.hits.prim + first);
+  }
+  // RayIsValid: all six finite (NaN fails Lt), some |d| >= kMinDirection; then (tmin, tmax]
+  // non-empty with +inf tmax clamped to FLT_MAX (NaN stays NaN and fails)
+  auto valid = live;
+  for (int a = 0; a < 3; ++a) {
+    valid = hn::And(valid, hn::And(hn::Lt(hn::Abs(o[a]), inf), hn::Lt(hn::Abs(dir[a]), inf)));
+  }
+  valid = hn::And(valid, hn::Or(hn::Or(hn::Ge(hn::Abs(dir[0]), min_dir),
+                                       hn::Ge(hn::Abs(dir[1]), min_dir)),
+                                hn::Ge(hn::Abs(dir[2]), min_dir)));
+  const V tmax_f = hn::IfThenElse(hn::Gt(tmax, flt_max), flt_max, tmax);
+  valid = hn::And(valid, hn::Lt(tmin, tmax_f));
+  if (hn::AllFalse(d, valid)) return 0;
+  // slab clip; parallel axes (d = +-0 or 1/d not finite) need the origin inside the slab
+  V t0 = tmin, t1 = tmax_f;
+  V inv[3];
+  hn::Mask<D> parallel[3];
+  for (int a = 0; a < 3; ++a) {
+    const V lo = hn::Set(d, grid.lo[a]), hi = hn::Set(d, grid.hi[a]);
+    const V r = hn::Div(one, dir[a]);
+    parallel[a] = hn::Not(hn::And(hn::Ne(dir[a], zero), hn::Lt(hn::Abs(r), inf)));
+    const auto inside = hn::And(hn::Ge(o[a], lo), hn::Le(o[a], hi));
+    valid = hn::And(valid, hn::Or(hn::Not(parallel[a]), inside));
+    inv[a] = hn::IfThenZeroElse(parallel[a], r);
+    const V ta = hn::Mul(hn::Sub(lo, o[a]), r), tb = hn::Mul(hn::Sub(hi, o[a]), r);
+    const auto swap = hn::Gt(ta, tb);
+    const V near = hn::IfThenElse(swap, tb, ta), far = hn::IfThenElse(swap, ta, tb);
+    t0 = hn::IfThenElse(parallel[a], t0, hn::IfThenElse(hn::Gt(near, t0), near, t0));
+    t1 = hn::IfThenElse(parallel[a], t1, hn::IfThenElse(hn::Lt(far, t1), far, t1));
+  }
+  valid = hn::And(valid, hn::Le(t0, t1));
+  if (hn::AllFalse(d, valid)) return 0;
+  // start cell (entry point clamped into the grid), boundary t, steps
+  const int32_t stride[3] = {1, grid.res[0], grid.res[0] * grid.res[1]};
+  VI idx = hn::Zero(di);
+  for (int a = 0; a < 3; ++a) {
+    const V lo = hn::Set(d, grid.lo[a]);
+    const V p = hn::Add(o[a], hn::Mul(t0, dir[a]));
+    const V f = hn::Mul(hn::Sub(p, lo), hn::Set(d, grid.inv_cell_size[a]));
+    const VI res_m1 = hn::Set(di, grid.res[a] - 1);
+    const VI c = hn::IfThenElse(
+        hn::RebindMask(di, hn::Ge(f, zero)),
+        hn::IfThenElse(hn::RebindMask(di, hn::Lt(f, hn::Set(d, float(grid.res[a])))),
+                       hn::ConvertTo(di, f), res_m1),
+        hn::Zero(di));  // NaN -> 0
+    idx = hn::Add(idx, hn::Mul(c, hn::Set(di, stride[a])));
+    const auto par_i = hn::RebindMask(di, parallel[a]);
+    const auto pos = hn::RebindMask(di, hn::Gt(dir[a], zero));
+    const VI step = hn::IfThenZeroElse(par_i, hn::IfThenElse(pos, hn::Set(di, 1), hn::Set(di, -1)));
+    const VI up = hn::IfThenElseZero(hn::AndNot(par_i, pos), hn::Set(di, 1));
+    const V boundary = hn::ConvertTo(d, hn::Add(c, up));
+    const V tn = hn::Mul(
+        hn::Sub(hn::Add(lo, hn::Mul(boundary, hn::Set(d, grid.cell_size[a]))), o[a]), inv[a]);
+    hn::Store(c, di, st->cell[a]);
+    hn::Store(step, di, st->step[a]);
+    hn::Store(up, di, st->up[a]);
+    hn::Store(hn::Mul(step, hn::Set(di, stride[a])), di, st->didx[a]);
+    hn::Store(o[a], d, st->o[a]);
+    hn::Store(dir[a], d, st->d[a]);
+    hn::Store(inv[a], d, st->inv[a]);
+    hn::Store(hn::IfThenElse(parallel[a], inf, tn), d, st->t_next[a]);
+  }
+  // the watertight test's per-ray setup (PrepareWatertightRay, lane by lane): kz = axis of the
+  // largest |d| (first on ties), kx = kz + 1, ky = kx + 1 (mod 3), swapped where d[kz] < 0
+  {
+    const V ax = hn::Abs(dir[0]), ay = hn::Abs(dir[1]), az = hn::Abs(dir[2]);
+    const auto y_gt_x = hn::Gt(ay, ax);
+    const auto kz2 = hn::Gt(az, hn::IfThenElse(y_gt_x, ay, ax));
+    const auto kz1 = hn::AndNot(kz2, y_gt_x);
+    const VI kz = hn::IfThenElse(hn::RebindMask(di, kz2), hn::Set(di, 2),
+                                 hn::IfThenElseZero(hn::RebindMask(di, kz1), hn::Set(di, 1)));
+    const V dkz = hn::IfThenElse(kz2, dir[2], hn::IfThenElse(kz1, dir[1], dir[0]));
+    const VI kx0 = hn::IfThenElse(hn::Eq(kz, hn::Set(di, 2)), hn::Zero(di), hn::Add(kz, hn::Set(di, 1)));
+    const VI ky0 = hn::IfThenElse(hn::Eq(kx0, hn::Set(di, 2)), hn::Zero(di), hn::Add(kx0, hn::Set(di, 1)));
+    const auto swap = hn::RebindMask(di, hn::Lt(dkz, zero));
+    const VI kx = hn::IfThenElse(swap, ky0, kx0), ky = hn::IfThenElse(swap, kx0, ky0);
+    auto pick = [&](const VI& k, const V* v) {
+      return hn::IfThenElse(hn::RebindMask(d, hn::Eq(k, hn::Zero(di))), v[0],
+                            hn::IfThenElse(hn::RebindMask(d, hn::Eq(k, hn::Set(di, 1))), v[1], v[2]));
+    };
+    hn::Store(kx, di, st->k[0]);
+    hn::Store(ky, di, st->k[1]);
+    hn::Store(kz, di, st->k[2]);
+    hn::Store(hn::Div(pick(kx, dir), dkz), d, st->shear[0]);
+    hn::Store(hn::Div(pick(ky, dir), dkz), d, st->shear[1]);
+    hn::Store(hn::Div(one, dkz), d, st->shear[2]);
+    hn::Store(pick(kx, o), d, st->ok[0]);
+    hn::Store(pick(ky, o), d, st->ok[1]);
+    hn::Store(pick(kz, o), d, st->ok[2]);
+  }
+  hn::Store(idx, di, st->idx);
+  hn::Store(hn::Add(hn::Iota(di, 0), hn::Set(di, int32_t(first))), di, st->ray);
+  hn::Store(t1, d, st->t1);
+  hn::Store(t0, d, st->t_enter);
+  hn::Store(tmin, d, st->tmin);
+  hn::Store(tmax_f, d, st->tmax);
+  return hn::CompressStore(hn::Iota(di, 0), hn::RebindMask(di, valid), di, queue);
+}
+
+// Tests the packets of one leaf for lane l; true iff the lane found an occluder (any-hit).
+template <bool kAny>
+HWY_INLINE bool TestSpan(LaneSlots* ls, size_t l, const PacketRay& ray, const TriPacketSpan& span,
+                         const StreamOut& out, uint64_t* tests) {
+  *tests += SpanTriangles(span);
+  if constexpr (kAny) {
+    if (!PacketsWidth<TriTest::kWatertight, true>(ray, span, ls->tmin[l], ls->tmax[l],
+                                                  PacketWidth::kAuto, nullptr)) {
+      return false;
+    }
+    out.occluded[ls->ray[l]] = 1;
+    return true;
+  } else {
+    PacketHit h;
+    h.t = ls->best[l];
+    h.prim = ls->prim[l];
+    if (PacketsWidth<TriTest::kWatertight, false>(ray, span, ls->tmin[l], ls->tmax[l],
+                                                  PacketWidth::kAuto, &h)) {
+      ls->best[l] = h.t;
+      ls->prim[l] = h.prim;
+      const size_t i = size_t(ls->ray[l]);
+      out.hits.t[i] = h.t;
+      out.hits.u[i] = h.u;
+      out.hits.v[i] = h.v;
+      out.hits.prim[i] = h.prim;
+    }
+    return false;
+  }
+}
+
+// Asks the memory system for a leaf's packets (ids and up to 1 KiB of vertices), so that the
+// test one iteration later finds them in cache: the CPU version of the Cell pipeline's
+// asynchronous triangle DMA (section 3.2).
+HWY_INLINE void PrefetchSpan(const TriPacketSpan& span) {
+  if (span.count == 0) return;
+  hwy::Prefetch(span.ids);
+  const char* p = reinterpret_cast<const char*>(span.block);
+  const size_t bytes = span.count * kPacketFloats * sizeof(float);
+  for (size_t b = 0; b < bytes && b < 1024; b += 64) hwy::Prefetch(p + b);
+}
+
+// Stage 1 of lane l's visit of an occupied leaf: its packet span is looked up (and entered in
+// the micro-cache) and prefetched.
+HWY_INLINE void RequestLeaf(MicroCache* cache, LaneSlots* ls, size_t l) {
+  ls->span[l] = cache->Insert(ls->leaf[l]);
+  PrefetchSpan(ls->span[l]);
+}
+
+// Two-level grids: lane l has entered a refined top-level cell. Saves the top-level state and
+// switches the lane to the cell's 8x8x8 sub-grid, starting where the ray entered the cell
+// (SubGridStart: the same arithmetic as the scalar TraverseSubGrid). The lane is fresh again:
+// the next vector step checks the occupancy of its first sub-cell.
+HWY_INLINE void Descend(const DdaGrid& g, LaneSlots* ls, size_t l) {
+  const TwoLevelGrid& two = *g.two_level;
+  const uint32_t cell = uint32_t(ls->idx[l]);
+  const SubGridRecord& rec = two.Record(cell);
+  DdaRay r;
+  for (int a = 0; a < 3; ++a) {
+    r.o[a] = ls->o[a][l];
+    r.d[a] = ls->d[a][l];
+    r.inv_d[a] = ls->inv[a][l];
+    r.step[a] = ls->step[a][l];
+  }
+  r.t1 = ls->t1[l];
+  int c[3];
+  float t_next[3];
+  SubGridStart(rec, r, ls->t_enter[l], ls->enter_axis[l], c, t_next);
+  static constexpr int32_t kSubStride[3] = {1, kSubRes, kSubRes * kSubRes};
+  for (int a = 0; a < 3; ++a) {
+    ls->top_cell[a][l] = ls->cell[a][l];
+    ls->top_t_next[a][l] = ls->t_next[a][l];
+    ls->cell[a][l] = c[a];
+    ls->t_next[a][l] = t_next[a];
+    ls->glo[a][l] = rec.lo[a];
+    ls->gcs[a][l] = rec.cell_size[a];
+    ls->gres_m1[a][l] = kSubRes - 1;
+    ls->didx[a][l] = r.step[a] * kSubStride[a];
+  }
+  ls->top_idx[l] = ls->idx[l];
+  ls->idx[l] = c[0] + kSubRes * (c[1] + kSubRes * c[2]);
+  const size_t record = size_t(&rec - two.records.get());
+  ls->rec[l] = int32_t(record);
+  ls->bits_base[l] = int32_t(g.top_words32 + record * (kSubCells / 32));
+  ls->level[l] = 1;
+  ls->fresh[l] = 1;
+}
+
+template <bool kAny, bool kTwoLevel>
+HWY_NOINLINE void StreamT(const DdaGrid& g, const RayStreamView& rays, const StreamOut& out,
+                          const DdaOptions& options, TraceStats* stats) {
+  using D = hn::ScalableTag<float>;
+  const D d;
+  const hn::RebindToSigned<D> di;
+  const hn::RebindToUnsigned<D> du;
+  using V = hn::Vec<D>;
+  using VI = hn::Vec<decltype(di)>;
+  static_assert(HWY_MAX_BYTES <= kStreamAlign, "stream padding too small");
+  const Grid& grid = *g.grid;
+  const size_t n = hn::Lanes(d);
+  MicroCache cache(g.packets, options.micro_cache);
+
+  LaneSlots ls{};  // zeroed: free lanes are loaded (never used) by the vector step
+  LaneSlots st;     // staging: written a whole vector at a time before any read
+  for (size_t l = 0; l < kDdaMaxLanes; ++l) ls.ray[l] = -1;
+  HWY_ALIGN int32_t queue[kDdaMaxLanes];  // staged rays that need traversal
+  HWY_ALIGN int32_t list[kDdaMaxLanes];   // lanes (free, or pending a cell visit)
+  size_t queued = 0, taken = 0;           // staging queue [taken, queued)
+  size_t next_ray = 0;                    // first ray not yet set up
+  uint64_t steps = 0, tests = 0;
+
+  const V lo_top[3] = {hn::Set(d, grid.lo[0]), hn::Set(d, grid.lo[1]), hn::Set(d, grid.lo[2])};
+  const V cs_top[3] = {hn::Set(d, grid.cell_size[0]), hn::Set(d, grid.cell_size[1]),
+                       hn::Set(d, grid.cell_size[2])};
+  const VI res_m1_top[3] = {hn::Set(di, grid.res[0] - 1), hn::Set(di, grid.res[1] - 1),
+                            hn::Set(di, grid.res[2] - 1)};
+  const VI stride_top[3] = {hn::Set(di, 1), hn::Set(di, grid.res[0]),
+                            hn::Set(di, grid.res[0] * grid.res[1])};
+  const VI zero_i = hn::Zero(di), minus1 = hn::Set(di, -1);
+  const uint32_t* bits = g.bits.get();
+
+  for (;;) {
+    // 1. refill free lanes from the staging queue, setting up more rays as needed
+    const auto free_lanes = hn::Lt(hn::Load(di, ls.ray), zero_i);
+    if (!hn::AllFalse(di, free_lanes) && (taken < queued || next_ray < rays.size)) {
+      const size_t nf = hn::CompressStore(hn::Iota(di, 0), free_lanes, di, list);
+      for (size_t k = 0; k < nf; ++k) {
+        while (taken == queued && next_ray < rays.size) {
+          queued = SetupVector<kAny>(d, grid, rays, next_ray, out, &st, queue);
+          taken = 0;
+          next_ray += n;
+        }
+        if (taken == queued) break;  // stream exhausted
+        const size_t l = size_t(list[k]);
+        CopySlot(st, size_t(queue[taken++]), &ls, l);
+        if constexpr (kTwoLevel) {
+          for (int a = 0; a < 3; ++a) {
+            ls.glo[a][l] = grid.lo[a];
+            ls.gcs[a][l] = grid.cell_size[a];
+            ls.gres_m1[a][l] = grid.res[a] - 1;
+          }
+        }
+      }
+    }
+    const VI ray = hn::Load(di, ls.ray);
+    const auto active_i = hn::Gt(ray, minus1);
+    if (hn::AllFalse(di, active_i)) break;
+
+    // 2. one step of every active lane whose current cell has been handled
+    const auto active = hn::RebindMask(d, active_i);
+    const auto fresh_i = hn::Gt(hn::Load(di, ls.fresh), zero_i);
+    const auto fresh = hn::RebindMask(d, fresh_i);
+    // lanes in the visit pipeline (stage 1 or 2) hold their cell
+    const auto staged_i = hn::And(active_i, hn::Gt(hn::Load(di, ls.stage), zero_i));
+    const auto stepping = hn::AndNot(hn::Or(fresh, hn::RebindMask(d, staged_i)), active);
+    const V t_old[3] = {hn::Load(d, ls.t_next[0]), hn::Load(d, ls.t_next[1]),
+                        hn::Load(d, ls.t_next[2])};
+    const V tx = t_old[0], ty = t_old[1], tz = t_old[2];
+    const V t_exit = hn::Min(tx, hn::Min(ty, tz));
+    // the candidate (or the end of the segment) lies before the next cell: done
+    auto done = hn::And(stepping, hn::Or(hn::Le(hn::Load(d, ls.best), t_exit),
+                                         hn::Le(hn::Load(d, ls.t1), t_exit)));
+    const auto go = hn::AndNot(done, stepping);
+    // nearest boundary: x iff tx < ty && tx < tz, y iff !(tx < ty) && ty < tz, else z
+    const auto x_lt_y = hn::Lt(tx, ty);
+    const auto pick_x = hn::And(x_lt_y, hn::Lt(tx, tz));
+    const auto pick_y = hn::AndNot(x_lt_y, hn::Lt(ty, tz));
+    const hn::Mask<D> sel[3] = {hn::And(go, pick_x), hn::And(go, pick_y),
+                                hn::AndNot(hn::Or(pick_x, pick_y), go)};
+    VI idx = hn::Load(di, ls.idx);
+    auto out_i = hn::Lt(zero_i, zero_i);  // all false: the stepped coordinate left its grid
+    VI c_new[3];
+    V t_new[3];
+    for (int a = 0; a < 3; ++a) {
+      const auto sel_i = hn::RebindMask(di, sel[a]);
+      const VI c = hn::Add(hn::Load(di, ls.cell[a]),
+                           hn::IfThenElseZero(sel_i, hn::Load(di, ls.step[a])));
+      const VI res_m1 = kTwoLevel ? hn::Load(di, ls.gres_m1[a]) : res_m1_top[a];
+      out_i = hn::Or(out_i, hn::And(sel_i, hn::Or(hn::Lt(c, zero_i), hn::Gt(c, res_m1))));
+      idx = hn::Add(idx, hn::IfThenElseZero(sel_i, hn::Load(di, ls.didx[a])));
+      // (lo + float(boundary) * cell_size - o) * inv: the scalar expression, unfused
+      const V lo = kTwoLevel ? hn::Load(d, ls.glo[a]) : lo_top[a];
+      const V cs = kTwoLevel ? hn::Load(d, ls.gcs[a]) : cs_top[a];
+      const V boundary = hn::ConvertTo(d, hn::Add(c, hn::Load(di, ls.up[a])));
+      const V tn = hn::Mul(hn::Sub(hn::Add(lo, hn::Mul(boundary, cs)), hn::Load(d, ls.o[a])),
+                           hn::Load(d, ls.inv[a]));
+      c_new[a] = c;
+      t_new[a] = hn::IfThenElse(sel[a], tn, t_old[a]);
+    }
+    const auto out_of_grid = hn::RebindMask(d, out_i);
+    const auto alive = hn::AndNot(out_of_grid, go);
+    if constexpr (kTwoLevel) {
+      // a lane leaving its sub-grid resumes the top level in the parent cell (whose
+      // termination test and step come in the next iteration); leaving the top grid is done
+      const auto sub_i = hn::Gt(hn::Load(di, ls.level), zero_i);
+      const auto ascend_i = hn::And(out_i, sub_i);
+      done = hn::Or(done, hn::RebindMask(d, hn::AndNot(sub_i, out_i)));
+      if (!hn::AllFalse(di, ascend_i)) {
+        const auto ascend = hn::RebindMask(d, ascend_i);
+        for (int a = 0; a < 3; ++a) {
+          c_new[a] = hn::IfThenElse(ascend_i, hn::Load(di, ls.top_cell[a]), c_new[a]);
+          t_new[a] = hn::IfThenElse(ascend, hn::Load(d, ls.top_t_next[a]), t_new[a]);
+          hn::Store(hn::IfThenElse(ascend, lo_top[a], hn::Load(d, ls.glo[a])), d, ls.glo[a]);
+          hn::Store(hn::IfThenElse(ascend, cs_top[a], hn::Load(d, ls.gcs[a])), d, ls.gcs[a]);
+          hn::Store(hn::IfThenElse(ascend_i, res_m1_top[a], hn::Load(di, ls.gres_m1[a])), di,
+                    ls.gres_m1[a]);
+          hn::Store(hn::IfThenElse(ascend_i, hn::Mul(hn::Load(di, ls.step[a]), stride_top[a]),
+                                   hn::Load(di, ls.didx[a])),
+                    di, ls.didx[a]);
+        }
+        idx = hn::IfThenElse(ascend_i, hn::Load(di, ls.top_idx), idx);
+        hn::Store(hn::IfThenZeroElse(ascend_i, hn::Load(di, ls.level)), di, ls.level);
+        hn::Store(hn::IfThenZeroElse(ascend_i, hn::Load(di, ls.bits_base)), di, ls.bits_base);
+      }
+      hn::Store(hn::IfThenElse(alive, t_exit, hn::Load(d, ls.t_enter)), d, ls.t_enter);
+      const VI axis = hn::IfThenElse(hn::RebindMask(di, sel[0]), zero_i,
+                                     hn::IfThenElse(hn::RebindMask(di, sel[1]), hn::Set(di, 1),
+                                                    hn::Set(di, 2)));
+      hn::Store(hn::IfThenElse(hn::RebindMask(di, alive), axis, hn::Load(di, ls.enter_axis)), di,
+                ls.enter_axis);
+    } else {
+      done = hn::Or(done, out_of_grid);
+    }
+    for (int a = 0; a < 3; ++a) {
+      hn::Store(c_new[a], di, ls.cell[a]);
+      hn::Store(t_new[a], d, ls.t_next[a]);
+    }
+    const auto entered = hn::Or(alive, fresh);
+    // occupancy bit of the entered cell: gather its 32-bit word, shift, test
+    const auto entered_i = hn::RebindMask(di, entered);
+    const VI idx_e = hn::IfThenElseZero(entered_i, idx);
+    VI word = hn::ShiftRight<5>(idx_e);
+    if constexpr (kTwoLevel) word = hn::Add(word, hn::Load(di, ls.bits_base));
+    const auto words = hn::GatherIndex(du, bits, word);
+    const auto bit = hn::And(hn::Shr(words, hn::BitCast(du, hn::And(idx_e, hn::Set(di, 31)))),
+                             hn::Set(du, 1u));
+    const auto pending_i = hn::And(entered_i, hn::RebindMask(di, hn::Eq(bit, hn::Set(du, 1u))));
+    hn::Store(idx, di, ls.idx);
+    hn::Store(zero_i, di, ls.fresh);
+    hn::Store(hn::IfThenElse(hn::RebindMask(di, done), minus1, ray), di, ls.ray);
+    steps += hn::CountTrue(d, entered);
+
+    // 3. the cell visit pipeline, one lane at a time: stage 2 lanes test their (prefetched)
+    // leaf and resume stepping; stage 1 lanes look up and prefetch their leaf's triangles;
+    // lanes that just found an occupied cell enter stage 1 (their leaf's span entry is
+    // prefetched), or test it at once on a micro-cache hit. Each visit is thus spread over
+    // three iterations while the other lanes keep stepping. (Lanes that enter a refined cell
+    // step into its sub-grid instead: Descend.)
+    if (!hn::AllFalse(di, staged_i)) {
+      const size_t ns = hn::CompressStore(hn::Iota(di, 0), staged_i, di, list);
+      for (size_t k = 0; k < ns; ++k) {
+        const size_t l = size_t(list[k]);
+        if (ls.stage[l] == 1) {
+          RequestLeaf(&cache, &ls, l);
+          ls.stage[l] = 2;
+          continue;
+        }
+        ls.stage[l] = 0;
+        if (TestSpan<kAny>(&ls, l, ls.packet_ray[l], ls.span[l], out, &tests)) ls.ray[l] = -1;
+      }
+    }
+    if (hn::AllFalse(di, pending_i)) continue;
+    const size_t np = hn::CompressStore(hn::Iota(di, 0), pending_i, di, list);
+    for (size_t k = 0; k < np; ++k) {
+      const size_t l = size_t(list[k]);
+      int32_t leaf = ls.idx[l];
+      if constexpr (kTwoLevel) {
+        if (ls.level[l] == 0) {
+          if (g.two_level->Refined(uint32_t(leaf))) {
+            Descend(g, &ls, l);
+            continue;
+          }
+        } else {
+          leaf = int32_t(g.two_level->records[size_t(ls.rec[l])].Leaf(ls.cell[0][l], ls.cell[1][l],
+                                                                      ls.cell[2][l]));
+        }
+      }
+      // a micro-cache hit means a lane touched this leaf a moment ago: its triangles are in
+      // the L1 cache, so test them now instead of waiting for a prefetch
+      if (cache.Probe(leaf, &ls.span[l])) {
+        if (TestSpan<kAny>(&ls, l, ls.packet_ray[l], ls.span[l], out, &tests)) ls.ray[l] = -1;
+        continue;
+      }
+      ls.stage[l] = 1;
+      ls.leaf[l] = leaf;
+      hwy::Prefetch(&g.packets.cell_begin[uint32_t(leaf)]);
+    }
+  }
+  if (stats != nullptr) {
+    stats->cell_steps += steps;
+    stats->triangle_tests += tests;
+    stats->cache_lookups += cache.lookups();
+    stats->cache_hits += cache.hits();
+  }
+}
+
+void IntersectStreamDda(const DdaGrid& g, const RayStreamView& rays, const HitStreamView& hits,
+                        const DdaOptions& options, TraceStats* stats) {
+  StreamOut out;
+  out.hits = hits;
+  if (g.two_level != nullptr && !g.two_level->empty()) {
+    StreamT<false, true>(g, rays, out, options, stats);
+  } else {
+    StreamT<false, false>(g, rays, out, options, stats);
+  }
+}
+
+void OccludedStreamDda(const DdaGrid& g, const RayStreamView& rays, int32_t* occluded,
+                       const DdaOptions& options, TraceStats* stats) {
+  StreamOut out;
+  out.occluded = occluded;
+  if (g.two_level != nullptr && !g.two_level->empty()) {
+    StreamT<true, true>(g, rays, out, options, stats);
+  } else {
+    StreamT<true, false>(g, rays, out, options, stats);
+  }
+}
+
+// The single-ray form (Cell paper, Listing 1): the ray's x y z DDA state in lanes 0..2 of one
+// 4-lane vector (lane 3 is inert: t_next = +inf, never selected). The next axis comes from two
+// lane rotations and compares instead of branches; cell, index and boundary t are updated with
+// the selected lane's mask. Per cell the work is the same as the scalar loop's, so on a CPU with
+// good branch prediction this form mostly shows what the SPE needed (it has no scalar unit).
+template <bool kAny, bool kTwoLevel>
+HWY_INLINE bool SingleT(const DdaGrid& g, float ox, float oy, float oz, float dx, float dy,
+                        float dz, float tmin, float tmax, RayHit* hit, TraceStats* stats) {
+#if HWY_TARGET == HWY_SCALAR
+  // one lane: no room for x y z; the scalar DDA is the single-ray form here
+  if constexpr (kTwoLevel) {
+    return kAny ? TraceAnyTwoLevel(*g.grid, *g.two_level, *g.tris, ox, oy, oz, dx, dy, dz, tmin,
+                                   tmax, stats)
+                : TraceClosestTwoLevel(*g.grid, *g.two_level, *g.tris, ox, oy, oz, dx, dy, dz,
+                                       tmin, tmax, hit, stats);
+  } else {
+    return kAny ? TraceAny(*g.grid, *g.tris, ox, oy, oz, dx, dy, dz, tmin, tmax, stats)
+                : TraceClosest(*g.grid, *g.tris, ox, oy, oz, dx, dy, dz, tmin, tmax, hit, stats);
+  }
+#else
+  const Grid& grid = *g.grid;
+  if (!RayIsValid(ox, oy, oz, dx, dy, dz)) return false;
+  const float tmax_f = tmax > FLT_MAX ? FLT_MAX : tmax;  // NaN stays NaN
+  if (!(tmin < tmax_f)) return false;
+  // scalar setup, as kernels/dda.cc
+  DdaRay r;
+  r.o[0] = ox;
+  r.o[1] = oy;
+  r.o[2] = oz;
+  r.d[0] = dx;
+  r.d[1] = dy;
+  r.d[2] = dz;
+  float t0 = tmin, t1 = tmax_f;
+  for (int a = 0; a < 3; ++a) {
+    const float inv = 1.0f / r.d[a];
+    if (!(r.d[a] != 0.0f && std::isfinite(inv))) {
+      r.inv_d[a] = 0.0f;
+      r.step[a] = 0;
+      if (r.o[a] < grid.lo[a] || r.o[a] > grid.hi[a]) return false;
+      continue;
+    }
+    r.inv_d[a] = inv;
+    r.step[a] = r.d[a] > 0.0f ? 1 : -1;
+    float ta = (grid.lo[a] - r.o[a]) * inv;
+    float tb = (grid.hi[a] - r.o[a]) * inv;
+    if (ta > tb) {
+      const float tmp = ta;
+      ta = tb;
+      tb = tmp;
+    }
+    t0 = ta > t0 ? ta : t0;
+    t1 = tb < t1 ? tb : t1;
+  }
+  if (!(t0 <= t1)) return false;
+  r.t1 = t1;
+  const int32_t stride[3] = {1, grid.res[0], grid.res[0] * grid.res[1]};
+  HWY_ALIGN int32_t cell_a[4] = {0, 0, 0, 0}, step_a[4] = {0, 0, 0, 0}, up_a[4] = {0, 0, 0, 0};
+  HWY_ALIGN int32_t didx_a[4] = {0, 0, 0, 0};
+  HWY_ALIGN int32_t res_m1_a[4] = {0, 0, 0, std::numeric_limits<int32_t>::max()};
+  HWY_ALIGN float tn_a[4], lo_a[4] = {0, 0, 0, 0}, cs_a[4] = {0, 0, 0, 0};
+  HWY_ALIGN float o_a[4] = {0, 0, 0, 0}, inv_a[4] = {0, 0, 0, 0};
+  int32_t idx = 0;
+  for (int a = 0; a < 3; ++a) {
+    const float p = r.o[a] + t0 * r.d[a];
+    const float f = (p - grid.lo[a]) * grid.inv_cell_size[a];
+    int c = f >= 0.0f ? (f < float(grid.res[a]) ? int(f) : grid.res[a] - 1) : 0;  // NaN -> 0
+    if (c >= grid.res[a]) c = grid.res[a] - 1;
+    cell_a[a] = c;
+    idx += c * stride[a];
+    step_a[a] = r.step[a];
+    up_a[a] = r.step[a] > 0 ? 1 : 0;
+    didx_a[a] = r.step[a] * stride[a];
+    res_m1_a[a] = grid.res[a] - 1;
+    lo_a[a] = grid.lo[a];
+    cs_a[a] = grid.cell_size[a];
+    o_a[a] = r.o[a];
+    inv_a[a] = r.inv_d[a];
+    tn_a[a] = r.step[a] == 0
+                  ? std::numeric_limits<float>::infinity()
+                  : (grid.lo[a] + float(c + up_a[a]) * grid.cell_size[a] - r.o[a]) * r.inv_d[a];
+  }
+  tn_a[3] = std::numeric_limits<float>::infinity();
+
+  const hn::FixedTag<float, 4> d4;
+  const hn::RebindToSigned<decltype(d4)> di4;
+  auto tn = hn::Load(d4, tn_a);
+  auto cell = hn::Load(di4, cell_a);
+  const auto step = hn::Load(di4, step_a), up = hn::Load(di4, up_a), didx = hn::Load(di4, didx_a);
+  const auto res_m1 = hn::Load(di4, res_m1_a), zero_i = hn::Zero(di4);
+  const auto lo = hn::Load(d4, lo_a), cs = hn::Load(d4, cs_a), o = hn::Load(d4, o_a);
+  const auto inv = hn::Load(d4, inv_a);
+  // rotations: r1 = (ty, tz, tx, -), r2 = (tz, tx, ty, -)
+  HWY_ALIGN static constexpr int32_t kRot1[4] = {1, 2, 0, 3};
+  HWY_ALIGN static constexpr int32_t kRot2[4] = {2, 0, 1, 3};
+  const auto rot1 = hn::SetTableIndices(d4, kRot1), rot2 = hn::SetTableIndices(d4, kRot2);
+  // x wins iff tx < ty && tx < tz; y iff ty < tz && ty <= tx; z iff tz <= tx && tz <= ty (the
+  // scalar tie rule); lane 3 compares strictly (inf < inf is false), so it never wins
+  HWY_ALIGN static constexpr int32_t kStrict1[4] = {-1, -1, 0, -1};  // vs r1: x <, y <, z <=
+  HWY_ALIGN static constexpr int32_t kStrict2[4] = {-1, 0, 0, -1};   // vs r2: x <, y <=, z <=
+  const auto strict1 = hn::RebindMask(d4, hn::Lt(hn::Load(di4, kStrict1), zero_i));
+  const auto strict2 = hn::RebindMask(d4, hn::Lt(hn::Load(di4, kStrict2), zero_i));
+
+  const PacketRay pray = MakePacketRay(ox, oy, oz, dx, dy, dz);
+  PacketHit best;
+  best.t = tmax_f;
+  bool found = false;
+  uint64_t steps = 0, tests = 0;
+  auto visit = [&](uint32_t leaf) {
+    const TriPacketSpan span = g.packets.Cell(leaf);
+    tests += SpanTriangles(span);
+    if constexpr (kAny) {
+      found = PacketsWidth<TriTest::kWatertight, true>(pray, span, tmin, tmax_f,
+                                                       PacketWidth::kAuto, nullptr);
+      return found;
+    } else {
+      PacketsWidth<TriTest::kWatertight, false>(pray, span, tmin, tmax_f, PacketWidth::kAuto,
+                                                &best);
+      return false;
+    }
+  };
+  const uint64_t* occupancy = grid.occupancy.get();
+  float t_enter = t0;
+  int enter_axis = -1;
+  for (;;) {
+    ++steps;
+    const auto r1 = hn::TableLookupLanes(tn, rot1), r2 = hn::TableLookupLanes(tn, rot2);
+    const auto m1 = hn::Or(hn::And(strict1, hn::Lt(tn, r1)), hn::AndNot(strict1, hn::Le(tn, r1)));
+    const auto m2 = hn::Or(hn::And(strict2, hn::Lt(tn, r2)), hn::AndNot(strict2, hn::Le(tn, r2)));
+    const auto sel = hn::And(m1, m2);  // exactly one of lanes 0..2
+    const auto sel_i = hn::RebindMask(di4, sel);
+    // t_exit: the selected lane (the others are zeroed; x + 0 = x)
+    const float t_exit = hn::GetLane(hn::SumOfLanes(d4, hn::IfThenElseZero(sel, tn)));
+    if ((occupancy[uint32_t(idx) >> 6] >> (uint32_t(idx) & 63)) & 1u) {
+      bool stop = false;
+      if constexpr (kTwoLevel) {
+        const TwoLevelGrid& two = *g.two_level;
+        if (two.Refined(uint32_t(idx))) {
+          stop = TraverseSubGrid(two.Record(uint32_t(idx)), r, t_enter, enter_axis, &best.t,
+                                 &steps, visit) != SubExit::kLeft;
+        } else {
+          stop = visit(uint32_t(idx));
+        }
+      } else {
+        stop = visit(uint32_t(idx));
+      }
+      if (stop) break;
+    }
+    if (best.t <= t_exit || t1 <= t_exit) break;
+    cell = hn::Add(cell, hn::IfThenElseZero(sel_i, step));
+    if (!hn::AllFalse(di4, hn::And(sel_i, hn::Or(hn::Lt(cell, zero_i), hn::Gt(cell, res_m1))))) {
+      break;
+    }
+    idx += hn::GetLane(hn::SumOfLanes(di4, hn::IfThenElseZero(sel_i, didx)));
+    const auto boundary = hn::ConvertTo(d4, hn::Add(cell, up));
+    tn = hn::IfThenElse(sel, hn::Mul(hn::Sub(hn::Add(lo, hn::Mul(boundary, cs)), o), inv), tn);
+    t_enter = t_exit;
+    enter_axis = int(hn::FindKnownFirstTrue(d4, sel));
+  }
+  if (stats != nullptr) {
+    stats->cell_steps += steps;
+    stats->triangle_tests += tests;
+  }
+  if constexpr (kAny) {
+    return found;
+  } else {
+    if (best.prim < 0) return false;
+    hit->t = best.t;
+    hit->u = best.u;
+    hit->v = best.v;
+    hit->prim = best.prim;
+    return true;
+  }
+#endif
+}
+
+bool IntersectSingleDda(const DdaGrid& g, float ox, float oy, float oz, float dx, float dy,
+                        float dz, float tmin, float tmax, RayHit* hit, TraceStats* stats) {
+  if (g.two_level != nullptr) {
+    return SingleT<false, true>(g, ox, oy, oz, dx, dy, dz, tmin, tmax, hit, stats);
+  }
+  return SingleT<false, false>(g, ox, oy, oz, dx, dy, dz, tmin, tmax, hit, stats);
+}
+
+bool OccludedSingleDda(const DdaGrid& g, float ox, float oy, float oz, float dx, float dy,
+                       float dz, float tmin, float tmax, TraceStats* stats) {
+  if (g.two_level != nullptr) {
+    return SingleT<true, true>(g, ox, oy, oz, dx, dy, dz, tmin, tmax, nullptr, stats);
+  }
+  return SingleT<true, false>(g, ox, oy, oz, dx, dy, dz, tmin, tmax, nullptr, stats);
+}
+
+const char* DdaTargetName() { return hwy::TargetName(HWY_TARGET); }
+
+}  // namespace HWY_NAMESPACE
+}  // namespace rs
+HWY_AFTER_NAMESPACE();
+
+#if HWY_ONCE
+namespace rs {
+
+HWY_EXPORT(IntersectStreamDda);
+HWY_EXPORT(OccludedStreamDda);
+HWY_EXPORT(IntersectSingleDda);
+HWY_EXPORT(OccludedSingleDda);
+HWY_EXPORT(DdaTargetName);
+
+size_t DdaGrid::Bytes() const {
+  const size_t records = two_level != nullptr ? two_level->num_records : 0;
+  return packets.Bytes() + (top_words32 + records * (kSubCells / 32)) * sizeof(uint32_t);
+}
+
+void BuildDdaGrid(const Grid& grid, const TwoLevelGrid* two_level, const TriangleSoA& tris,
+                  DdaGrid* out) {
+  out->grid = &grid;
+  out->two_level = two_level != nullptr && !two_level->empty() ? two_level : nullptr;
+  out->tris = &tris;
+  out->simd_ok = grid.num_cells < size_t{0x7fffffc0};
+  if (grid.empty()) {
+    out->packets = TriPackets();
+    out->bits.reset();
+    out->top_words32 = 0;
+    return;
+  }
+  BuildTriPackets(out->two_level != nullptr ? out->two_level->leaves : grid, tris, &out->packets);
+  // the 64-bit occupancy words as little-endian 32-bit words (a copy: no aliasing), then the
+  // 512 bits of each sub-grid record
+  const size_t words64 = (grid.num_cells + 63) / 64;
+  const size_t records = out->two_level != nullptr ? out->two_level->num_records : 0;
+  out->top_words32 = 2 * words64;
+  const size_t total = out->top_words32 + records * (kSubCells / 32);
+  out->simd_ok = out->simd_ok && total < size_t{0x7fffffc0};
+  out->bits = hwy::AllocateAligned<uint32_t>(total);
+  HWY_ASSERT(out->bits);
+  for (size_t w = 0; w < words64; ++w) {
+    out->bits[2 * w] = uint32_t(grid.occupancy[w]);
+    out->bits[2 * w + 1] = uint32_t(grid.occupancy[w] >> 32);
+  }
+  for (size_t r = 0; r < records; ++r) {
+    uint32_t* dst = out->bits.get() + out->top_words32 + r * (kSubCells / 32);
+    for (int z = 0; z < kSubRes; ++z) {
+      const uint64_t w = out->two_level->records[r].bits[z];
+      dst[2 * z] = uint32_t(w);
+      dst[2 * z + 1] = uint32_t(w >> 32);
+    }
+  }
+}
+
+namespace {
+
+// Rays the SIMD kernels cannot take: an empty grid (all miss) or a grid too large for int32
+// cell indices (the scalar DDA).
+void ScalarStream(const DdaGrid& g, const RayStreamView& rays, const HitStreamView* hits,
+                  int32_t* occluded, TraceStats* stats) {
+  for (size_t i = 0; i < rays.size; ++i) {
+    RayHit h{std::numeric_limits<float>::infinity(), 0.0f, 0.0f, -1};
+    bool any = false;
+    if (!g.empty()) {
+      const float o[3] = {rays.ox[i], rays.oy[i], rays.oz[i]};
+      const float d[3] = {rays.dx[i], rays.dy[i], rays.dz[i]};
+      if (hits != nullptr) {
+        any = g.two_level != nullptr
+                  ? TraceClosestTwoLevel(*g.grid, *g.two_level, *g.tris, o[0], o[1], o[2], d[0],
+                                         d[1], d[2], rays.tmin[i], rays.tmax[i], &h, stats)
+                  : TraceClosest(*g.grid, *g.tris, o[0], o[1], o[2], d[0], d[1], d[2],
+                                 rays.tmin[i], rays.tmax[i], &h, stats);
+      } else {
+        any = g.two_level != nullptr
+                  ? TraceAnyTwoLevel(*g.grid, *g.two_level, *g.tris, o[0], o[1], o[2], d[0],
+                                     d[1], d[2], rays.tmin[i], rays.tmax[i], stats)
+                  : TraceAny(*g.grid, *g.tris, o[0], o[1], o[2], d[0], d[1], d[2],
+                             rays.tmin[i], rays.tmax[i], stats);
+      }
+    }
+    if (hits != nullptr) {
+      hits->t[i] = h.t;
+      hits->u[i] = h.u;
+      hits->v[i] = h.v;
+      hits->prim[i] = h.prim;
+    } else {
+      occluded[i] = any ? 1 : 0;
+    }
+  }
+}
+
+}  // namespace
+
+void IntersectStreamDda(const DdaGrid& g, const RayStreamView& rays, const HitStreamView& hits,
+                        const DdaOptions& options, TraceStats* stats) {
+  HWY_DASSERT(hits.size == rays.size);
+  if (stats != nullptr) stats->rays += rays.size;
+  if (rays.size == 0) return;
+  if (g.empty() || !g.simd_ok) return ScalarStream(g, rays, &hits, nullptr, stats);
+  HWY_DYNAMIC_DISPATCH(IntersectStreamDda)(g, rays, hits, options, stats);
+}
+
+void OccludedStreamDda(const DdaGrid& g, const RayStreamView& rays, int32_t* occluded,
+                       const DdaOptions& options, TraceStats* stats) {
+  if (stats != nullptr) stats->rays += rays.size;
+  if (rays.size == 0) return;
+  if (g.empty() || !g.simd_ok) return ScalarStream(g, rays, nullptr, occluded, stats);
+  HWY_DYNAMIC_DISPATCH(OccludedStreamDda)(g, rays, occluded, options, stats);
+}
+
+bool IntersectSingleDda(const DdaGrid& g, float ox, float oy, float oz, float dx, float dy,
+                        float dz, float tmin, float tmax, RayHit* hit, TraceStats* stats) {
+  *hit = RayHit{std::numeric_limits<float>::infinity(), 0.0f, 0.0f, -1};
+  if (stats != nullptr) ++stats->rays;
+  if (g.empty()) return false;
+  if (!g.simd_ok) {
+    return g.two_level != nullptr
+               ? TraceClosestTwoLevel(*g.grid, *g.two_level, *g.tris, ox, oy, oz, dx, dy, dz,
+                                      tmin, tmax, hit, stats)
+               : TraceClosest(*g.grid, *g.tris, ox, oy, oz, dx, dy, dz, tmin, tmax, hit, stats);
+  }
+  return HWY_DYNAMIC_DISPATCH(IntersectSingleDda)(g, ox, oy, oz, dx, dy, dz, tmin, tmax, hit,
+                                                  stats);
+}
+
+bool OccludedSingleDda(const DdaGrid& g, float ox, float oy, float oz, float dx, float dy,
+                       float dz, float tmin, float tmax, TraceStats* stats) {
+  if (stats != nullptr) ++stats->rays;
+  if (g.empty()) return false;
+  if (!g.simd_ok) {
+    return g.two_level != nullptr
+               ? TraceAnyTwoLevel(*g.grid, *g.two_level, *g.tris, ox, oy, oz, dx, dy, dz, tmin,
+                                  tmax, stats)
+               : TraceAny(*g.grid, *g.tris, ox, oy, oz, dx, dy, dz, tmin, tmax, stats);
+  }
+  return HWY_DYNAMIC_DISPATCH(OccludedSingleDda)(g, ox, oy, oz, dx, dy, dz, tmin, tmax, stats);
+}
+
+const char* DdaTargetName() { return HWY_DYNAMIC_DISPATCH(DdaTargetName)(); }
+
+}  // namespace rs
+#endif  // HWY_ONCE

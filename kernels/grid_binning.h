@@ -1,0 +1,283 @@
+// Conservative triangle -> cell binning shared by the uniform grid (kernels/grid.cc) and the 8x8x8
+// sub-grids (kernels/two_level.cc): float bounding-box cell ranges widened by a proven slack,
+// then the separating-axis test split into its 2D projections (exact, in double) only where the
+// box spans more than one cell on two or three axes. Internal header; build code only.
+#pragma once
+
+#include <algorithm>
+#include <cfloat>
+#include <cmath>
+#include <cstddef>
+#include <cstdint>
+#include <vector>
+
+#include "kernels/grid.h"
+
+namespace rs {
+
+// One level of cells: cell k along axis a spans [lo + k cs, lo + (k + 1) cs] (in double, from
+// the stored floats); a triangle is listed in a cell iff it overlaps that box grown by margin.
+struct BinGeometry {
+  double lo[3];
+  double cs[3];
+  double margin[3];
+  int res[3];
+  // Fast path: f = (x - lo_f) * inv_f in float, in cells. |f - (x - lo) / cs| <= 2^-22 |f| +
+  // 2^-23 |f| (two roundings of the product chain plus inv_f = 1 / cs to 2^-23), so widening
+  // by reach = margin / cs + slack, slack = 1e-6 + 1e-6 (res + 2), makes the float range
+  // contain the exact range near every decision point f ~ [0, res] (res < 2^20).
+  float lo_f[3];
+  float inv_f[3];
+  float reach[3];
+};
+
+// Fills the fast-path fields of `g` from lo, cs, margin, res and the float inverse cell size.
+inline void FinishBinGeometry(const float lo_f[3], const float inv_f[3], BinGeometry* g) {
+  for (int a = 0; a < 3; ++a) {
+    g->lo_f[a] = lo_f[a];
+    g->inv_f[a] = inv_f[a];
+    const double slack = 1e-6 + 1e-6 * (double(g->res[a]) + 2.0);
+    // round the reach up so the float value is never below the exact one
+    const double reach = g->margin[a] / g->cs[a] + slack;
+    float r = static_cast<float>(reach);
+    if (double(r) < reach) r = std::nextafter(r, FLT_MAX);
+    g->reach[a] = r;
+  }
+}
+
+// The BinGeometry of a grid's cells (its lo, cell size, margin, res, inverse cell size).
+BinGeometry GridBinGeometry(const Grid& grid);
+
+// SIMD passes of the build (kernels/grid_simd.cc, Highway dynamic dispatch).
+
+// Float min / max of the vertices of the non-degenerate triangles (+-FLT_MAX if none) and
+// their number.
+void SimdTriangleBounds(const TriangleSoA& tris, float lo[3], float hi[3], size_t* num_valid);
+
+// TriangleCellRange for a block of triangles, a vector at a time, with the same arithmetic.
+inline constexpr size_t kRangeBlock = 256;
+inline constexpr int32_t kRangeOutside = 8;      // flags bit: misses the grid (no cells)
+inline constexpr int32_t kRangeDegenerate = 16;  // flags bit: degenerate triangle (skip)
+struct RangeBlock {
+  int32_t c0[3][kRangeBlock];
+  int32_t c1[3][kRangeBlock];
+  int32_t flags[kRangeBlock];  // bit a: spans on axis a; kRangeOutside; kRangeDegenerate
+};
+// Fills out for triangles [first, first + count), count <= kRangeBlock, first + count <= size.
+void SimdTriangleCellRanges(const TriangleSoA& tris, const BinGeometry& g, size_t first,
+                            size_t count, RangeBlock* out);
+
+// Scratch space reused across triangles (2D projection tables of large triangles).
+struct BinScratch {
+  std::vector<uint8_t> table[3];
+};
+
+namespace binning {
+
+// Cell coordinate of a fast-path value, floor(f) clamped to [-1, res] (-1: below the grid,
+// res: above). Branch-free: floor(f) = trunc(f + 1) - 1 for f >= -1. The rounding of f + 1
+// (<= 2^-24 (res + 1) cells) is covered by the slack in BinGeometry::reach.
+inline int RawCell(float f, float res_f) {
+  const float c = std::min(std::max(f, -1.0f), res_f);
+  return int(c + 1.0f) - 1;
+}
+
+// The 2D separating-axis test of a triangle's projection onto axes (i, j) against the cells'
+// rectangles grown by the margin: the 3 edge normals (the rectangle's own axes are covered by
+// the bounding-box ranges). Exact in double (products of floats are exact).
+class Edges2D {
+ public:
+  Edges2D(const double v[3][3], const BinGeometry& g, int i, int j) {
+    n_ = 0;
+    for (int e = 0; e < 3; ++e) {
+      const double* p = v[e];
+      const double* q = v[e == 2 ? 0 : e + 1];
+      const double* r = v[e == 0 ? 2 : e - 1];  // the third vertex
+      // normal of the projected edge p -> q
+      const double ni = -(q[j] - p[j]), nj = q[i] - p[i];
+      if (ni == 0.0 && nj == 0.0) continue;  // edge along the third axis: no constraint
+      const double pp = ni * p[i] + nj * p[j];
+      const double pr = ni * r[i] + nj * r[j];
+      const double half = std::fabs(ni) * (0.5 * g.cs[i] + g.margin[i]) +
+                          std::fabs(nj) * (0.5 * g.cs[j] + g.margin[j]);
+      lo_[n_] = std::min(pp, pr) - half;
+      hi_[n_] = std::max(pp, pr) + half;
+      base_[n_] = ni * (g.lo[i] + 0.5 * g.cs[i]) + nj * (g.lo[j] + 0.5 * g.cs[j]);
+      si_[n_] = ni * g.cs[i];
+      sj_[n_] = nj * g.cs[j];
+      ++n_;
+    }
+  }
+  bool Overlaps(int ci, int cj) const {
+    for (int k = 0; k < n_; ++k) {
+      const double c = base_[k] + double(ci) * si_[k] + double(cj) * sj_[k];
+      if (c < lo_[k] || c > hi_[k]) return false;
+    }
+    return true;
+  }
+  // out[m] = Overlaps(ci0 + m, cj) for m < n, edge by edge over the row (the sum in another
+  // order: the difference, ~1e-16 of the coordinates, is far below the margin).
+  void Row(int ci0, int n, int cj, uint8_t* out) const {
+    for (int m = 0; m < n; ++m) out[m] = 1;
+    for (int k = 0; k < n_; ++k) {
+      const double row = base_[k] + double(cj) * sj_[k];
+      for (int m = 0; m < n; ++m) {
+        const double c = row + double(ci0 + m) * si_[k];
+        out[m] &= uint8_t(!(c < lo_[k] || c > hi_[k]));
+      }
+    }
+  }
+
+ private:
+  double lo_[3], hi_[3], base_[3], si_[3], sj_[3];
+  int n_;
+};
+
+// The plane test: the triangle's plane against the cell boxes grown by the margin.
+class Plane3D {
+ public:
+  Plane3D(const double v[3][3], const BinGeometry& g) {
+    const double e0[3] = {v[1][0] - v[0][0], v[1][1] - v[0][1], v[1][2] - v[0][2]};
+    const double e1[3] = {v[2][0] - v[1][0], v[2][1] - v[1][1], v[2][2] - v[1][2]};
+    const double n[3] = {e0[1] * e1[2] - e0[2] * e1[1], e0[2] * e1[0] - e0[0] * e1[2],
+                         e0[0] * e1[1] - e0[1] * e1[0]};
+    double r = 0.0, base = 0.0;
+    for (int a = 0; a < 3; ++a) {
+      r += std::fabs(n[a]) * (0.5 * g.cs[a] + g.margin[a]);
+      base += n[a] * (g.lo[a] + 0.5 * g.cs[a]);
+      step_[a] = n[a] * g.cs[a];
+    }
+    const double p0 = n[0] * v[0][0] + n[1] * v[0][1] + n[2] * v[0][2];
+    const double p1 = n[0] * v[1][0] + n[1] * v[1][1] + n[2] * v[1][2];
+    const double p2 = n[0] * v[2][0] + n[1] * v[2][1] + n[2] * v[2][2];
+    lo_ = std::min({p0, p1, p2}) - r;
+    hi_ = std::max({p0, p1, p2}) + r;
+    base_ = base;
+  }
+  bool Overlaps(int x, int y, int z) const {
+    const double c = base_ + double(x) * step_[0] + double(y) * step_[1] + double(z) * step_[2];
+    return c >= lo_ && c <= hi_;
+  }
+
+ private:
+  double step_[3], lo_, hi_, base_;
+};
+
+}  // namespace binning
+
+// Calls emit(x, y, z) for every cell of `g` that triangle v (float vertices, finite) overlaps,
+// grown by the margin, in x-fastest order, each cell once. Never misses a cell (the float ranges
+// contain the exact ones); may add a cell that the bounding box reaches within the slack
+// (1e-6 (res + 3) cells) when the box spans one or two cells only on that axis. Cells outside
+// [0, res) are clipped (sub-grids bin the lists of their parent cell).
+//   spans (axes whose range has > 1 cell, before clipping):
+//   0: one cell. 1: every cell of the range (the triangle is connected and lies within one
+//   cell on the other two axes, so it crosses them all). 2: the triangle lies within the layer
+//   of the third axis, so the 2D test in the plane of the two spanning axes is exact. 3: the
+//   full SAT = plane test + the 2D tests of the three coordinate planes (the 9 edge x axis
+//   crosses of Akenine-Moller's test are exactly those 2D edge normals).
+// Cell ranges of triangle v on the three axes: [c0, c1] clipped to the grid, span[a] = the
+// unclipped range has more than one cell. Returns the number of spanning axes, or -1 if the
+// triangle (grown by the margin) misses the grid on some axis.
+inline int TriangleCellRange(const BinGeometry& g, const float v[3][3], int c0[3], int c1[3],
+                             bool span[3]) {
+  int spans = 0;
+  bool outside = false;
+  for (int a = 0; a < 3; ++a) {
+    const float mn = std::min(v[0][a], std::min(v[1][a], v[2][a]));
+    const float mx = std::max(v[0][a], std::max(v[1][a], v[2][a]));
+    const float res_f = float(g.res[a]);
+    const int r0 = binning::RawCell((mn - g.lo_f[a]) * g.inv_f[a] - g.reach[a], res_f);
+    const int r1 = binning::RawCell((mx - g.lo_f[a]) * g.inv_f[a] + g.reach[a], res_f);
+    span[a] = r1 > r0;
+    spans += span[a];
+    c0[a] = std::max(r0, 0);
+    c1[a] = std::min(r1, g.res[a] - 1);
+    outside |= c1[a] < c0[a];
+  }
+  return outside ? -1 : spans;
+}
+
+// Calls emit(x, y, z) for every cell of `g` that triangle v (float vertices, finite) overlaps,
+// grown by the margin, in x-fastest order, each cell once, given its TriangleCellRange. Never
+// misses a cell (the float ranges contain the exact ones); may add a cell that the bounding box
+// reaches within the slack (1e-6 (res + 3) cells) when the box spans one or two cells only on
+// that axis. Cells outside [0, res) are clipped (sub-grids bin the lists of their parent cell).
+//   spans (axes whose range has > 1 cell, before clipping):
+//   0: one cell. 1: every cell of the range (the triangle is connected and lies within one
+//   cell on the other two axes, so it crosses them all). 2: the triangle lies within the layer
+//   of the third axis, so the 2D test in the plane of the two spanning axes is exact. 3: the
+//   full SAT = plane test + the 2D tests of the three coordinate planes (the 9 edge x axis
+//   crosses of Akenine-Moller's test are exactly those 2D edge normals).
+template <class Emit>
+inline void BinTriangleCells(const BinGeometry& g, const float v[3][3], const int c0[3],
+                             const int c1[3], const bool span[3], int spans, BinScratch* scratch,
+                             Emit&& emit) {
+  if (spans <= 1) {
+    for (int z = c0[2]; z <= c1[2]; ++z) {
+      for (int y = c0[1]; y <= c1[1]; ++y) {
+        for (int x = c0[0]; x <= c1[0]; ++x) emit(x, y, z);
+      }
+    }
+    return;
+  }
+  double dv[3][3];
+  for (int k = 0; k < 3; ++k) {
+    for (int a = 0; a < 3; ++a) dv[k][a] = double(v[k][a]);
+  }
+  if (spans == 2) {
+    const int k = !span[0] ? 0 : (!span[1] ? 1 : 2);  // the single-cell axis
+    const int i = k == 0 ? 1 : 0, j = k == 2 ? 1 : 2;
+    const binning::Edges2D edges(dv, g, i, j);
+    const int ni = c1[i] - c0[i] + 1;
+    std::vector<uint8_t>& row = scratch->table[0];
+    if (row.size() < size_t(ni)) row.resize(size_t(ni));
+    int c[3];
+    c[k] = c0[k];
+    for (c[j] = c0[j]; c[j] <= c1[j]; ++c[j]) {
+      edges.Row(c0[i], ni, c[j], row.data());
+      for (int m = 0; m < ni; ++m) {
+        if (!row[size_t(m)]) continue;
+        c[i] = c0[i] + m;
+        emit(c[0], c[1], c[2]);
+      }
+    }
+    return;
+  }
+  // spans == 3: tables of the three 2D projections, then the plane test per cell
+  const int n[3] = {c1[0] - c0[0] + 1, c1[1] - c0[1] + 1, c1[2] - c0[2] + 1};
+  static constexpr int kPair[3][2] = {{0, 1}, {0, 2}, {1, 2}};  // xy, xz, yz
+  uint8_t* table[3];
+  for (int p = 0; p < 3; ++p) {
+    const int i = kPair[p][0], j = kPair[p][1];
+    std::vector<uint8_t>& t = scratch->table[p];
+    if (t.size() < size_t(n[i]) * size_t(n[j])) t.resize(size_t(n[i]) * size_t(n[j]));
+    table[p] = t.data();
+    const binning::Edges2D edges(dv, g, i, j);
+    for (int cj = 0; cj < n[j]; ++cj) edges.Row(c0[i], n[i], c0[j] + cj, table[p] + size_t(cj) * n[i]);
+  }
+  const binning::Plane3D plane(dv, g);
+  for (int z = 0; z < n[2]; ++z) {
+    for (int y = 0; y < n[1]; ++y) {
+      if (!table[2][size_t(z) * n[1] + y]) continue;
+      for (int x = 0; x < n[0]; ++x) {
+        if (table[0][size_t(y) * n[0] + x] && table[1][size_t(z) * n[0] + x] &&
+            plane.Overlaps(c0[0] + x, c0[1] + y, c0[2] + z)) {
+          emit(c0[0] + x, c0[1] + y, c0[2] + z);
+        }
+      }
+    }
+  }
+}
+
+// TriangleCellRange + BinTriangleCells.
+template <class Emit>
+inline void BinTriangle(const BinGeometry& g, const float v[3][3], BinScratch* scratch,
+                        Emit&& emit) {
+  int c0[3], c1[3];
+  bool span[3];
+  const int spans = TriangleCellRange(g, v, c0, c1, span);
+  if (spans >= 0) BinTriangleCells(g, v, c0, c1, span, spans, scratch, emit);
+}
+
+}  // namespace rs

@@ -1,0 +1,452 @@
+// Two-level grid: sub-grid records for dense cells (conservative 8x8x8 binning of the parent
+// cell's list), the leaf lists, the SAH-style cost model that decides which cells to refine and
+// which lambda to use, and the scalar traversal over both levels.
+#include "kernels/two_level.h"
+
+#include <algorithm>
+#include <cfloat>
+#include <cmath>
+#include <limits>
+#include <string>
+#include <vector>
+
+#include "kernels/dda.h"
+#include "kernels/grid_binning.h"
+#include "kernels/two_level_dda.h"
+
+namespace rs {
+namespace {
+
+template <typename T>
+hwy::AlignedFreeUniquePtr<T[]> Allocate(size_t n) {
+  auto p = hwy::AllocateAligned<T>(n == 0 ? 1 : n);
+  HWY_ASSERT(p);
+  return p;
+}
+
+// Surface area of one cell over that of the grid box: the probability that a ray through the
+// box passes through a given cell.
+double CellAreaRatio(const double cs[3], const int res[3]) {
+  const double cell = cs[0] * cs[1] + cs[1] * cs[2] + cs[0] * cs[2];
+  const double bx = cs[0] * res[0], by = cs[1] * res[1], bz = cs[2] * res[2];
+  const double box = bx * by + by * bz + bx * bz;
+  return box > 0.0 ? cell / box : 1.0;
+}
+
+// Per ray through a refined cell: enter the sub-grid, 8 expected sub-cell steps (the 512
+// sub-cells have 1/64 of the cell's area each), then the sub-cells' visits and tests.
+double SubGridCost(size_t occupied_sub, size_t sub_refs, const GridCostModel& m) {
+  return m.subgrid + 8.0 * m.step +
+         (double(occupied_sub) * m.visit + double(sub_refs) * m.triangle) / 64.0;
+}
+
+double LeafCost(size_t refs, const GridCostModel& m) { return m.visit + double(refs) * m.triangle; }
+
+}  // namespace
+
+size_t TwoLevelGrid::Bytes() const {
+  if (num_records == 0) return 0;
+  const size_t top_cells = leaves.num_cells - (leaves.num_cells > 0 ? sub_leaves : 0);
+  return num_records * sizeof(SubGridRecord) + ((top_cells + 63) / 64) * 12 +
+         (leaves.num_cells + 1) * 4 + leaves.num_refs * 4;
+}
+
+double FlatGridCost(const Grid& grid, const GridCostModel& model) {
+  if (grid.empty()) return 0.0;
+  const double cs[3] = {grid.cell_size[0], grid.cell_size[1], grid.cell_size[2]};
+  return CellAreaRatio(cs, grid.res) *
+         (double(grid.num_cells) * model.step + double(grid.occupied_cells) * model.visit +
+          double(grid.num_refs) * model.triangle);
+}
+
+double TwoLevelGridCost(const Grid& grid, const TwoLevelGrid& two, const GridCostModel& model) {
+  if (grid.empty()) return 0.0;
+  if (two.empty()) return FlatGridCost(grid, model);
+  const double cs[3] = {grid.cell_size[0], grid.cell_size[1], grid.cell_size[2]};
+  double sum = double(grid.num_cells) * model.step +
+               double(grid.occupied_cells - two.num_records) * model.visit +
+               double(grid.num_refs - two.refined_top_refs) * model.triangle;
+  for (size_t r = 0; r < two.num_records; ++r) {
+    const SubGridRecord& rec = two.records[r];
+    size_t occupied = 0;
+    for (const uint64_t w : rec.bits) occupied += size_t(std::popcount(w));
+    sum += SubGridCost(occupied, rec.refs, model);
+  }
+  return CellAreaRatio(cs, grid.res) * sum;
+}
+
+double TwoLevelCostBound(const Grid& grid, int threshold, const GridCostModel& model) {
+  if (grid.empty()) return 0.0;
+  const double cs[3] = {grid.cell_size[0], grid.cell_size[1], grid.cell_size[2]};
+  double sum = double(grid.num_cells) * model.step;
+  for (size_t c = 0; c < grid.num_cells; ++c) {
+    const uint32_t n = grid.cell_begin[c + 1] - grid.cell_begin[c];
+    if (n == 0) continue;
+    const double leaf = LeafCost(n, model);
+    sum += n > uint32_t(std::max(threshold, 0)) ? std::min(leaf, SubGridCost(0, 0, model)) : leaf;
+  }
+  return CellAreaRatio(cs, grid.res) * sum;
+}
+
+void BuildTwoLevel(const Grid& grid, const TriangleSoA& tris, int threshold, bool by_cost,
+                   const GridCostModel& model, TwoLevelGrid* out) {
+  *out = TwoLevelGrid();
+  out->threshold = threshold;
+  if (grid.empty()) return;
+  const size_t num_cells = grid.num_cells;
+  const uint32_t* begin = grid.cell_begin.get();
+  const uint32_t* ids = grid.tri_ids.get();
+  double max_abs = 0.0;
+  for (int a = 0; a < 3; ++a) {
+    max_abs = std::max({max_abs, std::fabs(double(grid.lo[a])), std::fabs(double(grid.hi[a]))});
+  }
+  const float* p[3][3];
+  for (int k = 0; k < 3; ++k) {
+    for (int a = 0; a < 3; ++a) p[k][a] = tris.p[k][a].data();
+  }
+
+  std::vector<SubGridRecord> records;
+  std::vector<uint32_t> sub_begin;  // per occupied sub-cell (all records): start in sub_ids
+  std::vector<uint32_t> sub_ids;
+  std::vector<uint32_t> refined_cells;
+  std::vector<uint16_t> ref_sub;  // scratch: sub-cell of each reference of the current cell
+  std::vector<uint32_t> ref_tri;
+  BinScratch scratch;
+  uint32_t counts[kSubCells];
+  uint32_t next_leaf = uint32_t(num_cells);
+  for (size_t cell = 0; cell < num_cells; ++cell) {
+    const uint32_t n = begin[cell + 1] - begin[cell];
+    if (n <= uint32_t(std::max(threshold, 0))) continue;
+    // a sub-grid costs at least its entry and 8 steps: skip cells that cannot gain
+    if (by_cost && !(SubGridCost(0, 0, model) < LeafCost(n, model))) continue;
+    const int cz = int(cell / (size_t(grid.res[0]) * grid.res[1]));
+    const int cy = int(cell / size_t(grid.res[0]) % size_t(grid.res[1]));
+    const int cx = int(cell % size_t(grid.res[0]));
+    const int c[3] = {cx, cy, cz};
+    SubGridRecord rec{};
+    BinGeometry geo;
+    for (int a = 0; a < 3; ++a) {
+      // the parent cell's lower corner exactly as the float DDA computes boundaries
+      rec.lo[a] = grid.lo[a] + float(c[a]) * grid.cell_size[a];
+      rec.cell_size[a] = grid.cell_size[a] / float(kSubRes);
+      rec.inv_cell_size[a] = grid.inv_cell_size[a] * float(kSubRes);
+      geo.lo[a] = double(rec.lo[a]);
+      geo.cs[a] = double(rec.cell_size[a]);
+      geo.margin[a] = 1e-3 * geo.cs[a] + 4.0 * FLT_EPSILON * max_abs;
+      geo.res[a] = kSubRes;
+    }
+    FinishBinGeometry(rec.lo, rec.inv_cell_size, &geo);
+    // bin the parent's list (ascending ids) into the sub-cells
+    ref_sub.clear();
+    ref_tri.clear();
+    std::fill(counts, counts + kSubCells, 0u);
+    for (uint32_t k = begin[cell]; k < begin[cell + 1]; ++k) {
+      const uint32_t id = ids[k];
+      const float v[3][3] = {{p[0][0][id], p[0][1][id], p[0][2][id]},
+                             {p[1][0][id], p[1][1][id], p[1][2][id]},
+                             {p[2][0][id], p[2][1][id], p[2][2][id]}};
+      BinTriangle(geo, v, &scratch, [&](int x, int y, int z) {
+        const int s = x + kSubRes * (y + kSubRes * z);
+        ref_sub.push_back(uint16_t(s));
+        ref_tri.push_back(id);
+        ++counts[s];
+      });
+    }
+    size_t occupied = 0;
+    for (const uint32_t k : counts) occupied += k != 0;
+    if (by_cost && !(SubGridCost(occupied, ref_sub.size(), model) < LeafCost(n, model))) continue;
+
+    // record: bits, ranks, leaves; leaf lists by a stable counting sort (ids stay ascending)
+    rec.first_leaf = next_leaf;
+    rec.parent = uint32_t(cell);
+    rec.refs = uint32_t(ref_sub.size());
+    uint32_t start[kSubCells];
+    uint32_t rank = 0;
+    const size_t base = sub_ids.size();
+    uint32_t offset = uint32_t(base);
+    for (int z = 0; z < kSubRes; ++z) {
+      rec.rank[z] = uint16_t(rank);
+      uint64_t bits = 0;
+      for (int b = 0; b < 64; ++b) {
+        const int s = 64 * z + b;
+        start[s] = offset;
+        if (counts[s] == 0) continue;
+        bits |= uint64_t{1} << b;
+        sub_begin.push_back(offset);
+        offset += counts[s];
+        ++rank;
+      }
+      rec.bits[z] = bits;
+    }
+    sub_ids.resize(offset);
+    for (size_t r = 0; r < ref_sub.size(); ++r) sub_ids[start[ref_sub[r]]++] = ref_tri[r];
+    next_leaf += rank;
+    if (size_t(next_leaf) + 1 >= size_t{UINT32_MAX} || sub_ids.size() >= size_t{UINT32_MAX}) {
+      throw Error("two-level grid build: more than 2^32 - 1 leaves or references");
+    }
+    records.push_back(rec);
+    refined_cells.push_back(uint32_t(cell));
+    out->refined_top_refs += n;
+  }
+  if (records.empty()) return;
+
+  // records and the refined-cell bits with their per-word ranks
+  out->num_records = records.size();
+  out->records = hwy::AllocateAligned<SubGridRecord>(records.size());
+  HWY_ASSERT(out->records);
+  std::copy(records.begin(), records.end(), out->records.get());
+  const size_t words = (num_cells + 63) / 64;
+  out->refined = Allocate<uint64_t>(words);
+  out->refined_rank = Allocate<uint32_t>(words);
+  std::fill(out->refined.get(), out->refined.get() + words, uint64_t{0});
+  for (const uint32_t cell : refined_cells) out->refined[cell >> 6] |= uint64_t{1} << (cell & 63);
+  uint32_t rank = 0;
+  for (size_t w = 0; w < words; ++w) {
+    out->refined_rank[w] = rank;
+    rank += uint32_t(std::popcount(out->refined[w]));
+  }
+
+  // leaves: the top-level lists (refined cells emptied), then the sub-cell lists
+  Grid& leaves = out->leaves;
+  const size_t num_sub_leaves = sub_begin.size();
+  leaves.num_cells = num_cells + num_sub_leaves;
+  leaves.cell_begin = Allocate<uint32_t>(leaves.num_cells + 1);
+  const size_t top_refs = grid.num_refs - out->refined_top_refs;
+  leaves.num_refs = top_refs + sub_ids.size();
+  if (leaves.num_refs >= size_t{UINT32_MAX}) {
+    throw Error("two-level grid build: more than 2^32 - 1 leaf references");
+  }
+  leaves.tri_ids = Allocate<uint32_t>(leaves.num_refs);
+  uint32_t* lb = leaves.cell_begin.get();
+  uint32_t* li = leaves.tri_ids.get();
+  uint32_t at = 0;
+  size_t occupied = 0, max_per = 0;
+  for (size_t cell = 0; cell < num_cells; ++cell) {
+    lb[cell] = at;
+    if (out->Refined(cell)) continue;
+    const uint32_t n = begin[cell + 1] - begin[cell];
+    std::copy(ids + begin[cell], ids + begin[cell + 1], li + at);
+    at += n;
+    occupied += n != 0;
+    max_per = std::max<size_t>(max_per, n);
+  }
+  for (size_t s = 0; s < num_sub_leaves; ++s) {
+    lb[num_cells + s] = at;
+    const uint32_t end = s + 1 < num_sub_leaves ? sub_begin[s + 1] : uint32_t(sub_ids.size());
+    const uint32_t n = end - sub_begin[s];
+    std::copy(sub_ids.begin() + sub_begin[s], sub_ids.begin() + end, li + at);
+    at += n;
+    ++occupied;
+    max_per = std::max<size_t>(max_per, n);
+  }
+  lb[leaves.num_cells] = at;
+  HWY_ASSERT(size_t(at) == leaves.num_refs);
+  leaves.occupied_cells = occupied;
+  leaves.max_per_cell = max_per;
+  out->sub_refs = sub_ids.size();
+  out->sub_leaves = num_sub_leaves;
+}
+
+float ChooseLambda(const TriangleSoA& tris, int max_resolution, const GridCostModel& model,
+                   double* cost) {
+  static constexpr float kCandidates[] = {0.5f, 1.0f, 2.0f, 4.0f, 8.0f};
+  // the cost is unimodal in lambda on every scene measured: stop at the first increase
+  const GridBounds bounds = ComputeGridBounds(tris);
+  float best = 1.0f;
+  double best_cost = HUGE_VAL;
+  for (const float lambda : kCandidates) {
+    Grid geometry;
+    SetGridGeometry(bounds, lambda, max_resolution, &geometry);
+    if (geometry.empty()) break;
+    const GridBoxCounts counts = CountGridBoxes(tris, geometry);
+    const double cs[3] = {geometry.cell_size[0], geometry.cell_size[1], geometry.cell_size[2]};
+    const double c = CellAreaRatio(cs, geometry.res) *
+                     (double(counts.cells) * model.step + double(counts.occupied) * model.visit +
+                      double(counts.refs) * model.triangle);
+    if (!(c < best_cost)) break;
+    best_cost = c;
+    best = lambda;
+  }
+  if (cost != nullptr) *cost = best_cost;
+  return best;
+}
+
+namespace {
+
+// The ids of the last 8 triangles tested by this ray (as kernels/dda.cc).
+class Mailbox {
+ public:
+  bool Contains(uint32_t id) const {
+    bool found = false;
+    for (const uint32_t m : ids_) found |= m == id;
+    return found;
+  }
+  void Insert(uint32_t id) { ids_[next_++ & 7u] = id; }
+
+ private:
+  uint32_t ids_[8] = {UINT32_MAX, UINT32_MAX, UINT32_MAX, UINT32_MAX,
+                      UINT32_MAX, UINT32_MAX, UINT32_MAX, UINT32_MAX};
+  uint32_t next_ = 0;
+};
+
+// kernels/dda.cc's Traverse, plus: occupied refined cells are traversed through their sub-grid
+// (TraverseSubGrid) and leaves are tested from the leaf lists.
+template <bool kAnyHit>
+bool Traverse(const Grid& grid, const TwoLevelGrid& two, const TriangleSoA& tris, float ox,
+              float oy, float oz, float dx, float dy, float dz, float tmin, float tmax,
+              RayHit* hit, TraceStats* stats) {
+  if (grid.empty() || !RayIsValid(ox, oy, oz, dx, dy, dz)) return false;
+  const float tmax_f = tmax > FLT_MAX ? FLT_MAX : tmax;  // NaN stays NaN
+  if (!(tmin < tmax_f)) return false;
+
+  DdaRay r;
+  r.o[0] = ox;
+  r.o[1] = oy;
+  r.o[2] = oz;
+  r.d[0] = dx;
+  r.d[1] = dy;
+  r.d[2] = dz;
+  float t0 = tmin, t1 = tmax_f;
+  for (int a = 0; a < 3; ++a) {
+    const float inv = 1.0f / r.d[a];
+    const bool parallel = !(r.d[a] != 0.0f && std::isfinite(inv));
+    if (parallel) {
+      r.inv_d[a] = 0.0f;
+      r.step[a] = 0;
+      if (r.o[a] < grid.lo[a] || r.o[a] > grid.hi[a]) return false;
+      continue;
+    }
+    r.inv_d[a] = inv;
+    r.step[a] = r.d[a] > 0.0f ? 1 : -1;
+    float ta = (grid.lo[a] - r.o[a]) * inv;
+    float tb = (grid.hi[a] - r.o[a]) * inv;
+    if (ta > tb) std::swap(ta, tb);
+    t0 = ta > t0 ? ta : t0;
+    t1 = tb < t1 ? tb : t1;
+  }
+  if (!(t0 <= t1)) return false;
+  r.t1 = t1;
+
+  int cell[3];
+  float t_next[3];
+  size_t idx = 0;
+  const size_t stride[3] = {1, size_t(grid.res[0]), size_t(grid.res[0]) * size_t(grid.res[1])};
+  for (int a = 0; a < 3; ++a) {
+    const float p = r.o[a] + t0 * r.d[a];
+    const float f = (p - grid.lo[a]) * grid.inv_cell_size[a];
+    int c = f >= 0.0f ? (f < float(grid.res[a]) ? int(f) : grid.res[a] - 1) : 0;  // NaN -> 0
+    if (c >= grid.res[a]) c = grid.res[a] - 1;
+    cell[a] = c;
+    idx += size_t(c) * stride[a];
+    if (r.step[a] == 0) {
+      t_next[a] = std::numeric_limits<float>::infinity();
+    } else {
+      const int boundary = c + (r.step[a] > 0 ? 1 : 0);
+      t_next[a] = (grid.lo[a] + float(boundary) * grid.cell_size[a] - r.o[a]) * r.inv_d[a];
+    }
+  }
+
+  const WatertightRay ray = PrepareWatertightRay(ox, oy, oz, dx, dy, dz);
+  const float* v[3][3];
+  for (int k = 0; k < 3; ++k) {
+    v[k][0] = tris.p[k][ray.kx].data();
+    v[k][1] = tris.p[k][ray.ky].data();
+    v[k][2] = tris.p[k][ray.kz].data();
+  }
+  const bool flat = two.empty();
+  const uint32_t* list_begin = flat ? grid.cell_begin.get() : two.leaves.cell_begin.get();
+  const uint32_t* list_ids = flat ? grid.tri_ids.get() : two.leaves.tri_ids.get();
+  const uint64_t* occupancy = grid.occupancy.get();
+
+  Mailbox mailbox;
+  uint64_t cell_steps = 0, triangle_tests = 0;
+  float best_t = tmax_f;
+  uint32_t best_prim = UINT32_MAX;
+  TriHit best{};
+  bool found = false;
+  // Tests leaf `leaf`; true iff any-hit found.
+  auto visit = [&](size_t leaf) {
+    const uint32_t end = list_begin[leaf + 1];
+    for (uint32_t k = list_begin[leaf]; k < end; ++k) {
+      const uint32_t id = list_ids[k];
+      if (mailbox.Contains(id)) continue;
+      mailbox.Insert(id);
+      ++triangle_tests;
+      TriHit th;
+      if (!IntersectWatertightPermuted(ray, v[0][0][id], v[0][1][id], v[0][2][id], v[1][0][id],
+                                       v[1][1][id], v[1][2][id], v[2][0][id], v[2][1][id],
+                                       v[2][2][id], tmin, best_t, &th)) {
+        continue;
+      }
+      if constexpr (kAnyHit) {
+        found = true;
+        return true;
+      } else {
+        if (th.t < best_t || id < best_prim) {
+          best_t = th.t;
+          best_prim = id;
+          best = th;
+          found = true;
+        }
+      }
+    }
+    return false;
+  };
+  float t_enter = t0;
+  int enter_axis = -1;
+  for (;;) {
+    ++cell_steps;
+    const float t_exit = std::fmin(t_next[0], std::fmin(t_next[1], t_next[2]));
+    if ((occupancy[idx >> 6] >> (idx & 63)) & 1u) {
+      if (!flat && two.Refined(idx)) {
+        const SubExit e = TraverseSubGrid(two.Record(idx), r, t_enter, enter_axis, &best_t,
+                                          &cell_steps, visit);
+        if (e != SubExit::kLeft) break;
+      } else if (visit(idx)) {
+        break;
+      }
+    }
+    if (best_t <= t_exit || t1 <= t_exit) break;
+    const int a = t_next[0] < t_next[1] ? (t_next[0] < t_next[2] ? 0 : 2)
+                                        : (t_next[1] < t_next[2] ? 1 : 2);
+    cell[a] += r.step[a];
+    if (cell[a] < 0 || cell[a] >= grid.res[a]) break;
+    idx = r.step[a] > 0 ? idx + stride[a] : idx - stride[a];
+    const int boundary = cell[a] + (r.step[a] > 0 ? 1 : 0);
+    t_next[a] = (grid.lo[a] + float(boundary) * grid.cell_size[a] - r.o[a]) * r.inv_d[a];
+    t_enter = t_exit;
+    enter_axis = a;
+  }
+  if (stats != nullptr) {
+    stats->cell_steps += cell_steps;
+    stats->triangle_tests += triangle_tests;
+  }
+  if constexpr (!kAnyHit) {
+    if (found) {
+      hit->t = best.t;
+      hit->u = best.u;
+      hit->v = best.v;
+      hit->prim = int32_t(best_prim);
+    }
+  }
+  return found;
+}
+
+}  // namespace
+
+bool TraceClosestTwoLevel(const Grid& grid, const TwoLevelGrid& two, const TriangleSoA& tris,
+                          float ox, float oy, float oz, float dx, float dy, float dz, float tmin,
+                          float tmax, RayHit* hit, TraceStats* stats) {
+  hit->t = std::numeric_limits<float>::infinity();
+  hit->u = hit->v = 0.0f;
+  hit->prim = -1;
+  return Traverse<false>(grid, two, tris, ox, oy, oz, dx, dy, dz, tmin, tmax, hit, stats);
+}
+
+bool TraceAnyTwoLevel(const Grid& grid, const TwoLevelGrid& two, const TriangleSoA& tris,
+                      float ox, float oy, float oz, float dx, float dy, float dz, float tmin,
+                      float tmax, TraceStats* stats) {
+  return Traverse<true>(grid, two, tris, ox, oy, oz, dx, dy, dz, tmin, tmax, nullptr, stats);
+}
+
+}  // namespace rs

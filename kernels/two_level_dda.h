@@ -1,0 +1,80 @@
+// The 3D-DDA through one 8x8x8 sub-grid record, shared (inline) by the scalar two-level traversal
+// and the SIMD kernels' per-lane sub-grid step, so both visit the same sub-cells with the same
+// float arithmetic as the top-level DDA (boundary t recomputed from the cell index, no drift).
+#pragma once
+
+#include <cstdint>
+#include <limits>
+
+#include "kernels/two_level.h"
+
+namespace rs {
+
+// Per-ray constants of the DDA (kernels/dda.cc computes the same values).
+struct DdaRay {
+  float o[3];
+  float d[3];
+  float inv_d[3];  // 1 / d, 0 on parallel axes
+  int step[3];     // +1 / -1, 0 on parallel axes (d = +-0 or 1 / d not finite)
+  float t1;        // end of the ray's segment inside the grid
+};
+
+enum class SubExit : int {
+  kLeft = 0,   // the ray left the sub-grid: continue in the top level
+  kDone = 1,   // the candidate hit or the segment end lies before the current sub-cell's exit
+  kFound = 2,  // visit() returned true (any-hit)
+};
+
+// The start of a sub-grid traversal: sub-cell c and boundary t per axis (see TraverseSubGrid).
+inline void SubGridStart(const SubGridRecord& rec, const DdaRay& r, float t_enter, int enter_axis,
+                         int c[3], float t_next[3]) {
+  for (int a = 0; a < 3; ++a) {
+    if (a == enter_axis) {
+      c[a] = r.step[a] > 0 ? 0 : kSubRes - 1;
+    } else {
+      const float p = r.o[a] + t_enter * r.d[a];
+      const float f = (p - rec.lo[a]) * rec.inv_cell_size[a];
+      c[a] = f >= 0.0f ? (f < float(kSubRes) ? int(f) : kSubRes - 1) : 0;  // NaN -> 0
+      if (c[a] >= kSubRes) c[a] = kSubRes - 1;
+    }
+    if (r.step[a] == 0) {
+      t_next[a] = std::numeric_limits<float>::infinity();
+    } else {
+      const int boundary = c[a] + (r.step[a] > 0 ? 1 : 0);
+      t_next[a] = (rec.lo[a] + float(boundary) * rec.cell_size[a] - r.o[a]) * r.inv_d[a];
+    }
+  }
+}
+
+// Steps ray r through the sub-grid of `rec`, starting where it entered the parent cell at
+// t_enter across axis enter_axis (-1: the ray starts inside the parent cell; that axis's
+// sub-cell is then the entry face, exactly, and the others come from o + t_enter d clamped to
+// [0, 8)). For each occupied sub-cell, calls visit(leaf) (which may lower *best_t); returns
+// kFound if visit returns true, kDone if *best_t or r.t1 <= the sub-cell's exit t, else kLeft
+// when the ray steps out of the 8x8x8 block. Adds the sub-cells visited to *steps. At most
+// 22 sub-cells are visited. Axis ties go to the last axis, as in the top-level DDA.
+template <class Visit>
+inline SubExit TraverseSubGrid(const SubGridRecord& rec, const DdaRay& r, float t_enter,
+                               int enter_axis, const float* best_t, uint64_t* steps,
+                               Visit&& visit) {
+  int c[3];
+  float t_next[3];
+  SubGridStart(rec, r, t_enter, enter_axis, c, t_next);
+  for (;;) {
+    ++*steps;
+    const float t_exit = t_next[0] < t_next[1] ? (t_next[0] < t_next[2] ? t_next[0] : t_next[2])
+                                               : (t_next[1] < t_next[2] ? t_next[1] : t_next[2]);
+    if (rec.Occupied(c[0], c[1], c[2])) {
+      if (visit(rec.Leaf(c[0], c[1], c[2]))) return SubExit::kFound;
+    }
+    if (*best_t <= t_exit || r.t1 <= t_exit) return SubExit::kDone;
+    const int a = t_next[0] < t_next[1] ? (t_next[0] < t_next[2] ? 0 : 2)
+                                        : (t_next[1] < t_next[2] ? 1 : 2);
+    c[a] += r.step[a];
+    if (c[a] < 0 || c[a] >= kSubRes) return SubExit::kLeft;
+    const int boundary = c[a] + (r.step[a] > 0 ? 1 : 0);
+    t_next[a] = (rec.lo[a] + float(boundary) * rec.cell_size[a] - r.o[a]) * r.inv_d[a];
+  }
+}
+
+}  // namespace rs

@@ -1,0 +1,73 @@
+// Cluster backend: master-worker rendering over MPI (Cosenza et al. §2: demand-driven tiles,
+// replicated scene; §3-4: PBT re-tiling between frames). Workers return each tile's fixed-point
+// sums, so the image equals the serial backend's bit for bit.
+#pragma once
+
+#include <cstdint>
+#include <string>
+
+#include "sched/backends.h"  // PbtAssign
+#include "sched/framebuffer.h"
+#include "sched/render.h"
+
+namespace rs {
+
+// Everything `raystream render --backend mpi` needs; every rank gets the same values (the same
+// command line under mpirun).
+struct MpiRenderConfig {
+  std::string scene;
+  RenderOptions options;  // width, height, max_depth, task_size, weight_cutoff, order
+  float lambda = 0;       // grid density (BuildOptions::lambda); <= 0: the default
+  int frames = 1;
+  float speed = 1.0f;
+  std::string out;       // image pattern ('#' = frame number, every frame); empty: SCENE.png
+  std::string stats;     // per-frame statistics, .json; empty: none
+  std::string dump_raw;  // hidden: raw fixed-point framebuffer per written frame ('#' allowed)
+  // Without PBT (pbt_tiles_per_worker == 0): tile_width x tile_height tiles in row-major order,
+  // handed out on demand by a counter at the master.
+  int tile_width = 32;
+  int tile_height = 32;
+  // k > 0: a PBT of m = k * n tiles (n = ranks - 1 workers), updated between frames with the
+  // tile times measured by the workers (wall, or the worker's CPU time with pbt_cpu_time). Each
+  // worker first takes the tiles of its own list (assign); a worker whose list is empty takes
+  // the last waiting tile of the list with the most predicted work left (demand-driven with
+  // affinity, as SimulateDemandDriven in pbt.h models).
+  int pbt_tiles_per_worker = 0;
+  PbtAssign assign = PbtAssign::kRandom;
+  uint64_t seed = 1;
+  bool pbt_cpu_time = false;
+  // Tiles in flight per worker (1: strictly on demand; 2: the next tile waits at the worker
+  // while it renders, hiding the round trip).
+  int prefetch = 2;
+  // A worker holding a tile that sends nothing for this long ends the run: the master prints
+  // an error naming the rank and calls MPI_Abort (bounded time, never a hang).
+  double timeout_seconds = 120;
+  bool quiet = false;
+};
+
+// True when raystream was built with MPI (meson option 'mpi' found an MPI library).
+bool MpiBuilt();
+
+// Runs the whole render on this rank; call it from every rank of `mpirun -np N` (N >= 2): rank 0
+// is the master (tiling, framebuffer, images, statistics), ranks 1..N-1 are workers. Calls
+// MPI_Init and MPI_Finalize itself. Returns the process exit status: 0 on success; 1 after a
+// setup error (bad option, scene, too few ranks), printed once (by the lowest failing rank) and
+// returned by every rank. A failure while
+// rendering (a worker times out or sends a malformed result, an exception on any rank) prints
+// one line naming the rank and calls MPI_Abort, so mpirun exits non-zero; images are written
+// only for complete frames. A worker process that exits is normally noticed by mpirun first: it
+// ends the job and names the rank (Open MPI: "Process name: [[job,1],r]"); the master's timeout
+// covers workers that stay alive but silent (hung, or lost where the launcher does not notice).
+// Without MPI: throws rs::Error("raystream was built without MPI").
+//
+// Hidden test hooks (environment, read by the workers):
+//   RAYSTREAM_MPI_TEST_KILL_RANK=r  rank r _exit(1)s after returning its first tile;
+//   RAYSTREAM_MPI_TEST_HANG_RANK=r  rank r stops answering (sleeps) after its first tile.
+int RunMpiRender(const MpiRenderConfig& config);
+
+// Hidden --dump-raw format, for exact comparisons between backends: "RSFB" (4 bytes), int32
+// width, int32 height (little endian, host order), then width * height * 3 int64 sums.
+// Written through a temporary name and renamed. Throws rs::Error naming the path.
+void WriteRawFramebuffer(const std::string& path, const Framebuffer& fb);
+
+}  // namespace rs

@@ -1,0 +1,13 @@
+// The cluster backend when raystream is built without MPI (meson option 'mpi' found nothing):
+// `--backend mpi` fails with one clear error instead of a missing symbol.
+#include "include/raystream/raystream.h"
+#include "sched/mpi_backend.h"
+
+namespace rs {
+
+int RunMpiRender(const MpiRenderConfig&) {
+  throw Error("--backend mpi: raystream was built without MPI (install an MPI library such as "
+              "libopenmpi-dev and reconfigure with -Dmpi=enabled)");
+}
+
+}  // namespace rs

@@ -1,0 +1,163 @@
+// The main-memory image the PPE lays out for the SPEs (paper 3.1, 3.4): per-cell records (first
+// packet, triangle count) read with the 128-B "atomic" load, the cells' triangles in packets of 4
+// (SoA, 160 B, DMA'd into the SPE's triangle buffers), per-triangle shading records (the "hit
+// data"), material records and texels (software cache), lights and the occupancy bits. Built
+// from raystream's own TriangleSoA and uniform grid, so the SPEs test the very same floats.
+#pragma once
+
+#include <cstddef>
+#include <cstdint>
+#include <vector>
+
+#include "include/raystream/raystream.h"
+#include "kernels/shade.h"
+#include "scenes/scene.h"
+#include "sim/aligned_buffer.h"
+#include "sim/mfc.h"
+#include "streams/raygen.h"
+
+namespace rs::sim {
+
+// Four triangles of one cell, SoA: p[vertex][axis][lane] are the TriangleSoA floats; empty lanes
+// have id UINT32_MAX and NaN vertices (never hit).
+struct alignas(16) TrianglePacket {
+  float p[3][3][4];
+  uint32_t id[4];
+};
+static_assert(sizeof(TrianglePacket) == 160);
+
+// One grid cell or sub-cell (a leaf): its triangles are packets [first_packet, first_packet +
+// ceil(count / 4)). 16 records share a 128-B line (one atomic load). A top-level cell refined
+// into an 8x8x8 sub-grid has count = kRefinedCell and first_packet = its SubGridRecord's index
+// (kernels/two_level.h: one 128-B record, the second atomic load of paper 3.8); its occupied
+// sub-cells' records are in the leaf-record array at (leaf id - top-level cells).
+struct CellRecord {
+  uint32_t first_packet;
+  uint32_t count;
+};
+static_assert(sizeof(CellRecord) == 8);
+inline constexpr uint32_t kRefinedCell = 0xFFFFFFFFu;
+
+// What shading needs of a hit triangle, one 128-B DMA: the mesh vertices (Scene::positions of
+// its indices), per-vertex normals and UVs when the scene has them, its material id.
+struct alignas(128) ShadingRecord {
+  float p[3][3];
+  float n[3][3];
+  float uv[3][2];
+  uint32_t material;
+};
+static_assert(sizeof(ShadingRecord) == 128);
+
+// A material as the shader reads it through the software cache (two per 128-B line). The texture
+// (if any) is described here so a miss on the material brings everything needed to sample it.
+struct alignas(64) MaterialRecord {
+  float diffuse[3];
+  float specular[3];
+  float shininess;
+  float reflectivity;
+  float transmission;
+  float ior;
+  int32_t texture;      // Scene texture index or -1
+  int32_t tex_width;    // 0 if the texture has no usable texels (SampleTexture returns white)
+  int32_t tex_height;
+  uint32_t pad;
+  Ea texels;            // rgb floats, row 0 at the top (main memory)
+};
+static_assert(sizeof(MaterialRecord) == 64);
+
+struct alignas(16) LightRecord {
+  float position[3];
+  float falloff;
+  float color[3];
+  float pad;
+};
+static_assert(sizeof(LightRecord) == 32);
+
+// The uniform grid's geometry (kernels/grid.h Grid, without the arrays).
+struct GridHeader {
+  float lo[3];
+  float hi[3];
+  float cell_size[3];
+  float inv_cell_size[3];
+  int32_t res[3];
+  uint32_t empty;  // 1 if the grid has no cells (nothing can be hit)
+  uint64_t num_cells;
+  uint32_t two_level;  // 1 if some cells are refined (sub-grid records exist)
+  uint32_t pad;
+};
+
+// Everything an SPE reads once per frame, one DMA into local store (trivially copyable).
+struct alignas(128) FrameConstants {
+  CameraBasis camera;
+  GridHeader grid;
+  ShadeOptions shade;
+  SceneFeatures features;
+  float background[3];
+  float ambient;
+  uint32_t has_normals;
+  uint32_t has_uvs;
+  uint32_t num_lights;
+  uint32_t num_materials;
+  uint32_t num_textures;
+  int32_t image_width;
+  int32_t image_height;
+  int32_t tile_width;   // regular tiles: tile index -> rectangle
+  int32_t tile_height;
+  int32_t tiles_x;
+  uint32_t num_tiles;
+  uint32_t explicit_tiles;  // 1: tile rectangles are read from `tiles` (PBT, given lists)
+  uint64_t occupancy_bytes;
+  Ea cell_records;
+  Ea subgrids;      // SubGridRecord[] (two-level grids)
+  Ea leaf_records;  // CellRecord[] of the sub-cell leaves
+  Ea packets;
+  Ea shading;
+  Ea materials;
+  Ea lights;
+  Ea occupancy;
+  Ea tile_counter;  // 128-B line, counter in its first 4 bytes
+  Ea tiles;         // Tile[num_tiles] (16 B each) when explicit_tiles
+  Ea pixels;        // 16 B per pixel output image (pixel-buffer write-back target)
+};
+static_assert(sizeof(Tile) == 16);
+
+// Built once per (scene, accel); read-only for the SPEs. Mirrors what the accel traverses: the
+// flat grid, or the two-level grid (leaf lists of kernels/two_level.h) when it has one.
+class CellImage {
+ public:
+  // Lays out the arrays above. Throws rs::Error if the scene and the accel disagree (triangle
+  // count) or a packet index would overflow 32 bits.
+  CellImage(const Scene& scene, const Accel& accel);
+
+  void Register(MainMemory& memory) const;
+
+  const GridHeader& grid() const { return grid_; }
+  size_t num_packets() const { return num_packets_; }
+  size_t num_subgrids() const { return num_subgrids_; }
+  size_t occupancy_bytes() const { return occupancy_.size(); }
+  size_t Bytes() const;
+  double build_seconds() const { return build_seconds_; }
+  const Scene& scene() const { return *scene_; }
+  const Accel& accel() const { return *accel_; }
+  // Fills the scene and image parts of a FrameConstants (not camera, tiles or pixels).
+  void FillConstants(FrameConstants* fc) const;
+
+ private:
+  const Scene* scene_;
+  const Accel* accel_;
+  GridHeader grid_{};
+  AlignedBuffer cell_records_;
+  AlignedBuffer subgrids_;
+  AlignedBuffer leaf_records_;
+  AlignedBuffer packets_;
+  AlignedBuffer shading_;
+  AlignedBuffer materials_;
+  AlignedBuffer lights_;
+  AlignedBuffer occupancy_;
+  std::vector<AlignedBuffer> texels_;
+  size_t num_packets_ = 0;
+  size_t num_subgrids_ = 0;
+  double build_seconds_ = 0;
+};
+
+}  // namespace rs::sim

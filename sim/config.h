@@ -1,0 +1,186 @@
+// Every constant of the Cell/B.E. simulator in one struct: machine sizes, MFC/DMA and atomic-unit
+// timing, software-cache geometry, the annotated compute-cost model of the SPE ray pipeline
+// (Bingel & Hinkenjann, "Streamed Ray Tracing of Single Rays on the Cell Processor") and its
+// buffer sizes. Sources: shared/CELL-FACTS.md (SDK-PT = IBM Cell SDK 3.0 Programming Tutorial).
+#pragma once
+
+#include <cstdint>
+#include <string>
+
+namespace rs::sim {
+
+// Timing of the MFC, the memory interface controller (MIC) and the atomic unit. Calibrated so the
+// Table 1 micro-benchmarks of the paper (sim/load_bench.h) come out at 315 / 986 / 609 / 470 /
+// 269 cycles; see each field for the derivation.
+struct MemoryTiming {
+  // SPU cycles to issue one MFC command (channel writes of LSA, EAH, EAL, size, tag, command:
+  // about 6 channel instructions; CELL-FACTS "issue < 4 ns, about 13 cycles").
+  uint32_t dma_issue_cycles = 15;
+  // SPU cycles of a tag-group wait that finds the data already there (write the tag mask, read
+  // the tag status channel: two channel instructions of 6 cycles, SDK-PT latency table).
+  uint32_t dma_wait_cycles = 12;
+  // Cycles from a command's start in the MFC to the completion of its data after its last
+  // 128-B line has been served by the MIC. Table 1 "DMA sync." = 986 cycles for one 8-byte load
+  // = issue 15 + 16 (one MIC line) + latency + wait 12 + LS load 6 => 937, minus ~7 cycles of
+  // average wait for the MIC's 16-cycle slot grid => 930. (Kistler et al. measured < 100 ns =
+  // 320 cycles for one line on a quiet machine; the paper's 800-900+ on its ray tracer is the
+  // bar here, CELL-FACTS section 1.)
+  uint32_t dma_latency_cycles = 930;
+  // Commands one SPE's MFC keeps in flight to memory at once. 1 = a get occupies the SPE's path
+  // to memory for its whole latency (lines of one command still stream back to back). This is
+  // what makes the paper's "DMA async." 609 cycles reproducible: with 8 loads per pipeline
+  // iteration overlapped with ~200 cycles of work each, pipelined commands would cost < 100
+  // cycles per load. Set higher to model Kistler-style pipelined DMA.
+  int mfc_bus_slots = 1;
+  // MFC command queue entries per SPE (MFC_SPU_MAX_QUEUE_SPACE = 16, cbe_mfc.h). Issuing into
+  // a full queue stalls the SPU until the oldest command completes.
+  int mfc_queue_depth = 16;
+  // MIC service time of one 128-B line: 128 B at 25.6 GB/s = 8 B/cycle = 16 cycles (XDR, two
+  // 12.8 GB/s channels). One MIC for all SPEs: lines are served in time order; queueing behind
+  // the other SPEs' lines is the contention of Fig. 2. Also the SPE port limit (8 B/cycle).
+  uint32_t mic_line_cycles = 16;
+  // Extra MFC cycles per DMA-list element (list element fetch from LS).
+  uint32_t dma_list_element_cycles = 4;
+
+  // Atomic unit (getllar / putllc / putlluc on 128-B lines, one command at a time per SPE).
+  // SPU cycles to issue (LSA, EAH, EAL, command channel writes).
+  uint32_t atomic_issue_cycles = 12;
+  // Latency of a getllar that misses the SPE's atomic cache, excluding the MIC line. Table 1
+  // "Atomic sync." = 470 = issue 12 + 16 (line) + latency + status read 6 + LS load 6 => 430,
+  // less the average wait for the MIC's 16-cycle slot grid => 422 (the paper: "a high priority,
+  // 128 Byte load in about 200 - 300 processor cycles" plus the channel round trips).
+  uint32_t atomic_latency_cycles = 422;
+  // getllar / putllc served by the 4-line atomic cache (line present, not invalidated by
+  // another SPE's store): the atomic unit's pipeline only (estimate).
+  uint32_t atomic_hit_cycles = 40;
+  // SPU cycles to read the atomic status channel once the command completed (SDK-PT: channel
+  // instructions 6 cycles).
+  uint32_t atomic_status_cycles = 6;
+  int atomic_cache_lines = 4;  // 4 x 128 B per SPE (CELL-FACTS: Dean Calver)
+};
+
+// IBM software cache (cache-api.h defaults): 2^7 = 128-B lines, 64 sets, 4-way => 32 KiB of data.
+// Used read-only here (materials, textures), so no write-back. A miss fetches the line with a
+// synchronous DMA (MemoryTiming) on a dedicated tag (IBM uses tag = set & 0x1f; a dedicated tag
+// keeps the cache's wait from also waiting on the pipeline's DMAs).
+struct SoftwareCacheConfig {
+  uint32_t line_bytes = 128;
+  uint32_t sets = 64;
+  uint32_t ways = 4;  // IBM allows 1 or 4
+  // Hit: address split, 4 tags compared at once with SIMD, LRU update, LS load. Codeplay
+  // Offload's comparable cache: read hit 28 cycles (CELL-FACTS).
+  uint32_t hit_cycles = 28;
+  // Miss handling on top of the hit path and the DMA: victim choice, tag update (estimate;
+  // Codeplay reports ~600 for a whole miss on a quieter memory model).
+  uint32_t miss_extra_cycles = 40;
+  uint32_t tag = 31;
+};
+
+// Annotated compute costs of the SPE ray pipeline, in SPU cycles. The DDA step is the paper's
+// measured figure; the rest are estimates from the SPU latency table (SDK-PT cbet_3pipedr: SP
+// float 6 cycles, LS load 6, shuffle 4, mispredicted branch 18) and instruction counts of
+// straightforward SIMD code, as noted per field. All scale the simulated time linearly.
+struct ComputeCosts {
+  // One grid cell stepped by the branch-free loop of Listing 1 (paper section 3.3: "traverse a
+  // ray in only 21 processor cycles per grid cell").
+  uint32_t dda_step = 21;
+  // Leaving the traversal loop: its back branch is hinted taken, so the exit mispredicts once
+  // (18 cycles, SDK-PT cbet_3reducbrmis).
+  uint32_t dda_exit = 18;
+  // New ray: slab clip against the grid box (3 reciprocal estimates + Newton step, min/max),
+  // start cell (float->int), step and t_next per axis, watertight shear constants: about 4
+  // dependent chains of 6-cycle SP ops, ~70 instructions dual issued.
+  uint32_t ray_setup = 70;
+  // A ray taken back from the ring buffer mid-traversal: reload its state (8 quadwords) and
+  // recompute 1/d and the shear constants (one reciprocal chain).
+  uint32_t ray_resume = 30;
+  // Moving one 128-B ray record between ring buffer / in-flight slots / staging: 8 quadword
+  // loads + 8 stores on the odd pipe plus pointer arithmetic.
+  uint32_t ray_copy = 16;
+  // Micro-cache lookup (paper 3.5: 2 vectors of 4 cell indices, 2 compares + orx + branch).
+  uint32_t micro_cache_lookup = 8;
+  // Per visited cell: read the cell record out of the atomic line, permute the ray into the
+  // watertight (kx, ky, kz) order, set up the packet loop.
+  uint32_t visit_setup = 24;
+  // One ray against one packet of 4 triangles (paper 3.6, 1 ray x 4 triangles, two packets per
+  // loop iteration): ~48 even-pipe SP/FX instructions for the 4-wide test (edge functions,
+  // determinant, t) and the hit selection, loads and shuffles dual issued on the odd pipe; the
+  // 2x unroll hides the 6-cycle latencies.
+  uint32_t triangle_packet = 48;
+  // Primary ray generation, per ray (4-wide: pixel -> camera plane, rsqrt normalize, record
+  // store).
+  uint32_t primary_ray = 24;
+  // Shading (paper 3.7), per ray handed to the shader (miss or hit): bookkeeping, background.
+  uint32_t shade_ray = 20;
+  // Per hit point: barycentric interpolation of position and normal, face normal (cross,
+  // rsqrt), orientation, ambient term, contribution into the pixel buffer.
+  uint32_t shade_hit = 160;
+  // Per (hit point, light): light vector, rsqrt, two dots, phong highlight (pow via exp/log
+  // estimates ~40 cycles), shadow-ray weight.
+  uint32_t shade_light = 90;
+  // Per bilinear texture sample on top of its 4 software-cache reads: wrap, floor, 3 lerps.
+  uint32_t shade_texture = 60;
+  // Per secondary ray written to the ray buffer: robust origin offset, reflect/refract
+  // direction (sqrt for Snell), 128-B record store.
+  uint32_t shade_spawn = 50;
+  // Per unoccluded shadow ray: add its weight into the pixel buffer.
+  uint32_t shadow_add = 12;
+  // Per pipeline iteration: ring-buffer checks, loop control, the branch mispredicts between
+  // the stages.
+  uint32_t iteration = 60;
+  // Per tile handed out: tile rectangle from the counter value (a division), sub-tile set up.
+  uint32_t tile_setup = 120;
+};
+
+struct SimConfig {
+  // --- machine ---
+  int num_spes = 6;  // a PS3 exposes 6 SPEs (CELL-FACTS); 1..8
+  double clock_hz = 3.2e9;
+  uint32_t local_store_bytes = 256 * 1024;
+  // LS reserved for the SPE program text and its stack. The paper's renderer had "about 100
+  // KByte" left for the occupancy bits (3.8: ~800,000 cells); 40 KiB for code and stack plus the
+  // buffers below leave ~96 KiB here.
+  uint32_t code_stack_bytes = 40 * 1024;
+
+  MemoryTiming memory;
+  SoftwareCacheConfig sw_cache;
+  ComputeCosts costs;
+
+  // --- ray pipeline (paper 3.2) ---
+  int rays_per_iteration = 8;  // rays in flight; 1..8 (tags and micro-cache have 8 entries)
+  bool micro_cache = true;     // 8-entry micro-cache of loaded grid cells (3.5)
+  uint32_t ring_rays = 128;    // FIFO ring buffer of 128-B ray records in LS
+  // Rays that do not fit the ring go to an LS staging block, which is written to main memory
+  // with one DMA when full and fetched back when the ring runs low (<= 128 rays = 16 KiB).
+  uint32_t staging_rays = 32;
+  // Triangle buffer per ray in flight, in packets of 4 triangles (160 B each). Cells with more
+  // triangles are streamed through the buffer in chunks.
+  uint32_t triangle_buffer_packets = 16;
+  // Pixel buffers in LS (16 B per pixel); a tile is rendered in sub-tiles of at most
+  // pixel_buffer_pixels pixels and max_subtile_rows rows (paper 3.9: "not possible to use tiles
+  // with more than 1280 pixels"). Two buffers let a new sub-tile start while the previous one's
+  // secondary rays finish.
+  uint32_t pixel_buffer_pixels = 1280;
+  uint32_t max_subtile_rows = 64;
+  int pixel_buffers = 2;
+  // Paper 3.2: when fewer than 8 rays are left and no primary rays can be generated, "these last
+  // rays are processed individually, without any interleaving of the memory accesses". With one
+  // pixel buffer this happens at the end of every (sub-)tile. Off by default: the tail rays are
+  // then still interleaved with each other.
+  bool drain_individually = false;
+
+  // --- tiles ---
+  int tile_width = 32;   // tiles handed out by the atomic tile counter (3.9), row-major
+  int tile_height = 32;
+  int pbt_tiles_per_spe = 0;  // > 0: PBT tiling with k tiles per SPE, re-tiled every frame
+};
+
+// Throws rs::Error naming the field if a value is out of range (num_spes outside 1..8, sizes
+// that are zero or not multiples of 16 where DMA needs it, rays_per_iteration outside 1..8,
+// software-cache ways not 1 or 4, sets not a power of two, ...).
+void ValidateConfig(const SimConfig& config);
+
+// One line per field group, for reports ("spes 6, LS 256 KiB, ...").
+std::string DescribeConfig(const SimConfig& config);
+
+}  // namespace rs::sim

@@ -1,0 +1,104 @@
+// One simulated SPE running the ray pipeline of the Cell paper (section 3.2) as a resumable
+// program: refill the FIFO ring buffer (primary rays from tiles of the atomic tile counter),
+// traverse 8 rays to their first occupied cell on the LS occupancy bits, load each cell's record
+// (128-B atomic load) and triangles (DMA) while the others traverse, intersect (VisitVoxel),
+// load hit data, shade (materials and textures through the software cache) and write secondary
+// rays back. Step() runs to the next point where the SPE touches shared state, so a
+// discrete-event loop can always advance the SPE that is furthest behind.
+#pragma once
+
+#include <cstdint>
+#include <memory>
+#include <vector>
+
+#include "include/raystream/raystream.h"
+#include "kernels/shade.h"
+#include "sched/framebuffer.h"
+#include "sim/config.h"
+#include "sim/local_store.h"
+#include "sim/mfc.h"
+#include "sim/sw_cache.h"
+
+namespace rs::sim {
+
+// Work counters of one SPE (or all, merged).
+struct SpeCounters {
+  uint64_t rays[kNumRayKinds] = {};  // rays finished, by RayKind
+  uint64_t hits = 0;                 // closest-hit rays that hit
+  uint64_t occluded = 0;             // shadow rays blocked
+  uint64_t cell_steps = 0;           // cells examined (same count as the reference DDA)
+  uint64_t visits = 0;               // occupied cells intersected (VisitVoxel)
+  uint64_t packets = 0;              // 1 ray x 4 triangle packet tests
+  uint64_t triangle_tests = 0;       // live lanes tested
+  uint64_t micro_cache_hits = 0;     // visits that reused a cell loaded in the same iteration
+  uint64_t cell_loads = 0;           // cell records fetched (atomic loads) + triangle DMAs
+  uint64_t chunk_loads = 0;          // extra synchronous loads for cells larger than a buffer
+  uint64_t hit_loads = 0;            // hit-data DMAs
+  uint64_t subgrid_loads = 0;        // sub-grid records loaded (two-level grid, paper 3.8)
+  uint64_t iterations = 0;           // pipeline iterations
+  uint64_t rays_in_flight = 0;       // sum over iterations of the rays taken (<= 8 each)
+  uint64_t tiles = 0;                // tiles taken from the tile counter
+  uint64_t subtiles = 0;             // pixel-buffer sub-tiles rendered
+  uint64_t tile_counter_retries = 0;  // failed putllc on the tile counter (contention)
+  uint64_t spilled_rays = 0;         // rays written to main memory because the ring was full
+  uint64_t texture_fetches = 0;
+  ShadeStats shade;
+  void Merge(const SpeCounters& o);
+  uint64_t TotalRays() const;
+};
+
+// The state all SPEs of one frame share: main memory, the MIC, the atomic lines.
+struct Machine {
+  explicit Machine(const SimConfig& c) : config(c), mic(c.memory.mic_line_cycles) {}
+  const SimConfig& config;
+  MainMemory memory;
+  MemoryController mic;
+  AtomicMemory atomic;
+};
+
+// Host-side outputs of the frame that are not part of the simulated program's data: the
+// framebuffer the shader adds to (functional; the SPE's pixel buffers and their write-back
+// carry the timing) and per-tile statistics.
+struct FrameOutputs {
+  Framebuffer* fb = nullptr;
+  std::vector<double>* tile_cycles = nullptr;  // per tile: SPE cycles attributed to its rays
+  std::vector<int32_t>* tile_spe = nullptr;    // per tile: the SPE that took it
+};
+
+// Occupancy-bit capacity of an SPE's local store: the cells whose bits fit after the code/stack
+// budget and every pipeline buffer (as laid out for `num_lights` lights, an image `image_width`
+// pixels wide, and the sub-grid lines of a two-level grid). A grid with more cells is refused.
+uint64_t OccupancyBudgetCells(const SimConfig& config, uint32_t num_lights, int image_width,
+                              bool two_level);
+
+class Spe {
+ public:
+  // The program starts by DMA-ing the FrameConstants at `constants` into its local store.
+  Spe(int id, Machine& machine, Ea constants, const FrameOutputs& outputs);
+  ~Spe();
+  Spe(const Spe&) = delete;
+  Spe& operator=(const Spe&) = delete;
+
+  // Runs the program to its next yield point. Throws rs::Error on a local-store overflow (the
+  // first Step lays out the LS), an illegal DMA or a grid whose bits do not fit.
+  void Step();
+  bool done() const;
+  uint64_t now() const;
+  int id() const;
+
+  // Charges the cycles from this SPE's finish to `frame_end` as idle time.
+  void IdleUntil(uint64_t frame_end);
+
+  const SpuClock& clock() const;
+  const SpeCounters& counters() const;
+  const MfcStats& mfc_stats() const;
+  const AtomicStats& atomic_stats() const;
+  SoftwareCacheStats cache_stats() const;
+  const LocalStore& local_store() const;
+
+ private:
+  struct Impl;
+  std::unique_ptr<Impl> impl_;
+};
+
+}  // namespace rs::sim

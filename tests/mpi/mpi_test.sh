@@ -1,0 +1,127 @@
+#!/usr/bin/env bash
+# The cluster backend (sched/mpi_backend.h) under mpirun: with 3 and 5 ranks, every frame of a
+# 3-frame walk-through (PBT re-tiled between frames) equals the serial backend's framebuffer
+# bit for bit (hidden --dump-raw: the int64 fixed-point sums), statistics are written, and a dead
+# or silent worker ends the run non-zero within bounded time, naming the rank, with no image.
+# usage: mpi_test.sh RAYSTREAM_BINARY MPIRUN
+set -uo pipefail
+rs=$1
+mpirun=$2
+tmp=$(mktemp -d)
+trap 'rm -rf "$tmp"' EXIT
+export OMPI_ALLOW_RUN_AS_ROOT=1 OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1
+# Keep OpenMPI off the network probes it does not need on one host.
+export OMPI_MCA_btl=self,vader OMPI_MCA_btl_vader_single_copy_mechanism=none
+fails=0 checks=0
+ok() { checks=$((checks+1)); echo "ok   $*"; }
+bad() { checks=$((checks+1)); fails=$((fails+1)); echo "FAIL $*"; }
+run_mpi() { local np=$1; shift; timeout 120 "$mpirun" --allow-run-as-root --oversubscribe -np "$np" "$@"; }
+
+size=(--width 96 --height 96 --frames 3 --depth 3)
+
+# compare NAME DIR_A DIR_B: every frame's raw framebuffer identical and non-empty.
+compare() {
+  local name=$1 a=$2 b=$3 f same=1
+  for f in 0000 0001 0002; do
+    if [ ! -s "$a/r$f.raw" ] || [ ! -s "$b/r$f.raw" ]; then same=0; echo "  missing frame $f"; continue; fi
+    cmp -s "$a/r$f.raw" "$b/r$f.raw" || { same=0; echo "  frame $f differs"; }
+  done
+  if [ $same = 1 ]; then ok "$name: 3 frames bit-identical to serial"; else bad "$name"; fi
+}
+
+scenes=(cornell erw6 spherebox)
+if [ -f "${RAYSTREAM_SCENES:-/nonexistent}/bunny/bun_zipper.ply" ] || "$rs" info --scene bunny >/dev/null 2>&1; then
+  scenes+=(bunny)
+elif [ "${CI:-}" = true ]; then
+  bad "shared scene bunny missing under CI"
+else
+  echo "skip bunny (shared scene not found)"
+fi
+
+i=0
+for scene in "${scenes[@]}"; do
+  mkdir -p "$tmp/$scene/serial"
+  if ! "$rs" render --backend serial --scene "$scene" "${size[@]}" -q \
+      --out "$tmp/$scene/serial/i#.png" --dump-raw "$tmp/$scene/serial/r#.raw"; then
+    bad "$scene: serial render"; continue
+  fi
+  # Rotate the tilings over the scenes so each one runs somewhere with 3 and with 5 ranks.
+  case $((i % 4)) in
+    0) t3=(--pbt 2 --assign random) t5=(--pbt 2 --assign greedy) ;;
+    1) t3=(--pbt 3 --assign visit)  t5=(--pbt 1 --assign static) ;;
+    2) t3=(--tile 16x16)            t5=(--pbt 2 --assign visit --pbt-time cpu) ;;
+    3) t3=(--pbt 2 --assign greedy) t5=(--tile 40x24) ;;
+  esac
+  i=$((i+1))
+  for np in 3 5; do
+    d="$tmp/$scene/np$np"; mkdir -p "$d"
+    if [ $np = 3 ]; then t=("${t3[@]}"); else t=("${t5[@]}"); fi
+    if run_mpi $np "$rs" render --backend mpi --scene "$scene" "${size[@]}" -q "${t[@]}" \
+        --out "$d/i#.png" --dump-raw "$d/r#.raw" --stats "$d/s.json" >"$d/log" 2>&1; then
+      compare "$scene -np $np ${t[*]}" "$tmp/$scene/serial" "$d"
+    else
+      bad "$scene -np $np ${t[*]}: mpirun failed"; cat "$d/log"
+    fi
+  done
+done
+
+# Statistics: 3 frames, per-worker messages and bytes, tile times, PBT update and accuracy.
+s="$tmp/cornell/np5/s.json"
+if python3 - "$s" <<'PY'
+import json, sys
+d = json.load(open(sys.argv[1]))
+f = d["frames"]
+assert d["backend"] == "mpi" and d["workers"] == 4 and len(f) == 3, d.keys()
+for fr in f:
+    assert len(fr["workers"]) == 4
+    assert sum(w["tiles"] for w in fr["workers"]) == fr["tiles_count"] == len(fr["tiles"]) == 8
+    assert all(w["messages_sent"] >= 1 and w["bytes_received"] > 0 for w in fr["workers"]), fr["workers"]
+    assert all(t["seconds"] > 0 and 1 <= t["rank"] <= 4 for t in fr["tiles"])
+    assert fr["rays"] > 0 and fr["imbalance"] >= 1
+    assert "update" in fr
+assert "accuracy" in f[1] and "accuracy" not in f[0]
+PY
+then ok "stats JSON: 3 frames, 4 workers, tiles, messages, PBT update"; else bad "stats JSON"; fi
+
+# Only the last frame is written without '#'.
+d="$tmp/last"; mkdir -p "$d"
+if run_mpi 3 "$rs" render --backend mpi --scene cornell --width 32 --height 32 --frames 2 -q \
+    --out "$d/last.png" && [ -s "$d/last.png" ] && [ "$(ls "$d" | wc -l)" = 1 ]; then
+  ok "single output file for a 2-frame run"; else bad "single output file"; ls "$d"; fi
+
+# expect_fail NAME PATTERN MAX_SECONDS OUTFILE CMD...: non-zero, stderr/stdout matches, in time,
+# and OUTFILE was not written.
+expect_fail() {
+  local name=$1 pattern=$2 max=$3 outfile=$4; shift 4
+  local t0=$SECONDS
+  "$@" >"$tmp/fail.log" 2>&1; local rc=$?
+  local took=$((SECONDS - t0))
+  if [ $rc -eq 0 ]; then bad "$name: exit 0"; cat "$tmp/fail.log"; return; fi
+  if [ $rc -eq 124 ]; then bad "$name: hung (killed by timeout)"; cat "$tmp/fail.log"; return; fi
+  if [ $took -gt "$max" ]; then bad "$name: took ${took}s > ${max}s"; return; fi
+  if [ -e "$outfile" ]; then bad "$name: wrote $outfile"; return; fi
+  if grep -qE "$pattern" "$tmp/fail.log"; then ok "$name (exit $rc, ${took}s)"
+  else bad "$name: output does not match /$pattern/:"; cat "$tmp/fail.log"; fi
+}
+
+# A worker that dies after its first tile: mpirun ends the job, naming rank 2.
+expect_fail "dead worker (rank 2 exits)" 'process rank 2|Process name: \[\[[0-9]+,[0-9]+\],2\]' 60 "$tmp/dead.png" \
+  env RAYSTREAM_MPI_TEST_KILL_RANK=2 timeout 120 "$mpirun" --allow-run-as-root --oversubscribe \
+  -np 3 -x RAYSTREAM_MPI_TEST_KILL_RANK "$rs" render --backend mpi --scene cornell \
+  --width 96 --height 96 --frames 3 --pbt 2 -q --out "$tmp/dead.png"
+# A worker that stops answering: the master's per-tile timeout names it and aborts.
+expect_fail "silent worker (rank 3 hangs)" 'mpi rank 0: worker rank 3 did not return tile' 60 \
+  "$tmp/hung.png" \
+  env RAYSTREAM_MPI_TEST_HANG_RANK=3 timeout 120 "$mpirun" --allow-run-as-root --oversubscribe \
+  -np 5 -x RAYSTREAM_MPI_TEST_HANG_RANK "$rs" render --backend mpi --scene cornell \
+  --width 96 --height 96 --frames 3 --pbt 2 -q --mpi-timeout 3 --out "$tmp/hung.png"
+# Setup errors: one clear line, status 1, no hang.
+expect_fail "one rank only" 'needs at least 2 ranks' 60 "$tmp/one.png" \
+  timeout 60 "$rs" render --backend mpi --scene cornell --width 16 --height 16 -q --out "$tmp/one.png"
+expect_fail "bad scene on every rank" 'no-such-scene' 60 "$tmp/bad.png" \
+  run_mpi 3 "$rs" render --backend mpi --scene no-such-scene.obj -q --out "$tmp/bad.png"
+if [ "$(grep -c 'raystream: error' "$tmp/fail.log")" = 1 ]; then ok "setup error printed once"
+else bad "setup error printed $(grep -c 'raystream: error' "$tmp/fail.log") times"; cat "$tmp/fail.log"; fi
+
+echo "$checks checks, $fails failed"
+[ $fails -eq 0 ]

@@ -1,0 +1,704 @@
+// Host backends: serial, LOCK, LFREE, LOCAL and tiles (many tile shapes, PBT re-tiling over
+// frames) must give the serial renderer's framebuffer bit for bit (integer fixed-point sums, no
+// tolerance) at 1, 2 and 4 threads; their statistics must add up; the frame loop must run many
+// frames, finish empty frames and shut down without hanging. Smaller under ThreadSanitizer (or
+// with RS_BACKEND_TEST_QUICK=1).
+#include "sched/backends.h"
+
+#include <doctest/doctest.h>
+#include <nlohmann/json.hpp>
+#include <unistd.h>
+
+#include <algorithm>
+#include <atomic>
+#include <chrono>
+#include <cstdlib>
+#include <filesystem>
+#include <fstream>
+#include <memory>
+#include <span>
+#include <sstream>
+#include <stdexcept>
+#include <string>
+#include <thread>
+#include <utility>
+#include <vector>
+
+#include "scenes/load.h"
+#include "sched/frame_loop.h"
+#include "sched/queue_lockfree.h"
+#include "tests/test_util.h"
+
+#if defined(__SANITIZE_THREAD__)
+#define RS_TEST_TSAN 1
+#elif defined(__has_feature)
+#if __has_feature(thread_sanitizer)
+#define RS_TEST_TSAN 1
+#endif
+#endif
+#ifndef RS_TEST_TSAN
+#define RS_TEST_TSAN 0
+#endif
+
+namespace rs {
+namespace {
+
+// Under TSan (10-50x slower, debug build) and on request: smaller images, fewer variants.
+bool Quick() {
+  if (RS_TEST_TSAN) return true;
+  const char* q = std::getenv("RS_BACKEND_TEST_QUICK");
+  return q != nullptr && std::string(q) == "1";
+}
+
+struct Loaded {
+  Scene scene;
+  std::unique_ptr<Accel> accel;
+};
+
+Loaded Load(const std::string& name) {
+  Loaded l{LoadScene(name), nullptr};
+  l.accel = std::make_unique<Accel>(l.scene.mesh());
+  return l;
+}
+
+RenderOptions Options(int width, int height, int depth) {
+  RenderOptions o;
+  o.width = width;
+  o.height = height;
+  o.max_depth = depth;
+  return o;
+}
+
+// "" if the fixed-point sums are identical, else the first differing pixel and channel.
+std::string DiffSums(const Framebuffer& got, const Framebuffer& want) {
+  if (got.width() != want.width() || got.height() != want.height()) return "size differs";
+  const size_t n = 3 * got.num_pixels();
+  size_t differing = 0;
+  size_t first = n;
+  for (size_t i = 0; i < n; ++i) {
+    if (got.sums()[i] != want.sums()[i]) {
+      if (first == n) first = i;
+      ++differing;
+    }
+  }
+  if (differing == 0) return "";
+  std::ostringstream s;
+  s << differing << " channel sums differ; first: pixel " << first / 3 << " channel " << first % 3
+    << " got " << got.sums()[first] << " want " << want.sums()[first];
+  return s.str();
+}
+
+struct Reference {
+  Framebuffer fb;
+  FrameStats stats;
+};
+
+Reference RenderReference(const FrameContext& ctx) {
+  Reference r{Framebuffer(ctx.options.width, ctx.options.height), {}};
+  r.stats = RenderSerial(ctx, r.fb);
+  return r;
+}
+
+// Rays, tasks and per-thread bookkeeping must add up to the serial frame's counts.
+void CheckStats(const HostFrameStats& s, const BackendOptions& o, const FrameStats& want,
+                size_t expected_tiles) {
+  INFO("backend ", std::string(BackendName(o.kind)), " threads ", o.threads);
+  for (int k = 0; k < kNumRayKinds; ++k) CHECK(s.total.rays[k] == want.rays[k]);
+  // Tasks never span two tiles, and a task's children are cut into tasks together, so the task
+  // count depends on the tiling: equal to serial's except for the tiles backend.
+  const bool same_tiling = o.kind != BackendKind::kTiles;
+  if (same_tiling) CHECK(s.total.tasks == want.tasks);
+  CHECK(s.total.hits == want.hits);
+  CHECK(s.total.occluded == want.occluded);
+  const size_t threads = o.kind == BackendKind::kSerial ? 1 : static_cast<size_t>(o.threads);
+  REQUIRE(s.threads.size() == threads);
+  uint64_t rays[kNumRayKinds] = {};
+  uint64_t tasks = 0, tiles = 0;
+  for (const ThreadStats& t : s.threads) {
+    for (int k = 0; k < kNumRayKinds; ++k) rays[k] += t.work.rays[k];
+    tasks += t.work.tasks;
+    tiles += t.tiles;
+    CHECK(t.busy_seconds >= 0.0);
+    CHECK(t.idle_seconds >= 0.0);
+    CHECK(t.queue_seconds >= 0.0);
+  }
+  for (int k = 0; k < kNumRayKinds; ++k) CHECK(rays[k] == want.rays[k]);
+  CHECK(tasks == s.total.tasks);
+  CHECK(s.total.total_seconds > 0.0);
+  CHECK(s.imbalance >= 1.0);
+  switch (o.kind) {
+    case BackendKind::kLock:
+    case BackendKind::kLockFree:
+    case BackendKind::kLocal: {
+      uint64_t primary_rays = 0;
+      CHECK(s.primary_tasks > 0);
+      for (const ThreadStats& t : s.threads) {
+        // Every thread polled its queue at least once (the EMPTY that ended its frame) and
+        // timed it; LOCAL threads each got their round-robin share of primary tasks.
+        CHECK(t.queue_ops >= 1);
+        CHECK(t.empty_polls >= 1);
+        if (o.kind == BackendKind::kLocal) CHECK(t.work.tasks >= s.primary_tasks / threads);
+        primary_rays += t.work.rays[0];
+      }
+      CHECK(primary_rays == want.rays[0]);
+      break;
+    }
+    case BackendKind::kTiles: {
+      REQUIRE(s.tiles.size() == expected_tiles);
+      CHECK(tiles == expected_tiles);
+      uint64_t tile_rays = 0;
+      size_t pixels = 0;
+      for (const TileRecord& r : s.tiles) {
+        CHECK(r.thread >= 0);
+        CHECK(r.thread < o.threads);
+        CHECK(r.seconds > 0.0);
+        CHECK(r.cpu_seconds >= 0.0);
+        CHECK(r.rays >= r.tile.NumPixels());  // at least its primary rays
+        tile_rays += r.rays;
+        pixels += r.tile.NumPixels();
+      }
+      CHECK(tile_rays == want.TotalRays());
+      CHECK(pixels == static_cast<size_t>(want.rays[0]));
+      // Each thread took at least one counter value: the one past the end that stopped it.
+      if (o.pbt_tiles_per_worker == 0) {
+        for (const ThreadStats& t : s.threads) CHECK(t.queue_ops >= 1);
+      }
+      uint64_t steals = 0;
+      for (const ThreadStats& t : s.threads) steals += t.steals;
+      if (!o.pbt_steal) CHECK(steals == 0);
+      CHECK(steals <= expected_tiles);
+      // A tile ran on the thread owning its list unless it was stolen.
+      uint64_t foreign = 0;
+      for (const TileRecord& r : s.tiles) {
+        CHECK(r.worker >= 0);
+        if (o.pbt_tiles_per_worker > 0) foreign += r.worker % o.threads != r.thread;
+      }
+      CHECK(foreign == steals);
+      break;
+    }
+    case BackendKind::kSerial:
+      break;
+  }
+}
+
+// Serial references per (frame, camera speed) of one scene and image size, rendered once.
+class References {
+ public:
+  References(const Loaded& l, const RenderOptions& ro) : l_(l), ro_(ro) {}
+  const Reference& Get(int frame, float speed) {
+    const Camera camera = l_.scene.path.At(frame, speed, l_.scene.camera);
+    for (const auto& [cam, ref] : refs_) {
+      if (cam.eye == camera.eye && cam.look_at == camera.look_at && cam.up == camera.up &&
+          cam.fov_y_deg == camera.fov_y_deg) {
+        return *ref;
+      }
+    }
+    const FrameContext ctx = MakeFrameContext(l_.scene, *l_.accel, camera, ro_);
+    refs_.emplace_back(camera, std::make_unique<Reference>(RenderReference(ctx)));
+    return *refs_.back().second;
+  }
+
+ private:
+  const Loaded& l_;
+  RenderOptions ro_;
+  std::vector<std::pair<Camera, std::unique_ptr<Reference>>> refs_;
+};
+
+// Renders frames 0..frames-1 of the scene's path with one renderer (the render threads live
+// across frames) and compares each against the serial render of the same camera.
+void CheckBackend(const Loaded& l, const RenderOptions& ro, References& refs,
+                  const BackendOptions& o, int frames, float speed = 1.0f) {
+  HostRenderer renderer(o);
+  Framebuffer fb(ro.width, ro.height);
+  for (int f = 0; f < frames; ++f) {
+    const Camera camera = l.scene.path.At(f, speed, l.scene.camera);
+    const FrameContext ctx = MakeFrameContext(l.scene, *l.accel, camera, ro);
+    const Reference& ref = refs.Get(f, speed);
+    fb.Clear();
+    const std::vector<Tile> expected =
+        o.kind == BackendKind::kTiles && o.pbt_tiles_per_worker > 0 && renderer.pbt() != nullptr
+            ? renderer.pbt()->Tiles()
+            : std::vector<Tile>{};
+    const HostFrameStats& s = renderer.RenderFrame(ctx, fb);
+    INFO("scene ", l.scene.name, " backend ", std::string(BackendName(o.kind)), " threads ",
+         o.threads, " tile ", o.tile_width, "x", o.tile_height, " pbt k ", o.pbt_tiles_per_worker,
+         " assign ", std::string(PbtAssignName(o.assign)), " frame ", f);
+    CHECK(DiffSums(fb, ref.fb) == "");
+    CHECK(fb.dropped_nan() == ref.fb.dropped_nan());
+    CHECK(fb.clamped() == ref.fb.clamped());
+    size_t tiles = 0;
+    if (o.kind == BackendKind::kTiles) {
+      if (o.pbt_tiles_per_worker > 0) {
+        const int n = o.pbt_workers > 0 ? o.pbt_workers : o.threads;
+        tiles = static_cast<size_t>(n) * static_cast<size_t>(o.pbt_tiles_per_worker);
+        // The frame ran on the tiling the PBT held before it (the first frame creates it).
+        if (!expected.empty()) {
+          REQUIRE(s.tiles.size() == expected.size());
+          for (size_t i = 0; i < expected.size(); ++i) {
+            CHECK(s.tiles[i].tile.x0 == expected[i].x0);
+            CHECK(s.tiles[i].tile.y1 == expected[i].y1);
+          }
+        }
+        CHECK(s.pbt);
+        CHECK(s.has_prediction == (f > 0));
+        if (f > 0) {
+          CHECK(s.accuracy.tiles == tiles);
+          CHECK(s.accuracy.within5 <= s.accuracy.within10);
+          CHECK(s.accuracy.within10 <= s.accuracy.within15);
+          CHECK(s.accuracy.within15 <= 1.0);
+          for (const TileRecord& r : s.tiles) CHECK(r.predicted >= 0.0);
+        }
+        CHECK(s.worker_imbalance >= 1.0);
+        REQUIRE(renderer.pbt() != nullptr);
+        CHECK(renderer.pbt()->Validate() == "");
+        CHECK(renderer.pbt()->NumLeaves() == tiles);
+      } else {
+        const int tw = std::min(o.tile_width, ro.width);
+        const int th = std::min(o.tile_height, ro.height);
+        tiles = static_cast<size_t>((ro.width + tw - 1) / tw) *
+                static_cast<size_t>((ro.height + th - 1) / th);
+      }
+    }
+    CheckStats(s, o, ref.stats, tiles);
+  }
+  CHECK(renderer.frames() == static_cast<uint64_t>(frames));
+}
+
+BackendOptions Backend(BackendKind kind, int threads) {
+  BackendOptions o;
+  o.kind = kind;
+  o.threads = threads;
+  return o;
+}
+
+BackendOptions TilesBackend(int threads, int tw, int th) {
+  BackendOptions o = Backend(BackendKind::kTiles, threads);
+  o.tile_width = tw;
+  o.tile_height = th;
+  return o;
+}
+
+BackendOptions PbtBackend(int threads, int k, PbtAssign assign) {
+  BackendOptions o = Backend(BackendKind::kTiles, threads);
+  o.pbt_tiles_per_worker = k;
+  o.assign = assign;
+  o.seed = 7;
+  return o;
+}
+
+void CheckAllBackends(const std::string& scene_name, int size, const std::vector<int>& threads,
+                      bool all_shapes) {
+  const Loaded l = Load(scene_name);
+  const RenderOptions ro = Options(size, size, 4);
+  References refs(l, ro);
+  CheckBackend(l, ro, refs, Backend(BackendKind::kSerial, 1), 1);
+  for (const int n : threads) {
+    for (const BackendKind kind :
+         {BackendKind::kLock, BackendKind::kLockFree, BackendKind::kLocal}) {
+      CheckBackend(l, ro, refs, Backend(kind, n), 2);
+    }
+    // The Cell paper's shapes (Fig. 3): squares, 40x32, 640x2 (clamped to the width), rows,
+    // plus an odd shape that leaves partial tiles at both edges.
+    std::vector<std::pair<int, int>> shapes = {{16, 16}, {640, 2}, {7, 3}};
+    if (all_shapes) shapes = {{8, 8}, {16, 16}, {32, 32}, {40, 32}, {640, 2}, {size, 1}, {7, 3}};
+    for (const auto& [tw, th] : shapes) CheckBackend(l, ro, refs, TilesBackend(n, tw, th), 1);
+    // PBT re-tiling over a few frames of the walk-through (camera speed 2).
+    for (const PbtAssign a :
+         {PbtAssign::kRandom, PbtAssign::kGreedy, PbtAssign::kVisit, PbtAssign::kStatic}) {
+      CheckBackend(l, ro, refs, PbtBackend(n, all_shapes ? 4 : 2, a), 3, 2.0f);
+    }
+    if (all_shapes) CheckBackend(l, ro, refs, PbtBackend(n, 1, PbtAssign::kGreedy), 3, 2.0f);
+    // Demand-driven with affinity: 3 PBT workers' lists per thread, stealing at the end.
+    BackendOptions steal = PbtBackend(n, 2, PbtAssign::kVisit);
+    steal.pbt_workers = 3 * n;
+    steal.pbt_steal = true;
+    CheckBackend(l, ro, refs, steal, 3, 2.0f);
+  }
+}
+
+// ---------------------------------------------------------------------------------------------
+
+TEST_CASE("procedural scenes: every backend gives the serial framebuffer bit for bit") {
+  const int size = Quick() ? 24 : 64;
+  const std::vector<int> threads = Quick() ? std::vector<int>{2, 3} : std::vector<int>{1, 2, 4};
+  for (const char* name : {"cornell", "erw6", "spherebox"}) {
+    INFO("scene ", std::string(name));
+    CheckAllBackends(name, size, threads, !Quick());
+  }
+}
+
+TEST_CASE("shared scenes: every backend bit-identical at 2 and 4 threads") {
+  struct Shared {
+    const char* name;
+    const char* file;
+    bool quick;  // also under TSan (small meshes only: debug builds of big grids are slow)
+  };
+  const Shared scenes[] = {{"bunny", "bunny/bun_zipper.ply", true},
+                           {"teapot", "teapot/teapot.obj", true},
+                           {"sponza", "sponza/sponza.obj", false},
+                           {"office-graz", "office-graz/office-graz.obj", false},
+                           {"conference", "conference/conference.obj", false}};
+  for (const Shared& s : scenes) {
+    if (Quick() && !s.quick) continue;
+    if (!test::HaveSharedScene(s.file)) continue;
+    INFO("scene ", std::string(s.name));
+    const Loaded l = Load(s.name);
+    const int size = Quick() ? 16 : 40;
+    const RenderOptions ro = Options(size, size, 4);
+    References refs(l, ro);
+    for (const int n : {2, 4}) {
+      for (const BackendKind kind :
+           {BackendKind::kLock, BackendKind::kLockFree, BackendKind::kLocal}) {
+        CheckBackend(l, ro, refs, Backend(kind, n), 1);
+      }
+      CheckBackend(l, ro, refs, TilesBackend(n, 8, 8), 1);
+      CheckBackend(l, ro, refs, TilesBackend(n, size, 1), 1);
+      CheckBackend(l, ro, refs, PbtBackend(n, 2, PbtAssign::kVisit), 2, 2.0f);
+    }
+  }
+}
+
+TEST_CASE("a scene that hits nothing, and frames with no rays at all, terminate") {
+  Scene empty;
+  empty.name = "empty";
+  empty.materials.push_back(Material{});
+  empty.background = glm::vec3(0.25f, 0.5f, 1.0f);
+  empty.camera.eye = glm::vec3(0, 0, 5);
+  empty.features = ComputeFeatures(empty);
+  const Accel accel(empty.mesh());
+  const RenderOptions ro = Options(21, 13, 4);
+  const FrameContext ctx = MakeFrameContext(empty, accel, empty.camera, ro);
+  const Reference ref = RenderReference(ctx);
+  CHECK(ref.stats.rays[0] == 21u * 13u);
+  CHECK(ref.stats.TotalRays() == 21u * 13u);  // misses spawn nothing
+  const BackendOptions all[] = {Backend(BackendKind::kSerial, 1),
+                                Backend(BackendKind::kLock, 3),
+                                Backend(BackendKind::kLockFree, 3),
+                                Backend(BackendKind::kLocal, 3),
+                                TilesBackend(3, 5, 4),
+                                PbtBackend(3, 2, PbtAssign::kGreedy)};
+  for (const BackendOptions& o : all) {
+    INFO("backend ", std::string(BackendName(o.kind)), " pbt ", o.pbt_tiles_per_worker);
+    HostRenderer renderer(o);
+    Framebuffer fb(ro.width, ro.height);
+    for (int f = 0; f < 3; ++f) {
+      fb.Clear();
+      renderer.RenderFrame(ctx, fb);
+      CHECK(DiffSums(fb, ref.fb) == "");
+    }
+    if (o.pbt_tiles_per_worker > 0) {
+      // PBT cannot take explicit tiles.
+      fb.Clear();
+      CHECK_THROWS_AS(renderer.BeginFrame(ctx, fb, std::span<const Tile>()), Error);
+      CHECK_FALSE(renderer.in_frame());
+      continue;
+    }
+    // No tiles: zero primary tasks, the threads must still leave the frame.
+    for (int f = 0; f < 5; ++f) {
+      fb.Clear();
+      renderer.BeginFrame(ctx, fb, std::span<const Tile>());
+      CHECK(renderer.in_frame());
+      const HostFrameStats& s = renderer.EndFrame();
+      CHECK(s.total.TotalRays() == 0);
+      CHECK(s.total.tasks == 0);
+      CHECK(s.primary_tasks == 0);
+      CHECK(DiffSums(fb, Framebuffer(ro.width, ro.height)) == "");
+    }
+    // Empty tiles (zero pixels) and a subset of tiles.
+    const Tile some[] = {Tile{3, 3, 3, 9}, Tile{0, 0, 10, 5}, Tile{10, 5, 21, 13},
+                         Tile{7, 7, 2, 2}};
+    fb.Clear();
+    renderer.BeginFrame(ctx, fb, some);
+    const HostFrameStats& s = renderer.EndFrame();
+    CHECK(s.total.rays[0] == 50u + 88u);
+    if (o.kind == BackendKind::kTiles) CHECK(s.tiles.size() == 4);
+  }
+}
+
+TEST_CASE("many frames in a row, then END: every backend, one renderer") {
+  const Loaded l = Load("cornell");
+  const int size = Quick() ? 12 : 24;
+  const int frames = Quick() ? 15 : 60;
+  const RenderOptions ro = Options(size, size, 3);
+  const FrameContext ctx = MakeFrameContext(l.scene, *l.accel, l.scene.camera, ro);
+  const Reference ref = RenderReference(ctx);
+  const BackendOptions all[] = {Backend(BackendKind::kLock, 4), Backend(BackendKind::kLockFree, 4),
+                                Backend(BackendKind::kLocal, 4), TilesBackend(4, 4, 4),
+                                PbtBackend(4, 2, PbtAssign::kRandom)};
+  for (const BackendOptions& o : all) {
+    INFO("backend ", std::string(BackendName(o.kind)));
+    HostRenderer renderer(o);
+    Framebuffer fb(size, size);
+    int app_logic_runs = 0;
+    for (int f = 0; f < frames; ++f) {
+      fb.Clear();
+      const HostFrameStats& s = renderer.RenderFrame(ctx, fb, [&] { ++app_logic_runs; });
+      CHECK(s.frame == static_cast<uint64_t>(f));
+      if (DiffSums(fb, ref.fb) != "") {
+        FAIL_CHECK("frame ", f, ": ", DiffSums(fb, ref.fb));
+        break;
+      }
+    }
+    CHECK(app_logic_runs == frames);
+    CHECK(renderer.frames() == static_cast<uint64_t>(frames));
+  }  // destructors: END flag, threads joined (a hang here is caught by the test timeout)
+  // A renderer destroyed in the middle of a frame waits for it and stops its threads.
+  {
+    Framebuffer fb(size, size);  // declared first: it must outlive the running frame
+    HostRenderer renderer(Backend(BackendKind::kLockFree, 3));
+    renderer.BeginFrame(ctx, fb);
+  }
+  CHECK(true);
+  {
+    HostRenderer renderer(Backend(BackendKind::kLocal, 2));  // never ran a frame
+  }
+  CHECK(true);
+}
+
+TEST_CASE("FrameLoop: barriers, idle times, exceptions, END") {
+  constexpr int kThreads = 3;
+  std::vector<std::atomic<int>> runs(kThreads);
+  std::atomic<int> frame_of_throw{-1};
+  std::atomic<int> current{0};
+  {
+    FrameLoop loop(kThreads, [&](int w) {
+      runs[static_cast<size_t>(w)].fetch_add(1, std::memory_order_relaxed);
+      if (w == 1 && current.load(std::memory_order_relaxed) ==
+                        frame_of_throw.load(std::memory_order_relaxed)) {
+        throw std::runtime_error("boom");
+      }
+      if (w == 0) std::this_thread::sleep_for(std::chrono::milliseconds(2));  // the slow one
+    });
+    CHECK(loop.num_threads() == kThreads);
+    CHECK_THROWS_AS(loop.Wait(), Error);  // not in a frame
+    for (int f = 0; f < 40; ++f) {
+      current.store(f, std::memory_order_relaxed);
+      if (f == 17) frame_of_throw.store(17, std::memory_order_relaxed);  // before Release
+      loop.Release();
+      CHECK(loop.in_frame());
+      CHECK_THROWS_AS(loop.Release(), Error);
+      if (f == 17) {
+        CHECK_THROWS_WITH_AS(loop.Wait(), "boom", std::runtime_error);
+        continue;
+      }
+      loop.Wait();
+      const auto& t = loop.times();
+      REQUIRE(t.size() == kThreads);
+      // Thread 0 sleeps 2 ms. Busy + idle is the same span (release -> closing barrier) for
+      // every thread. (Which thread idles most is up to the OS scheduler on a loaded machine.)
+      CHECK(t[0].busy_seconds >= 0.0015);
+      for (int w = 0; w < kThreads; ++w) {
+        CHECK(t[static_cast<size_t>(w)].idle_seconds >= 0.0);
+        CHECK(t[static_cast<size_t>(w)].idle_seconds + t[static_cast<size_t>(w)].busy_seconds ==
+              doctest::Approx(t[0].idle_seconds + t[0].busy_seconds).epsilon(1e-9));
+      }
+      CHECK(loop.frame_seconds() >= t[0].busy_seconds);
+    }
+    CHECK(loop.frames() == 40);
+    loop.Release();  // destroyed while in a frame: Shutdown waits for it
+  }
+  for (int w = 0; w < kThreads; ++w) {
+    CHECK(runs[static_cast<size_t>(w)].load(std::memory_order_relaxed) == 41);
+  }
+  CHECK_THROWS_AS(FrameLoop(0, [](int) {}), Error);
+  CHECK_THROWS_AS(FrameLoop(2, FrameLoop::Work()), Error);
+  // A 1-participant barrier never blocks; shrinking releases the waiters.
+  FrameBarrier single(1);
+  single.ArriveAndWait();
+  // Two of three arrive; dropping the third participant releases them (if they arrived late,
+  // the lowered count completes the phase at their arrival instead).
+  FrameBarrier shrink(3);
+  std::thread a([&] { shrink.ArriveAndWait(); });
+  std::thread b([&] { shrink.ArriveAndWait(); });
+  std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  shrink.SetParticipants(2);
+  a.join();
+  b.join();
+}
+
+// A synthetic ray tree through a shared lock-free queue: a task at depth d < kDepth spawns
+// 1 + (id % 3) children, with random yields while "processing" so that threads often find the
+// queue EMPTY while others still hold tasks. A thread may leave only when every task of the
+// tree is processed; leaving earlier (a count that touched 0 too soon) is what this catches.
+TEST_CASE("TaskCount: no thread leaves while a task is queued or being processed") {
+  constexpr int kThreads = 4;
+  constexpr uint32_t kDepth = 5;
+  constexpr uint32_t kPrimary = 3;
+  const int trials = Quick() ? 20 : 200;
+  // Task = (depth << 24) | id; ids are assigned from a shared counter only to vary fan-out.
+  auto children_of = [](uint32_t task) -> uint32_t {
+    const uint32_t depth = task >> 24;
+    return depth + 1 < kDepth ? 1 + (task & 0xFFFFFFu) % 3 : 0;
+  };
+  int early = 0, hung = 0;
+  for (int trial = 0; trial < trials; ++trial) {
+    LockFreeQueue<uint32_t> queue(kThreads);
+    TaskCount count;
+    std::atomic<uint32_t> next_id{kPrimary};
+    std::atomic<uint64_t> processed{0}, created{kPrimary};
+    std::atomic<int> early_exits{0};
+    for (uint32_t i = 0; i < kPrimary; ++i) queue.PushPrimary(uint32_t{i});
+    count.Reset(kPrimary);
+    std::vector<std::thread> threads;
+    for (int w = 0; w < kThreads; ++w) {
+      threads.emplace_back([&, w] {
+        uint64_t rng = 0x9E3779B97F4A7C15ull * static_cast<uint64_t>(w + 1 + trial * 16);
+        auto coin = [&] {
+          rng ^= rng << 13;
+          rng ^= rng >> 7;
+          rng ^= rng << 17;
+          return (rng & 3) == 0;
+        };
+        uint32_t task = 0;
+        for (int polls = 0; polls < 10'000'000; ++polls) {
+          if (queue.TryPop(w, task)) {
+            if (coin()) std::this_thread::yield();  // "processing"
+            const uint32_t k = children_of(task);
+            std::vector<uint32_t> kids;
+            for (uint32_t c = 0; c < k; ++c) {
+              kids.push_back((((task >> 24) + 1) << 24) |
+                             (next_id.fetch_add(1, std::memory_order_relaxed) & 0xFFFFFFu));
+            }
+            created.fetch_add(k, std::memory_order_relaxed);
+            processed.fetch_add(1, std::memory_order_relaxed);
+            count.Retire(static_cast<int64_t>(k));
+            if (coin()) std::this_thread::yield();  // widen the window before the pushes
+            for (const uint32_t kid : kids) queue.Push(w, kid);
+            continue;
+          }
+          if (count.Done()) {
+            // Everything created so far must be processed (Done's acquire sees every Retire).
+            if (processed.load(std::memory_order_relaxed) !=
+                created.load(std::memory_order_relaxed)) {
+              early_exits.fetch_add(1, std::memory_order_relaxed);
+            }
+            return;
+          }
+          std::this_thread::yield();
+        }
+        early_exits.fetch_add(1000, std::memory_order_relaxed);  // did not terminate
+      });
+    }
+    for (auto& t : threads) t.join();
+    const int e = early_exits.load(std::memory_order_relaxed);  // after join
+    hung += e >= 1000;
+    early += e % 1000;
+    CHECK(count.value() == 0);
+    CHECK(processed.load(std::memory_order_relaxed) == created.load(std::memory_order_relaxed));
+    uint32_t left = 0;
+    CHECK_FALSE(queue.TryPop(0, left));
+  }
+  CHECK(early == 0);
+  CHECK(hung == 0);
+}
+
+TEST_CASE("renderer misuse and bad options are rs::Error") {
+  const Loaded l = Load("cornell");
+  const RenderOptions ro = Options(16, 16, 1);
+  const FrameContext ctx = MakeFrameContext(l.scene, *l.accel, l.scene.camera, ro);
+  Framebuffer fb(16, 16);
+  Framebuffer wrong(16, 15);
+  HostRenderer r(Backend(BackendKind::kLock, 2));
+  CHECK_THROWS_AS(r.EndFrame(), Error);
+  CHECK_THROWS_AS(r.BeginFrame(ctx, wrong), Error);
+  const Tile outside[] = {Tile{0, 0, 17, 4}};
+  CHECK_THROWS_AS(r.BeginFrame(ctx, fb, outside), Error);
+  r.BeginFrame(ctx, fb);
+  CHECK_THROWS_AS(r.BeginFrame(ctx, fb), Error);
+  r.EndFrame();
+
+  auto bad = [](BackendOptions o) { CHECK_THROWS_AS(ValidateBackendOptions(o), Error); };
+  bad(Backend(BackendKind::kSerial, 2));
+  bad(Backend(BackendKind::kLock, 0));
+  bad(Backend(BackendKind::kLocal, FrameLoop::kMaxThreads + 1));
+  bad(TilesBackend(2, 0, 8));
+  bad(TilesBackend(2, 8, -1));
+  BackendOptions pbt_lock = Backend(BackendKind::kLockFree, 2);
+  pbt_lock.pbt_tiles_per_worker = 2;
+  bad(pbt_lock);
+  BackendOptions neg = PbtBackend(2, -1, PbtAssign::kGreedy);
+  bad(neg);
+  BackendOptions steal_without_pbt = TilesBackend(2, 8, 8);
+  steal_without_pbt.pbt_steal = true;
+  bad(steal_without_pbt);
+  BackendOptions weird = Backend(BackendKind::kLock, 2);
+  weird.kind = static_cast<BackendKind>(42);
+  bad(weird);
+  CHECK_THROWS_AS([] { HostRenderer serial4(Backend(BackendKind::kSerial, 4)); }(), Error);
+  // More PBT tiles than pixels.
+  HostRenderer too_many(PbtBackend(4, 100, PbtAssign::kVisit));
+  Framebuffer tiny_fb(8, 8);
+  const FrameContext tiny = MakeFrameContext(l.scene, *l.accel, l.scene.camera, Options(8, 8, 1));
+  CHECK_THROWS_AS(too_many.BeginFrame(tiny, tiny_fb), Error);
+  CHECK_FALSE(too_many.in_frame());
+
+  BackendKind kind = BackendKind::kSerial;
+  CHECK(ParseBackendKind("lfree", &kind));
+  CHECK(kind == BackendKind::kLockFree);
+  CHECK(ParseBackendKind("LOCAL", &kind));
+  CHECK(kind == BackendKind::kLocal);
+  CHECK_FALSE(ParseBackendKind("nosuch", &kind));
+  CHECK(kind == BackendKind::kLocal);
+  for (const std::string& name : BackendNames()) {
+    CHECK(ParseBackendKind(name, &kind));
+    CHECK(std::string(BackendName(kind)) == name);
+  }
+  PbtAssign assign = PbtAssign::kRandom;
+  CHECK(ParsePbtAssign("visit", &assign));
+  CHECK(assign == PbtAssign::kVisit);
+  CHECK_FALSE(ParsePbtAssign("lpt", &assign));
+}
+
+TEST_CASE("statistics export: JSON and CSV by extension") {
+  const Loaded l = Load("cornell");
+  const RenderOptions ro = Options(20, 20, 2);
+  BackendOptions o = PbtBackend(2, 2, PbtAssign::kGreedy);
+  HostRenderer r(o);
+  Framebuffer fb(20, 20);
+  std::vector<HostFrameStats> frames;
+  for (int f = 0; f < 3; ++f) {
+    fb.Clear();
+    frames.push_back(r.RenderFrame(
+        MakeFrameContext(l.scene, *l.accel, l.scene.path.At(f, 1.0f, l.scene.camera), ro), fb));
+  }
+  const std::filesystem::path dir =
+      std::filesystem::temp_directory_path() / ("rs_backend_test_" + std::to_string(getpid()));
+  std::filesystem::create_directories(dir);
+  const std::string json_path = (dir / "s.json").string();
+  const std::string csv_path = (dir / "s.CSV").string();
+  WriteHostStats(json_path, "cornell", o, frames);
+  WriteHostStats(csv_path, "cornell", o, frames);
+  std::ifstream jf(json_path);
+  const nlohmann::json j = nlohmann::json::parse(jf);
+  CHECK(j["backend"] == "tiles");
+  REQUIRE(j["frames"].size() == 3);
+  CHECK(j["frames"][1]["threads"].size() == 2);
+  CHECK(j["frames"][1]["tiles"].size() == 4);
+  CHECK(j["frames"][1]["pbt"]["has_prediction"] == true);
+  CHECK(j["frames"][2]["rays"]["primary"] == 400);
+  CHECK(j["options"]["assign"] == "greedy");
+  std::ifstream cf(csv_path);
+  std::string line;
+  size_t lines = 0, tile_rows = 0, thread_rows = 0, columns = 0;
+  while (std::getline(cf, line)) {
+    const size_t commas = static_cast<size_t>(std::count(line.begin(), line.end(), ','));
+    if (lines == 0) columns = commas;
+    CHECK(commas == columns);  // every row has every column
+    if (lines > 0) {           // the header names a "thread" column too
+      tile_rows += line.find(",tile,") != std::string::npos;
+      thread_rows += line.find(",thread,") != std::string::npos;
+    }
+    ++lines;
+  }
+  CHECK(lines == 1 + 3 * (1 + 1 + 2 + 4));
+  CHECK(tile_rows == 12);
+  CHECK(thread_rows == 6);
+  CHECK_THROWS_AS(WriteHostStats((dir / "s.txt").string(), "x", o, frames), Error);
+  CHECK_FALSE(StatsFileFormatOk("a.png"));
+  CHECK(StatsFileFormatOk("a.Json"));
+  CHECK_THROWS_AS(WriteHostStats((dir / "no" / "such" / "s.json").string(), "x", o, frames), Error);
+  std::filesystem::remove_all(dir);
+}
+
+}  // namespace
+}  // namespace rs

@@ -1,0 +1,381 @@
+// Cell backend vs the serial backend: bit-identical framebuffers (the fixed-point sums) and the
+// same ray, hit, occlusion, shading and cell-step counts on the procedural scenes and the shared
+// meshes, under many simulator settings (SPE counts, micro-cache off, spills, chunked cells, tile
+// shapes, PBT, explicit tile lists); deterministic simulated cycles; refusal of grids whose
+// occupancy bits do not fit the local store.
+#include "sim/cell_renderer.h"
+
+#include <doctest/doctest.h>
+
+#include <cstring>
+#include <string>
+#include <vector>
+
+#include "scenes/load.h"
+#include "sched/render.h"
+#include "tests/test_util.h"
+
+namespace rs {
+namespace {
+
+using sim::CellFrameStats;
+using sim::CellRenderer;
+using sim::SimConfig;
+
+struct Reference {
+  Framebuffer fb;
+  FrameStats stats;
+};
+
+Reference RenderReference(const FrameContext& ctx) {
+  Reference r{Framebuffer(ctx.options.width, ctx.options.height), {}};
+  r.stats = RenderSerial(ctx, r.fb);
+  return r;
+}
+
+size_t DifferingPixels(const Framebuffer& a, const Framebuffer& b) {
+  size_t n = 0;
+  for (size_t p = 0; p < a.num_pixels(); ++p) {
+    n += std::memcmp(a.sums() + 3 * p, b.sums() + 3 * p, 3 * sizeof(int64_t)) != 0 ? 1 : 0;
+  }
+  return n;
+}
+
+// Renders with the cell backend and checks it against the reference bit for bit.
+CellFrameStats CheckCell(const FrameContext& ctx, const Reference& ref, const SimConfig& config,
+                         const std::string& what) {
+  INFO(what);
+  Framebuffer fb(ctx.options.width, ctx.options.height);
+  CellRenderer renderer(config);
+  const CellFrameStats s = renderer.Render(ctx, fb);
+  CHECK(DifferingPixels(ref.fb, fb) == 0);
+  CHECK(fb.dropped_nan() == ref.fb.dropped_nan());
+  CHECK(fb.clamped() == ref.fb.clamped());
+  for (int k = 0; k < kNumRayKinds; ++k) {
+    INFO("ray kind ", RayKindName(RayKind(k)));
+    CHECK(s.frame.rays[k] == ref.stats.rays[k]);
+  }
+  CHECK(s.frame.hits == ref.stats.hits);
+  CHECK(s.frame.occluded == ref.stats.occluded);
+  CHECK(s.frame.shade.shading_calls == ref.stats.shade.shading_calls);
+  CHECK(s.frame.shade.light_tests == ref.stats.shade.light_tests);
+  CHECK(s.frame.shade.texture_fetches == ref.stats.shade.texture_fetches);
+  // The resumable DDA examines exactly the reference's cells.
+  CHECK(s.frame.trace.cell_steps == ref.stats.trace.cell_steps);
+  CHECK(s.cycles > 0);
+  return s;
+}
+
+FrameContext Context(const Scene& scene, const Accel& accel, int w, int h, int depth) {
+  RenderOptions o;
+  o.width = w;
+  o.height = h;
+  o.max_depth = depth;
+  return MakeFrameContext(scene, accel, scene.camera, o);
+}
+
+TEST_CASE("procedural scenes: bit-identical to the serial backend") {
+  for (const char* name : {"cornell", "erw6", "spherebox"}) {
+    INFO("scene ", std::string(name));
+    const Scene scene = LoadScene(name);
+    const Accel accel(scene.mesh());
+    const FrameContext ctx = Context(scene, accel, 64, 48, 4);
+    const Reference ref = RenderReference(ctx);
+    const CellFrameStats s = CheckCell(ctx, ref, SimConfig{}, "default config");
+    CHECK(s.totals.visits > 0);
+    CHECK(s.totals.tiles == 2 * 2);  // 32x32 tiles over 64x48
+  }
+}
+
+TEST_CASE("simulator settings do not change the image") {
+  const Scene scene = LoadScene("cornell");  // reflection + refraction + a light
+  const Accel accel(scene.mesh());
+  const FrameContext ctx = Context(scene, accel, 40, 36, 6);
+  const Reference ref = RenderReference(ctx);
+  {
+    SimConfig c;
+    c.num_spes = 1;
+    CheckCell(ctx, ref, c, "1 SPE");
+  }
+  {
+    SimConfig c;
+    c.num_spes = 8;
+    c.tile_width = 8;
+    c.tile_height = 8;
+    CheckCell(ctx, ref, c, "8 SPEs, 8x8 tiles");
+  }
+  {
+    SimConfig c;
+    c.micro_cache = false;
+    CheckCell(ctx, ref, c, "micro-cache off");
+  }
+  {
+    SimConfig c;
+    c.ring_rays = 16;
+    c.staging_rays = 8;
+    const CellFrameStats s = CheckCell(ctx, ref, c, "tiny ring: rays spill to main memory");
+    CHECK(s.totals.spilled_rays > 0);
+  }
+  {
+    SimConfig c;
+    c.triangle_buffer_packets = 1;
+    const CellFrameStats s = CheckCell(ctx, ref, c, "1-packet triangle buffers: chunked cells");
+    CHECK(s.totals.chunk_loads > 0);
+  }
+  {
+    SimConfig c;
+    c.rays_per_iteration = 1;
+    CheckCell(ctx, ref, c, "one ray per iteration");
+  }
+  {
+    SimConfig c;
+    c.tile_width = 640;
+    c.tile_height = 2;
+    c.pixel_buffers = 1;
+    c.pixel_buffer_pixels = 24;  // sub-tiles of 24x1
+    CheckCell(ctx, ref, c, "640x2 tiles, small pixel buffer");
+  }
+  {
+    SimConfig c;
+    c.memory.mfc_bus_slots = 16;
+    c.memory.mfc_queue_depth = 2;
+    CheckCell(ctx, ref, c, "pipelined DMA, 2-entry queue");
+  }
+}
+
+TEST_CASE("two-level grids: sub-grid records, shared refined cells, chunked leaves") {
+  // A coarse top level with 8x8x8 sub-grids in every cell holding more than 8 triangles
+  // (paper 3.8), so rays enter, leave and resume inside sub-grids.
+  BuildOptions two;
+  two.grid = GridKind::kTwoLevel;
+  two.auto_lambda = false;
+  two.lambda = 0.5f;
+  two.subgrid_threshold = 8;
+  for (const char* name : {"spherebox", "erw6"}) {
+    INFO("scene ", std::string(name));
+    const Scene scene = LoadScene(name);
+    const Accel accel(scene.mesh(), two);
+    REQUIRE(std::string(accel.Info().kind) == "two-level");
+    CHECK(accel.Info().subgrids > 0);
+    const FrameContext ctx = Context(scene, accel, 48, 40, 3);
+    const Reference ref = RenderReference(ctx);
+    const CellFrameStats s = CheckCell(ctx, ref, SimConfig{}, "two-level, default config");
+    CHECK(s.totals.subgrid_loads > 0);
+    CHECK(s.totals.micro_cache_hits > 0);
+    SimConfig off;
+    off.micro_cache = false;
+    CheckCell(ctx, ref, off, "two-level, micro-cache off");
+    SimConfig tight;
+    tight.triangle_buffer_packets = 1;
+    tight.ring_rays = 16;
+    tight.staging_rays = 8;
+    tight.num_spes = 3;
+    CheckCell(ctx, ref, tight, "two-level, 1-packet buffers, tiny ring");
+  }
+}
+
+TEST_CASE("textured materials through the software cache") {
+  // A textured floor (checker with a gradient, so bilinear filtering and wrap-around matter) and
+  // a textured mirror-ish wall, one light; UVs outside [0, 1].
+  Scene s;
+  s.name = "textured";
+  s.source = "test";
+  Texture tex;
+  tex.width = 7;
+  tex.height = 5;
+  for (int y = 0; y < tex.height; ++y) {
+    for (int x = 0; x < tex.width; ++x) {
+      const float c = ((x + y) & 1) ? 0.9f : 0.2f;
+      tex.rgb.insert(tex.rgb.end(), {c, 0.1f * float(x), 0.15f * float(y)});
+    }
+  }
+  s.textures = {tex};
+  Material floor;
+  floor.diffuse = glm::vec3(0.8f, 0.7f, 0.6f);
+  floor.texture = 0;
+  Material wall;
+  wall.diffuse = glm::vec3(0.5f);
+  wall.texture = 0;
+  wall.reflectivity = 0.3f;
+  wall.specular = glm::vec3(0.5f);
+  wall.shininess = 10.0f;
+  s.materials = {floor, wall};
+  auto quad = [&](glm::vec3 a, glm::vec3 b, glm::vec3 c, glm::vec3 d, uint32_t m, float uvs) {
+    const uint32_t i = static_cast<uint32_t>(s.positions.size());
+    s.positions.insert(s.positions.end(), {a, b, c, d});
+    s.uvs.insert(s.uvs.end(), {{-uvs, -uvs}, {uvs, -uvs}, {uvs, uvs}, {-uvs, uvs}});
+    s.triangles.push_back(glm::uvec3(i, i + 1, i + 2));
+    s.triangles.push_back(glm::uvec3(i, i + 2, i + 3));
+    s.material_ids.insert(s.material_ids.end(), {m, m});
+  };
+  quad({-5, 0, 5}, {5, 0, 5}, {5, 0, -5}, {-5, 0, -5}, 0, 2.3f);
+  quad({-5, 0, -4}, {5, 0, -4}, {5, 6, -4}, {-5, 6, -4}, 1, 1.7f);
+  PointLight light;
+  light.position = glm::vec3(1, 4, 2);
+  s.lights = {light};
+  s.camera.eye = glm::vec3(0, 3, 6);
+  s.camera.look_at = glm::vec3(0, 1, -2);
+  s.features = ComputeFeatures(s);
+  ValidateScene(s);
+  REQUIRE(s.features.textures);
+  const Accel accel(s.mesh());
+  const FrameContext ctx = Context(s, accel, 40, 30, 2);
+  const Reference ref = RenderReference(ctx);
+  REQUIRE(ref.stats.shade.texture_fetches > 0);
+  const CellFrameStats st = CheckCell(ctx, ref, SimConfig{}, "textured");
+  uint64_t reads = 0;
+  for (const auto& spe : st.spes) reads += spe.cache.reads;
+  CHECK(reads >= 4 * st.totals.texture_fetches);  // 4 texels (+ materials) per sample
+}
+
+TEST_CASE("explicit tile lists and PBT tiling") {
+  const Scene scene = LoadScene("erw6");
+  const Accel accel(scene.mesh());
+  const FrameContext ctx = Context(scene, accel, 50, 30, 3);
+  const Reference ref = RenderReference(ctx);
+  {
+    // Odd tiles in a scrambled order, one of them a single column.
+    const std::vector<Tile> tiles = {{10, 0, 50, 30}, {0, 0, 9, 30}, {9, 0, 10, 30}};
+    Framebuffer fb(50, 30);
+    CellRenderer r(SimConfig{});
+    const CellFrameStats s = r.Render(ctx, fb, tiles);
+    CHECK(DifferingPixels(ref.fb, fb) == 0);
+    CHECK(s.tiles.size() == 3);
+    for (const auto& t : s.tiles) CHECK(t.spe >= 0);
+  }
+  {
+    SimConfig c;
+    c.pbt_tiles_per_spe = 2;
+    CellRenderer r(c);
+    for (int frame = 0; frame < 3; ++frame) {
+      INFO("PBT frame ", frame);
+      Framebuffer fb(50, 30);
+      const CellFrameStats s = r.Render(ctx, fb);
+      CHECK(DifferingPixels(ref.fb, fb) == 0);
+      CHECK(s.pbt);
+      CHECK(s.tiles.size() == 12);
+      CHECK(s.has_prediction == (frame > 0));
+      double sum = 0;
+      for (const auto& t : s.tiles) sum += t.cycles;
+      CHECK(sum > 0);
+    }
+    CHECK(r.pbt()->Validate().empty());
+  }
+}
+
+TEST_CASE("simulated cycles are deterministic") {
+  const Scene scene = LoadScene("spherebox");
+  const Accel accel(scene.mesh());
+  const FrameContext ctx = Context(scene, accel, 48, 40, 5);
+  SimConfig c;
+  c.tile_width = 16;
+  c.tile_height = 8;
+  std::vector<uint64_t> first;
+  for (int run = 0; run < 2; ++run) {
+    Framebuffer fb(48, 40);
+    CellRenderer r(c);
+    const CellFrameStats s = r.Render(ctx, fb);
+    std::vector<uint64_t> cycles = {s.cycles, s.mic_lines, s.mic_queue_cycles,
+                                    s.totals.tile_counter_retries};
+    for (const auto& spe : s.spes) {
+      for (const uint64_t x : spe.cycles.cycles) cycles.push_back(x);
+      cycles.push_back(spe.counters.TotalRays());
+    }
+    if (run == 0) {
+      first = cycles;
+    } else {
+      CHECK(cycles == first);
+    }
+  }
+}
+
+TEST_CASE("more SPEs render faster; the breakdown adds up") {
+  const Scene scene = LoadScene("erw6");
+  const Accel accel(scene.mesh());
+  const FrameContext ctx = Context(scene, accel, 64, 64, 2);
+  uint64_t one = 0;
+  for (const int spes : {1, 6}) {
+    SimConfig c;
+    c.num_spes = spes;
+    c.tile_width = c.tile_height = 8;
+    Framebuffer fb(64, 64);
+    CellRenderer r(c);
+    const CellFrameStats s = r.Render(ctx, fb);
+    for (const auto& spe : s.spes) CHECK(spe.cycles.Total() == s.cycles);
+    if (spes == 1) {
+      one = s.cycles;
+    } else {
+      const double speedup = double(one) / double(s.cycles);
+      INFO("speed-up at 6 SPEs: ", speedup);
+      CHECK(speedup > 4.0);
+      CHECK(speedup <= 6.0);
+    }
+  }
+}
+
+TEST_CASE("shared scenes: bit-identical at small resolution") {
+  for (const char* name : {"teapot", "bunny", "office-graz", "sponza", "sibenik"}) {
+    INFO("scene ", std::string(name));
+    const std::string file = std::string(name) == "bunny"     ? "bunny/bun_zipper.ply"
+                             : std::string(name) == "teapot"  ? "teapot/teapot.obj"
+                             : std::string(name) == "sponza"  ? "sponza/sponza.obj"
+                             : std::string(name) == "sibenik" ? "sibenik/sibenik.obj"
+                                                              : "office-graz/office-graz.obj";
+    if (!test::HaveSharedScene(file)) continue;
+    const Scene scene = LoadScene(name);
+    std::string note;
+    const Accel accel = sim::BuildCellAccel(scene, BuildOptions{}, SimConfig{}, 40, &note);
+    MESSAGE(std::string(name), ": ", std::string(accel.Info().kind), " ", accel.Info().cells, " cells ", note);
+    const FrameContext ctx = Context(scene, accel, 40, 32, 2);
+    const Reference ref = RenderReference(ctx);
+    CheckCell(ctx, ref, SimConfig{}, name);
+  }
+}
+
+TEST_CASE("a grid whose occupancy bits do not fit the local store is refused") {
+  if (!test::HaveSharedScene("conference/conference.obj")) return;
+  const Scene scene = LoadScene("conference");
+  // The uniform grid at lambda 4: 193x47x123 = 1.1 M cells, 139 KiB of bits (paper 3.8: about
+  // 100 KiB of LS are left for them, ~800,000 cells).
+  BuildOptions uniform;
+  uniform.grid = GridKind::kUniform;
+  uniform.auto_lambda = false;
+  const Accel accel(scene.mesh(), uniform);
+  REQUIRE(accel.Info().cells > sim::OccupancyBudgetCells(SimConfig{}, 4, 8, true));
+  const FrameContext ctx = Context(scene, accel, 8, 8, 0);
+  Framebuffer fb(8, 8);
+  CellRenderer r(SimConfig{});
+  CHECK_THROWS_WITH_AS(r.Render(ctx, fb), doctest::Contains("occupancy bits of the 193x47x123"),
+                       Error);
+  // BuildCellAccel lowers lambda until the top level fits; dense cells get sub-grids (3.8).
+  BuildOptions two = uniform;
+  two.grid = GridKind::kTwoLevel;
+  std::string note;
+  const Accel coarse = sim::BuildCellAccel(scene, two, SimConfig{}, 24, &note);
+  CHECK(!note.empty());
+  CHECK(std::string(coarse.Info().kind) == "two-level");
+  CHECK(coarse.Info().cells <= sim::OccupancyBudgetCells(SimConfig{}, 4, 24, true));
+  MESSAGE("conference: ", note);
+  const FrameContext ctx2 = Context(scene, coarse, 24, 16, 1);
+  const Reference ref = RenderReference(ctx2);
+  const CellFrameStats s = CheckCell(ctx2, ref, SimConfig{}, "conference, fitted grid");
+  CHECK(s.totals.subgrid_loads > 0);
+}
+
+TEST_CASE("the local-store budget shrinks as buffers grow") {
+  const SimConfig base;
+  const uint64_t cells = sim::OccupancyBudgetCells(base, 4, 512, false);
+  CHECK(cells > 700000);  // paper 3.8: ~800,000 cells
+  CHECK(cells < 900000);
+  SimConfig bigger = base;
+  bigger.ring_rays = 256;  // +16 KiB
+  CHECK(sim::OccupancyBudgetCells(bigger, 4, 512, false) == cells - 16 * 1024 * 8);
+  CHECK(sim::OccupancyBudgetCells(base, 4, 512, true) == cells - 1024 * 8);  // sub-grid lines
+  SimConfig full = base;
+  full.code_stack_bytes = 250 * 1024;
+  CHECK_THROWS_WITH_AS(sim::OccupancyBudgetCells(full, 4, 512, false),
+                       doctest::Contains("local store overflow"), Error);
+}
+
+}  // namespace
+}  // namespace rs
