@@ -23,7 +23,11 @@ inline constexpr uint32_t kMaxDmaListElements = 2048;  // MFC_MAX_DMA_LIST_SIZE
 inline constexpr uint32_t kNumTags = 32;
 inline constexpr uint32_t kAtomicLine = 128;
 
-// Where an SPU's cycles went. Every cycle of an SPE's clock is in exactly one bucket.
+// Where an SPU's cycles went. Every cycle of an SPE's clock is in exactly one bucket:
+// compute (the annotated cost model), DMA (issuing MFC commands, waiting for tag groups and for a
+// full command queue), atomic (getllar/putllc issue and status waits, tile-counter retries),
+// cache (software-cache lookups and their miss DMAs), idle (after the SPE's last ray until the
+// frame's last SPE finishes).
 enum class Cost : int { kCompute = 0, kDma = 1, kAtomic = 2, kCache = 3, kIdle = 4 };
 inline constexpr int kNumCosts = 5;
 const char* CostName(Cost c);
