@@ -35,6 +35,7 @@
 
 #include <cfloat>
 #include <cmath>
+#include <algorithm>
 #include <cstring>
 #include <limits>
 
@@ -895,6 +896,25 @@ void BuildDdaGrid(const Grid& grid, const TwoLevelGrid* two_level, const Triangl
 
 namespace {
 
+// Streams are traced in chunks of this many rays (the lanes' ray indices are int32); a multiple
+// of kStreamPad, so every chunk starts aligned.
+constexpr size_t kMaxChunk = size_t{1} << 30;
+
+// Rays [first, first + n) of `rays` (only the arrays the trace kernels read).
+RayStreamView SubView(const RayStreamView& rays, size_t first, size_t n) {
+  RayStreamView v;
+  v.ox = rays.ox + first;
+  v.oy = rays.oy + first;
+  v.oz = rays.oz + first;
+  v.dx = rays.dx + first;
+  v.dy = rays.dy + first;
+  v.dz = rays.dz + first;
+  v.tmin = rays.tmin + first;
+  v.tmax = rays.tmax + first;
+  v.size = n;
+  return v;
+}
+
 // Rays the SIMD kernels cannot take: an empty grid (all miss) or a grid too large for int32
 // cell indices (the scalar DDA).
 void ScalarStream(const DdaGrid& g, const RayStreamView& rays, const HitStreamView* hits,
@@ -938,7 +958,17 @@ void IntersectStreamDda(const DdaGrid& g, const RayStreamView& rays, const HitSt
   if (stats != nullptr) stats->rays += rays.size;
   if (rays.size == 0) return;
   if (g.empty() || !g.simd_ok) return ScalarStream(g, rays, &hits, nullptr, stats);
-  HWY_DYNAMIC_DISPATCH(IntersectStreamDda)(g, rays, hits, options, stats);
+  // lanes hold int32 ray indices: chunks of at most kMaxChunk rays (aligned sub-views)
+  for (size_t first = 0; first < rays.size; first += kMaxChunk) {
+    const RayStreamView part = SubView(rays, first, std::min(kMaxChunk, rays.size - first));
+    HitStreamView out = hits;
+    out.t += first;
+    out.u += first;
+    out.v += first;
+    out.prim += first;
+    out.size = part.size;
+    HWY_DYNAMIC_DISPATCH(IntersectStreamDda)(g, part, out, options, stats);
+  }
 }
 
 void OccludedStreamDda(const DdaGrid& g, const RayStreamView& rays, int32_t* occluded,
@@ -946,7 +976,10 @@ void OccludedStreamDda(const DdaGrid& g, const RayStreamView& rays, int32_t* occ
   if (stats != nullptr) stats->rays += rays.size;
   if (rays.size == 0) return;
   if (g.empty() || !g.simd_ok) return ScalarStream(g, rays, nullptr, occluded, stats);
-  HWY_DYNAMIC_DISPATCH(OccludedStreamDda)(g, rays, occluded, options, stats);
+  for (size_t first = 0; first < rays.size; first += kMaxChunk) {
+    const RayStreamView part = SubView(rays, first, std::min(kMaxChunk, rays.size - first));
+    HWY_DYNAMIC_DISPATCH(OccludedStreamDda)(g, part, occluded + first, options, stats);
+  }
 }
 
 bool IntersectSingleDda(const DdaGrid& g, float ox, float oy, float oz, float dx, float dy,
