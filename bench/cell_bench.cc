@@ -34,7 +34,9 @@ using Clock = std::chrono::steady_clock;
 using sim::CellFrameStats;
 using sim::SimConfig;
 
-double Since(Clock::time_point t) { return std::chrono::duration<double>(Clock::now() - t).count(); }
+double Since(Clock::time_point t) {
+  return std::chrono::duration<double>(Clock::now() - t).count();
+}
 
 struct Options {
   std::string out = "bench/results/cell";
@@ -47,8 +49,8 @@ struct Options {
     *oh = full ? full_h : quick ? h / 2 : h;
   }
   bool Run(const char* section) const {
-    return only.empty() || ("," + only + ",").find(std::string(",") + section + ",") !=
-                               std::string::npos;
+    return only.empty() ||
+           ("," + only + ",").find(std::string(",") + section + ",") != std::string::npos;
   }
 };
 
@@ -122,7 +124,9 @@ Framebuffer RenderSerialFb(const FrameContext& ctx, double* seconds = nullptr) {
   return fb;
 }
 
-double Pct(uint64_t part, uint64_t total) { return total ? 100.0 * double(part) / double(total) : 0.0; }
+double Pct(uint64_t part, uint64_t total) {
+  return total ? 100.0 * double(part) / double(total) : 0.0;
+}
 
 void Loads(const Options& o, std::string& md) {
   std::printf("== Table 1: load costs\n");
@@ -130,23 +134,26 @@ void Loads(const Options& o, std::string& md) {
   SimConfig piped;
   piped.memory.mfc_bus_slots = 16;
   const sim::LoadCosts p = sim::MeasureLoadCosts(piped);
-  Csv csv(o.out + "/loads.csv", "method,paper_cycles,simulated_cycles,deviation_pct,pipelined_dma_cycles");
-  md += "## Table 1: cycles to load 8 bytes\n\n| method | paper | simulated | deviation | "
-        "with 16 DMAs in flight per SPE |\n|---|---:|---:|---:|---:|\n";
+  Csv csv(o.out + "/loads.csv",
+          "method,paper_cycles,simulated_cycles,deviation_pct,pipelined_dma_cycles");
+  md +=
+      "## Table 1: cycles to load 8 bytes\n\n| method | paper | simulated | deviation | "
+      "with 16 DMAs in flight per SPE |\n|---|---:|---:|---:|---:|\n";
   for (int i = 0; i < 5; ++i) {
     const double dev = 100.0 * (c.cycles[i] - sim::kPaperLoadCosts[i]) / sim::kPaperLoadCosts[i];
-    csv.Row("%s,%.0f,%.1f,%.1f,%.1f", sim::kLoadCostNames[i], sim::kPaperLoadCosts[i],
-            c.cycles[i], dev, p.cycles[i]);
+    csv.Row("%s,%.0f,%.1f,%.1f,%.1f", sim::kLoadCostNames[i], sim::kPaperLoadCosts[i], c.cycles[i],
+            dev, p.cycles[i]);
     md += std::string("| ") + sim::kLoadCostNames[i] +
           Fmt(" | %.0f | %.0f | %+.1f %% | %.0f |\n", sim::kPaperLoadCosts[i], c.cycles[i], dev,
               p.cycles[i]);
     std::printf("  %-14s paper %4.0f  simulated %6.1f  (%+.1f %%)\n", sim::kLoadCostNames[i],
                 sim::kPaperLoadCosts[i], c.cycles[i], dev);
   }
-  md += Fmt("\nSW-cache hit rate of the dataset: %.1f %%. One free parameter (the 201 cycles of "
-            "traversal work between an atomic load's issue and use) is set by the atomic pair; "
-            "the DMA async figure then follows from the model.\n\n",
-            100.0 * c.sw_cache_hit_rate);
+  md +=
+      Fmt("\nSW-cache hit rate of the dataset: %.1f %%. One free parameter (the 201 cycles of "
+          "traversal work between an atomic load's issue and use) is set by the atomic pair; "
+          "the DMA async figure then follows from the model.\n\n",
+          100.0 * c.sw_cache_hit_rate);
 }
 
 void Speedup(const Options& o, std::string& md) {
@@ -156,10 +163,11 @@ void Speedup(const Options& o, std::string& md) {
   Csv csv(o.out + "/speedup.csv",
           "scene,spes,cycles,simulated_ms,speedup,efficiency,mic_queue_cycles_per_line,"
           "mic_utilization_pct,idle_pct");
-  md += Fmt("## Fig. 2: speed-up over SPEs (%.0fx%.0f, depth 4, 32x32 tiles, uniform grid)\n\n",
-            w, h);
-  md += "| scene | SPEs | simulated ms | speed-up | efficiency | MIC wait/line | MIC busy | "
-        "idle |\n|---|---:|---:|---:|---:|---:|---:|---:|\n";
+  md += Fmt("## Fig. 2: speed-up over SPEs (%.0fx%.0f, depth 4, 32x32 tiles, uniform grid)\n\n", w,
+            h);
+  md +=
+      "| scene | SPEs | simulated ms | speed-up | efficiency | MIC wait/line | MIC busy | "
+      "idle |\n|---|---:|---:|---:|---:|---:|---:|---:|\n";
   for (const char* name : {"spherebox", "erw6"}) {
     const Setup s(name, PaperGrid(), w);
     const FrameContext ctx = Context(s, w, h, 4);
@@ -175,12 +183,12 @@ void Speedup(const Options& o, std::string& md) {
       const double busy = 100.0 * double(st.mic_lines * 16) / double(st.cycles);
       const double idle = Pct(st.breakdown[sim::Cost::kIdle], st.breakdown.Total());
       csv.Row("%s,%d,%llu,%.3f,%.3f,%.3f,%.2f,%.1f,%.1f", name, spes,
-              static_cast<unsigned long long>(st.cycles), 1e3 * st.seconds, speedup,
-              speedup / spes, wait, busy, idle);
-      md += std::string("| ") + name + Fmt(" | %.0f | %.2f | %.2f |", spes, 1e3 * st.seconds,
-                                           speedup) +
-            Fmt(" %.0f %% | %.1f | %.0f %% | %.1f %% |\n", 100.0 * speedup / spes, wait, busy,
-                idle);
+              static_cast<unsigned long long>(st.cycles), 1e3 * st.seconds, speedup, speedup / spes,
+              wait, busy, idle);
+      md +=
+          std::string("| ") + name +
+          Fmt(" | %.0f | %.2f | %.2f |", spes, 1e3 * st.seconds, speedup) +
+          Fmt(" %.0f %% | %.1f | %.0f %% | %.1f %% |\n", 100.0 * speedup / spes, wait, busy, idle);
       std::printf("  %-9s %d SPEs: %8.2f ms, speed-up %.2f, MIC wait %.1f cycles/line\n", name,
                   spes, 1e3 * st.seconds, speedup, wait);
     }
@@ -204,13 +212,15 @@ void Tiles(const Options& o, std::string& md) {
   Csv csv(o.out + "/tiles.csv",
           "group,tile,variant,cycles,simulated_ms,tiles,micro_cache_pct,counter_retries,"
           "idle_pct,rays_in_flight");
-  md += Fmt("## Fig. 3: tile size and shape (spherebox %.0fx%.0f, depth 2, 6 SPEs, uniform grid)"
-            "\n\nDrain: one pixel buffer, so a tile's last rays finish before the next tile starts, "
-            "and those last rays are processed individually (paper 3.2). Overlap: two pixel "
-            "buffers, the next tile starts while the last one's rays finish (the default).\n\n",
-            w, h);
-  md += "| tiles | shape | ms, drain | ms, overlap | tiles | micro-cache hits | rays in flight "
-        "(drain) | counter retries |\n|---|---|---:|---:|---:|---:|---:|---:|\n";
+  md +=
+      Fmt("## Fig. 3: tile size and shape (spherebox %.0fx%.0f, depth 2, 6 SPEs, uniform grid)"
+          "\n\nDrain: one pixel buffer, so a tile's last rays finish before the next tile starts, "
+          "and those last rays are processed individually (paper 3.2). Overlap: two pixel "
+          "buffers, the next tile starts while the last one's rays finish (the default).\n\n",
+          w, h);
+  md +=
+      "| tiles | shape | ms, drain | ms, overlap | tiles | micro-cache hits | rays in flight "
+      "(drain) | counter retries |\n|---|---|---:|---:|---:|---:|---:|---:|\n";
   for (const Shape& sh : shapes) {
     double ms[2] = {0, 0};
     CellFrameStats keep;
@@ -223,25 +233,24 @@ void Tiles(const Options& o, std::string& md) {
       const CellFrameStats st = RenderCell(ctx, c, &ref);
       const double mc = Pct(st.totals.micro_cache_hits, st.totals.visits);
       const double idle = Pct(st.breakdown[sim::Cost::kIdle], st.breakdown.Total());
-      const double rpi = double(st.totals.rays_in_flight) /
-                         double(std::max<uint64_t>(st.totals.iterations, 1));
+      const double rpi =
+          double(st.totals.rays_in_flight) / double(std::max<uint64_t>(st.totals.iterations, 1));
       csv.Row("%s,%dx%d,%s,%llu,%.3f,%llu,%.1f,%llu,%.1f,%.2f", sh.group, sh.w, sh.h,
-              buffers == 1 ? "drain" : "overlap",
-              static_cast<unsigned long long>(st.cycles), 1e3 * st.seconds,
-              static_cast<unsigned long long>(st.totals.tiles), mc,
+              buffers == 1 ? "drain" : "overlap", static_cast<unsigned long long>(st.cycles),
+              1e3 * st.seconds, static_cast<unsigned long long>(st.totals.tiles), mc,
               static_cast<unsigned long long>(st.totals.tile_counter_retries), idle, rpi);
       ms[buffers - 1] = 1e3 * st.seconds;
       if (buffers == 1) keep = st;
     }
     const double mc = Pct(keep.totals.micro_cache_hits, keep.totals.visits);
-    const double rpi = double(keep.totals.rays_in_flight) /
-                       double(std::max<uint64_t>(keep.totals.iterations, 1));
-    md += std::string("| ") + sh.group + Fmt(" | %.0fx%.0f | %.2f | %.2f |", sh.w, sh.h, ms[0],
-                                             ms[1]) +
+    const double rpi =
+        double(keep.totals.rays_in_flight) / double(std::max<uint64_t>(keep.totals.iterations, 1));
+    md += std::string("| ") + sh.group +
+          Fmt(" | %.0fx%.0f | %.2f | %.2f |", sh.w, sh.h, ms[0], ms[1]) +
           Fmt(" %.0f | %.1f %% | %.2f | %.0f |\n", double(keep.totals.tiles), mc, rpi,
               double(keep.totals.tile_counter_retries));
-    std::printf("  %5dx%-4d drain %8.2f ms, overlap %8.2f ms, micro-cache %.1f %%\n", sh.w,
-                sh.h, ms[0], ms[1], mc);
+    std::printf("  %5dx%-4d drain %8.2f ms, overlap %8.2f ms, micro-cache %.1f %%\n", sh.w, sh.h,
+                ms[0], ms[1], mc);
     std::fflush(stdout);
   }
   md += "\n";
@@ -264,7 +273,9 @@ void MicroCache(const Options& o, std::string& md) {
   Csv csv(o.out + "/microcache.csv",
           "scene,depth,rays,cycles_on,cycles_off,speedup_pct,hit_pct,secondary_pct");
   md += Fmt("## 3.5: micro-cache (%.0fx%.0f, 6 SPEs, uniform grid)\n\n", w, h);
-  md += "| scene | depth | rays | secondary share | hits | speed-up |\n|---|---:|---:|---:|---:|---:|\n";
+  md +=
+      "| scene | depth | rays | secondary share | hits | speed-up "
+      "|\n|---|---:|---:|---:|---:|---:|\n";
   for (const Case& k : cases) {
     if (std::string(k.scene) == "sponza") {
       try {
@@ -287,8 +298,8 @@ void MicroCache(const Options& o, std::string& md) {
     csv.Row("%s,%d,%llu,%llu,%llu,%.1f,%.1f,%.1f", k.scene, k.depth,
             static_cast<unsigned long long>(rays), static_cast<unsigned long long>(a.cycles),
             static_cast<unsigned long long>(b.cycles), speedup, hits, secondary);
-    md += std::string("| ") + k.scene + Fmt(" | %.0f | %.0f | %.0f %% |", k.depth, double(rays),
-                                            secondary) +
+    md += std::string("| ") + k.scene +
+          Fmt(" | %.0f | %.0f | %.0f %% |", k.depth, double(rays), secondary) +
           Fmt(" %.1f %% | %+.1f %% |\n", hits, speedup);
     std::printf("  %-9s depth %d: hits %.1f %%, speed-up %+.1f %%\n", k.scene, k.depth, hits,
                 speedup);
@@ -311,12 +322,13 @@ void Depth(const Options& o, std::string& md) {
   Csv csv(o.out + "/depth.csv",
           "depth,rays,primary,uniform_ms,two_level_ms,uniform_visits,two_level_visits");
   md += Fmt("## Fig. 8: render time vs recursion depth (spherebox %.0fx%.0f, 6 SPEs)\n\n", w, h);
-  md += std::string("Uniform grid: ") + su.accel.Info().kind + Fmt(" %.0f cells; ",
-        double(su.accel.Info().cells)) + "two-level: " + st.accel.Info().kind +
+  md += std::string("Uniform grid: ") + su.accel.Info().kind +
+        Fmt(" %.0f cells; ", double(su.accel.Info().cells)) + "two-level: " + st.accel.Info().kind +
         Fmt(" %.0f top cells, %.0f sub-grids.\n\n", double(st.accel.Info().cells),
             double(st.accel.Info().subgrids));
   md += "Fig. 7 images (cell backend, uniform grid): spherebox_depth{0,1,2,9}.png.\n\n";
-  md += "| depth | rays | primary share | uniform ms | two-level ms |\n|---:|---:|---:|---:|---:|\n";
+  md +=
+      "| depth | rays | primary share | uniform ms | two-level ms |\n|---:|---:|---:|---:|---:|\n";
   for (int depth = 0; depth <= 9; ++depth) {
     const FrameContext cu = Context(su, w, h, depth);
     const FrameContext ct = Context(st, w, h, depth);
@@ -346,15 +358,24 @@ void Build(const Options& o, std::string& md) {
   o.Size(256, 192, 640, 512, &w, &h);
   Csv csv(o.out + "/build.csv",
           "scene,triangles,grid,cells,build_ms,image_ms,render_ms,time_to_image_ms");
-  md += Fmt("## Fig. 6: build vs render time (%.0fx%.0f, depth 2, 6 SPEs; build = host grid "
-            "build + PPE layout of the SPE image, on this machine)\n\n", w, h);
-  md += "| scene | triangles | grid | build ms | layout ms | render ms (simulated) |\n"
-        "|---|---:|---|---:|---:|---:|\n";
-  const char* scenes[] = {"cornell", "erw6", "spherebox", "teapot", "bunny", "office-graz",
-                          "sponza", "sibenik", "conference"};
-  const char* files[] = {"", "", "", "teapot/teapot.obj", "bunny/bun_zipper.ply",
-                         "office-graz/office-graz.obj", "sponza/sponza.obj",
-                         "sibenik/sibenik.obj", "conference/conference.obj"};
+  md +=
+      Fmt("## Fig. 6: build vs render time (%.0fx%.0f, depth 2, 6 SPEs; build = host grid "
+          "build + PPE layout of the SPE image, on this machine)\n\n",
+          w, h);
+  md +=
+      "| scene | triangles | grid | build ms | layout ms | render ms (simulated) |\n"
+      "|---|---:|---|---:|---:|---:|\n";
+  const char* scenes[] = {"cornell",     "erw6",   "spherebox", "teapot",    "bunny",
+                          "office-graz", "sponza", "sibenik",   "conference"};
+  const char* files[] = {"",
+                         "",
+                         "",
+                         "teapot/teapot.obj",
+                         "bunny/bun_zipper.ply",
+                         "office-graz/office-graz.obj",
+                         "sponza/sponza.obj",
+                         "sibenik/sibenik.obj",
+                         "conference/conference.obj"};
   for (size_t i = 0; i < sizeof(scenes) / sizeof(scenes[0]); ++i) {
     if (files[i][0] != 0) {
       try {
@@ -386,8 +407,9 @@ void Host(const Options& o, std::string& md) {
   Csv csv(o.out + "/host.csv",
           "scene,depth,rays,serial_s,cell_s,ratio,simulated_ms,simulated_mrays_per_s");
   md += Fmt("## Host time to simulate one frame (%.0fx%.0f, 6 SPEs; best of 2)\n\n", w, h);
-  md += "| scene | depth | rays | serial backend s | cell backend s | ratio | simulated ms | "
-        "simulated Mrays/s |\n|---|---:|---:|---:|---:|---:|---:|---:|\n";
+  md +=
+      "| scene | depth | rays | serial backend s | cell backend s | ratio | simulated ms | "
+      "simulated Mrays/s |\n|---|---:|---:|---:|---:|---:|---:|---:|\n";
   struct Case {
     const char* scene;
     int depth;
@@ -410,12 +432,11 @@ void Host(const Options& o, std::string& md) {
     csv.Row("%s,%d,%llu,%.3f,%.3f,%.2f,%.3f,%.2f", k.scene, k.depth,
             static_cast<unsigned long long>(rays), serial, cell, cell / serial, 1e3 * st.seconds,
             st.SimulatedMraysPerSecond());
-    md += std::string("| ") + k.scene + Fmt(" | %.0f | %.0f | %.3f |", k.depth, double(rays),
-                                            serial) +
+    md += std::string("| ") + k.scene +
+          Fmt(" | %.0f | %.0f | %.3f |", k.depth, double(rays), serial) +
           Fmt(" %.3f | %.2f | %.2f | %.2f |\n", cell, cell / serial, 1e3 * st.seconds,
               st.SimulatedMraysPerSecond());
-    std::printf("  %-9s serial %.3f s, cell %.3f s: %.2fx\n", k.scene, serial, cell,
-                cell / serial);
+    std::printf("  %-9s serial %.3f s, cell %.3f s: %.2fx\n", k.scene, serial, cell, cell / serial);
   }
   md += "\n";
 }
@@ -445,13 +466,14 @@ int Main(int argc, char** argv) {
   std::string md = "# Cell simulator reproductions (bench/cell_bench.cc)\n\n";
   md += "Config: " + sim::DescribeConfig(SimConfig{}) + ".\n\n";
   const std::pair<const char*, std::function<void(const Options&, std::string&)>> sections[] = {
-      {"loads", Loads}, {"speedup", Speedup},   {"tiles", Tiles}, {"microcache", MicroCache},
-      {"depth", Depth}, {"build", Build},       {"host", Host}};
+      {"loads", Loads}, {"speedup", Speedup}, {"tiles", Tiles}, {"microcache", MicroCache},
+      {"depth", Depth}, {"build", Build},     {"host", Host}};
   const auto t0 = Clock::now();
   for (const auto& [name, run] : sections) {
     if (o.Run(name)) run(o, md);
   }
-  const std::string summary = o.out + (o.only.empty() ? "/summary.md" : "/summary_" + o.only + ".md");
+  const std::string summary =
+      o.out + (o.only.empty() ? "/summary.md" : "/summary_" + o.only + ".md");
   std::ofstream(summary) << md;
   std::printf("wrote %s (%.0f s)\n", summary.c_str(), Since(t0));
   return 0;

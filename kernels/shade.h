@@ -61,7 +61,8 @@ struct ShadeStats {
   // ray in ref::Shade; the per-lane counters above are the same for both.
   uint64_t highlights = 0;                     // PhongPow evaluations (lanes)
   uint64_t blocks = 0;                         // blocks holding at least one hit
-  uint64_t stage_runs[kNumShadeStages] = {};   // blocks that ran stage i (bit 1 << i)
+  uint64_t stage_runs[kNumShadeStages] = {};   // blocks that ran stage i (bit 1 << i); for
+                                               // specular: (block, light) pairs
   uint32_t stages = 0;                         // OR of the stage sets Shade ran with
   void Merge(const ShadeStats& o);
 };

@@ -159,30 +159,6 @@ double Imbalance(const std::vector<ThreadStats>& threads) {
   return FrameImbalance(busy);
 }
 
-// A private breadth-first FIFO of tasks: one tile's whole ray tree on one thread (the tiles
-// backend's workers and the serial backend with explicit tiles).
-class LocalFifo final : public TaskSink {
- public:
-  RayStream NewTask() override { return pool_.Get(); }
-  void Push(RayStream&& task) override { fifo_.push_back(std::move(task)); }
-
-  void RenderTile(const FrameContext& ctx, const Tile& tile, Framebuffer& fb, FrameStats& stats) {
-    fifo_.clear();
-    GeneratePrimaryTasks(ctx, tile, *this, stats);
-    while (!fifo_.empty()) {
-      RayStream task = std::move(fifo_.front());
-      fifo_.pop_front();
-      ProcessTask(ctx, task.view(), fb, *this, scratch_, stats);
-      pool_.Put(std::move(task));
-    }
-  }
-
- private:
-  std::deque<RayStream> fifo_;
-  TaskPool pool_;
-  TaskScratch scratch_;
-};
-
 }  // namespace
 
 // The per-backend part of HostRenderer. The application-thread-only state lives here; the
@@ -235,7 +211,7 @@ class SerialImpl final : public HostRenderer::Impl {
     if (whole_) {
       work = renderer_.Render(ctx_, *fb_);
     } else {
-      for (const Tile& tile : tiles_) fifo_.RenderTile(ctx_, tile, *fb_, work);
+      fifo_.RenderTiles(ctx_, tiles_.data(), tiles_.size(), *fb_, work);
     }
     stats_.threads.assign(1, ThreadStats{});
     ThreadStats& t = stats_.threads[0];
@@ -248,7 +224,7 @@ class SerialImpl final : public HostRenderer::Impl {
 
  private:
   SerialRenderer renderer_;
-  LocalFifo fifo_;
+  SerialRenderer fifo_;  // one tile's whole ray tree on this thread
   std::vector<Tile> tiles_;
   bool whole_ = true;
 };
@@ -568,7 +544,7 @@ class TilesImpl final : public HostRenderer::Impl {
 
  private:
   struct alignas(kQueueFalseSharing) Worker {
-    LocalFifo fifo;
+    SerialRenderer fifo;
     FrameStats stats;
     uint64_t ticks = 0;  // QueueClock ticks inside the tile counter
     uint64_t ops = 0;
@@ -593,7 +569,7 @@ class TilesImpl final : public HostRenderer::Impl {
     const Clock::time_point wall0 = Clock::now();
     const double cpu0 = ThreadCpuSeconds();
     const uint64_t rays0 = me.stats.TotalRays();
-    me.fifo.RenderTile(ctx_, tiles_[i], *fb_, me.stats);
+    me.fifo.RenderTiles(ctx_, &tiles_[i], 1, *fb_, me.stats);
     TileRecord& r = records_[i];  // this tile is ours alone (counter RMW or assignment)
     r.tile = tiles_[i];
     r.thread = thread;

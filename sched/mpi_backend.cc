@@ -118,35 +118,11 @@ void ValidateConfig(const MpiRenderConfig& c, int ranks) {
 // ------------------------------------------------------------------------------------------------
 // Worker.
 
-// One tile's whole ray tree on this rank: primary tasks, then a breadth-first FIFO (the same
-// work the host tiles backend's LocalFifo does; that class is internal to backends.cc).
-class TileRenderer final : public TaskSink {
- public:
-  RayStream NewTask() override { return pool_.Get(); }
-  void Push(RayStream&& task) override { fifo_.push_back(std::move(task)); }
-
-  void Render(const FrameContext& ctx, const Tile& tile, Framebuffer& fb, FrameStats& stats) {
-    fifo_.clear();
-    GeneratePrimaryTasks(ctx, tile, *this, stats);
-    while (!fifo_.empty()) {
-      RayStream task = std::move(fifo_.front());
-      fifo_.pop_front();
-      ProcessTask(ctx, task.view(), fb, *this, scratch_, stats);
-      pool_.Put(std::move(task));
-    }
-  }
-
- private:
-  std::deque<RayStream> fifo_;
-  TaskPool pool_;
-  TaskScratch scratch_;
-};
-
 void RunWorker(const MpiRenderConfig& c, const Setup& s, int rank) {
   const int kill_rank = EnvRank("RAYSTREAM_MPI_TEST_KILL_RANK");
   const int hang_rank = EnvRank("RAYSTREAM_MPI_TEST_HANG_RANK");
   Framebuffer fb(c.options.width, c.options.height);
-  TileRenderer renderer;
+  SerialRenderer renderer;  // one tile's whole ray tree on this rank
   std::vector<int64_t> result;
   int ctx_frame = -1;
   FrameContext ctx;
@@ -179,7 +155,7 @@ void RunWorker(const MpiRenderConfig& c, const Setup& s, int rank) {
     FrameStats stats;
     const double cpu0 = CpuSeconds();
     const auto t0 = Clock::now();
-    renderer.Render(ctx, tile, fb, stats);
+    renderer.RenderTiles(ctx, &tile, 1, fb, stats);
     const double seconds = Seconds(Clock::now() - t0);
     const double cpu = CpuSeconds() - cpu0;
     const size_t tw = static_cast<size_t>(tile.Width());

@@ -232,19 +232,23 @@ void GeneratePrimaryTasks(const FrameContext& ctx, const Tile& tile, TaskSink& o
 FrameStats SerialRenderer::Render(const FrameContext& ctx, Framebuffer& fb) {
   const auto t0 = Clock::now();
   FrameStats stats;
+  const std::vector<Tile> tiles =
+      ImageTiles(ctx.options.width, ctx.options.height, ctx.options.tile_size);
+  RenderTiles(ctx, tiles.data(), tiles.size(), fb, stats);
+  stats.total_seconds = Seconds(t0, Clock::now());
+  return stats;
+}
+
+void SerialRenderer::RenderTiles(const FrameContext& ctx, const Tile* tiles, size_t num_tiles,
+                                 Framebuffer& fb, FrameStats& stats) {
   fifo_.clear();
-  for (const Tile& tile : ImageTiles(ctx.options.width, ctx.options.height,
-                                     ctx.options.tile_size)) {
-    GeneratePrimaryTasks(ctx, tile, *this, stats);
-  }
+  for (size_t i = 0; i < num_tiles; ++i) GeneratePrimaryTasks(ctx, tiles[i], *this, stats);
   while (!fifo_.empty()) {
     RayStream task = std::move(fifo_.front());
     fifo_.pop_front();
     ProcessTask(ctx, task.view(), fb, *this, scratch_, stats);
     pool_.Put(std::move(task));
   }
-  stats.total_seconds = Seconds(t0, Clock::now());
-  return stats;
 }
 
 FrameStats RenderSerial(const FrameContext& ctx, Framebuffer& fb) {

@@ -132,6 +132,11 @@ class SerialRenderer final : public TaskSink {
  public:
   // Renders one frame into fb (not cleared first) and returns its stats.
   FrameStats Render(const FrameContext& ctx, Framebuffer& fb);
+  // The whole ray tree of `tiles` on this thread: their primary tasks in order, then the FIFO
+  // until empty. Counters go to `stats` (total_seconds untouched). This is also the unit of
+  // work of the tiles backend's threads and of an MPI worker.
+  void RenderTiles(const FrameContext& ctx, const Tile* tiles, size_t num_tiles, Framebuffer& fb,
+                   FrameStats& stats);
 
   RayStream NewTask() override { return pool_.Get(); }
   void Push(RayStream&& task) override { fifo_.push_back(std::move(task)); }

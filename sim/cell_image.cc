@@ -1,8 +1,9 @@
 // PPE-side layout of the SPE-facing main-memory arrays (see cell_image.h).
 #include "sim/cell_image.h"
 
-#include <chrono>
 #include <algorithm>
+#include <bit>
+#include <chrono>
 #include <cstring>
 #include <limits>
 #include <string>
@@ -75,7 +76,11 @@ CellImage::CellImage(const Scene& scene, const Accel& accel) : scene_(&scene), a
     std::memcpy(subgrids_.data(), two.records.get(), num_subgrids_ * sizeof(SubGridRecord));
     for (size_t c = 0; c < cells; ++c) {
       if (!two.Refined(c)) continue;
-      const size_t index = static_cast<size_t>(&two.Record(c) - two.records.get());
+      // TwoLevelGrid::Record's index, computed without binding a reference (the records are
+      // alignas(128) but allocated 64-B aligned).
+      const uint64_t word = two.refined[c >> 6];
+      const uint64_t below = (c & 63) == 0 ? 0 : word & (~uint64_t{0} >> (64 - (c & 63)));
+      const size_t index = two.refined_rank[c >> 6] + size_t(std::popcount(below));
       records[c] = CellRecord{static_cast<uint32_t>(index), kRefinedCell};
     }
     leaf_records_.Resize(std::max<size_t>(leaves - cells, 1) * sizeof(CellRecord));
@@ -160,8 +165,7 @@ CellImage::CellImage(const Scene& scene, const Accel& accel) : scene_(&scene), a
   occupancy_.Resize(std::max<size_t>(words, 1) * 8);
   if (words > 0) std::memcpy(occupancy_.data(), g.occupancy.get(), words * 8);
 
-  build_seconds_ =
-      std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  build_seconds_ = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
 }
 
 void CellImage::Register(MainMemory& memory) const {
@@ -179,8 +183,8 @@ void CellImage::Register(MainMemory& memory) const {
 }
 
 size_t CellImage::Bytes() const {
-  size_t b = cell_records_.size() + subgrids_.size() + leaf_records_.size() + packets_.size() + shading_.size() + materials_.size() +
-             lights_.size() + occupancy_.size();
+  size_t b = cell_records_.size() + subgrids_.size() + leaf_records_.size() + packets_.size() +
+             shading_.size() + materials_.size() + lights_.size() + occupancy_.size();
   for (const AlignedBuffer& t : texels_) b += t.size();
   return b;
 }

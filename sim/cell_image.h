@@ -57,11 +57,11 @@ struct alignas(64) MaterialRecord {
   float reflectivity;
   float transmission;
   float ior;
-  int32_t texture;      // Scene texture index or -1
-  int32_t tex_width;    // 0 if the texture has no usable texels (SampleTexture returns white)
+  int32_t texture;    // Scene texture index or -1
+  int32_t tex_width;  // 0 if the texture has no usable texels (SampleTexture returns white)
   int32_t tex_height;
   uint32_t pad;
-  Ea texels;            // rgb floats, row 0 at the top (main memory)
+  Ea texels;  // rgb floats, row 0 at the top (main memory)
 };
 static_assert(sizeof(MaterialRecord) == 64);
 
@@ -101,7 +101,7 @@ struct alignas(128) FrameConstants {
   uint32_t num_textures;
   int32_t image_width;
   int32_t image_height;
-  int32_t tile_width;   // regular tiles: tile index -> rectangle
+  int32_t tile_width;  // regular tiles: tile index -> rectangle
   int32_t tile_height;
   int32_t tiles_x;
   uint32_t num_tiles;

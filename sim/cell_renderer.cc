@@ -82,8 +82,8 @@ CellFrameStats CellRenderer::RenderTiles(const FrameContext& ctx, Framebuffer& f
   const int width = ctx.options.width, height = ctx.options.height;
   if (fb.width() != width || fb.height() != height) {
     throw Error("cell backend: framebuffer is " + std::to_string(fb.width()) + "x" +
-                std::to_string(fb.height()) + " but the frame is " + std::to_string(width) +
-                "x" + std::to_string(height));
+                std::to_string(fb.height()) + " but the frame is " + std::to_string(width) + "x" +
+                std::to_string(height));
   }
   for (size_t i = 0; i < tiles.size(); ++i) {
     const Tile& t = tiles[i];
@@ -207,8 +207,8 @@ CellFrameStats CellRenderer::RenderTiles(const FrameContext& ctx, Framebuffer& f
 Accel BuildCellAccel(const Scene& scene, BuildOptions options, const SimConfig& config,
                      int image_width, std::string* note) {
   if (note != nullptr) note->clear();
-  const uint64_t budget = OccupancyBudgetCells(
-      config, static_cast<uint32_t>(scene.lights.size()), image_width, /*two_level=*/true);
+  const uint64_t budget = OccupancyBudgetCells(config, static_cast<uint32_t>(scene.lights.size()),
+                                               image_width, /*two_level=*/true);
   Accel accel(scene.mesh(), options);
   AccelInfo info = accel.Info();
   if (info.cells <= budget) return accel;
@@ -226,8 +226,8 @@ Accel BuildCellAccel(const Scene& scene, BuildOptions options, const SimConfig& 
         std::snprintf(buf, sizeof(buf),
                       "grid of %zu cells does not fit the SPE local store (%llu cells of "
                       "occupancy bits); rebuilt with lambda %.3g: %zu cells, %s",
-                      wanted, static_cast<unsigned long long>(budget), double(lambda),
-                      info.cells, info.kind);
+                      wanted, static_cast<unsigned long long>(budget), double(lambda), info.cells,
+                      info.kind);
         *note = buf;
       }
       return accel;
@@ -248,8 +248,9 @@ std::string FormatCellReport(const CellFrameStats& s, const SimConfig& config) {
                 s.clock_hz * 1e-9, s.SimulatedMraysPerSecond(), 1e3 * s.host_seconds,
                 s.cycles ? 1e9 * s.host_seconds / double(s.cycles) : 0.0);
   out += line;
-  out += "           SPE  compute%   dma%  atomic%  cache%   idle%      rays  visits  "
-         "ucache%  LS used\n";
+  out +=
+      "           SPE  compute%   dma%  atomic%  cache%   idle%      rays  visits  "
+      "ucache%  LS used\n";
   for (const SpeReport& r : s.spes) {
     const double total = double(std::max<uint64_t>(r.cycles.Total(), 1));
     const double visits = double(std::max<uint64_t>(r.counters.visits, 1));
@@ -288,16 +289,15 @@ std::string FormatCellReport(const CellFrameStats& s, const SimConfig& config) {
                 reads ? 100.0 * double(hits) / double(reads) : 0.0,
                 static_cast<unsigned long long>(reads));
   out += line;
-  std::snprintf(line, sizeof(line),
-                "pipeline   %llu rays, %llu cell steps, %llu visits (%.1f %% micro-cache), "
-                "%llu packet tests, %llu tiles (%llu counter retries), %llu rays spilled\n",
-                static_cast<unsigned long long>(rays),
-                static_cast<unsigned long long>(c.cell_steps),
-                static_cast<unsigned long long>(c.visits),
-                c.visits ? 100.0 * double(c.micro_cache_hits) / double(c.visits) : 0.0,
-                static_cast<unsigned long long>(c.packets),
-                static_cast<unsigned long long>(c.tiles), static_cast<unsigned long long>(retries),
-                static_cast<unsigned long long>(c.spilled_rays));
+  std::snprintf(
+      line, sizeof(line),
+      "pipeline   %llu rays, %llu cell steps, %llu visits (%.1f %% micro-cache), "
+      "%llu packet tests, %llu tiles (%llu counter retries), %llu rays spilled\n",
+      static_cast<unsigned long long>(rays), static_cast<unsigned long long>(c.cell_steps),
+      static_cast<unsigned long long>(c.visits),
+      c.visits ? 100.0 * double(c.micro_cache_hits) / double(c.visits) : 0.0,
+      static_cast<unsigned long long>(c.packets), static_cast<unsigned long long>(c.tiles),
+      static_cast<unsigned long long>(retries), static_cast<unsigned long long>(c.spilled_rays));
   out += line;
   if (s.pbt && s.has_prediction) {
     std::snprintf(line, sizeof(line),

@@ -35,17 +35,17 @@ struct SpeReport {
 
 struct CellTileRecord {
   Tile tile;
-  int32_t spe = -1;        // the SPE that took it from the counter
-  double cycles = 0;       // SPE cycles attributed to its rays (iteration time shared per ray)
-  double predicted = -1;   // PBT: the estimate it was tiled with (-1: none)
+  int32_t spe = -1;       // the SPE that took it from the counter
+  double cycles = 0;      // SPE cycles attributed to its rays (iteration time shared per ray)
+  double predicted = -1;  // PBT: the estimate it was tiled with (-1: none)
 };
 
 struct CellFrameStats {
   // Counters in the host backends' form (rays by kind, hits, occluded, shading, cell steps,
   // triangle tests); total_seconds is the host wall time of the simulation.
   FrameStats frame;
-  uint64_t cycles = 0;   // simulated frame time: the last SPE's finish
-  double seconds = 0;    // cycles / clock_hz
+  uint64_t cycles = 0;  // simulated frame time: the last SPE's finish
+  double seconds = 0;   // cycles / clock_hz
   double clock_hz = 3.2e9;
   std::vector<SpeReport> spes;
   SpeCounters totals;
@@ -89,8 +89,8 @@ class CellRenderer {
   const CellImage* image() const { return image_.get(); }
 
  private:
-  CellFrameStats RenderTiles(const FrameContext& ctx, Framebuffer& fb,
-                             std::span<const Tile> tiles, bool explicit_tiles);
+  CellFrameStats RenderTiles(const FrameContext& ctx, Framebuffer& fb, std::span<const Tile> tiles,
+                             bool explicit_tiles);
 
   SimConfig config_;
   std::unique_ptr<CellImage> image_;

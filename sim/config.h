@@ -170,7 +170,7 @@ struct SimConfig {
   bool drain_individually = false;
 
   // --- tiles ---
-  int tile_width = 32;   // tiles handed out by the atomic tile counter (3.9), row-major
+  int tile_width = 32;  // tiles handed out by the atomic tile counter (3.9), row-major
   int tile_height = 32;
   int pbt_tiles_per_spe = 0;  // > 0: PBT tiling with k tiles per SPE, re-tiled every frame
 };

@@ -54,8 +54,8 @@ struct Bench {
 
 LoadCosts MeasureLoadCosts(const SimConfig& config, const LoadBenchOptions& options) {
   ValidateConfig(config);
-  if (options.iterations < 1 || options.table_bytes < 4096 ||
-      options.cache_working_set < 128 || options.cache_working_set > options.table_bytes) {
+  if (options.iterations < 1 || options.table_bytes < 4096 || options.cache_working_set < 128 ||
+      options.cache_working_set > options.table_bytes) {
     throw Error("load benchmark: bad options");
   }
   const uint32_t records = options.table_bytes / 8;
@@ -137,8 +137,7 @@ LoadCosts MeasureLoadCosts(const SimConfig& config, const LoadBenchOptions& opti
       b.atomic.Getllar(b.slots + r * 128, ea & ~Ea{127});
       b.atomic.ReadStatus();
       b.clock.Charge(Cost::kAtomic, kUseCycles);
-      b.Check(*b.ls.As<uint64_t>(b.slots + r * 128 + uint32_t(ea & 127)), index[i],
-              "atomic sync");
+      b.Check(*b.ls.As<uint64_t>(b.slots + r * 128 + uint32_t(ea & 127)), index[i], "atomic sync");
       b.clock.Charge(Cost::kCompute, w);
     }
     out.cycles[3] = double(b.clock.now() - work) / double(loads);

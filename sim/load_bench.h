@@ -35,9 +35,9 @@ struct LoadCosts {
 // Cost per load = (SPU cycles - the work) / loads. Every loaded value is checked against the
 // table (throws rs::Error on a mismatch: the benchmark doubles as a functional test).
 struct LoadBenchOptions {
-  int iterations = 512;              // x 8 loads per method
-  uint32_t work_cycles = 201;        // traversal per ray (~8 DDA steps + setup)
-  uint32_t table_bytes = 8u << 20;   // 8 MiB of 8-byte records
+  int iterations = 512;                          // x 8 loads per method
+  uint32_t work_cycles = 201;                    // traversal per ray (~8 DDA steps + setup)
+  uint32_t table_bytes = 8u << 20;               // 8 MiB of 8-byte records
   uint32_t cache_working_set = 44 * 1024 + 512;  // SW-cache dataset (1.4 x the 32 KiB cache)
   uint64_t seed = 1;
 };

@@ -20,9 +20,8 @@ LocalStore::LocalStore(uint32_t size, int spe) : size_(size), spe_(spe) {
 
 Lsa LocalStore::Allocate(std::string_view what, uint64_t bytes, uint32_t align) {
   if (align < 16 || (align & (align - 1)) != 0) {
-    throw Error("SPE " + std::to_string(spe_) + " local store: alignment " +
-                std::to_string(align) + " for '" + std::string(what) +
-                "' must be a power of two >= 16");
+    throw Error("SPE " + std::to_string(spe_) + " local store: alignment " + std::to_string(align) +
+                " for '" + std::string(what) + "' must be a power of two >= 16");
   }
   const uint64_t start = (uint64_t{top_} + align - 1) & ~uint64_t{align - 1};
   const uint64_t rounded = (bytes + 15) & ~uint64_t{15};
@@ -37,13 +36,13 @@ Lsa LocalStore::Allocate(std::string_view what, uint64_t bytes, uint32_t align) 
     throw Error("SPE " + std::to_string(spe_) + " local store overflow: allocating '" +
                 std::string(what) + "' (" + std::to_string(bytes) + " B, aligned " +
                 std::to_string(align) + ") needs " + std::to_string(start + rounded - top_) +
-                " B but only " + std::to_string(size_ - top_) + " B of " +
-                std::to_string(size_) + " B are free (held: " + held + ")");
+                " B but only " + std::to_string(size_ - top_) + " B of " + std::to_string(size_) +
+                " B are free (held: " + held + ")");
   }
   std::memset(base_ + start, 0, rounded);
   top_ = static_cast<uint32_t>(start + rounded);
-  allocations_.push_back(Allocation{std::string(what), static_cast<Lsa>(start),
-                                    static_cast<uint32_t>(rounded)});
+  allocations_.push_back(
+      Allocation{std::string(what), static_cast<Lsa>(start), static_cast<uint32_t>(rounded)});
   return static_cast<Lsa>(start);
 }
 

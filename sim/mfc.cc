@@ -28,11 +28,16 @@ constexpr uint8_t kPoison = 0xFF;  // as float: NaN; as index: UINT32_MAX
 
 const char* CostName(Cost c) {
   switch (c) {
-    case Cost::kCompute: return "compute";
-    case Cost::kDma: return "dma";
-    case Cost::kAtomic: return "atomic";
-    case Cost::kCache: return "cache";
-    case Cost::kIdle: return "idle";
+    case Cost::kCompute:
+      return "compute";
+    case Cost::kDma:
+      return "dma";
+    case Cost::kAtomic:
+      return "atomic";
+    case Cost::kCache:
+      return "cache";
+    case Cost::kIdle:
+      return "idle";
   }
   return "?";
 }
@@ -162,8 +167,8 @@ void MfcStats::Merge(const MfcStats& o) {
   queue_full_stalls += o.queue_full_stalls;
 }
 
-Mfc::Mfc(int spe, LocalStore& ls, const MainMemory& memory, MemoryController& mic,
-         SpuClock& clock, const MemoryTiming& timing)
+Mfc::Mfc(int spe, LocalStore& ls, const MainMemory& memory, MemoryController& mic, SpuClock& clock,
+         const MemoryTiming& timing)
     : spe_(spe), ls_(ls), memory_(memory), mic_(mic), clock_(clock), timing_(timing) {
   bus_free_.assign(static_cast<size_t>(std::max(1, timing.mfc_bus_slots)), 0);
 }
@@ -202,8 +207,8 @@ void Mfc::CheckTransfer(const std::string& op, Lsa ls, Ea ea, uint32_t size, boo
                 Hex(ea) + ")");
   }
   if (!small && (ea & 15u) != 0) {
-    throw Error(op + ": a DMA of " + std::to_string(size) +
-                " bytes must be 16-byte aligned (ea " + Hex(ea) + ")");
+    throw Error(op + ": a DMA of " + std::to_string(size) + " bytes must be 16-byte aligned (ea " +
+                Hex(ea) + ")");
   }
   if (!ls_.Contains(ls, size)) {
     throw Error(op + ": local-store range [" + Hex(ls) + ", +" + std::to_string(size) +
@@ -236,12 +241,24 @@ void Mfc::Issue(Kind kind, Order order, Lsa ls, Ea ea, uint32_t size, uint32_t t
   Schedule(kind, order, tag, first, 1);
 }
 
-void Mfc::MfcGet(Lsa ls, Ea ea, uint32_t size, uint32_t tag) { Issue(kGet, kPlain, ls, ea, size, tag); }
-void Mfc::MfcPut(Lsa ls, Ea ea, uint32_t size, uint32_t tag) { Issue(kPut, kPlain, ls, ea, size, tag); }
-void Mfc::MfcGetf(Lsa ls, Ea ea, uint32_t size, uint32_t tag) { Issue(kGet, kFence, ls, ea, size, tag); }
-void Mfc::MfcPutf(Lsa ls, Ea ea, uint32_t size, uint32_t tag) { Issue(kPut, kFence, ls, ea, size, tag); }
-void Mfc::MfcGetb(Lsa ls, Ea ea, uint32_t size, uint32_t tag) { Issue(kGet, kBarrier, ls, ea, size, tag); }
-void Mfc::MfcPutb(Lsa ls, Ea ea, uint32_t size, uint32_t tag) { Issue(kPut, kBarrier, ls, ea, size, tag); }
+void Mfc::MfcGet(Lsa ls, Ea ea, uint32_t size, uint32_t tag) {
+  Issue(kGet, kPlain, ls, ea, size, tag);
+}
+void Mfc::MfcPut(Lsa ls, Ea ea, uint32_t size, uint32_t tag) {
+  Issue(kPut, kPlain, ls, ea, size, tag);
+}
+void Mfc::MfcGetf(Lsa ls, Ea ea, uint32_t size, uint32_t tag) {
+  Issue(kGet, kFence, ls, ea, size, tag);
+}
+void Mfc::MfcPutf(Lsa ls, Ea ea, uint32_t size, uint32_t tag) {
+  Issue(kPut, kFence, ls, ea, size, tag);
+}
+void Mfc::MfcGetb(Lsa ls, Ea ea, uint32_t size, uint32_t tag) {
+  Issue(kGet, kBarrier, ls, ea, size, tag);
+}
+void Mfc::MfcPutb(Lsa ls, Ea ea, uint32_t size, uint32_t tag) {
+  Issue(kPut, kBarrier, ls, ea, size, tag);
+}
 
 void Mfc::MfcGetList(Lsa ls, uint32_t ea_high, Lsa list, uint32_t list_bytes, uint32_t tag) {
   IssueList(kGet, ls, ea_high, list, list_bytes, tag);
@@ -252,9 +269,10 @@ void Mfc::MfcPutList(Lsa ls, uint32_t ea_high, Lsa list, uint32_t list_bytes, ui
 
 void Mfc::IssueList(Kind kind, Lsa ls, uint32_t ea_high, Lsa list, uint32_t list_bytes,
                     uint32_t tag) {
-  const std::string op = "SPE " + std::to_string(spe_) + (kind == kGet ? " MfcGetList" : " MfcPutList") +
-                         "(ls " + Hex(ls) + ", list " + Hex(list) + ", " +
-                         std::to_string(list_bytes) + " B, tag " + std::to_string(tag) + ")";
+  const std::string op = "SPE " + std::to_string(spe_) +
+                         (kind == kGet ? " MfcGetList" : " MfcPutList") + "(ls " + Hex(ls) +
+                         ", list " + Hex(list) + ", " + std::to_string(list_bytes) + " B, tag " +
+                         std::to_string(tag) + ")";
   CheckTag(op, tag);
   if (list_bytes == 0 || list_bytes % 8 != 0 || list_bytes / 8 > kMaxDmaListElements) {
     throw Error(op + ": list size must be a multiple of 8 bytes holding 1 to 2048 elements");
@@ -430,7 +448,8 @@ void AtomicUnit::Begin(const char* op, Lsa ls, Ea ea) {
     const std::string what =
         "SPE " + std::to_string(spe_) + " " + op + "(ls " + Hex(ls) + ", ea " + Hex(ea) + ")";
     if (ls % kAtomicLine != 0 || ea % kAtomicLine != 0) {
-      throw Error(what + ": atomic commands need 128-byte aligned local-store and effective "
+      throw Error(what +
+                  ": atomic commands need 128-byte aligned local-store and effective "
                   "addresses");
     }
     if (!ls_.Contains(ls, kAtomicLine)) throw Error(what + ": line runs past the local store");

@@ -18,7 +18,7 @@ namespace rs::sim {
 // Effective addresses are host addresses of arrays registered with MainMemory.
 using Ea = uint64_t;
 
-inline constexpr uint32_t kMaxDmaSize = 16384;        // MFC_MAX_DMA_SIZE
+inline constexpr uint32_t kMaxDmaSize = 16384;         // MFC_MAX_DMA_SIZE
 inline constexpr uint32_t kMaxDmaListElements = 2048;  // MFC_MAX_DMA_LIST_SIZE
 inline constexpr uint32_t kNumTags = 32;
 inline constexpr uint32_t kAtomicLine = 128;
@@ -113,9 +113,9 @@ class MemoryController {
   void Grow(size_t words_needed);
 
   uint32_t line_cycles_;
-  uint64_t base_word_ = 0;       // slot index / 64 of ring_[head_]
-  size_t head_ = 0;              // ring index of base_word_
-  std::vector<uint64_t> ring_;   // bit s of word w: slot (base_word_ + w') * 64 + s is busy
+  uint64_t base_word_ = 0;      // slot index / 64 of ring_[head_]
+  size_t head_ = 0;             // ring index of base_word_
+  std::vector<uint64_t> ring_;  // bit s of word w: slot (base_word_ + w') * 64 + s is busy
   uint64_t lines_ = 0;
   uint64_t queue_cycles_ = 0;
 };
@@ -197,8 +197,7 @@ class Mfc {
   };
 
   void Issue(Kind kind, Order order, Lsa ls, Ea ea, uint32_t size, uint32_t tag);
-  void IssueList(Kind kind, Lsa ls, uint32_t ea_high, Lsa list, uint32_t list_bytes,
-                 uint32_t tag);
+  void IssueList(Kind kind, Lsa ls, uint32_t ea_high, Lsa list, uint32_t list_bytes, uint32_t tag);
   void CheckTransfer(const std::string& op, Lsa ls, Ea ea, uint32_t size, bool list_element);
   void CheckTag(const std::string& op, uint32_t tag) const;
   // Queue-full stall, bus slot, MIC lines; appends the command. pieces_ tail holds its pieces.

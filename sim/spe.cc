@@ -16,8 +16,8 @@
 #include "sim/aligned_buffer.h"
 #include "sim/cell_image.h"
 #include "sim/spe_dda.h"
-#include "streams/raygen.h"
 #include "streams/ray_stream.h"
+#include "streams/raygen.h"
 
 namespace rs::sim {
 namespace {
@@ -36,16 +36,25 @@ constexpr uint32_t kPacketBytes = sizeof(TrianglePacket);
 static_assert(std::is_trivially_copyable_v<FrameConstants>);
 static_assert(std::is_trivially_copyable_v<RayRecord>);
 
-enum class Phase { kStart, kRefill, kTileGetllar, kTilePutllc, kTraverse, kVisit, kShade, kFinish,
-                   kDone };
+enum class Phase {
+  kStart,
+  kRefill,
+  kTileGetllar,
+  kTilePutllc,
+  kTraverse,
+  kVisit,
+  kShade,
+  kFinish,
+  kDone
+};
 
 enum class Flight : uint8_t {
-  kVisit,            // waiting for its cell's triangles
-  kContinue,         // written back into the ring buffer
-  kDoneMiss,         // closest-hit ray that hit nothing
-  kDoneHit,          // closest-hit ray with a hit (hit data requested)
-  kDoneOccluded,     // shadow ray blocked
-  kDoneUnoccluded,   // shadow ray reached its light
+  kVisit,           // waiting for its cell's triangles
+  kContinue,        // written back into the ring buffer
+  kDoneMiss,        // closest-hit ray that hit nothing
+  kDoneHit,         // closest-hit ray with a hit (hit data requested)
+  kDoneOccluded,    // shadow ray blocked
+  kDoneUnoccluded,  // shadow ray reached its light
 };
 
 struct FlightInfo {
@@ -57,9 +66,9 @@ struct FlightInfo {
   uint32_t leaf = UINT32_MAX;  // leaf whose triangles are (being) loaded into the buffer
   uint32_t first_packet = 0;
   uint32_t count = 0;
-  bool refined_top = false;    // its top-level cell turned out refined (sharers re-resolve)
-  Lsa sub_lsa = 0;             // LS line holding the SubGridRecord of the ray's sub-grid
-  int32_t tile = -1;           // tile the ray belongs to, for the tile times
+  bool refined_top = false;  // its top-level cell turned out refined (sharers re-resolve)
+  Lsa sub_lsa = 0;           // LS line holding the SubGridRecord of the ray's sub-grid
+  int32_t tile = -1;         // tile the ray belongs to, for the tile times
 };
 
 struct PixelSlot {
@@ -67,7 +76,7 @@ struct PixelSlot {
   bool draining = false;  // its write-back DMA may still be in flight
   Tile rect;
   int32_t tile = -1;
-  uint32_t next = 0;      // primaries generated so far
+  uint32_t next = 0;  // primaries generated so far
   uint32_t total = 0;
   int64_t outstanding = 0;  // rays of the sub-tile not yet finished
 };
@@ -171,7 +180,7 @@ struct Spe::Impl {
   Lsa pixel_lsa = 0, list_lsa = 0;
   uint32_t tri_slot_bytes = 0, pixel_slot_bytes = 0, list_slot_bytes = 0;
   uint32_t elements_per_row = 1;
-  FrameConstants fc{};                // the LS copy, in "registers"
+  FrameConstants fc{};                  // the LS copy, in "registers"
   const uint64_t* occupancy = nullptr;  // LS
 
   // Ray buffer (FIFO ring in LS), staging block and blocks spilled to main memory.
@@ -215,15 +224,32 @@ struct Spe::Impl {
 
 void Spe::Impl::Step() {
   switch (phase) {
-    case Phase::kStart: Start(); break;
-    case Phase::kRefill: Refill(); break;
-    case Phase::kTileGetllar: TileGetllar(); break;
-    case Phase::kTilePutllc: TilePutllc(); break;
-    case Phase::kTraverse: Traverse(); break;
-    case Phase::kVisit: Visit(); break;
-    case Phase::kShade: Shade(); break;
-    case Phase::kFinish: Finish(); break;
-    case Phase::kDone: break;
+    case Phase::kStart:
+      Start();
+      break;
+    case Phase::kRefill:
+      Refill();
+      break;
+    case Phase::kTileGetllar:
+      TileGetllar();
+      break;
+    case Phase::kTilePutllc:
+      TilePutllc();
+      break;
+    case Phase::kTraverse:
+      Traverse();
+      break;
+    case Phase::kVisit:
+      Visit();
+      break;
+    case Phase::kShade:
+      Shade();
+      break;
+    case Phase::kFinish:
+      Finish();
+      break;
+    case Phase::kDone:
+      break;
   }
 }
 
@@ -256,8 +282,8 @@ LsLayout LayOut(const SimConfig& config, LocalStore& ls, Mfc& mfc, SpuClock& clo
   *cache = std::make_unique<SoftwareCache>(config.sw_cache, ls, mfc, clock);
   l.pixel_slot_bytes = config.pixel_buffer_pixels * 16;
   l.pixel = ls.Allocate("pixel buffers", uint64_t(config.pixel_buffers) * l.pixel_slot_bytes, 128);
-  const uint32_t row_px =
-      std::min<uint32_t>(config.pixel_buffer_pixels, static_cast<uint32_t>(std::max(image_width, 1)));
+  const uint32_t row_px = std::min<uint32_t>(config.pixel_buffer_pixels,
+                                             static_cast<uint32_t>(std::max(image_width, 1)));
   l.elements_per_row = (row_px * 16 + kMaxDmaSize - 1) / kMaxDmaSize;
   l.list_slot_bytes = config.max_subtile_rows * l.elements_per_row * 8;
   l.list = ls.Allocate("DMA lists", uint64_t(config.pixel_buffers) * l.list_slot_bytes, 16);
@@ -295,8 +321,8 @@ void Spe::Impl::Start() {
     mfc.WaitTagsAll(1u << kSetupTag);
     std::memcpy(&fc, ls.Bytes(at, sizeof(FrameConstants)), sizeof(FrameConstants));
   }
-  const LsLayout l = LayOut(config, ls, mfc, clock, fc.num_lights, fc.image_width,
-                            fc.grid.two_level != 0, &cache);
+  const LsLayout l =
+      LayOut(config, ls, mfc, clock, fc.num_lights, fc.image_width, fc.grid.two_level != 0, &cache);
   fc_lsa = l.fc;
   ring_lsa = l.ring;
   flight_lsa = l.flight;
@@ -323,9 +349,8 @@ void Spe::Impl::Start() {
   }
   if (fc.grid.empty == 0) {
     const std::string what = "occupancy bits of the " + std::to_string(fc.grid.res[0]) + "x" +
-                             std::to_string(fc.grid.res[1]) + "x" +
-                             std::to_string(fc.grid.res[2]) + " grid (" +
-                             std::to_string(fc.grid.num_cells) + " cells)";
+                             std::to_string(fc.grid.res[1]) + "x" + std::to_string(fc.grid.res[2]) +
+                             " grid (" + std::to_string(fc.grid.num_cells) + " cells)";
     occ_lsa = ls.Allocate(what, fc.occupancy_bytes, 128);
     for (uint64_t off = 0; off < fc.occupancy_bytes; off += kMaxDmaSize) {
       const uint32_t size =
@@ -785,8 +810,8 @@ void Spe::Impl::FinishTraversal(int r) {
     f.status = Flight::kDoneHit;
     // Hit data (vertices, normals, UVs, material id) arrives while the others are visited.
     mfc.MfcGet(hit_lsa + uint32_t(r) * sizeof(ShadingRecord),
-               fc.shading + uint64_t{rec.best_prim} * sizeof(ShadingRecord),
-               sizeof(ShadingRecord), kHitTagBase + uint32_t(r));
+               fc.shading + uint64_t{rec.best_prim} * sizeof(ShadingRecord), sizeof(ShadingRecord),
+               kHitTagBase + uint32_t(r));
     ++counters.hit_loads;
   } else {
     f.status = Flight::kDoneMiss;
@@ -957,12 +982,12 @@ void Spe::Impl::Shade() {
         std::memcpy(&sr, ls.Bytes(hit_lsa + uint32_t(r) * sizeof(ShadingRecord), sizeof(sr)),
                     sizeof(sr));
         MaterialRecord mr;
-        cache->Read(fc.materials + uint64_t{sr.material} * sizeof(MaterialRecord), sizeof(mr),
-                    &mr);
+        cache->Read(fc.materials + uint64_t{sr.material} * sizeof(MaterialRecord), sizeof(mr), &mr);
         const size_t k = size_t(nh);
         for (int v = 0; v < 3; ++v) {
           sc.positions[3 * k + size_t(v)] = glm::vec3(sr.p[v][0], sr.p[v][1], sr.p[v][2]);
-          if (normals) sc.normals[3 * k + size_t(v)] = glm::vec3(sr.n[v][0], sr.n[v][1], sr.n[v][2]);
+          if (normals)
+            sc.normals[3 * k + size_t(v)] = glm::vec3(sr.n[v][0], sr.n[v][1], sr.n[v][2]);
         }
         sc.triangles[k] = glm::uvec3(3 * k, 3 * k + 1, 3 * k + 2);
         sc.material_ids[k] = static_cast<uint32_t>(k);
@@ -1072,14 +1097,15 @@ void Spe::Impl::RetireSubtiles() {
     const Lsa list = list_lsa + uint32_t(b) * list_slot_bytes;
     DmaListElement* e = ls.As<DmaListElement>(list, list_slot_bytes / 8);
     const uint32_t row_bytes = static_cast<uint32_t>(s.rect.Width()) * 16;
-    const Ea first = fc.pixels + (uint64_t(s.rect.y0) * uint64_t(fc.image_width) +
-                                  uint64_t(s.rect.x0)) * 16;
-    const Ea last = fc.pixels + (uint64_t(s.rect.y1 - 1) * uint64_t(fc.image_width) +
-                                 uint64_t(s.rect.x1)) * 16;
+    const Ea first =
+        fc.pixels + (uint64_t(s.rect.y0) * uint64_t(fc.image_width) + uint64_t(s.rect.x0)) * 16;
+    const Ea last =
+        fc.pixels + (uint64_t(s.rect.y1 - 1) * uint64_t(fc.image_width) + uint64_t(s.rect.x1)) * 16;
     if ((first >> 32) == ((last - 1) >> 32)) {
       uint32_t count = 0;
       for (int y = s.rect.y0; y < s.rect.y1; ++y) {
-        const Ea row = fc.pixels + (uint64_t(y) * uint64_t(fc.image_width) + uint64_t(s.rect.x0)) * 16;
+        const Ea row =
+            fc.pixels + (uint64_t(y) * uint64_t(fc.image_width) + uint64_t(s.rect.x0)) * 16;
         for (uint32_t off = 0; off < row_bytes; off += kMaxDmaSize) {
           e[count].size = std::min(kMaxDmaSize, row_bytes - off);
           e[count].eal = static_cast<uint32_t>(row + off);
@@ -1091,7 +1117,8 @@ void Spe::Impl::RetireSubtiles() {
     } else {  // rows straddle a 4 GiB boundary: one put per row piece
       Lsa at = buffer;
       for (int y = s.rect.y0; y < s.rect.y1; ++y) {
-        const Ea row = fc.pixels + (uint64_t(y) * uint64_t(fc.image_width) + uint64_t(s.rect.x0)) * 16;
+        const Ea row =
+            fc.pixels + (uint64_t(y) * uint64_t(fc.image_width) + uint64_t(s.rect.x0)) * 16;
         for (uint32_t off = 0; off < row_bytes; off += kMaxDmaSize) {
           const uint32_t size = std::min(kMaxDmaSize, row_bytes - off);
           mfc.MfcPut(at, row + off, size, kPixelTagBase + uint32_t(b));

@@ -23,24 +23,24 @@ namespace rs::sim {
 
 // Work counters of one SPE (or all, merged).
 struct SpeCounters {
-  uint64_t rays[kNumRayKinds] = {};  // rays finished, by RayKind
-  uint64_t hits = 0;                 // closest-hit rays that hit
-  uint64_t occluded = 0;             // shadow rays blocked
-  uint64_t cell_steps = 0;           // cells examined (same count as the reference DDA)
-  uint64_t visits = 0;               // occupied cells intersected (VisitVoxel)
-  uint64_t packets = 0;              // 1 ray x 4 triangle packet tests
-  uint64_t triangle_tests = 0;       // live lanes tested
-  uint64_t micro_cache_hits = 0;     // visits that reused a cell loaded in the same iteration
-  uint64_t cell_loads = 0;           // cell records fetched (atomic loads) + triangle DMAs
-  uint64_t chunk_loads = 0;          // extra synchronous loads for cells larger than a buffer
-  uint64_t hit_loads = 0;            // hit-data DMAs
-  uint64_t subgrid_loads = 0;        // sub-grid records loaded (two-level grid, paper 3.8)
-  uint64_t iterations = 0;           // pipeline iterations
-  uint64_t rays_in_flight = 0;       // sum over iterations of the rays taken (<= 8 each)
-  uint64_t tiles = 0;                // tiles taken from the tile counter
-  uint64_t subtiles = 0;             // pixel-buffer sub-tiles rendered
+  uint64_t rays[kNumRayKinds] = {};   // rays finished, by RayKind
+  uint64_t hits = 0;                  // closest-hit rays that hit
+  uint64_t occluded = 0;              // shadow rays blocked
+  uint64_t cell_steps = 0;            // cells examined (same count as the reference DDA)
+  uint64_t visits = 0;                // occupied cells intersected (VisitVoxel)
+  uint64_t packets = 0;               // 1 ray x 4 triangle packet tests
+  uint64_t triangle_tests = 0;        // live lanes tested
+  uint64_t micro_cache_hits = 0;      // visits that reused a cell loaded in the same iteration
+  uint64_t cell_loads = 0;            // cell records fetched (atomic loads) + triangle DMAs
+  uint64_t chunk_loads = 0;           // extra synchronous loads for cells larger than a buffer
+  uint64_t hit_loads = 0;             // hit-data DMAs
+  uint64_t subgrid_loads = 0;         // sub-grid records loaded (two-level grid, paper 3.8)
+  uint64_t iterations = 0;            // pipeline iterations
+  uint64_t rays_in_flight = 0;        // sum over iterations of the rays taken (<= 8 each)
+  uint64_t tiles = 0;                 // tiles taken from the tile counter
+  uint64_t subtiles = 0;              // pixel-buffer sub-tiles rendered
   uint64_t tile_counter_retries = 0;  // failed putllc on the tile counter (contention)
-  uint64_t spilled_rays = 0;         // rays written to main memory because the ring was full
+  uint64_t spilled_rays = 0;          // rays written to main memory because the ring was full
   uint64_t texture_fetches = 0;
   ShadeStats shade;
   void Merge(const SpeCounters& o);

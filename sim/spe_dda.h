@@ -39,13 +39,13 @@ struct alignas(128) RayRecord {
   float t_enter;      // t where the current top-level cell was entered
   // traversal (top level)
   float t_next[3];
-  float t1;           // end of the ray's segment inside the grid
+  float t1;  // end of the ray's segment inside the grid
   int32_t cell[3];
-  uint32_t idx;       // current top-level cell
+  uint32_t idx;  // current top-level cell
   int8_t step[3];
-  uint8_t in_sub;     // 1: inside the sub-grid of cell idx, at sub-cell sub_c
-  float t_exit;       // exit t of the current top-level cell
-  float best_t;       // closest: candidate t (starts at the clamped tmax)
+  uint8_t in_sub;  // 1: inside the sub-grid of cell idx, at sub-cell sub_c
+  float t_exit;    // exit t of the current top-level cell
+  float best_t;    // closest: candidate t (starts at the clamped tmax)
   float best_u;
   float best_v;
   uint32_t best_prim;  // UINT32_MAX: no candidate
@@ -127,11 +127,11 @@ inline bool DdaBegin(const GridHeader& grid, RayRecord& r) {
 inline bool DdaStep(const GridHeader& grid, RayRecord& r, float t_exit) {
   if (r.best_t <= t_exit || r.t1 <= t_exit) return false;
   const float* t_next = r.t_next;
-  const int a = t_next[0] < t_next[1] ? (t_next[0] < t_next[2] ? 0 : 2)
-                                      : (t_next[1] < t_next[2] ? 1 : 2);
+  const int a =
+      t_next[0] < t_next[1] ? (t_next[0] < t_next[2] ? 0 : 2) : (t_next[1] < t_next[2] ? 1 : 2);
   r.cell[a] += r.step[a];
   if (r.cell[a] < 0 || r.cell[a] >= grid.res[a]) return false;
-  const uint32_t stride = a == 0 ? 1u
+  const uint32_t stride = a == 0   ? 1u
                           : a == 1 ? uint32_t(grid.res[0])
                                    : uint32_t(grid.res[0]) * uint32_t(grid.res[1]);
   r.idx = r.step[a] > 0 ? r.idx + stride : r.idx - stride;
@@ -187,8 +187,8 @@ inline SubResult SubStep(const SubGridRecord& rec, RayRecord& r) {
   const float t_exit = t_next[0] < t_next[1] ? (t_next[0] < t_next[2] ? t_next[0] : t_next[2])
                                              : (t_next[1] < t_next[2] ? t_next[1] : t_next[2]);
   if (r.best_t <= t_exit || r.t1 <= t_exit) return SubResult::kDone;
-  const int a = t_next[0] < t_next[1] ? (t_next[0] < t_next[2] ? 0 : 2)
-                                      : (t_next[1] < t_next[2] ? 1 : 2);
+  const int a =
+      t_next[0] < t_next[1] ? (t_next[0] < t_next[2] ? 0 : 2) : (t_next[1] < t_next[2] ? 1 : 2);
   const int c = int(r.sub_c[a]) + r.step[a];
   if (c < 0 || c >= kSubRes) {
     r.in_sub = 0;
@@ -233,8 +233,8 @@ inline bool DdaAdvance(const GridHeader& grid, const uint64_t* occupancy, RayRec
 // the reference's candidate rule (t <= candidate, lower id on ties). Any hit (shadow rays):
 // returns true at the first hit. Returns the number of triangle tests in *tests.
 template <bool kAnyHit>
-inline bool IntersectPackets(const WatertightRay& wr, const TrianglePacket* packets,
-                             uint32_t count, RayRecord& r, uint64_t* tests) {
+inline bool IntersectPackets(const WatertightRay& wr, const TrianglePacket* packets, uint32_t count,
+                             RayRecord& r, uint64_t* tests) {
   const int kx = wr.kx, ky = wr.ky, kz = wr.kz;
   bool found = false;
   for (uint32_t k = 0; k < count; ++k) {
@@ -246,8 +246,8 @@ inline bool IntersectPackets(const WatertightRay& wr, const TrianglePacket* pack
       TriHit th;
       if (!IntersectWatertightPermuted(wr, p.p[0][kx][lane], p.p[0][ky][lane], p.p[0][kz][lane],
                                        p.p[1][kx][lane], p.p[1][ky][lane], p.p[1][kz][lane],
-                                       p.p[2][kx][lane], p.p[2][ky][lane], p.p[2][kz][lane],
-                                       r.tmin, r.best_t, &th)) {
+                                       p.p[2][kx][lane], p.p[2][ky][lane], p.p[2][kz][lane], r.tmin,
+                                       r.best_t, &th)) {
         continue;
       }
       if constexpr (kAnyHit) {

@@ -3,8 +3,6 @@
 // meshes, under many simulator settings (SPE counts, micro-cache off, spills, chunked cells, tile
 // shapes, PBT, explicit tile lists); deterministic simulated cycles; refusal of grids whose
 // occupancy bits do not fit the local store.
-#include "sim/cell_renderer.h"
-
 #include <doctest/doctest.h>
 
 #include <cstring>
@@ -13,6 +11,7 @@
 
 #include "scenes/load.h"
 #include "sched/render.h"
+#include "sim/cell_renderer.h"
 #include "tests/test_util.h"
 
 namespace rs {
@@ -325,7 +324,8 @@ TEST_CASE("shared scenes: bit-identical at small resolution") {
     const Scene scene = LoadScene(name);
     std::string note;
     const Accel accel = sim::BuildCellAccel(scene, BuildOptions{}, SimConfig{}, 40, &note);
-    MESSAGE(std::string(name), ": ", std::string(accel.Info().kind), " ", accel.Info().cells, " cells ", note);
+    MESSAGE(std::string(name), ": ", std::string(accel.Info().kind), " ", accel.Info().cells,
+            " cells ", note);
     const FrameContext ctx = Context(scene, accel, 40, 32, 2);
     const Reference ref = RenderReference(ctx);
     CheckCell(ctx, ref, SimConfig{}, name);

@@ -2,14 +2,13 @@
 // cycles to load 8 bytes through the software cache, a synchronous / asynchronous DMA and a
 // synchronous / asynchronous atomic load must land within +-10 % of 315 / 986 / 609 / 470 / 269
 // and keep the paper's order. Also checks the costs move the right way when the model changes.
-#include "sim/load_bench.h"
-
 #include <doctest/doctest.h>
 
 #include <cmath>
 #include <string>
 
 #include "include/raystream/raystream.h"
+#include "sim/load_bench.h"
 
 namespace rs::sim {
 namespace {
@@ -20,7 +19,8 @@ TEST_CASE("Table 1 load costs within 10 % of the paper") {
           " / ", c.cycles[4], " cycles (paper 315 / 986 / 609 / 470 / 269), SW-cache hit rate ",
           c.sw_cache_hit_rate);
   for (int i = 0; i < 5; ++i) {
-    INFO(std::string(kLoadCostNames[i]), ": simulated ", c.cycles[i], " cycles, paper ", kPaperLoadCosts[i]);
+    INFO(std::string(kLoadCostNames[i]), ": simulated ", c.cycles[i], " cycles, paper ",
+         kPaperLoadCosts[i]);
     CHECK(std::fabs(c.cycles[i] - kPaperLoadCosts[i]) <= 0.10 * kPaperLoadCosts[i]);
   }
   // The paper's ranking: atomic async < SW cache < atomic sync < DMA async < DMA sync.

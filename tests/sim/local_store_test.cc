@@ -61,8 +61,8 @@ TEST_CASE("overflow is a hard error naming the allocation and the sizes") {
 
 TEST_CASE("bad requests and out-of-range access") {
   LocalStore ls(16 * 1024, 0);
-  CHECK_THROWS_AS(ls.Allocate("x", 16, 8), Error);    // alignment < 16
-  CHECK_THROWS_AS(ls.Allocate("x", 16, 48), Error);   // not a power of two
+  CHECK_THROWS_AS(ls.Allocate("x", 16, 8), Error);   // alignment < 16
+  CHECK_THROWS_AS(ls.Allocate("x", 16, 48), Error);  // not a power of two
   CHECK_THROWS_AS(ls.Bytes(16 * 1024 - 8, 16), Error);
   CHECK_NOTHROW(ls.Bytes(16 * 1024 - 16, 16));
   CHECK_THROWS_AS(LocalStore(1000, 0), Error);

@@ -81,8 +81,7 @@ TEST_CASE("illegal DMAs are hard errors naming the rule") {
                        doctest::Contains("differ in their low 4 bits"), Error);
   CHECK_THROWS_WITH_AS(e.mfc.MfcGet(2, ea + 2, 4, 0), doctest::Contains("naturally aligned"),
                        Error);
-  CHECK_THROWS_WITH_AS(e.mfc.MfcGet(8, ea + 8, 32, 0), doctest::Contains("16-byte aligned"),
-                       Error);
+  CHECK_THROWS_WITH_AS(e.mfc.MfcGet(8, ea + 8, 32, 0), doctest::Contains("16-byte aligned"), Error);
   CHECK_THROWS_WITH_AS(e.mfc.MfcGet(0, ea, 16, 32), doctest::Contains("tag 32 is out of range"),
                        Error);
   CHECK_THROWS_WITH_AS(e.mfc.MfcGet(0, ea + e.ro.size() - 16, 32, 0),
@@ -122,8 +121,8 @@ TEST_CASE("synchronous get timing and MIC contention between SPEs") {
   e.mfc.MfcGet(0, e.ro.ea(), 128, 0);
   e.mfc.WaitTagsAll(1);
   // issue + one line (slot aligned to 16 cycles) + latency + wait
-  const uint64_t one = e.timing.dma_issue_cycles + 16 + e.timing.dma_latency_cycles +
-                       e.timing.dma_wait_cycles;
+  const uint64_t one =
+      e.timing.dma_issue_cycles + 16 + e.timing.dma_latency_cycles + e.timing.dma_wait_cycles;
   CHECK(e.clock.now() >= one);
   CHECK(e.clock.now() <= one + 16);
 
@@ -159,8 +158,7 @@ TEST_CASE("DMA lists") {
   const uint32_t hi = static_cast<uint32_t>(base >> 32);
   CHECK_THROWS_WITH_AS(e.mfc.MfcGetList(0, hi, 8192, 2049 * 8, 0),
                        doctest::Contains("1 to 2048 elements"), Error);
-  CHECK_THROWS_WITH_AS(e.mfc.MfcGetList(0, hi, 8192, 0, 0), doctest::Contains("1 to 2048"),
-                       Error);
+  CHECK_THROWS_WITH_AS(e.mfc.MfcGetList(0, hi, 8192, 0, 0), doctest::Contains("1 to 2048"), Error);
   CHECK_THROWS_WITH_AS(e.mfc.MfcGetList(0, hi, 8196, 8, 0), doctest::Contains("8-byte aligned"),
                        Error);
   list[0] = {16400, static_cast<uint32_t>(base)};
