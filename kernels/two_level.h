@@ -34,7 +34,8 @@ inline constexpr int kSubCells = kSubRes * kSubRes * kSubRes;
 //   parent, refs 8 B the top-level cell, the references in its sub-cells (statistics)
 // All 512 (begin, end) ranges (>= 2 KiB) cannot fit; storing ranks lets the leaf id be computed
 // from the record alone, and the leaf's range (or packet span) is one more read elsewhere.
-struct alignas(128) SubGridRecord {
+// Records are stored 64-B aligned (hwy::AllocateAligned), so each is exactly two cache lines.
+struct SubGridRecord {
   uint64_t bits[8];
   float lo[3];
   float cell_size[3];

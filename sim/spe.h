@@ -1,10 +1,11 @@
 // One simulated SPE running the ray pipeline of the Cell paper (section 3.2) as a resumable
 // program: refill the FIFO ring buffer (primary rays from tiles of the atomic tile counter),
 // traverse 8 rays to their first occupied cell on the LS occupancy bits, load each cell's record
-// (128-B atomic load) and triangles (DMA) while the others traverse, intersect (VisitVoxel),
-// load hit data, shade (materials and textures through the software cache) and write secondary
-// rays back. Step() runs to the next point where the SPE touches shared state, so a
-// discrete-event loop can always advance the SPE that is furthest behind.
+// (128-B atomic load; a refined cell's 8x8x8 sub-grid record is a second one, paper 3.8) and
+// triangles (DMA) while the others traverse, intersect (VisitVoxel), load hit data, shade
+// (materials and textures through the software cache) and write secondary rays back. Step() runs
+// to the next point where the SPE touches shared state, so a discrete-event loop can always
+// advance the SPE that is furthest behind.
 #pragma once
 
 #include <cstdint>
