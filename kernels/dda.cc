@@ -44,26 +44,7 @@ bool Traverse(const Grid& grid, const TriangleSoA& tris, float ox, float oy, flo
   float t0 = tmin, t1 = tmax_f;
   float inv_d[3];
   bool parallel[3];
-  for (int a = 0; a < 3; ++a) {
-    const float inv = 1.0f / d[a];
-    parallel[a] = !(d[a] != 0.0f && std::isfinite(inv));
-    if (parallel[a]) {
-      inv_d[a] = 0.0f;
-      if (o[a] < grid.lo[a] || o[a] > grid.hi[a]) return false;
-      continue;
-    }
-    inv_d[a] = inv;
-    float ta = (grid.lo[a] - o[a]) * inv;
-    float tb = (grid.hi[a] - o[a]) * inv;
-    if (ta > tb) {
-      const float tmp = ta;
-      ta = tb;
-      tb = tmp;
-    }
-    t0 = ta > t0 ? ta : t0;
-    t1 = tb < t1 ? tb : t1;
-  }
-  if (!(t0 <= t1)) return false;
+  if (!ClipRayToGrid(grid, o, d, t0, t1, inv_d, parallel)) return false;
 
   // Start cell: the entry point, clamped into the grid (rounding may put it just outside).
   // Per axis: step direction and t of the next cell boundary.

@@ -3,6 +3,7 @@
 // SIMD stream kernels will be tested against.
 #pragma once
 
+#include <cmath>
 #include <cstdint>
 
 #include "include/raystream/raystream.h"
@@ -10,6 +11,35 @@
 #include "kernels/triangle.h"
 
 namespace rs {
+
+// Slab clip of a ray (o, d) to the box [lo, hi] of a grid (any type with float lo[3], hi[3]),
+// shared by every scalar DDA (kernels/dda.cc, the Cell simulator's resumable DDA). Narrows
+// [t0, t1]; axes with d = +-0 (or 1/d overflowing) are parallel: the origin must lie inside
+// that slab and the DDA never steps along them (inv_d = 0). False if the ray misses the box.
+template <class GridT>
+inline bool ClipRayToGrid(const GridT& grid, const float o[3], const float d[3], float& t0,
+                          float& t1, float inv_d[3], bool parallel[3]) {
+  for (int a = 0; a < 3; ++a) {
+    const float inv = 1.0f / d[a];
+    parallel[a] = !(d[a] != 0.0f && std::isfinite(inv));
+    if (parallel[a]) {
+      inv_d[a] = 0.0f;
+      if (o[a] < grid.lo[a] || o[a] > grid.hi[a]) return false;
+      continue;
+    }
+    inv_d[a] = inv;
+    float ta = (grid.lo[a] - o[a]) * inv;
+    float tb = (grid.hi[a] - o[a]) * inv;
+    if (ta > tb) {
+      const float tmp = ta;
+      ta = tb;
+      tb = tmp;
+    }
+    t0 = ta > t0 ? ta : t0;
+    t1 = tb < t1 ? tb : t1;
+  }
+  return t0 <= t1;
+}
 
 // Result of one traced ray: prim = -1 and t = +inf for a miss.
 struct RayHit {

@@ -11,6 +11,7 @@
 #include <cstdint>
 #include <limits>
 
+#include "kernels/dda.h"
 #include "kernels/triangle.h"
 #include "kernels/two_level.h"
 #include "sim/cell_image.h"
@@ -73,26 +74,7 @@ inline bool DdaBegin(const GridHeader& grid, RayRecord& r) {
   float t0 = r.tmin, t1 = tmax_f;
   float inv_d[3];
   bool parallel[3];
-  for (int a = 0; a < 3; ++a) {
-    const float inv = 1.0f / d[a];
-    parallel[a] = !(d[a] != 0.0f && std::isfinite(inv));
-    if (parallel[a]) {
-      inv_d[a] = 0.0f;
-      if (o[a] < grid.lo[a] || o[a] > grid.hi[a]) return false;
-      continue;
-    }
-    inv_d[a] = inv;
-    float ta = (grid.lo[a] - o[a]) * inv;
-    float tb = (grid.hi[a] - o[a]) * inv;
-    if (ta > tb) {
-      const float tmp = ta;
-      ta = tb;
-      tb = tmp;
-    }
-    t0 = ta > t0 ? ta : t0;
-    t1 = tb < t1 ? tb : t1;
-  }
-  if (!(t0 <= t1)) return false;
+  if (!ClipRayToGrid(grid, o, d, t0, t1, inv_d, parallel)) return false;
   r.t_enter = t0;
   r.enter_axis = -1;
   r.in_sub = 0;
