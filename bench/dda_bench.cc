@@ -245,7 +245,8 @@ void Report(benchmark::State& state, uint64_t ticks, double cpu_seconds, const T
   }
 }
 
-// kind: 0 stream, 1 single-ray form, 2 stream without micro-cache; target 0 = normal dispatch.
+// kind: 0 stream, 1 single-ray form, 2 stream without micro-cache, 3 stream without empty-space
+// skipping; target 0 = normal dispatch.
 void BM_Dda(benchmark::State& state, Workload w, int64_t target, int kind) {
   WorkData& d = GetWork(w);
   if (!d.error.empty()) {
@@ -258,6 +259,7 @@ void BM_Dda(benchmark::State& state, Workload w, int64_t target, int kind) {
   const HitStreamView hits = d.hits.view();
   DdaOptions options = m.dda_options;
   if (kind == 2) options.micro_cache = 0;
+  if (kind == 3) options.empty_skip = false;
   auto run = [&](TraceStats* st) {
     if (kind == 1) {
       for (size_t i = 0; i < rays.size; ++i) {
@@ -367,6 +369,8 @@ void RegisterAll() {
           ->Unit(benchmark::kMillisecond);
     }
     benchmark::RegisterBenchmark(("DdaNoCache/" + w.name).c_str(), BM_Dda, w, int64_t{0}, 2)
+        ->Unit(benchmark::kMillisecond);
+    benchmark::RegisterBenchmark(("DdaNoSkip/" + w.name).c_str(), BM_Dda, w, int64_t{0}, 3)
         ->Unit(benchmark::kMillisecond);
   }
   // flat vs two-level (dispatch target): forced (every cell above 32 triangles refined) and the

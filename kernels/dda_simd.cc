@@ -38,6 +38,7 @@
 #include <algorithm>
 #include <cstring>
 #include <limits>
+#include <vector>
 
 #undef HWY_TARGET_INCLUDE
 #define HWY_TARGET_INCLUDE "kernels/dda_simd.cc"
@@ -417,6 +418,103 @@ HWY_INLINE void Descend(const DdaGrid& g, LaneSlots* ls, size_t l) {
   ls->fresh[l] = 1;
 }
 
+// Empty-space skipping (DdaOptions::empty_skip) for the top-level lanes `empty_i` that have
+// just entered an empty cell: a lane whose cell has k >= 1 empty rings around it
+// (DdaGrid::skip) jumps to the DDA state in which every cell boundary with t < t_cube has been
+// crossed, t_cube being where the ray leaves the (2k+1)^3 block of empty cells. The boundary t
+// of an axis, (lo + float(b) * cell_size - o) * inv, never decreases along the ray (each float
+// operation is monotone), so the exact DDA crosses the boundaries in t order and that state is
+// one it passes through, with all the cells before it empty: the cells with triangles that a
+// lane visits, and so every result, stay those of the DDA. Per axis the number of boundaries to
+// cross comes from the block exit point and is then corrected with the exact boundary t. A
+// lane whose candidate or segment end lies inside the block, or that leaves the grid in it, is
+// done. Returns the number of jumps.
+template <class D, class MI>
+HWY_INLINE size_t JumpEmpty(D d, const Grid& grid, const uint32_t* skip, MI empty_i,
+                            LaneSlots* ls) {
+  const hn::RebindToSigned<D> di;
+  const hn::RebindToUnsigned<D> du;
+  using V = hn::Vec<D>;
+  using VI = hn::Vec<decltype(di)>;
+  const VI zero_i = hn::Zero(di), one_i = hn::Set(di, 1);
+  const VI idx = hn::IfThenElseZero(empty_i, hn::Load(di, ls->idx));
+  // (inactive lanes read word 0; the array is whole, aligned 32-bit words)
+  const auto words = hn::GatherIndex(du, skip, hn::ShiftRight<2>(idx));
+  const VI shift = hn::ShiftLeft<3>(hn::And(idx, hn::Set(di, 3)));
+  const VI k = hn::BitCast(di, hn::And(hn::Shr(words, hn::BitCast(du, shift)), hn::Set(du, 0xFFu)));
+  const auto jump_i = hn::And(empty_i, hn::Gt(k, zero_i));
+  if (hn::AllFalse(di, jump_i)) return 0;
+  const V inf = hn::Set(d, std::numeric_limits<float>::infinity());
+  VI c[3], step[3], up[3];
+  V o[3], inv[3], lo[3], cs[3];
+  hn::Mask<D> par[3];
+  // t of boundary j of axis a (the j-th boundary ahead of the current cell), +inf if parallel
+  auto boundary_t = [&](int a, const VI& j) {
+    const V b = hn::ConvertTo(d, hn::Add(hn::Add(c[a], up[a]), hn::Mul(step[a], j)));
+    return hn::IfThenElse(par[a], inf,
+                          hn::Mul(hn::Sub(hn::Add(lo[a], hn::Mul(b, cs[a])), o[a]), inv[a]));
+  };
+  V t_cube = inf;
+  for (int a = 0; a < 3; ++a) {
+    c[a] = hn::Load(di, ls->cell[a]);
+    step[a] = hn::Load(di, ls->step[a]);
+    up[a] = hn::Load(di, ls->up[a]);
+    o[a] = hn::Load(d, ls->o[a]);
+    inv[a] = hn::Load(d, ls->inv[a]);
+    lo[a] = hn::Set(d, grid.lo[a]);
+    cs[a] = hn::Set(d, grid.cell_size[a]);
+    par[a] = hn::RebindMask(d, hn::Eq(step[a], zero_i));
+    t_cube = hn::Min(t_cube, boundary_t(a, k));
+  }
+  const V limit = hn::Min(hn::Load(d, ls->best), hn::Load(d, ls->t1));
+  auto end_i = hn::And(jump_i, hn::RebindMask(di, hn::Le(limit, t_cube)));
+  const auto move_i = hn::AndNot(end_i, jump_i);
+  const V t_dir[3] = {hn::Load(d, ls->d[0]), hn::Load(d, ls->d[1]), hn::Load(d, ls->d[2])};
+  VI idx_new = zero_i;
+  VI c_new[3];
+  V t_new[3];
+  for (int a = 0; a < 3; ++a) {
+    const auto live_i = hn::AndNot(hn::RebindMask(di, par[a]), move_i);
+    // estimate: the cell of the block exit point, as a count of boundaries ahead
+    const V f = hn::Mul(hn::Sub(hn::Add(o[a], hn::Mul(t_cube, t_dir[a])), lo[a]),
+                        hn::Set(d, grid.inv_cell_size[a]));
+    const V fc = hn::Floor(hn::Min(hn::Max(f, hn::Set(d, -1.0f)),
+                                   hn::Set(d, float(grid.res[a]))));  // NaN-free, bounded
+    const VI cell_f = hn::ConvertTo(di, fc);
+    VI m = hn::Mul(hn::Sub(cell_f, c[a]), step[a]);
+    m = hn::IfThenElseZero(live_i, hn::Min(hn::Max(m, zero_i), k));
+    // exact count: m = #{j in [0, k] : boundary_t(j) < t_cube} (monotone in j)
+    for (;;) {
+      const auto inc = hn::And(hn::And(live_i, hn::Lt(m, k)),
+                               hn::RebindMask(di, hn::Lt(boundary_t(a, m), t_cube)));
+      if (hn::AllFalse(di, inc)) break;
+      m = hn::Add(m, hn::IfThenElseZero(inc, one_i));
+    }
+    for (;;) {
+      const VI m1 = hn::Sub(m, one_i);
+      const auto dec = hn::And(hn::And(live_i, hn::Gt(m, zero_i)),
+                               hn::RebindMask(di, hn::Ge(boundary_t(a, m1), t_cube)));
+      if (hn::AllFalse(di, dec)) break;
+      m = hn::IfThenElse(dec, m1, m);
+    }
+    c_new[a] = hn::Add(c[a], hn::Mul(step[a], m));
+    end_i = hn::Or(end_i, hn::And(move_i, hn::Or(hn::Lt(c_new[a], zero_i),
+                                                 hn::Gt(c_new[a], hn::Set(di, grid.res[a] - 1)))));
+    t_new[a] = boundary_t(a, m);
+  }
+  const int32_t stride[3] = {1, grid.res[0], grid.res[0] * grid.res[1]};
+  for (int a = 0; a < 3; ++a) idx_new = hn::Add(idx_new, hn::Mul(c_new[a], hn::Set(di, stride[a])));
+  const auto ok_i = hn::AndNot(end_i, move_i);
+  const auto ok = hn::RebindMask(d, ok_i);
+  for (int a = 0; a < 3; ++a) {
+    hn::Store(hn::IfThenElse(ok_i, c_new[a], c[a]), di, ls->cell[a]);
+    hn::Store(hn::IfThenElse(ok, t_new[a], hn::Load(d, ls->t_next[a])), d, ls->t_next[a]);
+  }
+  hn::Store(hn::IfThenElse(ok_i, idx_new, hn::Load(di, ls->idx)), di, ls->idx);
+  hn::Store(hn::IfThenElse(end_i, hn::Set(di, -1), hn::Load(di, ls->ray)), di, ls->ray);
+  return hn::CountTrue(di, jump_i);
+}
+
 template <bool kAny, bool kTwoLevel>
 HWY_NOINLINE void StreamT(const DdaGrid& g, const RayStreamView& rays, const StreamOut& out,
                           const DdaOptions& options, TraceStats* stats) {
@@ -449,6 +547,8 @@ HWY_NOINLINE void StreamT(const DdaGrid& g, const RayStreamView& rays, const Str
                             hn::Set(di, grid.res[0] * grid.res[1])};
   const VI zero_i = hn::Zero(di), minus1 = hn::Set(di, -1);
   const uint32_t* bits = g.bits.get();
+  const uint32_t* skip = options.empty_skip ? g.skip.get() : nullptr;
+  uint64_t jumps = 0;
 
   for (;;) {
     // 1. refill free lanes from the staging queue, setting up more rays as needed
@@ -570,6 +670,11 @@ HWY_NOINLINE void StreamT(const DdaGrid& g, const RayStreamView& rays, const Str
     hn::Store(zero_i, di, ls.fresh);
     hn::Store(hn::IfThenElse(hn::RebindMask(di, done), minus1, ray), di, ls.ray);
     steps += hn::CountTrue(d, entered);
+    if (skip != nullptr) {
+      auto empty_i = hn::AndNot(pending_i, entered_i);
+      if constexpr (kTwoLevel) empty_i = hn::And(empty_i, hn::Eq(hn::Load(di, ls.level), zero_i));
+      if (!hn::AllFalse(di, empty_i)) jumps += JumpEmpty(d, grid, skip, empty_i, &ls);
+    }
 
     // 3. the cell visit pipeline, one lane at a time: stage 2 lanes test their (prefetched)
     // leaf and resume stepping; stage 1 lanes look up and prefetch their leaf's triangles;
@@ -622,6 +727,7 @@ HWY_NOINLINE void StreamT(const DdaGrid& g, const RayStreamView& rays, const Str
     stats->triangle_tests += tests;
     stats->cache_lookups += cache.lookups();
     stats->cache_hits += cache.hits();
+    stats->empty_skips += jumps;
   }
 }
 
@@ -855,7 +961,53 @@ HWY_EXPORT(DdaTargetName);
 
 size_t DdaGrid::Bytes() const {
   const size_t records = two_level != nullptr ? two_level->num_records : 0;
-  return packets.Bytes() + (top_words32 + records * (kSubCells / 32)) * sizeof(uint32_t);
+  const size_t skip_bytes = grid != nullptr && skip ? (grid->num_cells + 3) / 4 * 4 : 0;  // 4/word
+  return packets.Bytes() + (top_words32 + records * (kSubCells / 32)) * sizeof(uint32_t) +
+         skip_bytes;
+}
+
+void BuildSkipRings(const Grid& grid, uint8_t* skip) {
+  // Chebyshev distance to the nearest occupied cell, capped at kFar, is separable:
+  // dist = min_z' max(|dz|, min_y' max(|dy|, min_x' |dx|)) over occupied (x', y', z'). Pass 1
+  // takes the 1-D distance along each x row (two sweeps); passes 2 and 3 take windowed min-max
+  // along y and z over whole x rows at once (contiguous bytes: the compiler vectorizes them).
+  constexpr int kFar = kMaxSkipRings + 1;
+  const size_t nx = size_t(grid.res[0]), ny = size_t(grid.res[1]), nz = size_t(grid.res[2]);
+  std::vector<uint8_t> a(grid.num_cells), b(grid.num_cells);
+  for (size_t row = 0; row < ny * nz; ++row) {
+    uint8_t* r = a.data() + row * nx;
+    int dist = kFar;
+    for (size_t x = 0; x < nx; ++x) {
+      dist = grid.Occupied(row * nx + x) ? 0 : std::min(dist + 1, kFar);
+      r[x] = uint8_t(dist);
+    }
+    dist = kFar;
+    for (size_t x = nx; x-- > 0;) {
+      dist = r[x] == 0 ? 0 : std::min(dist + 1, kFar);
+      r[x] = std::min(r[x], uint8_t(dist));
+    }
+  }
+  // out[i] = min over |j - i| <= kFar of max(|j - i|, in[j]), i and j along an axis of `count`
+  // runs of `width` bytes, `pitch` bytes apart, in `blocks` such axes `block_pitch` apart
+  auto window = [&](const uint8_t* in, uint8_t* out, size_t count, size_t width, size_t pitch,
+                    size_t blocks, size_t block_pitch) {
+    for (size_t blk = 0; blk < blocks; ++blk) {
+      for (size_t i = 0; i < count; ++i) {
+        uint8_t* o = out + blk * block_pitch + i * pitch;
+        std::copy_n(in + blk * block_pitch + i * pitch, width, o);
+        const size_t j0 = i >= size_t(kFar) ? i - kFar : 0;
+        const size_t j1 = std::min(count - 1, i + kFar);
+        for (size_t j = j0; j <= j1; ++j) {
+          const uint8_t dj = uint8_t(j > i ? j - i : i - j);
+          const uint8_t* q = in + blk * block_pitch + j * pitch;
+          for (size_t x = 0; x < width; ++x) o[x] = std::min(o[x], std::max(dj, q[x]));
+        }
+      }
+    }
+  };
+  window(a.data(), b.data(), ny, nx, nx, nz, nx * ny);   // along y, x rows
+  window(b.data(), a.data(), nz, nx * ny, nx * ny, 1, 0);  // along z, xy planes
+  for (size_t c = 0; c < grid.num_cells; ++c) skip[c] = uint8_t(a[c] == 0 ? 0 : a[c] - 1);
 }
 
 void BuildDdaGrid(const Grid& grid, const TwoLevelGrid* two_level, const TriangleSoA& tris,
@@ -867,6 +1019,7 @@ void BuildDdaGrid(const Grid& grid, const TwoLevelGrid* two_level, const Triangl
   if (grid.empty()) {
     out->packets = TriPackets();
     out->bits.reset();
+    out->skip.reset();
     out->top_words32 = 0;
     return;
   }
@@ -878,6 +1031,19 @@ void BuildDdaGrid(const Grid& grid, const TwoLevelGrid* two_level, const Triangl
   out->top_words32 = 2 * words64;
   const size_t total = out->top_words32 + records * (kSubCells / 32);
   out->simd_ok = out->simd_ok && total < size_t{0x7fffffc0};
+  {
+    std::vector<uint8_t> rings((grid.num_cells + 3) / 4 * 4, uint8_t{0});
+    BuildSkipRings(grid, rings.data());
+    size_t blocks = 0;
+    for (size_t c = 0; c < grid.num_cells; ++c) blocks += rings[c] >= 2;
+    out->empty_block_share = double(blocks) / double(grid.num_cells);
+    out->skip = hwy::AllocateAligned<uint32_t>(rings.size() / 4);
+    HWY_ASSERT(out->skip);
+    for (size_t w = 0; w < rings.size() / 4; ++w) {
+      out->skip[w] = uint32_t(rings[4 * w]) | uint32_t(rings[4 * w + 1]) << 8 |
+                     uint32_t(rings[4 * w + 2]) << 16 | uint32_t(rings[4 * w + 3]) << 24;
+    }
+  }
   out->bits = hwy::AllocateAligned<uint32_t>(total);
   HWY_ASSERT(out->bits);
   for (size_t w = 0; w < words64; ++w) {

@@ -32,6 +32,13 @@ struct DdaGrid {
   // bits), so one gather base serves lanes on either level.
   hwy::AlignedFreeUniquePtr<uint32_t[]> bits;
   size_t top_words32 = 0;
+  // Empty-space skipping: per top-level cell, how many rings of empty cells surround it (its
+  // Chebyshev distance to the nearest occupied cell, minus 1, capped at kMaxSkipRings); one
+  // byte per cell, four to a 32-bit word (cell c in bits 8 * (c % 4) of word c / 4) for the
+  // lane gathers. A lane in an empty cell with k rings jumps to where the exact DDA would leave
+  // the (2k+1)^3 empty block.
+  hwy::AlignedFreeUniquePtr<uint32_t[]> skip;
+  double empty_block_share = 0.0;  // share of top-level cells with >= 2 empty rings
   // The stream kernels index cells with int32 lanes; larger grids (more than 2^31 - 64 cells)
   // are traced by the scalar DDA (false here).
   bool simd_ok = false;
@@ -51,7 +58,18 @@ struct DdaOptions {
   // lane, with their packet spans; 0 disables it, at most kMaxMicroCache. See dda_simd.cc for
   // what it does (and does not) save on a CPU.
   int micro_cache = 8;
+  // Jump over blocks of empty cells (DdaGrid::skip). The cells a lane visits that hold
+  // triangles, and so every result, are those of the exact DDA; only cell_steps drop (the
+  // empty cells jumped over are not entered). Off: every cell is stepped, and cell_steps equal
+  // the scalar DDA's.
+  bool empty_skip = true;
 };
+
+inline constexpr int kMaxSkipRings = 15;
+
+// Fills skip[cell] = min(Chebyshev distance to the nearest occupied cell - 1, kMaxSkipRings)
+// for the empty cells of `grid` (occupied cells get 0); skip holds at least num_cells bytes.
+void BuildSkipRings(const Grid& grid, uint8_t* skip);
 
 // Closest hit of rays[0, size) (contract of Accel::Intersect): hits[i] for i < size are written
 // (a miss is t = +inf, u = v = 0, prim = -1); padding lanes of `hits` are never written. The

@@ -67,7 +67,9 @@ Json InfoJson(const Scene& scene, const AccelInfo& a) {
         {"sub_references", a.sub_references},
         {"cost_estimate", a.cost_estimate},
         {"flat_cost_estimate", a.flat_cost_estimate},
-        {"simd_target", a.simd_target}}},
+        {"simd_target", a.simd_target},
+        {"empty_block_share", a.empty_block_share},
+        {"empty_skip", a.empty_skip}}},
       {"features", FeaturesJson(scene.features)}};
 }
 
@@ -102,6 +104,9 @@ void PrintInfo(const Json& j) {
              g["lambda"].get<double>(), g["subgrids"].get<size_t>(),
              g["sub_references"].get<size_t>(), g["cost_estimate"].get<double>(),
              g["flat_cost_estimate"].get<double>(), g["simd_target"].get<std::string>());
+  fmt::print("empty space  {:.1f} % of cells in empty 5x5x5 blocks, empty-space skipping {}\n",
+             100.0 * g["empty_block_share"].get<double>(),
+             g["empty_skip"].get<bool>() ? "on" : "off");
   fmt::print("features     lights={} specular={} reflection={} transmission={} textures={} "
              "large={}\n",
              f["lights"].get<bool>(), f["specular"].get<bool>(), f["reflection"].get<bool>(),

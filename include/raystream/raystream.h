@@ -85,6 +85,8 @@ struct BuildOptions {
   int subgrid_threshold = 32;  // kTwoLevel: refine cells with more triangles; kAuto: candidates
   bool auto_lambda = true;     // kAuto only: choose lambda from the cost model
   int micro_cache = 8;         // traversal micro-cache entries (0 = off, at most 16)
+  // Jump over blocks of empty cells where the grid has enough of them (results unchanged).
+  bool empty_skip = true;
 };
 
 // Figures about a built structure, as printed by `raystream info`.
@@ -108,15 +110,21 @@ struct AccelInfo {
   double cost_estimate = 0.0;     // expected cost per ray, in empty cell steps (two_level.h)
   double flat_cost_estimate = 0.0;  // the same for the top-level grid alone
   const char* simd_target = "";   // the Highway target the traversal kernels dispatch to
+  // Share of the top-level cells inside an empty 5x5x5 block, and whether traversal jumps over
+  // such blocks (BuildOptions::empty_skip, used when the share makes it pay: accel.cc).
+  double empty_block_share = 0.0;
+  bool empty_skip = false;
 };
 
 struct TraceStats {
   uint64_t rays = 0;
-  uint64_t cell_steps = 0;      // cells entered (top-level and sub-grid cells)
+  uint64_t cell_steps = 0;      // cells entered (top-level and sub-grid cells; not the empty
+                                // cells that BuildOptions::empty_skip jumps over)
   uint64_t triangle_tests = 0;  // ray/triangle tests (SIMD: packet lanes holding a triangle)
   // Appended fields: the traversal micro-cache (BuildOptions::micro_cache).
   uint64_t cache_lookups = 0;
   uint64_t cache_hits = 0;
+  uint64_t empty_skips = 0;  // jumps over blocks of empty cells (BuildOptions::empty_skip)
 };
 
 // The acceleration structure: a uniform grid with an occupancy bit array and CSR cell lists,

@@ -132,11 +132,18 @@ Oracle CheckAllTargets(const Built& b, const std::vector<Ray>& rays, const std::
       hv.t[i] = hv.u[i] = hv.v[i] = kSentinelT;
       hv.prim[i] = kSentinelPrim;
     }
+    // empty-space skipping off: the scalar DDA's cells exactly; on: the same results from
+    // fewer cell steps (the last pass leaves sc / sa of the default, skipping on)
+    TraceStats sc, sa;
+    for (const bool skip : {false, true}) {
+    INFO("empty_skip ", skip);
+    options.empty_skip = skip;
+    sc = TraceStats();
+    sa = TraceStats();
     for (size_t i = 0; i < n; ++i) {  // garbage that must be overwritten
       hv.t[i] = 7.0f;
       hv.prim[i] = 3;
     }
-    TraceStats sc;
     IntersectStreamDda(b.dda, stream.view(), hv, options, &sc);
     size_t bad = 0;
     for (size_t i = 0; i < n; ++i) {
@@ -151,7 +158,12 @@ Oracle CheckAllTargets(const Built& b, const std::vector<Ray>& rays, const std::
     }
     CHECK(bad == 0);
     CHECK(sc.rays == n);
-    CHECK(sc.cell_steps == o.closest_steps);
+    if (skip) {
+      CHECK(sc.cell_steps <= o.closest_steps);
+    } else {
+      CHECK(sc.cell_steps == o.closest_steps);
+      CHECK(sc.empty_skips == 0);
+    }
     CHECK(sc.cache_hits <= sc.cache_lookups);
     if (micro_cache == 0) CHECK(sc.cache_lookups == 0);
     size_t padding_bad = 0;
@@ -162,13 +174,17 @@ Oracle CheckAllTargets(const Built& b, const std::vector<Ray>& rays, const std::
     CHECK(padding_bad == 0);
 
     std::vector<int32_t> occluded(n + 1, 77);  // exactly n + a guard: no padding needed
-    TraceStats sa;
     OccludedStreamDda(b.dda, stream.view(), occluded.data(), options, &sa);
     size_t any_bad = 0;
     for (size_t i = 0; i < n; ++i) any_bad += occluded[i] != o.any[i];
     CHECK(any_bad == 0);
     CHECK(occluded[n] == 77);
-    CHECK(sa.cell_steps == o.any_steps);
+    if (skip) {
+      CHECK(sa.cell_steps <= o.any_steps);
+    } else {
+      CHECK(sa.cell_steps == o.any_steps);
+    }
+    }
 
     TraceStats ss, sas;
     size_t single_bad = 0, single_any_bad = 0;
@@ -585,7 +601,7 @@ void CheckAccel(const MeshView& mesh, const std::string& name, size_t n, uint32_
       }
       CHECK(bad == 0);
       CHECK(any_bad == 0);
-      CHECK(st.cell_steps == rs.cell_steps);
+      CHECK(st.cell_steps <= rs.cell_steps);  // empty-space skipping is on by default
       CHECK(st.rays == n);
     });
   }
@@ -685,6 +701,141 @@ TEST_CASE("options: micro-cache bounds are validated, counters move") {
     CHECK(SameBits(a.view().t[i], b.view().t[i]));
   }
   MESSAGE("fan: micro-cache hit rate ", double(son.cache_hits) / double(son.cache_lookups));
+}
+
+TEST_CASE("empty-space skipping: ring counts equal a brute-force search, steps drop") {
+  // a 23 x 17 x 29 grid with a few occupied cells (corners, faces, interior) and none
+  Grid grid;
+  grid.res[0] = 23;
+  grid.res[1] = 17;
+  grid.res[2] = 29;
+  grid.num_cells = size_t(23) * 17 * 29;
+  const size_t words = (grid.num_cells + 63) / 64;
+  grid.occupancy = hwy::AllocateAligned<uint64_t>(words);
+  for (int pass = 0; pass < 3; ++pass) {
+    std::fill_n(grid.occupancy.get(), words, uint64_t{0});
+    std::vector<int> occ;  // occupied cell coordinates, 3 per cell
+    Rng rng(900 + uint32_t(pass));
+    const int count = pass == 0 ? 0 : pass == 1 ? 1 : 12;
+    for (int i = 0; i < count; ++i) {
+      const int c[3] = {int(rng.Below(23)), int(rng.Below(17)), int(rng.Below(29))};
+      occ.insert(occ.end(), c, c + 3);
+      const size_t idx = grid.CellIndex(c[0], c[1], c[2]);
+      grid.occupancy[idx >> 6] |= uint64_t{1} << (idx & 63);
+    }
+    if (pass == 2) {  // the corner cell too
+      occ.insert(occ.end(), {0, 0, 0});
+      grid.occupancy[0] |= 1u;
+    }
+    std::vector<uint8_t> rings(grid.num_cells, 99);
+    BuildSkipRings(grid, rings.data());
+    size_t bad = 0;
+    for (int z = 0; z < 29; ++z) {
+      for (int y = 0; y < 17; ++y) {
+        for (int x = 0; x < 23; ++x) {
+          int dist = 1000;
+          for (size_t i = 0; i < occ.size(); i += 3) {
+            dist = std::min(dist, std::max({std::abs(x - occ[i]), std::abs(y - occ[i + 1]),
+                                            std::abs(z - occ[i + 2])}));
+          }
+          const int want = dist == 0 ? 0 : std::min(dist - 1, kMaxSkipRings);
+          bad += rings[grid.CellIndex(x, y, z)] != want;
+        }
+      }
+    }
+    INFO("pass ", pass, " occupied cells ", occ.size() / 3);
+    CHECK(bad == 0);
+  }
+
+  // spherebox has empty space around its spheres: skipping jumps, the results stay equal
+  const Scene scene = LoadScene("spherebox");
+  for (const int threshold : {-1, 16}) {
+    const Built b(scene.mesh(), 4.0f, threshold);
+    Rng rng(31);
+    std::vector<Ray> rays(2000);
+    const float* lo = b.grid.lo;
+    const float* hi = b.grid.hi;
+    for (Ray& r : rays) {
+      for (int a = 0; a < 3; ++a) r.o[a] = rng.UniformF(lo[a], hi[a]);
+      rng.Direction(r.d);
+    }
+    RayStream stream = MakeStream(rays);
+    HitStream on(rays.size()), off(rays.size());
+    on.Resize(rays.size());
+    off.Resize(rays.size());
+    TraceStats s_on, s_off;
+    DdaOptions options;
+    IntersectStreamDda(b.dda, stream.view(), on.view(), options, &s_on);
+    options.empty_skip = false;
+    IntersectStreamDda(b.dda, stream.view(), off.view(), options, &s_off);
+    size_t bad = 0;
+    for (size_t i = 0; i < rays.size(); ++i) {
+      bad += !(on.view().prim[i] == off.view().prim[i] && SameBits(on.view().t[i], off.view().t[i]));
+    }
+    INFO("threshold ", threshold);
+    CHECK(bad == 0);
+    CHECK(s_on.empty_skips > 0);
+    CHECK(s_off.empty_skips == 0);
+    CHECK(s_on.cell_steps < s_off.cell_steps);
+    MESSAGE("spherebox threshold ", threshold, ": cell steps ", s_off.cell_steps, " -> ",
+            s_on.cell_steps, " with ", s_on.empty_skips, " jumps");
+  }
+
+  // Accel turns skipping on by itself for a sparse grid (a tiny triangle in each corner of a
+  // cube, a fine grid), and off when asked; the hits equal the scalar oracle's either way
+  std::vector<float> pos;
+  std::vector<uint32_t> idx;
+  for (int c = 0; c < 8; ++c) {
+    const float p[3] = {float(c & 1), float((c >> 1) & 1), float((c >> 2) & 1)};
+    for (int v = 0; v < 3; ++v) {
+      for (int a = 0; a < 3; ++a) pos.push_back(p[a] + (v == a + 1 ? 0.01f * (0.5f - p[a]) : 0.0f));
+      idx.push_back(uint32_t(idx.size()));
+    }
+  }
+  MeshView mesh;
+  mesh.positions = pos.data();
+  mesh.num_vertices = pos.size() / 3;
+  mesh.indices = idx.data();
+  mesh.num_triangles = idx.size() / 3;
+  BuildOptions options;
+  options.grid = GridKind::kUniform;
+  options.lambda = 20000.0f;
+  const Accel sparse(mesh, options);
+  options.empty_skip = false;
+  const Accel dense(mesh, options);
+  CHECK(sparse.Info().empty_skip);
+  CHECK(sparse.Info().empty_block_share > 0.75);
+  CHECK_FALSE(dense.Info().empty_skip);
+  Rng rng(5);
+  std::vector<Ray> rays(3000);
+  for (Ray& r : rays) {
+    for (int a = 0; a < 3; ++a) r.o[a] = rng.UniformF(-0.2, 1.2);
+    if (rng.Below(2) == 0) {  // half aimed at a corner triangle
+      const size_t t = rng.Below(8);
+      for (int a = 0; a < 3; ++a) r.d[a] = pos[9 * t + a] * 0.998f + 0.001f - r.o[a];
+    } else {
+      rng.Direction(r.d);
+    }
+  }
+  RayStream stream = MakeStream(rays);
+  HitStream want(rays.size()), got(rays.size());
+  want.Resize(rays.size());
+  got.Resize(rays.size());
+  ref::AccelIntersect(sparse.impl(), stream.view(), want.view());
+  size_t hits = 0;
+  for (size_t i = 0; i < rays.size(); ++i) hits += want.view().prim[i] >= 0;
+  CHECK(hits > rays.size() / 8);
+  for (const Accel* accel : {&sparse, &dense}) {
+    TraceStats st;
+    accel->Intersect(stream.view(), got.view(), &st);
+    size_t bad = 0;
+    for (size_t i = 0; i < rays.size(); ++i) {
+      bad += !(want.view().prim[i] == got.view().prim[i] &&
+               SameBits(want.view().t[i], got.view().t[i]));
+    }
+    CHECK(bad == 0);
+    CHECK((st.empty_skips > 0) == (accel == &sparse));
+  }
 }
 
 }  // namespace
