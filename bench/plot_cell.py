@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Plots the CSV tables of bench/cell_bench.cc (Cell simulator reproductions) as small PNGs.
 
-usage: plot_cell.py RESULTS_DIR   (reads loads/speedup/tiles/microcache/depth/build.csv)
+usage: plot_cell.py RESULTS_DIR   (reads loads/speedup/tiles/microcache/atonce/depth/build.csv)
 """
 import csv
 import os
@@ -85,6 +85,20 @@ def microcache(out):
     save(fig, out, "microcache.png")
 
 
+def atonce(out):
+    rows = read(os.path.join(out, "atonce.csv"))
+    fig, ax = plt.subplots(figsize=(6, 3.4))
+    labels = [f'{r["scene"]}\n{r["grid"]}\ndepth {r["depth"]}' for r in rows]
+    ax.axhspan(1, 7, color="tab:green", alpha=0.25, zorder=0, label="paper 3.7: 1 to 7 %")
+    ax.bar(range(len(rows)), [float(r["speedup_pct"]) for r in rows], 0.6, zorder=2,
+           label="simulated")
+    ax.set_xticks(range(len(rows)), labels, fontsize=8)
+    ax.set_ylabel("speed-up, secondary rays\nintersected at once (%)")
+    ax.axhline(0, color="k", lw=0.5)
+    ax.legend(fontsize=8)
+    save(fig, out, "atonce.png")
+
+
 def depth(out):
     rows = read(os.path.join(out, "depth.csv"))
     d = [int(r["depth"]) for r in rows]
@@ -117,7 +131,7 @@ def build(out):
 
 def main():
     out = sys.argv[1] if len(sys.argv) > 1 else "bench/results/cell"
-    for f in (loads, speedup, tiles, microcache, depth, build):
+    for f in (loads, speedup, tiles, microcache, atonce, depth, build):
         name = f.__name__ + ".csv"
         if os.path.exists(os.path.join(out, name)):
             f(out)

@@ -299,6 +299,16 @@ std::string FormatCellReport(const CellFrameStats& s, const SimConfig& config) {
       static_cast<unsigned long long>(c.packets), static_cast<unsigned long long>(c.tiles),
       static_cast<unsigned long long>(retries), static_cast<unsigned long long>(c.spilled_rays));
   out += line;
+  const uint64_t secondary = rays - c.rays[static_cast<int>(RayKind::kPrimary)];
+  std::snprintf(line, sizeof(line),
+                "at once    %llu of %llu secondary rays intersected at once with the loaded "
+                "triangles (%llu cell visits), %llu resolved there%s\n",
+                static_cast<unsigned long long>(c.at_once_tested),
+                static_cast<unsigned long long>(secondary),
+                static_cast<unsigned long long>(c.at_once_visits),
+                static_cast<unsigned long long>(c.at_once_resolved),
+                config.secondary_at_once ? "" : " (off)");
+  out += line;
   if (s.pbt && s.has_prediction) {
     std::snprintf(line, sizeof(line),
                   "pbt        %zu tiles, %.1f %% of predictions within 10 %%, update %d steps\n",

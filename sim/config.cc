@@ -74,7 +74,8 @@ std::string DescribeConfig(const SimConfig& c) {
        std::to_string(c.sw_cache.line_bytes) + " B, hit " + std::to_string(c.sw_cache.hit_cycles) +
        "; ";
   s += "pipeline " + std::to_string(c.rays_per_iteration) + " rays, micro-cache " +
-       (c.micro_cache ? "on" : "off") + ", DDA step " + std::to_string(c.costs.dda_step) +
+       (c.micro_cache ? "on" : "off") + ", secondary rays at once " +
+       (c.secondary_at_once ? "on" : "off") + ", DDA step " + std::to_string(c.costs.dda_step) +
        " cycles";
   return s;
 }

@@ -168,6 +168,14 @@ struct SimConfig {
   // pixel buffer this happens at the end of every (sub-)tile. Off by default: the tail rays are
   // then still interleaved with each other.
   bool drain_individually = false;
+  // Paper 3.7: secondary rays "emerge in a grid cell whose data is still in the triangle buffer,
+  // [so] they are directly intersected with the triangles". When on, the shader sets up each
+  // secondary ray at once and walks it (DDA on the LS bits) through every cell whose triangles
+  // this iteration left whole in a triangle buffer, with the pipeline's own test and stop rule:
+  // a shadow ray that hits ends there, a ray that leaves the scene or stops before its next cell
+  // is finished without entering the ring buffer, and the others are written back mid-traversal
+  // at the first cell that is not loaded. Off: every secondary ray starts fresh from the ring.
+  bool secondary_at_once = true;
 
   // --- tiles ---
   int tile_width = 32;  // tiles handed out by the atomic tile counter (3.9), row-major

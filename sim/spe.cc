@@ -86,6 +86,26 @@ struct MicroCacheEntry {
   int slot;
 };
 
+// A unit (leaf) whose triangles are whole in a triangle buffer after this iteration's visits:
+// the units secondary rays can be intersected with at once (paper 3.7). A sub-cell leaf also
+// names the LS line holding its sub-grid's record.
+struct LoadedUnit {
+  uint32_t leaf;
+  uint32_t count;       // triangles (all in the buffer)
+  int slot;             // triangle buffer
+  uint32_t top;         // top-level cell the leaf lies in
+  uint32_t sub_record;  // its SubGridRecord index (sub-cell leaves only)
+  Lsa sub_lsa;          // 0: a top-level cell; else the LS line of that record
+};
+
+// How far a secondary ray got at once.
+enum class AtOnce : uint8_t {
+  kResume,      // written back mid-traversal (or fresh set up) at a unit not loaded
+  kTraced,      // closest-hit ray whose traversal ended: only shading is left
+  kOccluded,    // shadow ray blocked
+  kUnoccluded,  // shadow ray reached its light
+};
+
 }  // namespace
 
 void SpeCounters::Merge(const SpeCounters& o) {
@@ -108,6 +128,9 @@ void SpeCounters::Merge(const SpeCounters& o) {
   tile_counter_retries += o.tile_counter_retries;
   spilled_rays += o.spilled_rays;
   texture_fetches += o.texture_fetches;
+  at_once_tested += o.at_once_tested;
+  at_once_resolved += o.at_once_resolved;
+  at_once_visits += o.at_once_visits;
   shade.Merge(o.shade);
 }
 
@@ -155,6 +178,9 @@ struct Spe::Impl {
   void LoadTriangles(int q, const CellRecord& cr, uint32_t leaf);
   void FinishTraversal(int r);
   void Visit();
+  void RegisterLoaded(int s, const RayRecord& visitor, Lsa visitor_sub_lsa);
+  const SubGridRecord* LoadedSubGrid(uint32_t top, uint32_t* index) const;
+  AtOnce TraceAtOnce(RayRecord& rec, bool* tested);
   void Shade();
   void RetireSubtiles();
   void Finish();
@@ -209,6 +235,8 @@ struct Spe::Impl {
   FlightInfo flight[kMaxInFlight];
   MicroCacheEntry micro_cache[kMaxInFlight];
   int micro_cache_size = 0;
+  LoadedUnit loaded[kMaxInFlight];
+  int loaded_count = 0;
 
   // Shading scratch ("registers" and stack of the shader).
   Scene shade_scene;
@@ -433,6 +461,7 @@ void Spe::Impl::Refill() {
     flight[r].tile = pixel_slots[FlightRecord(r).subtile].tile;
   }
   micro_cache_size = 0;
+  loaded_count = 0;
   pending_atomic = -1;
   cursor = 0;
   phase = Phase::kTraverse;
@@ -619,7 +648,9 @@ void Spe::Impl::Traverse() {
   const int r = cursor;
   RayRecord& rec = FlightRecord(r);
   bool at_cell;
-  if (rec.state == kRayFresh) {
+  if (rec.state == kRayTraced) {  // traced at once by the shader (paper 3.7): shade it
+    at_cell = false;
+  } else if (rec.state == kRayFresh) {
     Compute(costs.ray_setup);
     at_cell = DdaBegin(fc.grid, rec);
   } else {
@@ -851,6 +882,7 @@ void Spe::Impl::Visit() {
   const uint32_t packets = (owner.count + 3) / 4;
   const uint32_t cap = config.triangle_buffer_packets;
   const Lsa slot_lsa = tri_lsa + uint32_t(s) * tri_slot_bytes;
+  if (config.secondary_at_once && packets <= cap) RegisterLoaded(s, rec, flight[r].sub_lsa);
   bool found = false;
   uint64_t tested = 0;
   for (uint32_t p0 = 0; p0 < packets; p0 += cap) {
@@ -899,6 +931,116 @@ void Spe::Impl::AfterUnit(int r) {
     PushRay(rec);
   } else {
     FinishTraversal(r);
+  }
+}
+
+// Notes that triangle buffer `s` holds its unit whole (its DMA has completed), as `visitor`
+// (a ray visiting it, so at that unit) saw it.
+void Spe::Impl::RegisterLoaded(int s, const RayRecord& visitor, Lsa visitor_sub_lsa) {
+  for (int e = 0; e < loaded_count; ++e) {
+    if (loaded[e].slot == s) return;
+  }
+  LoadedUnit& u = loaded[loaded_count++];
+  u.leaf = flight[s].leaf;
+  u.count = flight[s].count;
+  u.slot = s;
+  u.top = visitor.idx;
+  u.sub_record = visitor.in_sub != 0 ? visitor.sub_record : 0;
+  u.sub_lsa = visitor.in_sub != 0 ? visitor_sub_lsa : 0;
+}
+
+// The sub-grid record of refined top-level cell `top` if a loaded unit lies in it (its LS line
+// still holds it: lines are only rewritten before the visits), else nullptr.
+const SubGridRecord* Spe::Impl::LoadedSubGrid(uint32_t top, uint32_t* index) const {
+  for (int e = 0; e < loaded_count; ++e) {
+    const LoadedUnit& u = loaded[e];
+    if (u.sub_lsa == 0 || u.top != top) continue;
+    const SubGridRecord* sg = ls.As<const SubGridRecord>(u.sub_lsa);
+    if (sg->parent != top) continue;
+    *index = u.sub_record;
+    return sg;
+  }
+  return nullptr;
+}
+
+// Paper 3.7: a secondary ray just spawned is set up and walked, with the pipeline's own DDA,
+// triangle test and stop rule (so the image stays the serial backend's), through the units
+// whose triangles are still whole in the triangle buffers. It stops at the first unit that is
+// not loaded, left in the state the pipeline resumes from (that unit not yet examined), or
+// when it is finished. *tested: at least one unit was intersected.
+AtOnce Spe::Impl::TraceAtOnce(RayRecord& rec, bool* tested) {
+  const bool shadow = rec.kind == kShadowKind;
+  const AtOnce finished = shadow ? AtOnce::kUnoccluded : AtOnce::kTraced;
+  *tested = false;
+  Compute(costs.ray_setup);
+  if (!DdaBegin(fc.grid, rec)) return finished;
+  const SubGridRecord* sg = nullptr;  // while rec.in_sub
+  WatertightRay wr{};
+  for (;;) {
+    // To the next occupied unit, as Traverse / CompleteCellLoad walk it.
+    uint64_t steps = 0;
+    uint32_t leaf = 0;
+    if (rec.in_sub != 0) {
+      const SubResult res = SubAdvance(*sg, rec, &steps, &leaf);
+      Compute(steps * costs.dda_step + costs.dda_exit);
+      counters.cell_steps += steps;
+      if (res == SubResult::kDone) return finished;
+      if (res == SubResult::kLeft) {
+        if (!DdaStep(fc.grid, rec, rec.t_exit)) return finished;
+        continue;
+      }
+    } else {
+      const bool at_cell = DdaAdvance(fc.grid, occupancy, rec, &steps);
+      Compute(steps * costs.dda_step + costs.dda_exit);
+      counters.cell_steps += steps;
+      if (!at_cell) return finished;
+      leaf = rec.idx;
+    }
+    // Loaded? (8 leaf ids in 2 vectors, like the micro-cache.)
+    Compute(costs.micro_cache_lookup);
+    int e = 0;
+    while (e < loaded_count && loaded[e].leaf != leaf) ++e;
+    if (e == loaded_count && rec.in_sub == 0 && fc.grid.two_level != 0) {
+      // A refined cell whose sub-grid record is in LS: walk its sub-cells.
+      uint32_t index = 0;
+      if (const SubGridRecord* rec_sg = LoadedSubGrid(rec.idx, &index)) {
+        sg = rec_sg;
+        rec.sub_record = index;
+        SubInit(*sg, rec);
+        continue;
+      }
+    }
+    if (e == loaded_count) {
+      // The pipeline examines this unit again when the ray resumes: count it once.
+      --counters.cell_steps;
+      return AtOnce::kResume;
+    }
+    // VisitVoxel on the buffer, then AfterUnit's stop test and step.
+    const LoadedUnit& u = loaded[e];
+    if (!*tested) {
+      wr = PrepareWatertightRay(rec.o[0], rec.o[1], rec.o[2], rec.d[0], rec.d[1], rec.d[2]);
+      *tested = true;
+    }
+    const uint32_t packets = (u.count + 3) / 4;
+    const TrianglePacket* tp =
+        ls.As<const TrianglePacket>(tri_lsa + uint32_t(u.slot) * tri_slot_bytes, packets);
+    Compute(costs.visit_setup + packets * costs.triangle_packet);
+    counters.packets += packets;
+    ++counters.at_once_visits;
+    if (shadow) {
+      if (IntersectPackets<true>(wr, tp, packets, rec, &counters.triangle_tests)) {
+        return AtOnce::kOccluded;
+      }
+    } else {
+      IntersectPackets<false>(wr, tp, packets, rec, &counters.triangle_tests);
+    }
+    if (rec.in_sub != 0) {
+      const SubResult res = SubStep(*sg, rec);
+      if (res == SubResult::kDone) return finished;
+      if (res == SubResult::kLeft && !DdaStep(fc.grid, rec, rec.t_exit)) return finished;
+    } else if (!DdaStep(fc.grid, rec, rec.t_exit)) {
+      return finished;
+    }
   }
 }
 
@@ -1057,6 +1199,22 @@ void Spe::Impl::Shade() {
       int b = 0;
       while (b < nb - 1 && batch_pixel[b] != rec.pixel) ++b;
       rec.subtile = batch_subtile[b];
+      if (config.secondary_at_once && loaded_count > 0) {
+        bool tested = false;
+        const AtOnce res = TraceAtOnce(rec, &tested);
+        counters.at_once_tested += tested ? 1 : 0;
+        if (res != AtOnce::kResume) ++counters.at_once_resolved;
+        if (res == AtOnce::kOccluded || res == AtOnce::kUnoccluded) {
+          if (res == AtOnce::kUnoccluded) {
+            out.fb->Add(rec.pixel, rec.w[0], rec.w[1], rec.w[2]);
+            Compute(costs.shadow_add);
+          }
+          ++counters.rays[kShadowKind];
+          counters.occluded += res == AtOnce::kOccluded ? 1 : 0;
+          continue;
+        }
+        if (res == AtOnce::kTraced) rec.state = kRayTraced;
+      }
       ++pixel_slots[rec.subtile].outstanding;
       PushRay(rec);
     }

@@ -3,9 +3,10 @@
 // traverse 8 rays to their first occupied cell on the LS occupancy bits, load each cell's record
 // (128-B atomic load; a refined cell's 8x8x8 sub-grid record is a second one, paper 3.8) and
 // triangles (DMA) while the others traverse, intersect (VisitVoxel), load hit data, shade
-// (materials and textures through the software cache) and write secondary rays back. Step() runs
-// to the next point where the SPE touches shared state, so a discrete-event loop can always
-// advance the SPE that is furthest behind.
+// (materials and textures through the software cache) and write secondary rays back, after
+// intersecting them at once with the triangles still in the triangle buffers (paper 3.7).
+// Step() runs to the next point where the SPE touches shared state, so a discrete-event loop can
+// always advance the SPE that is furthest behind.
 #pragma once
 
 #include <cstdint>
@@ -43,6 +44,13 @@ struct SpeCounters {
   uint64_t tile_counter_retries = 0;  // failed putllc on the tile counter (contention)
   uint64_t spilled_rays = 0;          // rays written to main memory because the ring was full
   uint64_t texture_fetches = 0;
+  // Secondary rays intersected at once against the triangles still in the triangle buffers
+  // (paper 3.7; SimConfig::secondary_at_once): rays that tested at least one loaded cell, rays
+  // whose traversal ended there (shadow rays finished, others left only to be shaded), and the
+  // cells so visited (not counted in `visits`; their packets are in `packets`).
+  uint64_t at_once_tested = 0;
+  uint64_t at_once_resolved = 0;
+  uint64_t at_once_visits = 0;
   ShadeStats shade;
   void Merge(const SpeCounters& o);
   uint64_t TotalRays() const;

@@ -20,7 +20,8 @@ namespace rs::sim {
 
 enum RayState : uint8_t {
   kRayFresh = 0,   // not yet set up: DdaBegin next
-  kRayAtCell = 1,  // at cell `idx`, not yet examined: DdaAdvance next
+  kRayAtCell = 1,  // at cell `idx` (or sub-cell `sub_c` if in_sub), not yet examined
+  kRayTraced = 2,  // traversal finished (best_* final): shade (closest hit) next
 };
 
 // One ray in the SPE's ring buffer (8 quadwords of ray, 8 of traversal state).
