@@ -21,8 +21,11 @@
 #include <deque>
 #include <exception>
 #include <fstream>
+#include <iterator>
 #include <memory>
+#include <ostream>
 #include <string>
+#include <string_view>
 #include <thread>
 #include <vector>
 
@@ -75,6 +78,90 @@ int EnvRank(const char* name) {
   std::_Exit(3);
 }
 
+bool EndsWith(const std::string& s, const std::string& suffix) {
+  return s.size() >= suffix.size() &&
+         s.compare(s.size() - suffix.size(), suffix.size(), suffix) == 0;
+}
+
+// CSV statistics: the host backends' columns (sched/backends.cc WriteCsv) where they apply, then
+// the cluster's own. Per frame: one row scope=frame (index -1), one row scope=worker per worker
+// (index = worker, rank = index + 1), one row scope=tile per tile (index = tile). Columns that do
+// not apply are empty.
+constexpr const char* kCsvColumns[] = {
+    // The host backends' columns, in their order.
+    "frame", "scope", "index", "thread", "worker", "seconds", "busy_seconds", "idle_seconds",
+    "queue_seconds", "queue_ops", "empty_polls", "tasks", "tiles", "rays", "primary", "shadow",
+    "reflection", "refraction", "x0", "y0", "x1", "y1", "cpu_seconds", "predicted_seconds",
+    "imbalance", "worker_imbalance", "within5", "within10", "within15",
+    // The cluster's own.
+    "rank", "steals", "messages", "bytes", "messages_sent", "bytes_sent", "messages_received",
+    "bytes_received"};
+constexpr size_t kNumCsvColumns = std::size(kCsvColumns);
+
+class CsvRow {
+ public:
+  // Sets column `name` (one of kCsvColumns) from a JSON number or string.
+  CsvRow& Set(std::string_view name, const Json& value) {
+    for (size_t c = 0; c < kNumCsvColumns; ++c) {
+      if (name == kCsvColumns[c]) {
+        cells_[c] = value.is_string() ? value.get<std::string>() : value.dump();
+        return *this;
+      }
+    }
+    throw Error(fmt::format("internal: no CSV column '{}'", name));
+  }
+  void Write(std::ostream& out) const {
+    for (size_t c = 0; c < kNumCsvColumns; ++c) out << (c ? "," : "") << cells_[c];
+    out << "\n";
+  }
+
+ private:
+  std::string cells_[kNumCsvColumns];
+};
+
+// Writes the frames' statistics (the JSON objects Master::FrameJson made) as CSV rows.
+void WriteStatsCsv(std::ostream& out, const Json& frames) {
+  for (size_t c = 0; c < kNumCsvColumns; ++c) out << (c ? "," : "") << kCsvColumns[c];
+  out << "\n";
+  for (const Json& f : frames) {
+    const Json& frame = f["frame"];
+    CsvRow row;
+    row.Set("frame", frame).Set("scope", "frame").Set("index", -1).Set("seconds", f["seconds"]);
+    row.Set("busy_seconds", f["busy_seconds"]).Set("idle_seconds", f["idle_seconds"]);
+    row.Set("tiles", f["tiles_count"]).Set("rays", f["rays"]).Set("imbalance", f["imbalance"]);
+    row.Set("messages", f["messages"]).Set("bytes", f["bytes"]);
+    if (f.contains("accuracy")) {
+      for (const char* k : {"within5", "within10", "within15"}) row.Set(k, f["accuracy"][k]);
+    }
+    row.Write(out);
+    for (const Json& w : f["workers"]) {
+      CsvRow r;
+      r.Set("frame", frame).Set("scope", "worker").Set("index", w["rank"].get<int>() - 1);
+      r.Set("worker", w["rank"].get<int>() - 1).Set("rank", w["rank"]);
+      r.Set("busy_seconds", w["busy_seconds"]).Set("idle_seconds", w["idle_seconds"]);
+      r.Set("cpu_seconds", w["cpu_seconds"]).Set("tiles", w["tiles"]).Set("steals", w["steals"]);
+      r.Set("rays", w["rays"]).Set("messages_sent", w["messages_sent"]);
+      r.Set("bytes_sent", w["bytes_sent"]).Set("messages_received", w["messages_received"]);
+      r.Set("bytes_received", w["bytes_received"]);
+      r.Set("messages",
+            w["messages_sent"].get<uint64_t>() + w["messages_received"].get<uint64_t>());
+      r.Set("bytes", w["bytes_sent"].get<uint64_t>() + w["bytes_received"].get<uint64_t>());
+      r.Write(out);
+    }
+    size_t i = 0;
+    for (const Json& t : f["tiles"]) {
+      CsvRow r;
+      r.Set("frame", frame).Set("scope", "tile").Set("index", i++);
+      r.Set("worker", t["rank"].get<int>() - 1).Set("rank", t["rank"]);
+      r.Set("seconds", t["seconds"]).Set("cpu_seconds", t["cpu_seconds"]);
+      r.Set("rays", t["rays"]).Set("tasks", t["tasks"]);
+      for (const char* k : {"x0", "y0", "x1", "y1"}) r.Set(k, t[k]);
+      if (t["predicted"].get<double>() >= 0) r.Set("predicted_seconds", t["predicted"]);
+      r.Write(out);
+    }
+  }
+}
+
 // What every rank builds before rendering. Workers own an Accel; the master only the scene.
 struct Setup {
   Scene scene;
@@ -101,9 +188,8 @@ void ValidateConfig(const MpiRenderConfig& c, int ranks) {
   if (!(c.timeout_seconds > 0) || c.timeout_seconds > 1e6) {
     throw Error(fmt::format("--mpi-timeout {}: must be in (0, 1e6] seconds", c.timeout_seconds));
   }
-  const std::string& st = c.stats;
-  if (!st.empty() && (st.size() < 5 || st.compare(st.size() - 5, 5, ".json") != 0)) {
-    throw Error(fmt::format("--stats {}: the mpi backend writes .json statistics", st));
+  if (!c.stats.empty() && !EndsWith(c.stats, ".json") && !EndsWith(c.stats, ".csv")) {
+    throw Error(fmt::format("--stats {}: statistics file must end in .json or .csv", c.stats));
   }
   if (c.pbt_tiles_per_worker > 0) {
     const double m = double(c.pbt_tiles_per_worker) * (ranks - 1);
@@ -248,18 +334,23 @@ class Master {
     }
     if (!c_.stats.empty()) {
       std::ofstream f(c_.stats);
-      f << Json{{"scene", s_.scene.name},
-                {"backend", "mpi"},
-                {"ranks", workers_ + 1},
-                {"workers", workers_},
-                {"tiling", pbt_ ? fmt::format("PBT k={} assign {}", c_.pbt_tiles_per_worker,
-                                              PbtAssignName(c_.assign))
-                                : fmt::format("tiles {}x{}", c_.tile_width, c_.tile_height)},
-                {"prefetch", c_.prefetch},
-                {"timeout_seconds", c_.timeout_seconds},
-                {"frames", frames}}
-               .dump(2)
-        << "\n";
+      if (EndsWith(c_.stats, ".csv")) {
+        WriteStatsCsv(f, frames);
+      } else {
+        f << Json{{"scene", s_.scene.name},
+                  {"backend", "mpi"},
+                  {"ranks", workers_ + 1},
+                  {"workers", workers_},
+                  {"tiling", pbt_ ? fmt::format("PBT k={} assign {}", c_.pbt_tiles_per_worker,
+                                                PbtAssignName(c_.assign))
+                                  : fmt::format("tiles {}x{}", c_.tile_width, c_.tile_height)},
+                  {"prefetch", c_.prefetch},
+                  {"timeout_seconds", c_.timeout_seconds},
+                  {"frames", frames}}
+                 .dump(2)
+          << "\n";
+      }
+      f.flush();
       if (!f) throw Error(fmt::format("--stats {}: cannot write the file", c_.stats));
     }
     if (!c_.quiet) {
@@ -487,10 +578,13 @@ class Master {
     }
     Json workers = Json::array();
     std::vector<double> busy;
+    double busy_sum = 0, idle_sum = 0;
     uint64_t msgs = 0, bytes = 0;
     for (int w = 0; w < workers_; ++w) {
       const WorkerFrame& wf = wstats_[static_cast<size_t>(w)];
       busy.push_back(wf.busy_seconds);
+      busy_sum += wf.busy_seconds;
+      idle_sum += std::max(0.0, seconds - wf.busy_seconds);
       msgs += wf.msgs_sent + wf.msgs_recv;
       bytes += wf.bytes_sent + wf.bytes_recv;
       workers.push_back(Json{{"rank", w + 1}, {"tiles", wf.tiles}, {"steals", wf.steals},
@@ -500,11 +594,18 @@ class Master {
                              {"bytes_sent", wf.bytes_sent}, {"messages_received", wf.msgs_recv},
                              {"bytes_received", wf.bytes_recv}});
     }
-    Json j{{"frame", frame},        {"seconds", seconds},
-           {"rays", rays},          {"tiles_count", m},
+    Json j{{"frame", frame},
+           {"seconds", seconds},
+           {"fps", seconds > 0 ? 1.0 / seconds : 0.0},
+           {"busy_seconds", busy_sum},
+           {"idle_seconds", idle_sum},
+           {"rays", rays},
+           {"tiles_count", m},
            {"imbalance", FrameImbalance(busy)},
-           {"messages", msgs},      {"bytes", bytes},
-           {"dropped_nan", nan_},   {"clamped", clamped_}};
+           {"messages", msgs},
+           {"bytes", bytes},
+           {"dropped_nan", nan_},
+           {"clamped", clamped_}};
     nan_ = clamped_ = 0;
     if (pbt_) {
       j["pbt"] = true;

@@ -21,7 +21,8 @@ struct MpiRenderConfig {
   int frames = 1;
   float speed = 1.0f;
   std::string out;       // image pattern ('#' = frame number, every frame); empty: SCENE.png
-  std::string stats;     // per-frame statistics, .json; empty: none
+  std::string stats;     // per-frame statistics: .json, or .csv (the host backends' columns
+                         // plus rank, steals, messages and bytes); empty: none
   std::string dump_raw;  // hidden: raw fixed-point framebuffer per written frame ('#' allowed)
   // Without PBT (pbt_tiles_per_worker == 0): tile_width x tile_height tiles in row-major order,
   // handed out on demand by a counter at the master.
