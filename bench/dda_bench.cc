@@ -19,12 +19,6 @@
 #include <benchmark/benchmark.h>
 #include <hwy/targets.h>
 
-#if defined(__x86_64__) || defined(__i386__)
-#include <x86intrin.h>
-#define RS_HAVE_RDTSC 1
-#endif
-
-#include <time.h>
 
 #include <chrono>
 #include <cmath>
@@ -33,10 +27,11 @@
 #include <cstring>
 #include <map>
 #include <memory>
-#include <random>
 #include <string>
 #include <vector>
 
+#include "bench/dda_workload.h"
+#include "bench/tsc.h"
 #include "include/raystream/raystream.h"
 #include "kernels/accel_impl.h"
 #include "kernels/dda_simd.h"
@@ -49,33 +44,6 @@
 
 namespace rs::bench {
 namespace {
-
-uint64_t Ticks() {
-#ifdef RS_HAVE_RDTSC
-  return __rdtsc();
-#else
-  return static_cast<uint64_t>(std::chrono::steady_clock::now().time_since_epoch().count());
-#endif
-}
-
-double CpuSeconds() {
-  timespec ts;
-  clock_gettime(CLOCK_THREAD_CPUTIME_ID, &ts);
-  return double(ts.tv_sec) + 1e-9 * double(ts.tv_nsec);
-}
-
-double TscGhz() {
-  static const double ghz = [] {
-    const auto t0 = std::chrono::steady_clock::now();
-    const uint64_t c0 = Ticks();
-    while (std::chrono::steady_clock::now() - t0 < std::chrono::milliseconds(50)) {
-    }
-    const double ns =
-        std::chrono::duration<double, std::nano>(std::chrono::steady_clock::now() - t0).count();
-    return double(Ticks() - c0) / ns;
-  }();
-  return ghz;
-}
 
 size_t EnvSize(const char* name, size_t fallback) {
   const char* v = std::getenv(name);
@@ -107,23 +75,6 @@ struct SceneData {
   glm::vec3 lo{0.0f}, hi{0.0f};
 };
 
-// "corners": one tiny triangle in each corner of the unit cube, for an almost empty grid whose
-// rays step through ~100 empty cells each: the cost of a ray-cell step alone.
-Scene CornersScene() {
-  Scene s;
-  s.name = "corners";
-  for (int c = 0; c < 8; ++c) {
-    const glm::vec3 p(float(c & 1), float((c >> 1) & 1), float((c >> 2) & 1));
-    const glm::vec3 in = 0.5f - p;  // towards the centre
-    const uint32_t base = uint32_t(s.positions.size());
-    s.positions.push_back(p);
-    s.positions.push_back(p + 0.001f * glm::vec3(in.x, 0.0f, 0.0f));
-    s.positions.push_back(p + 0.001f * glm::vec3(0.0f, in.y, 0.0f));
-    s.triangles.push_back(glm::uvec3(base, base + 1, base + 2));
-  }
-  return s;
-}
-
 SceneData& GetScene(const std::string& name) {
   static std::map<std::string, std::unique_ptr<SceneData>> cache;
   auto& slot = cache[name];
@@ -140,20 +91,7 @@ enum class Rays { kPrimary, kPrimaryInside, kRandom };
 RayStream MakeRays(const SceneData& s, Rays kind) {
   RayStream rays;
   if (kind == Rays::kRandom) {
-    std::mt19937 gen(12345);
-    std::uniform_real_distribution<float> u(0.0f, 1.0f);
-    const size_t n = EnvSize("RS_DDA_BENCH_RAYS", 65536);
-    for (size_t i = 0; i < n; ++i) {
-      float o[3], d[3];
-      for (int a = 0; a < 3; ++a) o[a] = s.lo[a] + (s.hi[a] - s.lo[a]) * u(gen);
-      float len2;
-      do {
-        for (float& c : d) c = 2.0f * u(gen) - 1.0f;
-        len2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
-      } while (len2 < 1e-4f || len2 > 1.0f);
-      rays.Push(o[0], o[1], o[2], d[0], d[1], d[2], 0.0f, INFINITY, uint32_t(i), 1, 1, 1, 0,
-                RayKind::kPrimary);
-    }
+    AppendRandomRays(s.lo, s.hi, EnvSize("RS_DDA_BENCH_RAYS", 65536), rays);
   } else {
     const int w = int(EnvSize("RS_DDA_BENCH_SIZE", 256));
     Camera camera = s.scene.camera;
@@ -283,12 +221,12 @@ void BM_Dda(benchmark::State& state, Workload w, int64_t target, int kind) {
   }
   TraceStats st;
   const uint64_t t0 = Ticks();
-  const double c0 = CpuSeconds();
+  const double c0 = ThreadCpuSeconds();
   for (auto _ : state) {
     run(&st);
     benchmark::ClobberMemory();
   }
-  Report(state, Ticks() - t0, CpuSeconds() - c0, st, rays.size);
+  Report(state, Ticks() - t0, ThreadCpuSeconds() - c0, st, rays.size);
   const AccelInfo info = d.accel->Info();
   state.counters["subgrids"] = double(info.subgrids);
   state.SetLabel(std::string(DdaTargetName()) + " " + info.kind);
@@ -303,12 +241,12 @@ void BM_Scalar(benchmark::State& state, Workload w) {
   }
   TraceStats st;
   const uint64_t t0 = Ticks();
-  const double c0 = CpuSeconds();
+  const double c0 = ThreadCpuSeconds();
   for (auto _ : state) {
     ref::AccelIntersect(d.accel->impl(), d.rays.view(), d.hits.view(), &st);
     benchmark::ClobberMemory();
   }
-  Report(state, Ticks() - t0, CpuSeconds() - c0, st, d.rays.size());
+  Report(state, Ticks() - t0, ThreadCpuSeconds() - c0, st, d.rays.size());
 }
 
 // Grid build, items = triangles. "grid/lambda:L" = BuildGrid alone on gathered triangles;

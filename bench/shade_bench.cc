@@ -10,12 +10,6 @@
 // ticks/hit is wall clock, cpu_ticks/hit is this thread's CPU time converted at the TSC rate.
 #include <benchmark/benchmark.h>
 #include <hwy/targets.h>
-#include <time.h>
-
-#if defined(__x86_64__) || defined(__i386__)
-#include <x86intrin.h>
-#define RS_HAVE_RDTSC 1
-#endif
 
 #include <algorithm>
 #include <array>
@@ -28,6 +22,7 @@
 #include <string>
 #include <vector>
 
+#include "bench/tsc.h"
 #include "kernels/shade.h"
 #include "scenes/load.h"
 #include "sched/framebuffer.h"
@@ -43,34 +38,6 @@ constexpr int kWidth = 64;
 constexpr int kHeight = 64;
 constexpr size_t kStreamChunk = 1024;
 constexpr size_t kTaskSize = 20;
-
-uint64_t Ticks() {
-#ifdef RS_HAVE_RDTSC
-  return __rdtsc();
-#else
-  return static_cast<uint64_t>(std::chrono::steady_clock::now().time_since_epoch().count());
-#endif
-}
-
-double TscGhz() {
-  static const double ghz = [] {
-    const auto t0 = std::chrono::steady_clock::now();
-    const uint64_t c0 = Ticks();
-    while (std::chrono::steady_clock::now() - t0 < std::chrono::milliseconds(50)) {
-    }
-    const uint64_t c1 = Ticks();
-    const double ns =
-        std::chrono::duration<double, std::nano>(std::chrono::steady_clock::now() - t0).count();
-    return static_cast<double>(c1 - c0) / ns;
-  }();
-  return ghz;
-}
-
-double ThreadCpuSeconds() {
-  timespec ts;
-  clock_gettime(CLOCK_THREAD_CPUTIME_ID, &ts);
-  return static_cast<double>(ts.tv_sec) + 1e-9 * static_cast<double>(ts.tv_nsec);
-}
 
 // A scene, its accel and the primary rays of a kWidth x kHeight image with their closest hits.
 struct Workload {

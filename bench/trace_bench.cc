@@ -8,13 +8,7 @@
 // (default bunny,sponza,office-graz,conference,spherebox; missing shared scenes are skipped).
 // Ratios "vs_embree*" are raystream speed / Embree speed (> 1: raystream faster), from CPU time.
 #include <benchmark/benchmark.h>
-#include <time.h>
 #include <unistd.h>
-
-#if defined(__x86_64__) || defined(__i386__)
-#include <x86intrin.h>
-#define RS_HAVE_RDTSC 1
-#endif
 
 #include <algorithm>
 #include <chrono>
@@ -30,6 +24,7 @@
 
 #include "bench/embree_peer.h"
 #include "bench/ray_sets.h"
+#include "bench/tsc.h"
 #include "include/raystream/raystream.h"
 #include "scenes/load.h"
 #include "streams/ray_stream.h"
@@ -68,30 +63,6 @@ std::string ProbeFile(const std::string& scene) {
       {"sibenik", "sibenik/sibenik.obj"}};
   const auto it = files.find(scene);
   return it == files.end() ? std::string() : it->second;
-}
-
-uint64_t Ticks() {
-#ifdef RS_HAVE_RDTSC
-  return __rdtsc();
-#else
-  return static_cast<uint64_t>(std::chrono::steady_clock::now().time_since_epoch().count());
-#endif
-}
-
-double MeasureTscGhz() {
-  const auto t0 = std::chrono::steady_clock::now();
-  const uint64_t c0 = Ticks();
-  while (std::chrono::steady_clock::now() - t0 < std::chrono::milliseconds(50)) {
-  }
-  const uint64_t c1 = Ticks();
-  const double ns =
-      std::chrono::duration<double, std::nano>(std::chrono::steady_clock::now() - t0).count();
-  return static_cast<double>(c1 - c0) / ns;
-}
-
-double TscGhzCached() {
-  static const double ghz = MeasureTscGhz();
-  return ghz;
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -254,12 +225,6 @@ const std::string& Validate(SceneData& d, RaySet set) {
 // ---------------------------------------------------------------------------------------------
 // Benchmarks.
 
-double ThreadCpuSeconds() {
-  timespec ts;
-  clock_gettime(CLOCK_THREAD_CPUTIME_ID, &ts);
-  return static_cast<double>(ts.tv_sec) + 1e-9 * static_cast<double>(ts.tv_nsec);
-}
-
 // Per-item cost of a timed loop, from its rdtsc ticks (wall clock: includes time this thread
 // was descheduled) and its thread CPU time converted to ticks at the TSC rate ("cpu_ticks").
 struct TickMeter {
@@ -273,7 +238,7 @@ struct TickMeter {
         static_cast<double>(state.iterations()) * static_cast<double>(items_per_iteration);
     if (items <= 0) return;
     state.counters[name] = static_cast<double>(ticks) / items;
-    state.counters[cpu_name] = cpu * TscGhzCached() * 1e9 / items;
+    state.counters[cpu_name] = cpu * TscGhz() * 1e9 / items;
   }
 };
 
@@ -550,7 +515,7 @@ int Main(int argc, char** argv) {
                                               ", frame " + std::to_string(c.frame_size) + "x" +
                                               std::to_string(c.frame_size));
   char ghz[32];
-  std::snprintf(ghz, sizeof(ghz), "%.3f", TscGhzCached());
+  std::snprintf(ghz, sizeof(ghz), "%.3f", TscGhz());
   benchmark::AddCustomContext("tsc_ghz", ghz);
   benchmark::AddCustomContext("cycles", kCycleNote);
   benchmark::AddCustomContext("ratios", "vs_X = raystream speed / X speed, same run");

@@ -11,6 +11,7 @@
 #include <utility>
 #include <vector>
 
+#include "bench/icosphere.h"
 #include "include/raystream/raystream.h"
 #include "scenes/scene.h"
 #include "streams/ray_stream.h"
@@ -122,42 +123,13 @@ inline void BruteForceIntersect(const Scene& s, const RayStreamView& rays,
   }
 }
 
-// Unit icosphere (subdivided `levels` times) scaled by r around c, wound outwards.
+// Icosphere (subdivided `levels` times, bench/icosphere.h) of radius r around c, wound outwards.
 inline void AddIcosphere(Scene& s, glm::vec3 c, float r, int levels, uint32_t material) {
-  const float t = (1.0f + std::sqrt(5.0f)) / 2.0f;
-  std::vector<glm::vec3> v = {{-1, t, 0}, {1, t, 0}, {-1, -t, 0}, {1, -t, 0},
-                              {0, -1, t}, {0, 1, t}, {0, -1, -t}, {0, 1, -t},
-                              {t, 0, -1}, {t, 0, 1}, {-t, 0, -1}, {-t, 0, 1}};
-  for (auto& p : v) p = glm::normalize(p);
-  std::vector<glm::uvec3> f = {{0, 11, 5}, {0, 5, 1},  {0, 1, 7},   {0, 7, 10}, {0, 10, 11},
-                               {1, 5, 9},  {5, 11, 4}, {11, 10, 2}, {10, 7, 6}, {7, 1, 8},
-                               {3, 9, 4},  {3, 4, 2},  {3, 2, 6},   {3, 6, 8},  {3, 8, 9},
-                               {4, 9, 5},  {2, 4, 11}, {6, 2, 10},  {8, 6, 7},  {9, 8, 1}};
-  for (int l = 0; l < levels; ++l) {
-    std::map<std::pair<uint32_t, uint32_t>, uint32_t> mid;
-    auto midpoint = [&](uint32_t a, uint32_t b) {
-      const auto key = std::minmax(a, b);
-      const auto it = mid.find(key);
-      if (it != mid.end()) return it->second;
-      v.push_back(glm::normalize(v[a] + v[b]));
-      const uint32_t id = static_cast<uint32_t>(v.size() - 1);
-      mid.emplace(key, id);
-      return id;
-    };
-    std::vector<glm::uvec3> g;
-    for (const auto& tri : f) {
-      const uint32_t a = midpoint(tri.x, tri.y), b = midpoint(tri.y, tri.z),
-                     cc = midpoint(tri.z, tri.x);
-      g.insert(g.end(), {{tri.x, a, cc}, {tri.y, b, a}, {tri.z, cc, b}, {a, b, cc}});
-    }
-    f = std::move(g);
-  }
+  const bench::Icosphere ico = bench::MakeIcosphere(levels, r, {c.x, c.y, c.z}, 0.0);
   const uint32_t base = static_cast<uint32_t>(s.positions.size());
-  for (const auto& p : v) s.positions.push_back(c + r * p);
-  for (auto tri : f) {
-    const glm::vec3 n = glm::cross(v[tri.y] - v[tri.x], v[tri.z] - v[tri.x]);
-    if (glm::dot(n, v[tri.x] + v[tri.y] + v[tri.z]) < 0) std::swap(tri.y, tri.z);
-    s.triangles.push_back(tri + base);
+  for (const auto& p : ico.v) s.positions.push_back({p[0], p[1], p[2]});
+  for (const auto& t : ico.tri) {
+    s.triangles.push_back(glm::uvec3(t[0], t[1], t[2]) + base);
     s.material_ids.push_back(material);
   }
 }
