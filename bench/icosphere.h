@@ -109,10 +109,10 @@ struct WatertightSetup {
 };
 
 // An icosphere subdivided `levels` times (20 * 4^levels triangles, levels <= 6) of radius 100
-// centred at (1e5, 1e5, 1e5), snapped to 2^-6; at least `n` rays, split evenly between vertices
-// and edge midpoints (the same count per vertex and per edge), origins on the 2^-7 lattice within half the radius of the centre, so
-// that o + d == target exactly: the ray crosses the surface exactly at the vertex or midpoint.
-// Returns "" or the reason the construction is not exact.
+// centred at (1e5, 1e5, 1e5), snapped to 2^-6; at least `n` rays, split evenly between vertices and
+// edge midpoints (the same count per vertex and per edge), origins on the 2^-7 lattice within half
+// the radius of the centre, so that o + d == target exactly: the ray crosses the surface exactly at
+// the vertex or midpoint. Returns "" or the reason the construction is not exact.
 inline std::string MakeWatertightSetup(int levels, size_t n, WatertightSetup* s) {
   constexpr double kCentre = 1e5, kRadius = 100.0;
   s->ico = MakeIcosphere(levels, kRadius, {kCentre, kCentre, kCentre}, 64.0);

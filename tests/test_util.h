@@ -12,6 +12,14 @@
 
 namespace rs::test {
 
+// True in unoptimised or address/thread-sanitized builds, where the largest stress tests run a
+// tenth of their rays (the same code paths) to keep a sanitizer run of the suite short.
+#if !defined(__OPTIMIZE__) || defined(__SANITIZE_ADDRESS__) || defined(__SANITIZE_THREAD__)
+inline constexpr bool kSlowBuild = true;
+#else
+inline constexpr bool kSlowBuild = false;
+#endif
+
 // Runs f(target_name) once per SIMD target that is both compiled and supported here, with
 // dynamic dispatch forced to that target; restores normal dispatch afterwards.
 template <class F>
