@@ -10,7 +10,7 @@
 //      the last axis, as the scalar DDA), step cell and index, recompute that boundary's t from
 //      the cell index (bit-identical to the scalar code, no drift), and gather the occupancy
 //      bit of the new cell (occupancy first: empty cells never touch cell data);
-//   3. lanes that reached an occupied cell are collected with CompressStore and go through a
+//   3. lanes that reached an occupied cell (found from the mask's bits, LaneBits) go through a
 //      small visit pipeline, the CPU form of the paper's asynchronous loads (3.2, 3.4): the
 //      leaf's span entry is prefetched, one iteration later its packets are looked up and
 //      prefetched, one more iteration later they are tested with the 1-ray x 4-triangle packet
@@ -27,10 +27,10 @@
 // packet spans, probed with one vector compare. On the SPE a hit saved a 128-B atomic load and a
 // DMA of the triangles into the local store (hundreds of cycles). On a CPU the triangles stay in
 // the hardware caches either way and the span lookup a hit replaces is two adjacent 32-bit
-// loads; what a hit does buy here is certainty that the leaf was touched a moment ago, so the
-// lane tests it at once instead of going through the prefetch pipeline (two iterations of
-// waiting). Measured (bench/dda_bench.cc): within noise on bunny primary rays (70 % hits) and
-// on incoherent rays (~0 % hits). It never changes a result.
+// loads; a hit skips stage 1 (the lookup and the prefetch, which the lane that entered the leaf
+// a moment ago has issued) and the lane is tested one iteration later. Testing at once instead
+// stalled on that prefetch while it was still in flight: 10-12 % slower on the room scenes
+// (sponza, office-graz, conference, primary and shadow rays, AVX3). It never changes a result.
 #include "kernels/dda_simd.h"
 
 #include <cfloat>
@@ -189,6 +189,25 @@ class MicroCache {
   uint64_t hits_ = 0;
 };
 
+// The lanes set in `mask` as bits (lane l = bit l), for the scalar loops over lanes: they pick
+// lanes with tzcnt instead of reading back a CompressStore'd lane list. Such a list goes through
+// memory, and a compress store does not forward to the loads that read it back (they wait for
+// the store to retire); AVX2 has no compress instruction at all, and Highway 1.0.3 builds its
+// 1 KiB index table on the stack at every call (callgrind: 16 % of the instructions and 3/4 of
+// the branches of the any-hit kernel on AVX2).
+template <class D>
+HWY_INLINE uint64_t LaneBits(D d, hn::Mask<D> mask) {
+  static_assert(kDdaMaxLanes <= 64, "lane bits must fit a uint64_t");
+  uint8_t bytes[(kDdaMaxLanes + 7) / 8] = {};
+  hn::StoreMaskBits(d, mask, bytes);
+  uint64_t bits = 0;
+  for (size_t i = 0; i < sizeof(bytes); ++i) bits |= uint64_t{bytes[i]} << (8 * i);
+  return bits;
+}
+
+// Index of the lowest set bit of bits != 0 (the next lane of a LaneBits loop).
+HWY_INLINE size_t LowestLane(uint64_t bits) { return hwy::Num0BitsBelowLS1Bit_Nonzero64(bits); }
+
 // Triangles (not padding lanes) in a leaf's packets.
 inline size_t SpanTriangles(const TriPacketSpan& s) {
   if (s.count == 0) return 0;
@@ -205,12 +224,12 @@ struct StreamOut {
 
 // DDA setup of rays [first, first + Lanes(d)) into `st` (slots 0..Lanes(d)-1), the scalar
 // code's arithmetic lane by lane (kernels/dda.cc). Rays that can never hit (invalid, empty
-// (tmin, tmax], missing the grid) get their result now; the others are appended to `queue`.
-// Returns the number queued. Unaligned loads: views at an offset into a padded stream (the
-// renderer's tasks) work too; lanes past `size` are read (padding) but never written.
+// (tmin, tmax], missing the grid) get their result now; returns the slots of the others as
+// bits (slot j = bit j; see LaneBits). Unaligned loads: views at an offset into a padded stream
+// (the renderer's tasks) work too; lanes past `size` are read (padding) but never written.
 template <bool kAny, class D>
-HWY_INLINE size_t SetupVector(D d, const Grid& grid, const RayStreamView& rays, size_t first,
-                              const StreamOut& out, LaneSlots* st, int32_t* queue) {
+HWY_INLINE uint64_t SetupVector(D d, const Grid& grid, const RayStreamView& rays, size_t first,
+                                const StreamOut& out, LaneSlots* st) {
   using V = hn::Vec<D>;
   const hn::RebindToSigned<D> di;
   using VI = hn::Vec<decltype(di)>;
@@ -328,14 +347,15 @@ HWY_INLINE size_t SetupVector(D d, const Grid& grid, const RayStreamView& rays, 
   hn::Store(t0, d, st->t_enter);
   hn::Store(tmin, d, st->tmin);
   hn::Store(tmax_f, d, st->tmax);
-  return hn::CompressStore(hn::Iota(di, 0), hn::RebindMask(di, valid), di, queue);
+  return LaneBits(di, hn::RebindMask(di, valid));
 }
 
 // Tests the packets of one leaf for lane l; true iff the lane found an occluder (any-hit).
+// Adds the leaf's triangles to *tests unless tests is null.
 template <bool kAny>
 HWY_INLINE bool TestSpan(LaneSlots* ls, size_t l, const PacketRay& ray, const TriPacketSpan& span,
                          const StreamOut& out, uint64_t* tests) {
-  *tests += SpanTriangles(span);
+  if (tests != nullptr) *tests += SpanTriangles(span);
   if constexpr (kAny) {
     if (!PacketsWidth<TriTest::kWatertight, true>(ray, span, ls->tmin[l], ls->tmax[l],
                                                   PacketWidth::kAuto, nullptr)) {
@@ -363,13 +383,19 @@ HWY_INLINE bool TestSpan(LaneSlots* ls, size_t l, const PacketRay& ray, const Tr
 
 // Asks the memory system for a leaf's packets (ids and up to 1 KiB of vertices), so that the
 // test one iteration later finds them in cache: the CPU version of the Cell pipeline's
-// asynchronous triangle DMA (section 3.2).
+// asynchronous triangle DMA (section 3.2). The first 256 bytes (a packet is 144) are asked for
+// whatever the span's size: a prefetch never faults, and the lines past a small span hold the
+// next leaves' packets; the loop, whose exit depends on the size (a mispredicted branch per
+// visit), runs for larger spans only.
 HWY_INLINE void PrefetchSpan(const TriPacketSpan& span) {
-  if (span.count == 0) return;
   hwy::Prefetch(span.ids);
   const char* p = reinterpret_cast<const char*>(span.block);
+  hwy::Prefetch(p);
+  hwy::Prefetch(p + 64);
+  hwy::Prefetch(p + 128);
+  hwy::Prefetch(p + 192);
   const size_t bytes = span.count * kPacketFloats * sizeof(float);
-  for (size_t b = 0; b < bytes && b < 1024; b += 64) hwy::Prefetch(p + b);
+  for (size_t b = 256; b < bytes && b < 1024; b += 64) hwy::Prefetch(p + b);
 }
 
 // Stage 1 of lane l's visit of an occupied leaf: its packet span is looked up (and entered in
@@ -532,10 +558,8 @@ HWY_NOINLINE void StreamT(const DdaGrid& g, const RayStreamView& rays, const Str
   LaneSlots ls{};  // zeroed: free lanes are loaded (never used) by the vector step
   LaneSlots st;     // staging: written a whole vector at a time before any read
   for (size_t l = 0; l < kDdaMaxLanes; ++l) ls.ray[l] = -1;
-  HWY_ALIGN int32_t queue[kDdaMaxLanes];  // staged rays that need traversal
-  HWY_ALIGN int32_t list[kDdaMaxLanes];   // lanes (free, or pending a cell visit)
-  size_t queued = 0, taken = 0;           // staging queue [taken, queued)
-  size_t next_ray = 0;                    // first ray not yet set up
+  uint64_t queue = 0;    // staging slots (bits) of set-up rays not yet taken
+  size_t next_ray = 0;   // first ray not yet set up
   uint64_t steps = 0, tests = 0;
 
   const V lo_top[3] = {hn::Set(d, grid.lo[0]), hn::Set(d, grid.lo[1]), hn::Set(d, grid.lo[2])};
@@ -549,21 +573,23 @@ HWY_NOINLINE void StreamT(const DdaGrid& g, const RayStreamView& rays, const Str
   const uint32_t* bits = g.bits.get();
   const uint32_t* skip = options.empty_skip ? g.skip.get() : nullptr;
   uint64_t jumps = 0;
+  // triangle tests are counted only when asked for (the count reads the ids of the leaf's last
+  // packet, which the any-hit test never needs)
+  uint64_t* count_tests = stats != nullptr ? &tests : nullptr;
 
   for (;;) {
     // 1. refill free lanes from the staging queue, setting up more rays as needed
     const auto free_lanes = hn::Lt(hn::Load(di, ls.ray), zero_i);
-    if (!hn::AllFalse(di, free_lanes) && (taken < queued || next_ray < rays.size)) {
-      const size_t nf = hn::CompressStore(hn::Iota(di, 0), free_lanes, di, list);
-      for (size_t k = 0; k < nf; ++k) {
-        while (taken == queued && next_ray < rays.size) {
-          queued = SetupVector<kAny>(d, grid, rays, next_ray, out, &st, queue);
-          taken = 0;
+    if (!hn::AllFalse(di, free_lanes) && (queue != 0 || next_ray < rays.size)) {
+      for (uint64_t lanes = LaneBits(di, free_lanes); lanes != 0; lanes &= lanes - 1) {
+        while (queue == 0 && next_ray < rays.size) {
+          queue = SetupVector<kAny>(d, grid, rays, next_ray, out, &st);
           next_ray += n;
         }
-        if (taken == queued) break;  // stream exhausted
-        const size_t l = size_t(list[k]);
-        CopySlot(st, size_t(queue[taken++]), &ls, l);
+        if (queue == 0) break;  // stream exhausted
+        const size_t l = LowestLane(lanes);
+        CopySlot(st, LowestLane(queue), &ls, l);
+        queue &= queue - 1;
         if constexpr (kTwoLevel) {
           for (int a = 0; a < 3; ++a) {
             ls.glo[a][l] = grid.lo[a];
@@ -679,26 +705,31 @@ HWY_NOINLINE void StreamT(const DdaGrid& g, const RayStreamView& rays, const Str
     // 3. the cell visit pipeline, one lane at a time: stage 2 lanes test their (prefetched)
     // leaf and resume stepping; stage 1 lanes look up and prefetch their leaf's triangles;
     // lanes that just found an occupied cell enter stage 1 (their leaf's span entry is
-    // prefetched), or test it at once on a micro-cache hit. Each visit is thus spread over
-    // three iterations while the other lanes keep stepping. (Lanes that enter a refined cell
-    // step into its sub-grid instead: Descend.)
+    // prefetched), or go straight to stage 2 on a micro-cache hit. Each visit is thus spread
+    // over two or three iterations while the other lanes keep stepping. (Lanes that enter a
+    // refined cell step into its sub-grid instead: Descend.)
+    // Stage 1 and stage 2 lanes are taken from two masks rather than by a per-lane branch on
+    // the stage (unpredictable); only stage 1 touches the micro-cache, in lane order as before.
     if (!hn::AllFalse(di, staged_i)) {
-      const size_t ns = hn::CompressStore(hn::Iota(di, 0), staged_i, di, list);
-      for (size_t k = 0; k < ns; ++k) {
-        const size_t l = size_t(list[k]);
-        if (ls.stage[l] == 1) {
-          RequestLeaf(&cache, &ls, l);
-          ls.stage[l] = 2;
-          continue;
-        }
+      const auto stage1_i = hn::And(staged_i, hn::Eq(hn::Load(di, ls.stage), hn::Set(di, 1)));
+      const uint64_t staged = LaneBits(di, staged_i);
+      const uint64_t stage1 = LaneBits(di, stage1_i);
+      for (uint64_t lanes = stage1; lanes != 0; lanes &= lanes - 1) {
+        const size_t l = LowestLane(lanes);
+        RequestLeaf(&cache, &ls, l);
+        ls.stage[l] = 2;
+      }
+      for (uint64_t lanes = staged & ~stage1; lanes != 0; lanes &= lanes - 1) {
+        const size_t l = LowestLane(lanes);
         ls.stage[l] = 0;
-        if (TestSpan<kAny>(&ls, l, ls.packet_ray[l], ls.span[l], out, &tests)) ls.ray[l] = -1;
+        if (TestSpan<kAny>(&ls, l, ls.packet_ray[l], ls.span[l], out, count_tests)) {
+          ls.ray[l] = -1;
+        }
       }
     }
     if (hn::AllFalse(di, pending_i)) continue;
-    const size_t np = hn::CompressStore(hn::Iota(di, 0), pending_i, di, list);
-    for (size_t k = 0; k < np; ++k) {
-      const size_t l = size_t(list[k]);
+    for (uint64_t lanes = LaneBits(di, pending_i); lanes != 0; lanes &= lanes - 1) {
+      const size_t l = LowestLane(lanes);
       int32_t leaf = ls.idx[l];
       if constexpr (kTwoLevel) {
         if (ls.level[l] == 0) {
@@ -711,10 +742,10 @@ HWY_NOINLINE void StreamT(const DdaGrid& g, const RayStreamView& rays, const Str
                                                                       ls.cell[2][l]));
         }
       }
-      // a micro-cache hit means a lane touched this leaf a moment ago: its triangles are in
-      // the L1 cache, so test them now instead of waiting for a prefetch
+      // a micro-cache hit means a lane asked for this leaf's triangles a moment ago: skip the
+      // lookup and the prefetch, and test them next iteration (see the file comment)
       if (cache.Probe(leaf, &ls.span[l])) {
-        if (TestSpan<kAny>(&ls, l, ls.packet_ray[l], ls.span[l], out, &tests)) ls.ray[l] = -1;
+        ls.stage[l] = 2;
         continue;
       }
       ls.stage[l] = 1;

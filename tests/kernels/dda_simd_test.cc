@@ -387,6 +387,82 @@ TEST_CASE("random soups, flat and two-level: every target equals the scalar DDA"
   }
 }
 
+// Shadow rays as the renderer spawns them: from a closest hit, offset along the geometric
+// normal to the incoming side, towards a point light, tmax = the distance to it. Their origins
+// lie next to triangles (their own surface and its neighbours pass the edge tests behind them),
+// and most cells they cross are shared with many other lanes (micro-cache hits). The kernels are
+// also run without stats (stats = nullptr, the renderer's and benchmarks' path, which counts no
+// triangle tests): occlusion flags and closest hits equal the scalar oracle bit for bit.
+TEST_CASE("shadow rays spawned on surfaces, stats off: every target equals the scalar DDA") {
+  Rng rng(313);
+  const Soup soup = MixedSoup(rng, 1200, 30);
+  const Built flat(soup.view(), 2.0f, -1);
+  const Built two(soup.view(), 0.2f, 4);
+  REQUIRE(!two.two.empty());
+  const std::vector<Ray> primary = RandomRays(rng, flat, 3000);
+  const Oracle po = RunOracle(flat, primary);
+  const float light[3] = {0.5f * (flat.grid.lo[0] + flat.grid.hi[0]), flat.grid.hi[1],
+                          0.5f * (flat.grid.lo[2] + flat.grid.hi[2])};
+  std::vector<Ray> shadow;
+  for (size_t i = 0; i < primary.size(); ++i) {
+    const RayHit& h = po.hit[i];
+    if (h.prim < 0) continue;
+    const Ray& r = primary[i];
+    double e1[3], e2[3], n[3], p[3];
+    for (int a = 0; a < 3; ++a) {
+      e1[a] = double(flat.tris.p[1][a][h.prim]) - flat.tris.p[0][a][h.prim];
+      e2[a] = double(flat.tris.p[2][a][h.prim]) - flat.tris.p[0][a][h.prim];
+      p[a] = double(r.o[a]) + double(h.t) * r.d[a];
+    }
+    n[0] = e1[1] * e2[2] - e1[2] * e2[1];
+    n[1] = e1[2] * e2[0] - e1[0] * e2[2];
+    n[2] = e1[0] * e2[1] - e1[1] * e2[0];
+    const double len = std::sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
+    if (!(len > 0.0)) continue;
+    const double side = n[0] * r.d[0] + n[1] * r.d[1] + n[2] * r.d[2] > 0.0 ? -1.0 : 1.0;
+    Ray s;
+    double dist2 = 0.0;
+    for (int a = 0; a < 3; ++a) {
+      s.o[a] = F(p[a] + side * 1e-4 * n[a] / len);
+      s.d[a] = light[a] - s.o[a];
+      dist2 += double(s.d[a]) * s.d[a];
+    }
+    s.tmax = F(std::sqrt(dist2));
+    for (int a = 0; a < 3; ++a) s.d[a] = F(s.d[a] / double(s.tmax));
+    shadow.push_back(s);
+  }
+  REQUIRE(shadow.size() > 500);
+  for (const Built* b : {&flat, &two}) {
+    const std::string what = b == &flat ? "flat" : "two-level";
+    const Oracle o = RunOracle(*b, shadow);
+    size_t blocked = 0;
+    for (const int32_t a : o.any) blocked += a != 0;
+    CHECK(blocked > shadow.size() / 20);  // neither vacuous way
+    CHECK(blocked < shadow.size() - shadow.size() / 20);
+    RayStream stream = MakeStream(shadow);
+    const size_t n = shadow.size();
+    test::ForEachTarget([&](const char* target) {
+      INFO(what, ": target ", std::string(target), ", rays ", n);
+      std::vector<int32_t> occluded(n + 1, 77);
+      OccludedStreamDda(b->dda, stream.view(), occluded.data(), DdaOptions(), nullptr);
+      size_t any_bad = 0;
+      for (size_t i = 0; i < n; ++i) any_bad += occluded[i] != o.any[i];
+      CHECK(any_bad == 0);
+      CHECK(occluded[n] == 77);
+      HitStream hits(n);
+      hits.Resize(n);
+      hits.Reset();
+      const HitStreamView hv = hits.view();
+      IntersectStreamDda(b->dda, stream.view(), hv, DdaOptions(), nullptr);
+      size_t bad = 0;
+      for (size_t i = 0; i < n; ++i) {
+        bad += !SameHit(o.hit[i], hv.t[i], hv.u[i], hv.v[i], hv.prim[i]);
+      }
+      CHECK(bad == 0);
+    });
+  }
+}
+
 TEST_CASE("stream sizes around the vector widths; padding untouched; micro-cache sizes") {
   Rng rng(7);
   const Soup soup = MixedSoup(rng, 600, 20);
