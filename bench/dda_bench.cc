@@ -1,8 +1,8 @@
 // SIMD 3D-DDA traversal (kernels/dda_simd.h) against the scalar DDA: rays/s per Highway target
 // for the stream kernel ("Dda/<target>/<workload>") and the Cell paper's single-ray form
 // ("DdaSingle/<target>/<workload>"), the scalar oracle ("DdaScalar/<workload>"), the micro-cache
-// off ("DdaNoCache/..."), flat vs two-level grids ("Grid/<scene>/<kind>") and grid build speed
-// ("Build/<scene>/<what>", items = triangles).
+// off ("DdaNoCache/..."), flat vs two-level grids ("Grid/<scene>/<kind>"), grid build speed
+// ("Build/<scene>/<what>", items = triangles) and its phases ("BuildPhase/<scene>/<phase>").
 //
 // Workloads: bunny primary rays (scene camera), spherebox random rays (origins in the bounds,
 // uniform directions), conference and amphitheater:16 primary rays from the bounds' centre and
@@ -36,6 +36,7 @@
 #include "kernels/accel_impl.h"
 #include "kernels/dda_simd.h"
 #include "kernels/grid.h"
+#include "kernels/tri_packets.h"
 #include "kernels/triangle.h"
 #include "kernels/two_level.h"
 #include "scenes/load.h"
@@ -55,6 +56,8 @@ size_t EnvSize(const char* name, size_t fallback) {
 const char* ProbeFile(const std::string& scene) {
   if (scene == "bunny") return "bunny/bun_zipper.ply";
   if (scene == "conference") return "conference/conference.obj";
+  if (scene == "sponza") return "sponza/sponza.obj";
+  if (scene == "office-graz") return "office-graz/office-graz.obj";
   return nullptr;
 }
 
@@ -280,6 +283,81 @@ void BM_Build(benchmark::State& state, std::string scene, int what, float lambda
   state.SetItemsProcessed(state.iterations() * int64_t(mesh.num_triangles));
 }
 
+// Build phases one at a time, as rs::Accel runs them with default options ("BuildPhase/<scene>/
+// <phase>", items = triangles): soa (gather + degenerate flags), bounds, lambda (the cost model's
+// choice), grid (BuildGrid at that lambda), two-level (BuildTwoLevel, only if kAuto tries it),
+// packets (of the leaves Accel traces), dda (BuildDdaGrid: packets, skip rings, occupancy words).
+// Each phase's inputs are built once outside the timing loop; the output is rebuilt every time.
+void BM_BuildPhase(benchmark::State& state, std::string scene, int phase) {
+  if (!Available(scene)) {
+    state.SkipWithError(("scene missing: " + scene).c_str());
+    return;
+  }
+  SceneData& s = GetScene(scene);
+  const MeshView mesh = s.scene.mesh();
+  const BuildOptions options;
+  const GridCostModel model;
+  TriangleSoA tris;
+  BuildTriangleSoA(mesh, &tris);
+  const GridBounds bounds = ComputeGridBounds(tris);
+  const float lambda = ChooseLambda(tris, bounds, options.max_resolution, model);
+  Grid grid;
+  BuildGrid(tris, bounds, lambda, options.max_resolution, &grid);
+  const bool may_refine = TwoLevelCostBound(grid, options.subgrid_threshold, model) <
+                          kTwoLevelMinGain * FlatGridCost(grid, model);
+  TwoLevelGrid two;
+  if (may_refine) BuildTwoLevel(grid, tris, options.subgrid_threshold, true, model, &two);
+  if (!two.empty() &&
+      !(TwoLevelGridCost(grid, two, model) < kTwoLevelMinGain * FlatGridCost(grid, model))) {
+    two = TwoLevelGrid();
+  }
+  if (phase == 4 && !may_refine) {
+    state.SkipWithError("kAuto builds no second level on this scene");
+    return;
+  }
+  for (auto _ : state) {
+    switch (phase) {
+      case 0: {
+        TriangleSoA t;
+        BuildTriangleSoA(mesh, &t);
+        benchmark::DoNotOptimize(t.num_degenerate);
+        break;
+      }
+      case 1:
+        benchmark::DoNotOptimize(ComputeGridBounds(tris).num_valid);
+        break;
+      case 2:
+        benchmark::DoNotOptimize(ChooseLambda(tris, bounds, options.max_resolution, model));
+        break;
+      case 3: {
+        Grid g;
+        BuildGrid(tris, bounds, lambda, options.max_resolution, &g);
+        benchmark::DoNotOptimize(g.num_refs);
+        break;
+      }
+      case 4: {
+        TwoLevelGrid t;
+        BuildTwoLevel(grid, tris, options.subgrid_threshold, true, model, &t);
+        benchmark::DoNotOptimize(t.num_records);
+        break;
+      }
+      case 5: {
+        TriPackets p;
+        BuildTriPackets(two.empty() ? grid : two.leaves, tris, &p);
+        benchmark::DoNotOptimize(p.num_packets);
+        break;
+      }
+      default: {
+        DdaGrid d;
+        BuildDdaGrid(grid, &two, tris, &d);
+        benchmark::DoNotOptimize(d.top_words32);
+        break;
+      }
+    }
+  }
+  state.SetItemsProcessed(state.iterations() * int64_t(mesh.num_triangles));
+}
+
 std::string TargetName(int64_t t) { return hwy::TargetName(t); }
 
 void RegisterAll() {
@@ -348,6 +426,17 @@ void RegisterAll() {
     benchmark::RegisterBenchmark((prefix + "/accel-two-level").c_str(), BM_Build,
                                  std::string(scene), 2, 4.0f)
         ->Unit(benchmark::kMillisecond);
+  }
+  for (const char* scene : {"bunny", "sponza", "office-graz", "conference", "spherebox"}) {
+    if (!Available(scene)) continue;
+    static constexpr const char* kPhases[] = {"soa",       "bounds",  "lambda", "grid",
+                                              "two-level", "packets", "dda"};
+    for (int phase = 0; phase < 7; ++phase) {
+      benchmark::RegisterBenchmark(
+          (std::string("BuildPhase/") + scene + "/" + kPhases[phase]).c_str(), BM_BuildPhase,
+          std::string(scene), phase)
+          ->Unit(benchmark::kMillisecond);
+    }
   }
 }
 

@@ -3,6 +3,7 @@
 // stream DDA (kernels/dda_simd.h); the scalar DDA stays as the oracle (rs::ref::AccelIntersect).
 #include <hwy/base.h>
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <limits>
@@ -28,9 +29,8 @@ std::string FormatFloat(float x) {
   return s.str();
 }
 
-// Throws rs::Error naming the first bad element. Only vertices that triangles reference must
-// be finite.
-void ValidateMesh(const MeshView& mesh, const BuildOptions& options) {
+// Throws rs::Error for bad options or mesh arrays; the per-triangle checks are ValidateTriangles.
+void ValidateOptionsAndArrays(const MeshView& mesh, const BuildOptions& options) {
   if (!(options.lambda > 0.0f) || !std::isfinite(options.lambda)) {
     throw Error("BuildOptions: lambda must be a positive finite number, got " +
                 FormatFloat(options.lambda));
@@ -61,6 +61,11 @@ void ValidateMesh(const MeshView& mesh, const BuildOptions& options) {
     throw Error("mesh: " + std::to_string(mesh.num_triangles) +
                 " triangles exceed the limit of 2^31 - 1 (hit ids are int32)");
   }
+}
+
+// The per-triangle checks (indices in range, referenced vertices finite): throws rs::Error
+// naming the first bad element, or returns if there is none.
+void ValidateTriangles(const MeshView& mesh) {
   for (size_t i = 0; i < mesh.num_triangles; ++i) {
     for (int k = 0; k < 3; ++k) {
       const uint32_t index = mesh.indices[3 * i + k];
@@ -79,19 +84,35 @@ void ValidateMesh(const MeshView& mesh, const BuildOptions& options) {
   }
 }
 
+// True iff every index is < num_vertices (one pass over the index array, no position read).
+bool IndicesInRange(const MeshView& mesh) {
+  const uint32_t* indices = mesh.indices;
+  const size_t count = 3 * mesh.num_triangles;
+  uint32_t max_index = 0;
+  for (size_t i = 0; i < count; ++i) max_index = std::max(max_index, indices[i]);
+  return count == 0 || size_t{max_index} < mesh.num_vertices;
+}
+
 }  // namespace
 
 Accel::Accel(const MeshView& mesh, const BuildOptions& options) : impl_(std::make_unique<Impl>()) {
-  ValidateMesh(mesh, options);
   const auto start = std::chrono::steady_clock::now();
+  // Validation without a pass of its own over the positions: the indices are checked first (the
+  // gather must not read out of range), then the gather's degenerate pass counts non-finite
+  // triangles; either problem reruns the full per-triangle checks, which throw naming the first
+  // bad element exactly as checking everything up front would.
+  ValidateOptionsAndArrays(mesh, options);
+  if (!IndicesInRange(mesh)) ValidateTriangles(mesh);
   Impl& m = *impl_;
   BuildTriangleSoA(mesh, &m.triangles);
+  if (m.triangles.num_nonfinite != 0) ValidateTriangles(mesh);
   const GridCostModel model;
   m.lambda = options.lambda;
+  const GridBounds bounds = ComputeGridBounds(m.triangles);  // shared by the lambda choice
   if (options.grid == GridKind::kAuto && options.auto_lambda) {
-    m.lambda = ChooseLambda(m.triangles, options.max_resolution, model);
+    m.lambda = ChooseLambda(m.triangles, bounds, options.max_resolution, model);
   }
-  BuildGrid(m.triangles, m.lambda, options.max_resolution, &m.grid);
+  BuildGrid(m.triangles, bounds, m.lambda, options.max_resolution, &m.grid);
   const bool may_refine =
       options.grid == GridKind::kTwoLevel ||
       (options.grid == GridKind::kAuto &&

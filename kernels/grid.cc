@@ -145,32 +145,56 @@ GridBoxCounts CountGridBoxes(const TriangleSoA& tris, const Grid& geometry) {
   if (geometry.num_cells == 0) return c;
   c.cells = geometry.num_cells;
   const BinGeometry geo = GridBinGeometry(geometry);
-  std::vector<uint64_t> marked((geometry.num_cells + 63) / 64, 0);
+  // one byte per cell: boxes of at most 2 cells per axis (nearly all at the lambdas tried) mark
+  // their corners with 8 unconditional stores (repeats on 1-cell axes), no loop to mispredict;
+  // flagged triangles (box 0, range [0, 0]) mark the spare byte at num_cells instead
+  const size_t num_cells = geometry.num_cells;
+  std::vector<uint8_t> marked(num_cells + 1, 0);
+  uint8_t* mark = marked.data();
   const size_t stride_y = size_t(geometry.res[0]);
   const size_t stride_z = stride_y * size_t(geometry.res[1]);
   RangeBlock block;
   for (size_t first = 0; first < tris.size; first += kRangeBlock) {
     const size_t count = std::min(kRangeBlock, tris.size - first);
     SimdTriangleCellRanges(tris, geo, first, count, &block);
+    for (size_t j = 0; j < count; ++j) c.refs += size_t(block.box[j]);
     for (size_t j = 0; j < count; ++j) {
-      if (block.flags[j] & (kRangeDegenerate | kRangeOutside)) continue;
-      for (int z = block.c0[2][j]; z <= block.c1[2][j]; ++z) {
-        for (int y = block.c0[1][j]; y <= block.c1[1][j]; ++y) {
-          for (int x = block.c0[0][j]; x <= block.c1[0][j]; ++x) {
-            const size_t cell = size_t(x) + stride_y * size_t(y) + stride_z * size_t(z);
-            marked[cell >> 6] |= uint64_t{1} << (cell & 63);
-            ++c.refs;
-          }
+      const int x0 = block.c0[0][j], y0 = block.c0[1][j], z0 = block.c0[2][j];
+      const int ex = block.c1[0][j] - x0, ey = block.c1[1][j] - y0, ez = block.c1[2][j] - z0;
+      const size_t at = size_t(x0) + stride_y * size_t(y0) + stride_z * size_t(z0);
+      const size_t cell = block.box[j] != 0 ? at : num_cells;
+      if ((ex | ey | ez) <= 1) {
+        const size_t dx = size_t(ex), dy = stride_y * size_t(ey), dz = stride_z * size_t(ez);
+        mark[cell] = 1;
+        mark[cell + dx] = 1;
+        mark[cell + dy] = 1;
+        mark[cell + dx + dy] = 1;
+        mark[cell + dz] = 1;
+        mark[cell + dz + dx] = 1;
+        mark[cell + dz + dy] = 1;
+        mark[cell + dz + dx + dy] = 1;
+        continue;
+      }
+      for (int z = 0; z <= ez; ++z) {
+        for (int y = 0; y <= ey; ++y) {
+          uint8_t* row = mark + cell + stride_y * size_t(y) + stride_z * size_t(z);
+          std::fill(row, row + ex + 1, uint8_t{1});
         }
       }
     }
   }
-  for (const uint64_t w : marked) c.occupied += size_t(std::popcount(w));
+  size_t occupied = 0;
+  for (size_t k = 0; k < num_cells; ++k) occupied += mark[k];
+  c.occupied = occupied;
   return c;
 }
 
 void BuildGrid(const TriangleSoA& tris, float lambda, int max_resolution, Grid* grid) {
-  const GridBounds bounds = ComputeGridBounds(tris);
+  BuildGrid(tris, ComputeGridBounds(tris), lambda, max_resolution, grid);
+}
+
+void BuildGrid(const TriangleSoA& tris, const GridBounds& bounds, float lambda, int max_resolution,
+               Grid* grid) {
   SetGridGeometry(bounds, lambda, max_resolution, grid);
   if (grid->num_cells == 0) return;
   const size_t n = tris.size;
@@ -190,6 +214,7 @@ void BuildGrid(const TriangleSoA& tris, float lambda, int max_resolution, Grid* 
   size_t num_refs = 0;
   BinScratch scratch;
   const size_t stride_y = size_t(grid->res[0]), stride_z = stride_y * size_t(grid->res[1]);
+  const size_t strides[3] = {1, stride_y, stride_z};
   const float* p[3][3];
   for (int k = 0; k < 3; ++k) {
     for (int a = 0; a < 3; ++a) p[k][a] = tris.p[k][a].data();
@@ -198,31 +223,33 @@ void BuildGrid(const TriangleSoA& tris, float lambda, int max_resolution, Grid* 
   for (size_t first = 0; first < n; first += kRangeBlock) {
     const size_t count = std::min(kRangeBlock, n - first);
     SimdTriangleCellRanges(tris, geo, first, count, &block);
+    // room for the block's one-cell and line triangles (all their box cells are emitted) at
+    // once; each triangle tested by BinTriangleCells makes room for its box plus that reserve
+    // below (the line triangles after it in the block still need theirs)
+    size_t lines = 0;
     for (size_t j = 0; j < count; ++j) {
-      const size_t i = first + j;
+      const int spans_mask = block.flags[j] & 7;
+      lines += (spans_mask & (spans_mask - 1)) == 0 ? size_t(block.box[j]) : 0;
+    }
+    if (num_refs + lines > capacity) Grow(&ref_cells, num_refs, &capacity, lines);
+    uint32_t* cells_out = ref_cells.get();
+    for (size_t j = 0; j < count; ++j) {
+      const uint32_t i = uint32_t(first + j);
       ref_begin[i] = uint32_t(num_refs);
       const int32_t flags = block.flags[j];
       // degenerate, or outside (cannot happen: the bounds contain every triangle)
       if (flags & (kRangeDegenerate | kRangeOutside)) continue;
       const int c0[3] = {block.c0[0][j], block.c0[1][j], block.c0[2][j]};
-      if ((flags & 7) == 0) {  // one cell, no further test: the common case at low lambda
-        const size_t c = size_t(c0[0]) + stride_y * size_t(c0[1]) + stride_z * size_t(c0[2]);
-        if (num_refs == capacity) Grow(&ref_cells, num_refs, &capacity, 1);
-        ref_cells[num_refs++] = uint32_t(c);
-        ++begin[c];
-        continue;
-      }
-      if ((flags & 7) == 1 || (flags & 7) == 2 || (flags & 7) == 4) {
-        // a line of cells along one axis: the triangle crosses them all (BinTriangleCells)
-        const int a = (flags & 7) == 1 ? 0 : ((flags & 7) == 2 ? 1 : 2);
-        const size_t stride = a == 0 ? 1 : (a == 1 ? stride_y : stride_z);
-        const int first_cell = c0[a], last_cell = block.c1[a][j];
-        if (num_refs + size_t(last_cell - first_cell + 1) > capacity) {
-          Grow(&ref_cells, num_refs, &capacity, size_t(last_cell - first_cell + 1));
-        }
-        size_t c = size_t(c0[0]) + stride_y * size_t(c0[1]) + stride_z * size_t(c0[2]);
-        for (int k = first_cell; k <= last_cell; ++k, c += stride) {
-          ref_cells[num_refs++] = uint32_t(c);
+      size_t c = size_t(c0[0]) + stride_y * size_t(c0[1]) + stride_z * size_t(c0[2]);
+      const int spans_mask = flags & 7;
+      if ((spans_mask & (spans_mask - 1)) == 0) {
+        // one cell (the common case at low lambda), or a line of cells along one axis: the
+        // triangle crosses them all (BinTriangleCells)
+        const int a = spans_mask == 4 ? 2 : spans_mask >> 1;  // 0 -> axis 0, a 1-cell range
+        const size_t stride = strides[a];
+        const int cells = block.c1[a][j] - c0[a] + 1;
+        for (int k = 0; k < cells; ++k, c += stride) {
+          cells_out[num_refs++] = uint32_t(c);
           ++begin[c];
         }
         continue;
@@ -230,22 +257,21 @@ void BuildGrid(const TriangleSoA& tris, float lambda, int max_resolution, Grid* 
       const int c1[3] = {block.c1[0][j], block.c1[1][j], block.c1[2][j]};
       const bool span[3] = {(flags & 1) != 0, (flags & 2) != 0, (flags & 4) != 0};
       const int spans = int(span[0]) + int(span[1]) + int(span[2]);
-      // at most the bounding-box cells are emitted: make room once, then no checks per cell
-      const size_t box = size_t(c1[0] - c0[0] + 1) * size_t(c1[1] - c0[1] + 1) *
-                         size_t(c1[2] - c0[2] + 1);
-      if (num_refs + box > capacity) Grow(&ref_cells, num_refs, &capacity, box);
-      uint32_t* out = ref_cells.get();
       const float v[3][3] = {{p[0][0][i], p[0][1][i], p[0][2][i]},
                              {p[1][0][i], p[1][1][i], p[1][2][i]},
                              {p[2][0][i], p[2][1][i], p[2][2][i]}};
+      // its box, and what the block's one-cell and line triangles after it may still need
+      if (num_refs + size_t(block.box[j]) + lines > capacity) {
+        Grow(&ref_cells, num_refs, &capacity, size_t(block.box[j]) + lines);
+        cells_out = ref_cells.get();
+      }
       BinTriangleCells(geo, v, c0, c1, span, spans, &scratch, [&](int x, int y, int z) {
-        const size_t c = size_t(x) + stride_y * size_t(y) + stride_z * size_t(z);
-        out[num_refs++] = uint32_t(c);
-        ++begin[c];
+        const size_t cell = size_t(x) + stride_y * size_t(y) + stride_z * size_t(z);
+        cells_out[num_refs++] = uint32_t(cell);
+        ++begin[cell];
       });
     }
   }
-  ref_begin[n] = uint32_t(num_refs);
 
   // Inclusive prefix sum -> end of each cell (occupancy bits and statistics on the way), then
   // fill backwards with pre-decrement so cell_begin[c] ends at the start of cell c and the ids
@@ -271,8 +297,10 @@ void BuildGrid(const TriangleSoA& tris, float lambda, int max_resolution, Grid* 
   begin[num_cells] = sum;
   grid->tri_ids = Allocate<uint32_t>(num_refs);
   uint32_t* ids = grid->tri_ids.get();
+  ref_begin[n] = uint32_t(num_refs);
+  const uint32_t* cells_in = ref_cells.get();
   for (size_t i = n; i-- > 0;) {
-    for (size_t r = ref_begin[i + 1]; r-- > ref_begin[i];) ids[--begin[ref_cells[r]]] = uint32_t(i);
+    for (size_t r = ref_begin[i + 1]; r-- > ref_begin[i];) ids[--begin[cells_in[r]]] = uint32_t(i);
   }
   grid->num_refs = num_refs;
   grid->occupied_cells = occupied;

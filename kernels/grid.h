@@ -86,5 +86,8 @@ GridBoxCounts CountGridBoxes(const TriangleSoA& tris, const Grid& geometry);
 // Preconditions: lambda > 0 and finite, max_resolution >= 1 (Accel checks them).
 // Throws rs::Error if the references do not fit 32-bit offsets.
 void BuildGrid(const TriangleSoA& tris, float lambda, int max_resolution, Grid* grid);
+// The same, given ComputeGridBounds(tris) (so a caller that has them does not recompute them).
+void BuildGrid(const TriangleSoA& tris, const GridBounds& bounds, float lambda, int max_resolution,
+               Grid* grid);
 
 }  // namespace rs

@@ -50,6 +50,10 @@ BinGeometry GridBinGeometry(const Grid& grid);
 
 // SIMD passes of the build (kernels/grid_simd.cc, Highway dynamic dispatch).
 
+// tris->degenerate[i] = IsDegenerateTriangle(triangle i) for i < size (the same flags bit for bit),
+// num_degenerate and num_nonfinite. Reads the padded vertex arrays (size vertices valid).
+void SimdDegenerateFlags(TriangleSoA* tris);
+
 // Float min / max of the vertices of the non-degenerate triangles (+-FLT_MAX if none) and
 // their number.
 void SimdTriangleBounds(const TriangleSoA& tris, float lo[3], float hi[3], size_t* num_valid);
@@ -59,17 +63,30 @@ inline constexpr size_t kRangeBlock = 256;
 inline constexpr int32_t kRangeOutside = 8;      // flags bit: misses the grid (no cells)
 inline constexpr int32_t kRangeDegenerate = 16;  // flags bit: degenerate triangle (skip)
 struct RangeBlock {
-  int32_t c0[3][kRangeBlock];
+  int32_t c0[3][kRangeBlock];  // [0, 0] for flagged (degenerate or outside) triangles
   int32_t c1[3][kRangeBlock];
+  uint32_t box[kRangeBlock];   // cells in the box [c0, c1] (<= num_cells < 2^32), 0 if flagged
   int32_t flags[kRangeBlock];  // bit a: spans on axis a; kRangeOutside; kRangeDegenerate
 };
 // Fills out for triangles [first, first + count), count <= kRangeBlock, first + count <= size.
 void SimdTriangleCellRanges(const TriangleSoA& tris, const BinGeometry& g, size_t first,
                             size_t count, RangeBlock* out);
 
-// Scratch space reused across triangles (2D projection tables of large triangles).
+// The edge constraints of a triangle's 2D projection (binning::Edges2D): cell (ci, cj) passes
+// edge k iff c = (base[k] + double(cj) * sj[k]) + double(ci) * si[k] is within [lo[k], hi[k]].
+struct EdgeSet {
+  double lo[3], hi[3], base[3], si[3], sj[3];
+  int n = 0;  // edges (<= 3)
+};
+// out[r * ni + m] = 1 iff cell (ci0 + m, cj0 + r) passes every edge of `e`, else 0, for m < ni,
+// r < nj; the sums, products and comparisons are the scalar ones above, bit for bit.
+void SimdEdgeTable(const EdgeSet& e, int ci0, int ni, int cj0, int nj, uint8_t* out);
+
+// Scratch space reused across triangles (2D projection tables of large triangles, and the
+// per-column terms of the plane test).
 struct BinScratch {
   std::vector<uint8_t> table[3];
+  std::vector<double> terms;
 };
 
 namespace binning {
@@ -88,7 +105,7 @@ inline int RawCell(float f, float res_f) {
 class Edges2D {
  public:
   Edges2D(const double v[3][3], const BinGeometry& g, int i, int j) {
-    n_ = 0;
+    int n = 0;
     for (int e = 0; e < 3; ++e) {
       const double* p = v[e];
       const double* q = v[e == 2 ? 0 : e + 1];
@@ -100,37 +117,31 @@ class Edges2D {
       const double pr = ni * r[i] + nj * r[j];
       const double half = std::fabs(ni) * (0.5 * g.cs[i] + g.margin[i]) +
                           std::fabs(nj) * (0.5 * g.cs[j] + g.margin[j]);
-      lo_[n_] = std::min(pp, pr) - half;
-      hi_[n_] = std::max(pp, pr) + half;
-      base_[n_] = ni * (g.lo[i] + 0.5 * g.cs[i]) + nj * (g.lo[j] + 0.5 * g.cs[j]);
-      si_[n_] = ni * g.cs[i];
-      sj_[n_] = nj * g.cs[j];
-      ++n_;
+      e_.lo[n] = std::min(pp, pr) - half;
+      e_.hi[n] = std::max(pp, pr) + half;
+      e_.base[n] = ni * (g.lo[i] + 0.5 * g.cs[i]) + nj * (g.lo[j] + 0.5 * g.cs[j]);
+      e_.si[n] = ni * g.cs[i];
+      e_.sj[n] = nj * g.cs[j];
+      ++n;
     }
+    e_.n = n;
   }
   bool Overlaps(int ci, int cj) const {
-    for (int k = 0; k < n_; ++k) {
-      const double c = base_[k] + double(ci) * si_[k] + double(cj) * sj_[k];
-      if (c < lo_[k] || c > hi_[k]) return false;
+    for (int k = 0; k < e_.n; ++k) {
+      const double c = e_.base[k] + double(ci) * e_.si[k] + double(cj) * e_.sj[k];
+      if (c < e_.lo[k] || c > e_.hi[k]) return false;
     }
     return true;
   }
-  // out[m] = Overlaps(ci0 + m, cj) for m < n, edge by edge over the row (the sum in another
-  // order: the difference, ~1e-16 of the coordinates, is far below the margin).
-  void Row(int ci0, int n, int cj, uint8_t* out) const {
-    for (int m = 0; m < n; ++m) out[m] = 1;
-    for (int k = 0; k < n_; ++k) {
-      const double row = base_[k] + double(cj) * sj_[k];
-      for (int m = 0; m < n; ++m) {
-        const double c = row + double(ci0 + m) * si_[k];
-        out[m] &= uint8_t(!(c < lo_[k] || c > hi_[k]));
-      }
-    }
+  // out[r * ni + m] = Overlaps(ci0 + m, cj0 + r) for m < ni, r < nj, edge by edge over each row
+  // as (base + double(cj) * sj) + double(ci) * si (the sum in another order than Overlaps': the
+  // difference, ~1e-16 of the coordinates, is far below the margin). SimdEdgeTable.
+  void Table(int ci0, int ni, int cj0, int nj, uint8_t* out) const {
+    SimdEdgeTable(e_, ci0, ni, cj0, nj, out);
   }
 
  private:
-  double lo_[3], hi_[3], base_[3], si_[3], sj_[3];
-  int n_;
+  EdgeSet e_;
 };
 
 // The plane test: the triangle's plane against the cell boxes grown by the margin.
@@ -158,6 +169,11 @@ class Plane3D {
     const double c = base_ + double(x) * step_[0] + double(y) * step_[1] + double(z) * step_[2];
     return c >= lo_ && c <= hi_;
   }
+  // Overlaps(x, y, z) == Inside((XTerm(x) + Term(1, y)) + Term(2, z)) bit for bit: the same
+  // sums in the same order, with the terms taken once per column, row and layer.
+  double XTerm(int x) const { return base_ + double(x) * step_[0]; }
+  double Term(int axis, int c) const { return double(c) * step_[axis]; }
+  bool Inside(double c) const { return c >= lo_ && c <= hi_; }
 
  private:
   double step_[3], lo_, hi_, base_;
@@ -230,14 +246,16 @@ inline void BinTriangleCells(const BinGeometry& g, const float v[3][3], const in
     const int i = k == 0 ? 1 : 0, j = k == 2 ? 1 : 2;
     const binning::Edges2D edges(dv, g, i, j);
     const int ni = c1[i] - c0[i] + 1;
-    std::vector<uint8_t>& row = scratch->table[0];
-    if (row.size() < size_t(ni)) row.resize(size_t(ni));
+    const int nj = c1[j] - c0[j] + 1;
+    std::vector<uint8_t>& table = scratch->table[0];
+    if (table.size() < size_t(ni) * size_t(nj)) table.resize(size_t(ni) * size_t(nj));
+    edges.Table(c0[i], ni, c0[j], nj, table.data());
     int c[3];
     c[k] = c0[k];
-    for (c[j] = c0[j]; c[j] <= c1[j]; ++c[j]) {
-      edges.Row(c0[i], ni, c[j], row.data());
+    const uint8_t* row = table.data();
+    for (c[j] = c0[j]; c[j] <= c1[j]; ++c[j], row += ni) {
       for (int m = 0; m < ni; ++m) {
-        if (!row[size_t(m)]) continue;
+        if (!row[m]) continue;
         c[i] = c0[i] + m;
         emit(c[0], c[1], c[2]);
       }
@@ -247,6 +265,7 @@ inline void BinTriangleCells(const BinGeometry& g, const float v[3][3], const in
   // spans == 3: tables of the three 2D projections, then the plane test per cell
   const int n[3] = {c1[0] - c0[0] + 1, c1[1] - c0[1] + 1, c1[2] - c0[2] + 1};
   static constexpr int kPair[3][2] = {{0, 1}, {0, 2}, {1, 2}};  // xy, xz, yz
+  if (scratch->terms.size() < size_t(n[0])) scratch->terms.resize(size_t(n[0]));
   uint8_t* table[3];
   for (int p = 0; p < 3; ++p) {
     const int i = kPair[p][0], j = kPair[p][1];
@@ -254,15 +273,20 @@ inline void BinTriangleCells(const BinGeometry& g, const float v[3][3], const in
     if (t.size() < size_t(n[i]) * size_t(n[j])) t.resize(size_t(n[i]) * size_t(n[j]));
     table[p] = t.data();
     const binning::Edges2D edges(dv, g, i, j);
-    for (int cj = 0; cj < n[j]; ++cj) edges.Row(c0[i], n[i], c0[j] + cj, table[p] + size_t(cj) * n[i]);
+    edges.Table(c0[i], n[i], c0[j], n[j], table[p]);
   }
   const binning::Plane3D plane(dv, g);
+  double* x_terms = scratch->terms.data();
+  for (int x = 0; x < n[0]; ++x) x_terms[x] = plane.XTerm(c0[0] + x);
   for (int z = 0; z < n[2]; ++z) {
+    const double z_term = plane.Term(2, c0[2] + z);
     for (int y = 0; y < n[1]; ++y) {
       if (!table[2][size_t(z) * n[1] + y]) continue;
+      const double y_term = plane.Term(1, c0[1] + y);
+      const uint8_t* xy = table[0] + size_t(y) * n[0];
+      const uint8_t* xz = table[1] + size_t(z) * n[0];
       for (int x = 0; x < n[0]; ++x) {
-        if (table[0][size_t(y) * n[0] + x] && table[1][size_t(z) * n[0] + x] &&
-            plane.Overlaps(c0[0] + x, c0[1] + y, c0[2] + z)) {
+        if (xy[x] && xz[x] && plane.Inside((x_terms[x] + y_term) + z_term)) {
           emit(c0[0] + x, c0[1] + y, c0[2] + z);
         }
       }

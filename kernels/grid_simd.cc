@@ -1,5 +1,7 @@
-// SIMD passes of the grid build (kernels/grid_binning.h): triangle bounds and bounding-box cell
-// ranges, a vector of triangles at a time. Per-target code; foreach_target re-includes this file.
+// SIMD passes of the grid build (kernels/grid_binning.h): degenerate flags, triangle bounds and
+// bounding-box cell ranges, a vector of triangles at a time; the 2D edge tables of the binning
+// tests, a vector of cells at a time. Per-target code; foreach_target re-includes this file.
+#include <algorithm>
 #include <cfloat>
 #include <cstddef>
 #include <cstdint>
@@ -49,6 +51,49 @@ void SimdTriangleBounds(const TriangleSoA& tris, float lo[3], float hi[3], size_
   *num_valid = valid;
 }
 
+// IsDegenerateTriangle a vector of triangles at a time: float -> double is exact and the
+// differences and products below round as the scalar code's (no contraction), so the flags are
+// the same bit for bit.
+void SimdDegenerateFlags(TriangleSoA* tris) {
+  const hn::ScalableTag<double> dd;
+  const hn::Rebind<float, decltype(dd)> df;
+  const auto zero = hn::Zero(dd);
+  const size_t n = tris->size, lanes = hn::Lanes(dd);
+  uint8_t* flags = tris->degenerate.data();
+  size_t degenerate = 0, nonfinite = 0;
+  for (size_t i = 0; i < n; i += lanes) {
+    // the vertex arrays are padded (AlignedArray): whole-vector loads are safe
+    hn::Vec<decltype(dd)> p[3][3];
+    auto finite = hn::FirstN(dd, n - i);
+    for (int k = 0; k < 3; ++k) {
+      for (int a = 0; a < 3; ++a) {
+        p[k][a] = hn::PromoteTo(dd, hn::LoadU(df, tris->p[k][a].data() + i));
+        finite = hn::And(finite, hn::IsFinite(p[k][a]));
+      }
+    }
+    const auto e1x = hn::Sub(p[1][0], p[0][0]), e1y = hn::Sub(p[1][1], p[0][1]);
+    const auto e1z = hn::Sub(p[1][2], p[0][2]);
+    const auto e2x = hn::Sub(p[2][0], p[0][0]), e2y = hn::Sub(p[2][1], p[0][1]);
+    const auto e2z = hn::Sub(p[2][2], p[0][2]);
+    const auto nx = hn::Sub(hn::Mul(e1y, e2z), hn::Mul(e1z, e2y));
+    const auto ny = hn::Sub(hn::Mul(e1z, e2x), hn::Mul(e1x, e2z));
+    const auto nz = hn::Sub(hn::Mul(e1x, e2y), hn::Mul(e1y, e2x));
+    const auto zero_area = hn::And(hn::Eq(nx, zero), hn::And(hn::Eq(ny, zero), hn::Eq(nz, zero)));
+    const auto ok = hn::AndNot(zero_area, finite);  // finite and not zero area
+    const size_t live = std::min(lanes, n - i);
+    uint8_t bits[8] = {};
+    hn::StoreMaskBits(dd, ok, bits);
+    for (size_t l = 0; l < live; ++l) {
+      const uint8_t bad = uint8_t(((bits[l >> 3] >> (l & 7)) & 1u) ^ 1u);
+      flags[i + l] = bad;
+      degenerate += bad;
+    }
+    nonfinite += live - hn::CountTrue(dd, finite);
+  }
+  tris->num_degenerate = degenerate;
+  tris->num_nonfinite = nonfinite;
+}
+
 void SimdTriangleCellRanges(const TriangleSoA& tris, const BinGeometry& g, size_t first,
                             size_t count, RangeBlock* out) {
   const hn::ScalableTag<float> d;
@@ -59,6 +104,7 @@ void SimdTriangleCellRanges(const TriangleSoA& tris, const BinGeometry& g, size_
     const size_t i = first + k;
     const auto ok = ValidLanes(d, tris, i);
     auto flags = hn::IfThenZeroElse(hn::RebindMask(di, ok), hn::Set(di, kRangeDegenerate));
+    hn::Vec<decltype(di)> c0s[3], c1s[3];
     for (int a = 0; a < 3; ++a) {
       const auto x0 = hn::Load(d, tris.p[0][a].data() + i);
       const auto x1 = hn::Load(d, tris.p[1][a].data() + i);
@@ -78,10 +124,50 @@ void SimdTriangleCellRanges(const TriangleSoA& tris, const BinGeometry& g, size_
       const auto c1 = hn::Min(r1, hn::Set(di, g.res[a] - 1));
       flags = hn::Or(flags, hn::IfThenElseZero(hn::Gt(r1, r0), hn::Set(di, 1 << a)));
       flags = hn::Or(flags, hn::IfThenElseZero(hn::Gt(c0, c1), hn::Set(di, kRangeOutside)));
+      c0s[a] = c0;
+      c1s[a] = c1;
+    }
+    // flagged lanes get the range [0, 0] and box 0 (so their values are harmless to use)
+    const auto skip = hn::Ne(hn::And(flags, hn::Set(di, kRangeDegenerate | kRangeOutside)), zero_i);
+    const hn::RebindToUnsigned<decltype(di)> du;
+    auto box = hn::BitCast(du, hn::IfThenZeroElse(skip, one_i));
+    for (int a = 0; a < 3; ++a) {
+      const auto c0 = hn::IfThenZeroElse(skip, c0s[a]), c1 = hn::IfThenZeroElse(skip, c1s[a]);
+      box = hn::Mul(box, hn::BitCast(du, hn::Add(hn::Sub(c1, c0), one_i)));
       hn::StoreU(c0, di, out->c0[a] + k);
       hn::StoreU(c1, di, out->c1[a] + k);
     }
+    hn::StoreU(box, du, out->box + k);
     hn::StoreU(flags, di, out->flags + k);
+  }
+}
+
+void SimdEdgeTable(const EdgeSet& e, int ci0, int ni, int cj0, int nj, uint8_t* out) {
+  const hn::ScalableTag<double> dd;
+  const int lanes = int(hn::Lanes(dd));
+  for (int m0 = 0; m0 < ni; m0 += lanes) {
+    // double(ci0 + m) * si per edge: Iota is exact (small integers), the product rounds as the
+    // scalar one
+    const auto col = hn::Iota(dd, double(ci0 + m0));
+    hn::Vec<decltype(dd)> term[3], lo[3], hi[3];
+    for (int k = 0; k < e.n; ++k) {
+      term[k] = hn::Mul(col, hn::Set(dd, e.si[k]));
+      lo[k] = hn::Set(dd, e.lo[k]);
+      hi[k] = hn::Set(dd, e.hi[k]);
+    }
+    const int live = std::min(lanes, ni - m0);
+    for (int r = 0; r < nj; ++r) {
+      auto ok = hn::FirstN(dd, size_t(live));
+      for (int k = 0; k < e.n; ++k) {
+        const double row = e.base[k] + double(cj0 + r) * e.sj[k];
+        const auto c = hn::Add(hn::Set(dd, row), term[k]);
+        ok = hn::AndNot(hn::Or(hn::Lt(c, lo[k]), hn::Gt(c, hi[k])), ok);
+      }
+      uint8_t bits[8] = {};
+      hn::StoreMaskBits(dd, ok, bits);
+      uint8_t* o = out + size_t(r) * size_t(ni) + size_t(m0);
+      for (int m = 0; m < live; ++m) o[m] = uint8_t((bits[m >> 3] >> (m & 7)) & 1u);
+    }
   }
 }
 
@@ -94,6 +180,14 @@ namespace rs {
 
 HWY_EXPORT(SimdTriangleBounds);
 HWY_EXPORT(SimdTriangleCellRanges);
+HWY_EXPORT(SimdDegenerateFlags);
+HWY_EXPORT(SimdEdgeTable);
+
+void SimdEdgeTable(const EdgeSet& e, int ci0, int ni, int cj0, int nj, uint8_t* out) {
+  HWY_DYNAMIC_DISPATCH(SimdEdgeTable)(e, ci0, ni, cj0, nj, out);
+}
+
+void SimdDegenerateFlags(TriangleSoA* tris) { HWY_DYNAMIC_DISPATCH(SimdDegenerateFlags)(tris); }
 
 void SimdTriangleBounds(const TriangleSoA& tris, float lo[3], float hi[3], size_t* num_valid) {
   HWY_DYNAMIC_DISPATCH(SimdTriangleBounds)(tris, lo, hi, num_valid);

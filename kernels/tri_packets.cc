@@ -1,11 +1,100 @@
 // Builds the per-cell 4-wide triangle packets (see tri_packets.h): packet offsets from the CSR
-// offsets, then one pass over the CSR lists copying 9 floats per reference.
+// offsets, then one pass over the CSR lists gathering 9 floats per reference, a vector of
+// references at a time (hardware gathers where the target has them). Per-target code;
+// foreach_target re-includes this file.
 #include "kernels/tri_packets.h"
 
+#include <algorithm>
 #include <limits>
 
+#undef HWY_TARGET_INCLUDE
+#define HWY_TARGET_INCLUDE "kernels/tri_packets.cc"
+#include <hwy/foreach_target.h>  // IWYU pragma: keep
+#include <hwy/highway.h>         // must follow foreach_target.h
+
+HWY_BEFORE_NAMESPACE();
+namespace rs {
+namespace HWY_NAMESPACE {
+namespace hn = hwy::HWY_NAMESPACE;
+
+// Writes the blocks of `cells` lists (list c = tri_ids[list_begin[c] .. list_begin[c + 1])) one
+// after the other from packet 0, and packet_begin[c + 1] (packet_begin[0] is the caller's). Each
+// block holds the list's n triangles as ceil(n / 4) packets, component by component: per
+// component, a vector of references at a time, the floats gathered from one SoA array of `tris`
+// and stored contiguously, NaN in the padding lanes (n .. 4 ceil(n / 4)), which get id -1. No
+// store reaches past a block (stores are masked to it). `degenerate` is null when the mesh has
+// no degenerate triangle (the usual case); otherwise listed degenerate triangles get NaN (it is
+// read as aligned 32-bit words: the array must extend to a multiple of 4 bytes, as
+// TriangleSoA::degenerate, an AlignedArray padded to 16 elements, does).
+void FillPacketCells(const float* const* src, const uint8_t* degenerate, const uint32_t* tri_ids,
+                     const uint32_t* list_begin, size_t cells, float* data, int32_t* ids,
+                     uint32_t* packet_begin) {
+  const hn::ScalableTag<float> df;
+  const hn::RebindToSigned<decltype(df)> di;
+  const size_t lanes = hn::Lanes(df);
+  const auto nan = hn::Set(df, std::numeric_limits<float>::quiet_NaN());
+  const auto minus1 = hn::Set(di, -1);
+  HWY_ALIGN int32_t tail[HWY_MAX_BYTES / sizeof(int32_t)];
+  size_t first = 0;  // packets written so far
+  for (size_t c = 0; c < cells; ++c) {
+    const uint32_t* list = tri_ids + list_begin[c];
+    const size_t n = list_begin[c + 1] - list_begin[c];
+    const size_t stride = (n + kPacketLanes - 1) / kPacketLanes * kPacketLanes;
+    float* block = data + kPacketFloats * first;
+    int32_t* block_ids = ids + kPacketLanes * first;
+    for (size_t j = 0; j < n; j += lanes) {
+      const size_t live = std::min(lanes, n - j);
+      // the ids of this vector of references; the last partial vector goes through a copy, so
+      // nothing past the list is read (padding lanes gather triangle 0, then become NaN)
+      const auto live_i = hn::FirstN(di, live);
+      const int32_t* at = reinterpret_cast<const int32_t*>(list + j);
+      hn::Vec<decltype(di)> index;
+      if (live == lanes) {
+        index = hn::LoadU(di, at);
+      } else {
+#if HWY_TARGET <= HWY_AVX2
+        index = hn::MaskedLoad(live_i, di, at);  // masked lanes are not read (no fault)
+#else
+        for (size_t l = 0; l < lanes; ++l) tail[l] = l < live ? at[l] : 0;
+        index = hn::Load(di, tail);
+#endif
+      }
+      auto keep = hn::RebindMask(df, live_i);
+      if (degenerate != nullptr) {
+        // the flag bytes, gathered as the aligned 32-bit words that hold them
+        const auto words = hn::GatherIndex(di, reinterpret_cast<const int32_t*>(degenerate),
+                                           hn::ShiftRight<2>(index));
+        const auto shift = hn::ShiftLeft<3>(hn::And(index, hn::Set(di, 3)));
+        const auto flag = hn::And(hn::Shr(words, shift), hn::Set(di, 0xff));
+        keep = hn::AndNot(hn::RebindMask(df, hn::Ne(flag, hn::Zero(di))), keep);
+      }
+      const auto in_block = hn::FirstN(df, stride - j);  // live lanes and the padding after
+      for (size_t k = 0; k < kPacketComponents; ++k) {
+        const auto v = hn::GatherIndex(df, src[k], index);
+        hn::BlendedStore(hn::IfThenElse(keep, v, nan), in_block, df, block + k * stride + j);
+      }
+      hn::BlendedStore(hn::IfThenElse(live_i, index, minus1), hn::RebindMask(di, in_block), di,
+                       block_ids + j);
+    }
+    // padding lanes no vector reached (only with fewer than 4 lanes per vector)
+    for (size_t j = (n + lanes - 1) / lanes * lanes; j < stride; ++j) {
+      for (size_t k = 0; k < kPacketComponents; ++k) block[k * stride + j] = hn::GetLane(nan);
+      block_ids[j] = -1;
+    }
+    first += stride / kPacketLanes;
+    packet_begin[c + 1] = uint32_t(first);
+  }
+}
+
+}  // namespace HWY_NAMESPACE
+}  // namespace rs
+HWY_AFTER_NAMESPACE();
+
+#if HWY_ONCE
 namespace rs {
 namespace {
+
+HWY_EXPORT(FillPacketCells);
 
 template <typename T>
 void Grow(hwy::AlignedFreeUniquePtr<T[]>* p, size_t n) {
@@ -23,29 +112,6 @@ void Reserve(size_t packets, size_t cells, TriPackets* out) {
   if (cells > out->cell_capacity || !out->cell_begin) {
     Grow(&out->cell_begin, cells + 1);
     out->cell_capacity = cells;
-  }
-}
-
-// Writes the block of one cell: the n triangles of `list` as ceil(n / 4) packets, component by
-// component (each inner loop gathers from one SoA array of `tris` into contiguous floats; this
-// order measured ~10% faster than triangle by triangle, and an AoS staging copy was slower).
-// `degenerate` is null when the mesh has no degenerate triangle (the usual case).
-inline void FillBlock(const float* const src[kPacketComponents], const uint8_t* degenerate,
-                      const uint32_t* list, size_t n, float* block, int32_t* ids) {
-  const size_t stride = (n + kPacketLanes - 1) / kPacketLanes * kPacketLanes;
-  const float nan = std::numeric_limits<float>::quiet_NaN();
-  for (size_t c = 0; c < kPacketComponents; ++c) {
-    const float* from = src[c];
-    float* to = block + c * stride;
-    for (size_t j = 0; j < n; ++j) to[j] = from[list[j]];
-    for (size_t j = n; j < stride; ++j) to[j] = nan;
-  }
-  for (size_t j = 0; j < n; ++j) ids[j] = int32_t(list[j]);
-  for (size_t j = n; j < stride; ++j) ids[j] = -1;
-  if (degenerate == nullptr) return;
-  for (size_t j = 0; j < n; ++j) {
-    if (degenerate[list[j]] == 0) continue;
-    for (size_t c = 0; c < kPacketComponents; ++c) block[c * stride + j] = nan;
   }
 }
 
@@ -72,21 +138,9 @@ void BuildTriPackets(const Grid& grid, const TriangleSoA& tris, TriPackets* out)
   const float* src[kPacketComponents];
   Sources(tris, src);
   const uint8_t* degenerate = tris.num_degenerate != 0 ? tris.degenerate.data() : nullptr;
-  const uint32_t* tri_ids = grid.tri_ids.get();
-  float* data = out->data.get();
-  int32_t* ids = out->ids.get();
-  uint32_t* begin = out->cell_begin.get();
   // One pass over the lists, in cell order: the output is written sequentially.
-  size_t first = 0;
-  for (size_t c = 0; c < cells; ++c) {
-    const size_t n = cell_begin[c + 1] - cell_begin[c];
-    if (n != 0) {
-      FillBlock(src, degenerate, tri_ids + cell_begin[c], n, data + kPacketFloats * first,
-                ids + kPacketLanes * first);
-      first += (n + kPacketLanes - 1) / kPacketLanes;
-    }
-    begin[c + 1] = uint32_t(first);
-  }
+  HWY_DYNAMIC_DISPATCH(FillPacketCells)(src, degenerate, grid.tri_ids.get(), cell_begin, cells,
+                                        out->data.get(), out->ids.get(), out->cell_begin.get());
 }
 
 void BuildTriPacketList(const TriangleSoA& tris, const uint32_t* ids, size_t n, TriPackets* out) {
@@ -97,10 +151,14 @@ void BuildTriPacketList(const TriangleSoA& tris, const uint32_t* ids, size_t n, 
   out->num_triangles = n;
   out->cell_begin[0] = 0;
   out->cell_begin[1] = uint32_t(packets);
+  if (n == 0) return;
   const float* src[kPacketComponents];
   Sources(tris, src);
   const uint8_t* degenerate = tris.num_degenerate != 0 ? tris.degenerate.data() : nullptr;
-  if (n != 0) FillBlock(src, degenerate, ids, n, out->data.get(), out->ids.get());
+  const uint32_t list_begin[2] = {0, uint32_t(n)};
+  HWY_DYNAMIC_DISPATCH(FillPacketCells)(src, degenerate, ids, list_begin, 1, out->data.get(),
+                                        out->ids.get(), out->cell_begin.get());
 }
 
 }  // namespace rs
+#endif  // HWY_ONCE

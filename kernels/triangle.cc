@@ -5,6 +5,8 @@
 #include <cfloat>
 #include <cmath>
 
+#include "kernels/grid_binning.h"
+
 namespace rs {
 
 bool IsDegenerateTriangle(const float p0[3], const float p1[3], const float p2[3]) {
@@ -30,20 +32,24 @@ void BuildTriangleSoA(const MeshView& mesh, TriangleSoA* out) {
   }
   out->degenerate.Reserve(n);
   out->size = n;
-  out->num_degenerate = 0;
-  for (size_t i = 0; i < n; ++i) {
-    float p[3][3];
-    for (int k = 0; k < 3; ++k) {
-      const float* src = mesh.positions + size_t{mesh.indices[3 * i + k]} * mesh.stride;
-      for (int a = 0; a < 3; ++a) {
-        p[k][a] = src[a];
-        out->p[k][a][i] = src[a];
-      }
-    }
-    const bool degenerate = IsDegenerateTriangle(p[0], p[1], p[2]);
-    out->degenerate[i] = degenerate ? 1 : 0;
-    out->num_degenerate += degenerate ? 1 : 0;
+  // gather (scalar: the index buffer makes it a gather), then the degenerate flags a vector of
+  // triangles at a time (kernels/grid_simd.cc)
+  float* dst[3][3];
+  for (int k = 0; k < 3; ++k) {
+    for (int a = 0; a < 3; ++a) dst[k][a] = out->p[k][a].data();
   }
+  const uint32_t* indices = mesh.indices;
+  const float* positions = mesh.positions;
+  const size_t stride = mesh.stride;
+  for (size_t i = 0; i < n; ++i) {
+    for (int k = 0; k < 3; ++k) {
+      const float* src = positions + size_t{indices[3 * i + k]} * stride;
+      dst[k][0][i] = src[0];
+      dst[k][1][i] = src[1];
+      dst[k][2][i] = src[2];
+    }
+  }
+  SimdDegenerateFlags(out);
 }
 
 bool IntersectTriangle(const float p0[3], const float p1[3], const float p2[3], float ox,

@@ -22,6 +22,7 @@ struct TriangleSoA {
   AlignedArray<uint8_t> degenerate;
   size_t size = 0;
   size_t num_degenerate = 0;
+  size_t num_nonfinite = 0;  // degenerate triangles with a non-finite coordinate
 
   size_t Bytes() const { return size * (9 * sizeof(float) + 1); }
 };

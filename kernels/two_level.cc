@@ -112,6 +112,8 @@ void BuildTwoLevel(const Grid& grid, const TriangleSoA& tris, int threshold, boo
   std::vector<uint16_t> ref_sub;  // scratch: sub-cell of each reference of the current cell
   std::vector<uint32_t> ref_tri;
   BinScratch scratch;
+  TriangleSoA cell_tris;  // scratch: the current cell's triangles, for the SIMD cell ranges
+  RangeBlock block;
   uint32_t counts[kSubCells];
   uint32_t next_leaf = uint32_t(num_cells);
   for (size_t cell = 0; cell < num_cells; ++cell) {
@@ -136,30 +138,68 @@ void BuildTwoLevel(const Grid& grid, const TriangleSoA& tris, int threshold, boo
       geo.res[a] = kSubRes;
     }
     FinishBinGeometry(rec.lo, rec.inv_cell_size, &geo);
-    // bin the parent's list (ascending ids) into the sub-cells
-    ref_sub.clear();
-    ref_tri.clear();
+    // bin the parent's list (ascending ids) into the sub-cells: the triangles gathered into
+    // cell_tris (none is degenerate: the grid lists none), their cell ranges a vector at a time
+    // (the arithmetic of TriangleCellRange), then the cells as BinTriangleCells emits them
+    const uint32_t* list = ids + begin[cell];
+    for (auto& vertex : cell_tris.p) {
+      for (auto& axis : vertex) axis.Reserve(n);
+    }
+    if (cell_tris.size < n) {
+      cell_tris.degenerate.Reserve(n);
+      std::fill(cell_tris.degenerate.data(), cell_tris.degenerate.data() + n, uint8_t{0});
+    }
+    cell_tris.size = n;
+    for (int k = 0; k < 3; ++k) {
+      for (int a = 0; a < 3; ++a) {
+        const float* from = p[k][a];
+        float* to = cell_tris.p[k][a].data();
+        for (uint32_t t = 0; t < n; ++t) to[t] = from[list[t]];
+      }
+    }
     std::fill(counts, counts + kSubCells, 0u);
-    for (uint32_t k = begin[cell]; k < begin[cell + 1]; ++k) {
-      const uint32_t id = ids[k];
-      const float v[3][3] = {{p[0][0][id], p[0][1][id], p[0][2][id]},
-                             {p[1][0][id], p[1][1][id], p[1][2][id]},
-                             {p[2][0][id], p[2][1][id], p[2][2][id]}};
-      BinTriangle(geo, v, &scratch, [&](int x, int y, int z) {
-        const int s = x + kSubRes * (y + kSubRes * z);
-        ref_sub.push_back(uint16_t(s));
-        ref_tri.push_back(id);
-        ++counts[s];
-      });
+    size_t num_sub_refs = 0;
+    for (size_t first = 0; first < n; first += kRangeBlock) {
+      const size_t count = std::min(kRangeBlock, n - first);
+      SimdTriangleCellRanges(cell_tris, geo, first, count, &block);
+      // at most the bounding-box cells are emitted: make room once per block
+      size_t most = 0;
+      for (size_t j = 0; j < count; ++j) most += size_t(block.box[j]);
+      if (ref_sub.size() < num_sub_refs + most) {
+        ref_sub.resize(num_sub_refs + most);
+        ref_tri.resize(num_sub_refs + most);
+      }
+      uint16_t* sub_out = ref_sub.data();
+      uint32_t* tri_out = ref_tri.data();
+      for (size_t j = 0; j < count; ++j) {
+        const int32_t flags = block.flags[j];
+        if (flags & kRangeOutside) continue;
+        const uint32_t id = list[first + j];
+        const int c0[3] = {block.c0[0][j], block.c0[1][j], block.c0[2][j]};
+        const int c1[3] = {block.c1[0][j], block.c1[1][j], block.c1[2][j]};
+        const bool span[3] = {(flags & 1) != 0, (flags & 2) != 0, (flags & 4) != 0};
+        const int spans = int(span[0]) + int(span[1]) + int(span[2]);
+        const size_t t = first + j;
+        const float v[3][3] = {
+            {cell_tris.p[0][0][t], cell_tris.p[0][1][t], cell_tris.p[0][2][t]},
+            {cell_tris.p[1][0][t], cell_tris.p[1][1][t], cell_tris.p[1][2][t]},
+            {cell_tris.p[2][0][t], cell_tris.p[2][1][t], cell_tris.p[2][2][t]}};
+        BinTriangleCells(geo, v, c0, c1, span, spans, &scratch, [&](int x, int y, int z) {
+          const int sc = x + kSubRes * (y + kSubRes * z);
+          sub_out[num_sub_refs] = uint16_t(sc);
+          tri_out[num_sub_refs++] = id;
+          ++counts[sc];
+        });
+      }
     }
     size_t occupied = 0;
     for (const uint32_t k : counts) occupied += k != 0;
-    if (by_cost && !(SubGridCost(occupied, ref_sub.size(), model) < LeafCost(n, model))) continue;
+    if (by_cost && !(SubGridCost(occupied, num_sub_refs, model) < LeafCost(n, model))) continue;
 
     // record: bits, ranks, leaves; leaf lists by a stable counting sort (ids stay ascending)
     rec.first_leaf = next_leaf;
     rec.parent = uint32_t(cell);
-    rec.refs = uint32_t(ref_sub.size());
+    rec.refs = uint32_t(num_sub_refs);
     uint32_t start[kSubCells];
     uint32_t rank = 0;
     const size_t base = sub_ids.size();
@@ -179,7 +219,7 @@ void BuildTwoLevel(const Grid& grid, const TriangleSoA& tris, int threshold, boo
       rec.bits[z] = bits;
     }
     sub_ids.resize(offset);
-    for (size_t r = 0; r < ref_sub.size(); ++r) sub_ids[start[ref_sub[r]]++] = ref_tri[r];
+    for (size_t r = 0; r < num_sub_refs; ++r) sub_ids[start[ref_sub[r]]++] = ref_tri[r];
     next_leaf += rank;
     if (size_t(next_leaf) + 1 >= size_t{UINT32_MAX} || sub_ids.size() >= size_t{UINT32_MAX}) {
       throw Error("two-level grid build: more than 2^32 - 1 leaves or references");
@@ -249,9 +289,13 @@ void BuildTwoLevel(const Grid& grid, const TriangleSoA& tris, int threshold, boo
 
 float ChooseLambda(const TriangleSoA& tris, int max_resolution, const GridCostModel& model,
                    double* cost) {
+  return ChooseLambda(tris, ComputeGridBounds(tris), max_resolution, model, cost);
+}
+
+float ChooseLambda(const TriangleSoA& tris, const GridBounds& bounds, int max_resolution,
+                   const GridCostModel& model, double* cost) {
   static constexpr float kCandidates[] = {0.5f, 1.0f, 2.0f, 4.0f, 8.0f};
   // the cost is unimodal in lambda on every scene measured: stop at the first increase
-  const GridBounds bounds = ComputeGridBounds(tris);
   float best = 1.0f;
   double best_cost = HUGE_VAL;
   for (const float lambda : kCandidates) {

@@ -134,6 +134,9 @@ void BuildTwoLevel(const Grid& grid, const TriangleSoA& tris, int threshold, boo
 // stopping at the first that costs more than the one before. *cost (may be null) gets its cost.
 float ChooseLambda(const TriangleSoA& tris, int max_resolution, const GridCostModel& model = {},
                    double* cost = nullptr);
+// The same, given ComputeGridBounds(tris).
+float ChooseLambda(const TriangleSoA& tris, const GridBounds& bounds, int max_resolution,
+                   const GridCostModel& model = {}, double* cost = nullptr);
 
 // Scalar traversal of the two-level grid: TraceClosest / TraceAny (kernels/dda.h) with the same
 // contracts, stepping into a refined cell's sub-grid (TraverseSubGrid in two_level_dda.h) and
