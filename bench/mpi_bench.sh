@@ -61,21 +61,25 @@ run() {
   python3 - "$json" "$scene" "$size" "$frames" "$np" "$config" "$k" "$assign" "$speed" \
     "$ptime" "$load1" >>"$csv" <<'PY'
 import json, sys
+# The host backends' statistics format (sched/backends.h WriteHostStats): one "threads" entry
+# per worker, the cluster's fields (messages, bytes, options workers) on top.
 d = json.load(open(sys.argv[1]))
-head = sys.argv[2:5] + [sys.argv[5], str(d["workers"])] + sys.argv[6:12]
+head = sys.argv[2:5] + [sys.argv[5], str(d["options"]["workers"])] + sys.argv[6:12]
 def imbalance(times):
     mean = sum(times) / len(times)
     return max(times) / mean if mean > 0 else 1.0
 for f in d["frames"]:
-    ws = f["workers"]
-    idle = sum(w["idle_seconds"] for w in ws) / (len(ws) * f["seconds"])
-    acc = f.get("accuracy") if sys.argv[7] != "static" else None
-    pred = sum(1 for t in f["tiles"] if t["predicted"] >= 0) if acc else ""
-    row = head + [f["frame"], f["seconds"], 1.0 / f["seconds"], f["imbalance"],
+    ws = f["threads"]
+    idle = sum(w["idle_seconds"] for w in ws) / (len(ws) * f["render_seconds"])
+    pbt = f.get("pbt", {})  # absent without --pbt
+    acc = pbt if pbt.get("has_prediction") else None
+    pred = sum(1 for t in f["tiles"] if t["predicted_seconds"] >= 0) if acc else ""
+    row = head + [f["frame"], f["seconds"], f["fps"], f["imbalance"],
                   imbalance([w["cpu_seconds"] for w in ws]),
                   max(w["cpu_seconds"] for w in ws), sum(w["cpu_seconds"] for w in ws),
-                  f["tiles_count"],
-                  sum(w["steals"] for w in ws), f["messages"], f["bytes"], f["rays"], idle, pred]
+                  len(f["tiles"]),
+                  sum(w["steals"] for w in ws), f["messages"], f["bytes"],
+                  sum(f["rays"].values()), idle, pred]
     row += [acc[k] for k in ("within5", "within10", "within15")] if acc else ["", "", ""]
     print(",".join(str(x) for x in row))
 PY

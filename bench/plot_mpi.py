@@ -141,7 +141,7 @@ def summary(rows, meta, agg, plotted):
                    lambda rs: mean(float(r["imbalance_cpu"]) for r in rs), 3)
     lines += pivot("Imbalance (wall): slowest worker / mean",
                    lambda rs: mean(float(r["imbalance_wall"]) for r in rs), 3)
-    lines += pivot("Worker idle share of the frame (%)",
+    lines += pivot("Worker idle share of the render span (%)",
                    lambda rs: 100 * mean(float(r["idle_fraction"]) for r in rs), 1)
 
     lines += ["### Messages and bytes per frame (master <-> workers, both directions)", "",
@@ -162,9 +162,9 @@ def summary(rows, meta, agg, plotted):
                          f"{fmt(msgs, 0)} | {fmt(nbytes, 0)} | "
                          f"{fmt(nbytes / pixels if pixels else float('nan'), 2)} | "
                          f"{fmt(st[0], 1)} | {fmt(st[1], 1)} |")
-    lines += ["", "A tile costs one 24-byte message to the worker and one result of 64 + 24 bytes"
-              " per pixel (3 int64 fixed-point sums) back, so bytes grow with pixels, messages with"
-              " m = k * n.", ""]
+    lines += ["", "A tile costs one 24-byte message to the worker and one result of 128 bytes "
+              "(the tile's times and statistics) + 24 bytes per pixel (3 int64 fixed-point sums) "
+              "back, so bytes grow with pixels, messages with m = k * n.", ""]
 
     # Table 1.
     extra = sorted({w for (c, _, w) in agg if c == "pbt_x2"})

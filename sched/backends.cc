@@ -12,7 +12,9 @@
 #include <deque>
 #include <exception>
 #include <fstream>
+#include <sstream>
 #include <thread>
+#include <type_traits>
 #include <utility>
 
 #include "sched/frame_loop.h"
@@ -921,7 +923,53 @@ Json RaysJson(const FrameStats& s) {
   return rays;
 }
 
-Json FrameJson(const HostFrameStats& f) {
+// The caller's fields after the host ones; a name the object already has is an error (JSON
+// would silently overwrite it).
+Json FieldJson(const StatsValue& value) {
+  return std::visit([](const auto& v) { return Json(v); }, value);
+}
+
+void AddFields(Json& object, const StatsFields& fields, std::string_view where) {
+  for (const StatsField& field : fields) {
+    if (object.contains(field.name)) {
+      throw Error(fmt::format("statistics: extra {} field '{}' repeats an existing key", where,
+                              field.name));
+    }
+    object[field.name] = FieldJson(field.value);
+  }
+}
+
+const StatsFields& FrameExtra(const StatsExtra& extra, size_t frame) {
+  static const StatsFields kNone;
+  return frame < extra.frames.size() ? extra.frames[frame] : kNone;
+}
+
+const StatsFields& ThreadExtra(const StatsExtra& extra, size_t frame, size_t thread) {
+  static const StatsFields kNone;
+  if (frame >= extra.threads.size() || thread >= extra.threads[frame].size()) return kNone;
+  return extra.threads[frame][thread];
+}
+
+void CheckExtra(const StatsExtra& extra, std::span<const HostFrameStats> frames) {
+  if (!extra.frames.empty() && extra.frames.size() != frames.size()) {
+    throw Error(fmt::format("statistics: extra fields for {} frames, but {} frames",
+                            extra.frames.size(), frames.size()));
+  }
+  if (!extra.threads.empty() && extra.threads.size() != frames.size()) {
+    throw Error(fmt::format("statistics: extra thread fields for {} frames, but {} frames",
+                            extra.threads.size(), frames.size()));
+  }
+  for (size_t i = 0; i < extra.threads.size(); ++i) {
+    const size_t n = extra.threads[i].size();
+    if (n != 0 && n != frames[i].threads.size()) {
+      throw Error(fmt::format("statistics: frame {}: extra fields for {} threads, but {} threads",
+                              i, n, frames[i].threads.size()));
+    }
+  }
+}
+
+Json FrameJson(const HostFrameStats& f, const StatsFields& frame_extra,
+               std::span<const StatsFields> thread_extra) {
   const FrameStats& s = f.total;
   Json j{{"frame", f.frame},
          {"rays", RaysJson(s)},
@@ -944,19 +992,21 @@ Json FrameJson(const HostFrameStats& f) {
   Json threads = Json::array();
   for (size_t w = 0; w < f.threads.size(); ++w) {
     const ThreadStats& t = f.threads[w];
-    threads.push_back(Json{{"thread", w},
-                           {"busy_seconds", t.busy_seconds},
-                           {"idle_seconds", t.idle_seconds},
-                           {"cpu_seconds", t.cpu_seconds},
-                           {"queue_seconds", t.queue_seconds},
-                           {"queue_ops", t.queue_ops},
-                           {"empty_polls", t.empty_polls},
-                           {"tasks", t.work.tasks},
-                           {"tiles", t.tiles},
-                           {"steals", t.steals},
-                           {"rays", RaysJson(t.work)},
-                           {"trace_seconds", t.work.trace_seconds},
-                           {"shade_seconds", t.work.shade_seconds}});
+    Json entry{{"thread", w},
+               {"busy_seconds", t.busy_seconds},
+               {"idle_seconds", t.idle_seconds},
+               {"cpu_seconds", t.cpu_seconds},
+               {"queue_seconds", t.queue_seconds},
+               {"queue_ops", t.queue_ops},
+               {"empty_polls", t.empty_polls},
+               {"tasks", t.work.tasks},
+               {"tiles", t.tiles},
+               {"steals", t.steals},
+               {"rays", RaysJson(t.work)},
+               {"trace_seconds", t.work.trace_seconds},
+               {"shade_seconds", t.work.shade_seconds}};
+    if (w < thread_extra.size()) AddFields(entry, thread_extra[w], "thread");
+    threads.push_back(std::move(entry));
   }
   j["threads"] = threads;
   if (!f.tiles.empty()) {
@@ -987,6 +1037,7 @@ Json FrameJson(const HostFrameStats& f) {
     }
     j["pbt"] = pbt;
   }
+  AddFields(j, frame_extra, "frame");
   return j;
 }
 
@@ -996,7 +1047,8 @@ Json FrameJson(const HostFrameStats& f) {
 //                 tasks = primary tasks)
 //   scope=thread (index = thread)
 //   scope=tile   (index = tile; seconds = wall time, worker = PBT worker, predicted, cpu)
-// Columns that do not apply are empty.
+// Columns that do not apply are empty. A caller's extra fields (StatsExtra) follow as columns
+// of their own, on the frame and thread rows.
 enum CsvColumn : int {
   kFrame,
   kScope,
@@ -1059,11 +1111,44 @@ constexpr const char* kCsvNames[kNumCsvColumns] = {"frame",
                                                    "within10",
                                                    "within15"};
 
+// The extra columns: every extra name in order of first occurrence (frame fields, then thread
+// fields). Throws rs::Error for a name that is a host column.
+std::vector<std::string> ExtraColumns(const StatsExtra& extra) {
+  std::vector<std::string> names;
+  auto add = [&](const StatsFields& fields) {
+    for (const StatsField& field : fields) {
+      for (const char* host : kCsvNames) {
+        if (field.name == host) {
+          throw Error(fmt::format("statistics: extra field '{}' repeats a CSV column", host));
+        }
+      }
+      if (std::find(names.begin(), names.end(), field.name) == names.end()) {
+        names.push_back(field.name);
+      }
+    }
+  };
+  for (const StatsFields& fields : extra.frames) add(fields);
+  for (const auto& frame : extra.threads) {
+    for (const StatsFields& fields : frame) add(fields);
+  }
+  return names;
+}
+
+// RFC 4180 quoting for a string holding a comma, quote or line break.
+std::string CsvText(const std::string& s) {
+  if (s.find_first_of(",\"\r\n") == std::string::npos) return s;
+  std::string q = "\"";
+  for (const char c : s) q += c == '"' ? std::string("\"\"") : std::string(1, c);
+  return q + "\"";
+}
+
 class CsvRow {
  public:
+  explicit CsvRow(const std::vector<std::string>& extra_names)
+      : extra_names_(extra_names), cells_(kNumCsvColumns + extra_names.size()) {}
   template <class T>
   CsvRow& Set(CsvColumn c, const T& value) {
-    cells_[c] = fmt::format("{}", value);
+    cells_[static_cast<size_t>(c)] = fmt::format("{}", value);
     return *this;
   }
   CsvRow& SetRays(const FrameStats& s) {
@@ -1071,21 +1156,45 @@ class CsvRow {
     for (int k = 0; k < kNumRayKinds; ++k) Set(static_cast<CsvColumn>(kPrimary + k), s.rays[k]);
     return *this;
   }
+  // The fields go to their extra columns; a name twice in `fields` is an error.
+  CsvRow& SetExtra(const StatsFields& fields) {
+    std::vector<char> set(extra_names_.size(), 0);
+    for (const StatsField& field : fields) {
+      const size_t i = static_cast<size_t>(
+          std::find(extra_names_.begin(), extra_names_.end(), field.name) - extra_names_.begin());
+      if (set[i]) throw Error(fmt::format("statistics: extra field '{}' given twice", field.name));
+      set[i] = 1;
+      cells_[kNumCsvColumns + i] = std::visit(
+          [](const auto& v) {
+            if constexpr (std::is_same_v<std::decay_t<decltype(v)>, std::string>) {
+              return CsvText(v);
+            } else {
+              return fmt::format("{}", v);
+            }
+          },
+          field.value);
+    }
+    return *this;
+  }
   void Write(std::ostream& out) const {
-    for (int c = 0; c < kNumCsvColumns; ++c) out << (c ? "," : "") << cells_[c];
+    for (size_t c = 0; c < cells_.size(); ++c) out << (c ? "," : "") << cells_[c];
     out << "\n";
   }
 
  private:
-  std::string cells_[kNumCsvColumns];
+  const std::vector<std::string>& extra_names_;
+  std::vector<std::string> cells_;
 };
 
-void WriteCsv(std::ostream& out, std::span<const HostFrameStats> frames) {
+void WriteCsv(std::ostream& out, std::span<const HostFrameStats> frames, const StatsExtra& extra) {
+  const std::vector<std::string> extra_names = ExtraColumns(extra);
   for (int c = 0; c < kNumCsvColumns; ++c) out << (c ? "," : "") << kCsvNames[c];
+  for (const std::string& name : extra_names) out << "," << CsvText(name);
   out << "\n";
-  for (const HostFrameStats& f : frames) {
+  for (size_t fi = 0; fi < frames.size(); ++fi) {
+    const HostFrameStats& f = frames[fi];
     const FrameStats& s = f.total;
-    CsvRow frame;
+    CsvRow frame(extra_names);
     frame.Set(kFrame, f.frame).Set(kScope, "frame").Set(kIndex, -1).Set(kSeconds, s.total_seconds);
     frame.Set(kBusy, f.render_seconds).Set(kIdle, f.IdleSeconds()).Set(kQueue, f.QueueSeconds());
     frame.Set(kTasks, s.tasks).Set(kTiles, f.tiles.size()).SetRays(s).Set(kImbalance, f.imbalance);
@@ -1096,21 +1205,21 @@ void WriteCsv(std::ostream& out, std::span<const HostFrameStats> frames) {
         frame.Set(kWithin15, f.accuracy.within15);
       }
     }
-    frame.Write(out);
-    CsvRow app;
+    frame.SetExtra(FrameExtra(extra, fi)).Write(out);
+    CsvRow app(extra_names);
     app.Set(kFrame, f.frame).Set(kScope, "app").Set(kIndex, -1).Set(kSeconds, s.generate_seconds);
     app.Set(kQueue, f.app_queue_seconds).Set(kTasks, f.primary_tasks).Write(out);
     for (size_t w = 0; w < f.threads.size(); ++w) {
       const ThreadStats& t = f.threads[w];
-      CsvRow row;
+      CsvRow row(extra_names);
       row.Set(kFrame, f.frame).Set(kScope, "thread").Set(kIndex, w).Set(kThread, w);
       row.Set(kBusy, t.busy_seconds).Set(kIdle, t.idle_seconds).Set(kQueue, t.queue_seconds);
       row.Set(kQueueOps, t.queue_ops).Set(kEmptyPolls, t.empty_polls).Set(kTasks, t.work.tasks);
-      row.Set(kTiles, t.tiles).SetRays(t.work).Write(out);
+      row.Set(kTiles, t.tiles).SetRays(t.work).SetExtra(ThreadExtra(extra, fi, w)).Write(out);
     }
     for (size_t i = 0; i < f.tiles.size(); ++i) {
       const TileRecord& r = f.tiles[i];
-      CsvRow row;
+      CsvRow row(extra_names);
       row.Set(kFrame, f.frame).Set(kScope, "tile").Set(kIndex, i).Set(kThread, r.thread);
       row.Set(kWorker, r.worker).Set(kSeconds, r.seconds).Set(kRays, r.rays);
       row.Set(kX0, r.tile.x0).Set(kY0, r.tile.y0).Set(kX1, r.tile.x1).Set(kY1, r.tile.y1);
@@ -1128,16 +1237,19 @@ bool StatsFileFormatOk(const std::string& path) {
 }
 
 void WriteHostStats(const std::string& path, const std::string& scene,
-                    const BackendOptions& options, std::span<const HostFrameStats> frames) {
+                    const BackendOptions& options, std::span<const HostFrameStats> frames,
+                    const StatsExtra& extra) {
   if (!StatsFileFormatOk(path)) {
     throw Error(fmt::format("{}: statistics file must end in .json or .csv", path));
   }
-  std::ofstream f(path);
-  if (!f) throw Error(fmt::format("{}: cannot write statistics file", path));
+  CheckExtra(extra, frames);
+  // Built in memory first: an error in the extra fields leaves no half-written file.
+  std::ostringstream text;
   if (EndsWith(path, ".csv")) {
-    WriteCsv(f, frames);
+    WriteCsv(text, frames, extra);
   } else {
-    Json backend{{"name", BackendName(options.kind)}, {"threads", options.threads}};
+    const std::string name = extra.backend.empty() ? BackendName(options.kind) : extra.backend;
+    Json backend{{"name", name}, {"threads", options.threads}};
     if (options.kind == BackendKind::kTiles) {
       backend["tile"] = fmt::format("{}x{}", options.tile_width, options.tile_height);
       backend["pbt_tiles_per_worker"] = options.pbt_tiles_per_worker;
@@ -1148,16 +1260,24 @@ void WriteHostStats(const std::string& path, const std::string& scene,
         backend["steal"] = options.pbt_steal;
       }
     }
+    AddFields(backend, extra.options, "options");
     Json j{{"scene", scene},
-           {"backend", BackendName(options.kind)},
+           {"backend", name},
            {"threads", options.threads},
            {"hardware_threads", std::thread::hardware_concurrency()},
            {"options", backend}};
     Json list = Json::array();
-    for (const HostFrameStats& frame : frames) list.push_back(FrameJson(frame));
+    for (size_t i = 0; i < frames.size(); ++i) {
+      const std::vector<StatsFields> none;
+      const std::vector<StatsFields>& threads = i < extra.threads.size() ? extra.threads[i] : none;
+      list.push_back(FrameJson(frames[i], FrameExtra(extra, i), threads));
+    }
     j["frames"] = list;
-    f << j.dump(2) << "\n";
+    text << j.dump(2) << "\n";
   }
+  std::ofstream f(path);
+  if (!f) throw Error(fmt::format("{}: cannot write statistics file", path));
+  f << text.str();
   f.flush();
   if (!f) throw Error(fmt::format("{}: cannot write statistics file", path));
 }

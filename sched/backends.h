@@ -11,6 +11,7 @@
 #include <span>
 #include <string>
 #include <string_view>
+#include <variant>
 #include <vector>
 
 #include "sched/framebuffer.h"
@@ -194,11 +195,37 @@ class HostRenderer {
   std::unique_ptr<Impl> impl_;
 };
 
+// A named value a caller adds on top of the host statistics (StatsExtra).
+using StatsValue = std::variant<int64_t, uint64_t, double, bool, std::string>;
+struct StatsField {
+  std::string name;
+  StatsValue value;
+};
+using StatsFields = std::vector<StatsField>;
+
+// What a backend outside HostRenderer (the MPI master, sched/mpi_backend.h) adds to the host
+// statistics, so that every backend writes one format: the host keys and columns unchanged, its
+// own after them. Empty members add nothing.
+struct StatsExtra {
+  std::string backend;  // JSON "backend" and options "name" (empty: BackendName(options.kind))
+  StatsFields options;  // JSON: appended to "options"
+  // Per frame (size 0 or frames.size()): JSON appended to the frame object; CSV the frame row.
+  std::vector<StatsFields> frames;
+  // Per frame (size 0 or frames.size()), per thread entry (size 0 or that frame's
+  // threads.size()): JSON appended to the entry of "threads"; CSV the thread row.
+  std::vector<std::vector<StatsFields>> threads;
+};
+
 // Writes per-frame statistics: JSON if path ends in ".json", CSV if ".csv" (one row per frame,
-// application thread, render thread and tile; see backends.cc for the columns). Throws
-// rs::Error for another extension (StatsFileFormatOk checks it up front) or an unwritable file.
+// application thread, render thread and tile; see backends.cc for the columns). `extra` adds
+// fields after the host ones; in CSV they become columns after the host columns, named in the
+// order they first occur (frame fields, then thread fields), empty where a row has none. Throws
+// rs::Error for another extension (StatsFileFormatOk checks it up front), an unwritable file,
+// extra sizes that do not match `frames`, or an extra name that repeats a host key / column
+// or another extra name of the same object.
 void WriteHostStats(const std::string& path, const std::string& scene,
-                    const BackendOptions& options, std::span<const HostFrameStats> frames);
+                    const BackendOptions& options, std::span<const HostFrameStats> frames,
+                    const StatsExtra& extra = {});
 bool StatsFileFormatOk(const std::string& path);
 
 }  // namespace rs

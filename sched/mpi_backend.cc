@@ -3,13 +3,18 @@
 
 // Protocol (all point-to-point, MPI_COMM_WORLD):
 //   master -> worker  kTagTile   int32[6] {frame, tile, x0, y0, x1, y1}
-//   worker -> master  kTagResult int64[kHeader + 3 * pixels] {frame, tile, wall-time bits,
-//                     cpu-time bits, rays, tasks, nan, clamped} + the tile's fixed-point sums
+//   worker -> master  kTagResult int64[kHeader + 3 * pixels]: the header (ResultWord: frame,
+//                     tile, the tile's wall and CPU time, NaN / clamped counts, its FrameStats:
+//                     tasks, rays by kind, cell steps, triangle tests, generate / trace / shade
+//                     seconds) + the tile's fixed-point sums
 //   master -> worker  kTagStop   int32[1] (after the last frame)
 // The master polls with MPI_Iprobe (sleeping between polls) and ends the run with MPI_Abort when
-// a worker holding a tile stays silent for timeout_seconds.
+// a worker holding a tile stays silent for timeout_seconds. Its statistics are the host
+// backends' (HostFrameStats, one ThreadStats per worker, WriteHostStats) plus the cluster's own.
+#include "sched/mpi_backend.h"
+
+#include <fmt/core.h>
 #include <mpi.h>
-#include <time.h>
 #include <unistd.h>
 
 #include <algorithm>
@@ -20,43 +25,68 @@
 #include <cstring>
 #include <deque>
 #include <exception>
-#include <fstream>
-#include <iterator>
 #include <memory>
-#include <ostream>
 #include <string>
-#include <string_view>
 #include <thread>
 #include <vector>
-
-#include <fmt/core.h>
-#include <nlohmann/json.hpp>
 
 #include "include/raystream/raystream.h"
 #include "scenes/image_io.h"
 #include "scenes/load.h"
-#include "sched/mpi_backend.h"
+#include "sched/frame_loop.h"  // ThreadCpuSeconds
 #include "sched/pbt.h"
 
 namespace rs {
 namespace {
 
-using Json = nlohmann::ordered_json;
 using Clock = std::chrono::steady_clock;
 
 constexpr int kTagTile = 1;
 constexpr int kTagResult = 2;
 constexpr int kTagStop = 3;
-constexpr int kHeader = 8;  // int64 words before the sums of a result
 constexpr int kTileWords = 6;
 
-double Seconds(Clock::duration d) { return std::chrono::duration<double>(d).count(); }
+// A result's header: int64 words before the tile's sums (doubles travel as their bits).
+enum ResultWord : int {
+  kResFrame,
+  kResTile,
+  kResSeconds,     // wall time of the tile's whole ray tree on the worker
+  kResCpuSeconds,  // the worker thread's CPU time for the same span
+  kResDroppedNan,  // Framebuffer::dropped_nan() added by the tile
+  kResClamped,     // Framebuffer::clamped() added by the tile
+  kResTasks,       // FrameStats of the tile, what the statistics report:
+  kResRays,        //   rays by RayKind, kNumRayKinds words
+  kResCellSteps = kResRays + kNumRayKinds,
+  kResTriangleTests,
+  kResGenerateSeconds,
+  kResTraceSeconds,
+  kResShadeSeconds,
+  kHeader  // words in the header
+};
 
-double CpuSeconds() {
-  timespec ts{};
-  if (clock_gettime(CLOCK_THREAD_CPUTIME_ID, &ts) != 0) return 0;
-  return double(ts.tv_sec) + 1e-9 * double(ts.tv_nsec);
+void PackTileStats(const FrameStats& s, int64_t* header) {
+  header[kResTasks] = static_cast<int64_t>(s.tasks);
+  for (int k = 0; k < kNumRayKinds; ++k) header[kResRays + k] = static_cast<int64_t>(s.rays[k]);
+  header[kResCellSteps] = static_cast<int64_t>(s.trace.cell_steps);
+  header[kResTriangleTests] = static_cast<int64_t>(s.trace.triangle_tests);
+  header[kResGenerateSeconds] = std::bit_cast<int64_t>(s.generate_seconds);
+  header[kResTraceSeconds] = std::bit_cast<int64_t>(s.trace_seconds);
+  header[kResShadeSeconds] = std::bit_cast<int64_t>(s.shade_seconds);
 }
+
+FrameStats UnpackTileStats(const int64_t* header) {
+  FrameStats s;
+  s.tasks = static_cast<uint64_t>(header[kResTasks]);
+  for (int k = 0; k < kNumRayKinds; ++k) s.rays[k] = static_cast<uint64_t>(header[kResRays + k]);
+  s.trace.cell_steps = static_cast<uint64_t>(header[kResCellSteps]);
+  s.trace.triangle_tests = static_cast<uint64_t>(header[kResTriangleTests]);
+  s.generate_seconds = std::bit_cast<double>(header[kResGenerateSeconds]);
+  s.trace_seconds = std::bit_cast<double>(header[kResTraceSeconds]);
+  s.shade_seconds = std::bit_cast<double>(header[kResShadeSeconds]);
+  return s;
+}
+
+double Seconds(Clock::duration d) { return std::chrono::duration<double>(d).count(); }
 
 std::string FramePath(const std::string& pattern, int frame) {
   const size_t hash = pattern.find('#');
@@ -78,90 +108,6 @@ int EnvRank(const char* name) {
   std::_Exit(3);
 }
 
-bool EndsWith(const std::string& s, const std::string& suffix) {
-  return s.size() >= suffix.size() &&
-         s.compare(s.size() - suffix.size(), suffix.size(), suffix) == 0;
-}
-
-// CSV statistics: the host backends' columns (sched/backends.cc WriteCsv) where they apply, then
-// the cluster's own. Per frame: one row scope=frame (index -1), one row scope=worker per worker
-// (index = worker, rank = index + 1), one row scope=tile per tile (index = tile). Columns that do
-// not apply are empty.
-constexpr const char* kCsvColumns[] = {
-    // The host backends' columns, in their order.
-    "frame", "scope", "index", "thread", "worker", "seconds", "busy_seconds", "idle_seconds",
-    "queue_seconds", "queue_ops", "empty_polls", "tasks", "tiles", "rays", "primary", "shadow",
-    "reflection", "refraction", "x0", "y0", "x1", "y1", "cpu_seconds", "predicted_seconds",
-    "imbalance", "worker_imbalance", "within5", "within10", "within15",
-    // The cluster's own.
-    "rank", "steals", "messages", "bytes", "messages_sent", "bytes_sent", "messages_received",
-    "bytes_received"};
-constexpr size_t kNumCsvColumns = std::size(kCsvColumns);
-
-class CsvRow {
- public:
-  // Sets column `name` (one of kCsvColumns) from a JSON number or string.
-  CsvRow& Set(std::string_view name, const Json& value) {
-    for (size_t c = 0; c < kNumCsvColumns; ++c) {
-      if (name == kCsvColumns[c]) {
-        cells_[c] = value.is_string() ? value.get<std::string>() : value.dump();
-        return *this;
-      }
-    }
-    throw Error(fmt::format("internal: no CSV column '{}'", name));
-  }
-  void Write(std::ostream& out) const {
-    for (size_t c = 0; c < kNumCsvColumns; ++c) out << (c ? "," : "") << cells_[c];
-    out << "\n";
-  }
-
- private:
-  std::string cells_[kNumCsvColumns];
-};
-
-// Writes the frames' statistics (the JSON objects Master::FrameJson made) as CSV rows.
-void WriteStatsCsv(std::ostream& out, const Json& frames) {
-  for (size_t c = 0; c < kNumCsvColumns; ++c) out << (c ? "," : "") << kCsvColumns[c];
-  out << "\n";
-  for (const Json& f : frames) {
-    const Json& frame = f["frame"];
-    CsvRow row;
-    row.Set("frame", frame).Set("scope", "frame").Set("index", -1).Set("seconds", f["seconds"]);
-    row.Set("busy_seconds", f["busy_seconds"]).Set("idle_seconds", f["idle_seconds"]);
-    row.Set("tiles", f["tiles_count"]).Set("rays", f["rays"]).Set("imbalance", f["imbalance"]);
-    row.Set("messages", f["messages"]).Set("bytes", f["bytes"]);
-    if (f.contains("accuracy")) {
-      for (const char* k : {"within5", "within10", "within15"}) row.Set(k, f["accuracy"][k]);
-    }
-    row.Write(out);
-    for (const Json& w : f["workers"]) {
-      CsvRow r;
-      r.Set("frame", frame).Set("scope", "worker").Set("index", w["rank"].get<int>() - 1);
-      r.Set("worker", w["rank"].get<int>() - 1).Set("rank", w["rank"]);
-      r.Set("busy_seconds", w["busy_seconds"]).Set("idle_seconds", w["idle_seconds"]);
-      r.Set("cpu_seconds", w["cpu_seconds"]).Set("tiles", w["tiles"]).Set("steals", w["steals"]);
-      r.Set("rays", w["rays"]).Set("messages_sent", w["messages_sent"]);
-      r.Set("bytes_sent", w["bytes_sent"]).Set("messages_received", w["messages_received"]);
-      r.Set("bytes_received", w["bytes_received"]);
-      r.Set("messages",
-            w["messages_sent"].get<uint64_t>() + w["messages_received"].get<uint64_t>());
-      r.Set("bytes", w["bytes_sent"].get<uint64_t>() + w["bytes_received"].get<uint64_t>());
-      r.Write(out);
-    }
-    size_t i = 0;
-    for (const Json& t : f["tiles"]) {
-      CsvRow r;
-      r.Set("frame", frame).Set("scope", "tile").Set("index", i++);
-      r.Set("worker", t["rank"].get<int>() - 1).Set("rank", t["rank"]);
-      r.Set("seconds", t["seconds"]).Set("cpu_seconds", t["cpu_seconds"]);
-      r.Set("rays", t["rays"]).Set("tasks", t["tasks"]);
-      for (const char* k : {"x0", "y0", "x1", "y1"}) r.Set(k, t[k]);
-      if (t["predicted"].get<double>() >= 0) r.Set("predicted_seconds", t["predicted"]);
-      r.Write(out);
-    }
-  }
-}
-
 // What every rank builds before rendering. Workers own an Accel; the master only the scene.
 struct Setup {
   Scene scene;
@@ -170,9 +116,10 @@ struct Setup {
 
 void ValidateConfig(const MpiRenderConfig& c, int ranks) {
   if (ranks < 2) {
-    throw Error(fmt::format("--backend mpi needs at least 2 ranks (a master and a worker), got {}; "
-                            "run it as `mpirun -np N raystream render --backend mpi ...`",
-                            ranks));
+    throw Error(
+        fmt::format("--backend mpi needs at least 2 ranks (a master and a worker), got {}; "
+                    "run it as `mpirun -np N raystream render --backend mpi ...`",
+                    ranks));
   }
   ValidateRenderOptions(c.options);
   if (c.frames < 1) throw Error(fmt::format("--frames {}: must be at least 1", c.frames));
@@ -188,7 +135,7 @@ void ValidateConfig(const MpiRenderConfig& c, int ranks) {
   if (!(c.timeout_seconds > 0) || c.timeout_seconds > 1e6) {
     throw Error(fmt::format("--mpi-timeout {}: must be in (0, 1e6] seconds", c.timeout_seconds));
   }
-  if (!c.stats.empty() && !EndsWith(c.stats, ".json") && !EndsWith(c.stats, ".csv")) {
+  if (!c.stats.empty() && !StatsFileFormatOk(c.stats)) {
     throw Error(fmt::format("--stats {}: statistics file must end in .json or .csv", c.stats));
   }
   if (c.pbt_tiles_per_worker > 0) {
@@ -221,8 +168,8 @@ void RunWorker(const MpiRenderConfig& c, const Setup& s, int rank) {
     if (status.MPI_TAG != kTagTile) Abort(rank, fmt::format("unexpected tag {}", status.MPI_TAG));
     const int frame = msg[0];
     const Tile tile{msg[2], msg[3], msg[4], msg[5]};
-    if (frame < 0 || frame >= c.frames || tile.x0 < 0 || tile.y0 < 0 ||
-        tile.x1 > c.options.width || tile.y1 > c.options.height || tile.NumPixels() == 0) {
+    if (frame < 0 || frame >= c.frames || tile.x0 < 0 || tile.y0 < 0 || tile.x1 > c.options.width ||
+        tile.y1 > c.options.height || tile.NumPixels() == 0) {
       Abort(rank, fmt::format("malformed tile message (frame {}, tile {})", frame, msg[1]));
     }
     if (frame != ctx_frame) {
@@ -239,21 +186,20 @@ void RunWorker(const MpiRenderConfig& c, const Setup& s, int rank) {
     }
     const uint64_t nan0 = fb.dropped_nan(), clamped0 = fb.clamped();
     FrameStats stats;
-    const double cpu0 = CpuSeconds();
+    const double cpu0 = ThreadCpuSeconds();
     const auto t0 = Clock::now();
     renderer.RenderTiles(ctx, &tile, 1, fb, stats);
     const double seconds = Seconds(Clock::now() - t0);
-    const double cpu = CpuSeconds() - cpu0;
+    const double cpu = ThreadCpuSeconds() - cpu0;
     const size_t tw = static_cast<size_t>(tile.Width());
     result.resize(kHeader + 3 * tile.NumPixels());
-    result[0] = frame;
-    result[1] = msg[1];
-    result[2] = std::bit_cast<int64_t>(seconds);
-    result[3] = std::bit_cast<int64_t>(cpu);
-    result[4] = static_cast<int64_t>(stats.TotalRays());
-    result[5] = static_cast<int64_t>(stats.tasks);
-    result[6] = static_cast<int64_t>(fb.dropped_nan() - nan0);
-    result[7] = static_cast<int64_t>(fb.clamped() - clamped0);
+    result[kResFrame] = frame;
+    result[kResTile] = msg[1];
+    result[kResSeconds] = std::bit_cast<int64_t>(seconds);
+    result[kResCpuSeconds] = std::bit_cast<int64_t>(cpu);
+    result[kResDroppedNan] = static_cast<int64_t>(fb.dropped_nan() - nan0);
+    result[kResClamped] = static_cast<int64_t>(fb.clamped() - clamped0);
+    PackTileStats(stats, result.data());
     int64_t* dst = result.data() + kHeader;
     for (int y = tile.y0; y < tile.y1; ++y) {
       std::memcpy(dst, sums + 3 * (y * w + tile.x0), 3 * tw * sizeof(int64_t));
@@ -279,21 +225,11 @@ void RunWorker(const MpiRenderConfig& c, const Setup& s, int rank) {
 // ------------------------------------------------------------------------------------------------
 // Master.
 
-struct WorkerFrame {
-  uint64_t tiles = 0;
-  uint64_t steals = 0;  // PBT: tiles from another worker's list
-  double busy_seconds = 0;
-  double cpu_seconds = 0;
-  uint64_t rays = 0;
+// Messages and bytes between the master and one worker in one frame (what the host statistics
+// do not have).
+struct WorkerTraffic {
   uint64_t msgs_sent = 0, bytes_sent = 0;  // master -> this worker
   uint64_t msgs_recv = 0, bytes_recv = 0;  // this worker -> master
-};
-
-struct TileRec {
-  Tile tile;
-  int rank = -1;
-  double seconds = 0, cpu_seconds = 0, predicted = -1;
-  uint64_t rays = 0, tasks = 0;
 };
 
 class Master {
@@ -308,13 +244,14 @@ class Master {
 
   void Run() {
     const std::string out = c_.out.empty() ? s_.scene.name + ".png" : c_.out;
-    Json frames = Json::array();
+    frames_.reserve(static_cast<size_t>(c_.frames));
     double total = 0;
     uint64_t rays = 0;
     for (int frame = 0; frame < c_.frames; ++frame) {
-      const Json f = RenderFrame(frame);
-      total += f["seconds"].get<double>();
-      rays += f["rays"].get<uint64_t>();
+      RenderFrame(frame);
+      const HostFrameStats& f = frames_.back();
+      total += f.total.total_seconds;
+      rays += f.total.TotalRays();
       // Only complete frames reach this point (a failure aborts inside RenderFrame).
       const bool write = frame + 1 == c_.frames || out.find('#') != std::string::npos;
       if (write) {
@@ -322,37 +259,16 @@ class Master {
         WriteImage(FramePath(out, frame), c_.options.width, c_.options.height, rgb_);
         if (!c_.dump_raw.empty()) WriteRawFramebuffer(FramePath(c_.dump_raw, frame), fb_);
       }
-      frames.push_back(f);
       if (c_.frames > 1 && !c_.quiet) {
         fmt::print(stderr, "frame {}/{}  {:.1f} ms  imbalance {:.3f}\n", frame + 1, c_.frames,
-                   1e3 * f["seconds"].get<double>(), f["imbalance"].get<double>());
+                   1e3 * f.total.total_seconds, f.imbalance);
       }
     }
     for (int r = 1; r <= workers_; ++r) {
       int stop = 0;
       MPI_Send(&stop, 1, MPI_INT, r, kTagStop, MPI_COMM_WORLD);
     }
-    if (!c_.stats.empty()) {
-      std::ofstream f(c_.stats);
-      if (EndsWith(c_.stats, ".csv")) {
-        WriteStatsCsv(f, frames);
-      } else {
-        f << Json{{"scene", s_.scene.name},
-                  {"backend", "mpi"},
-                  {"ranks", workers_ + 1},
-                  {"workers", workers_},
-                  {"tiling", pbt_ ? fmt::format("PBT k={} assign {}", c_.pbt_tiles_per_worker,
-                                                PbtAssignName(c_.assign))
-                                  : fmt::format("tiles {}x{}", c_.tile_width, c_.tile_height)},
-                  {"prefetch", c_.prefetch},
-                  {"timeout_seconds", c_.timeout_seconds},
-                  {"frames", frames}}
-                 .dump(2)
-          << "\n";
-      }
-      f.flush();
-      if (!f) throw Error(fmt::format("--stats {}: cannot write the file", c_.stats));
-    }
+    if (!c_.stats.empty()) WriteStats();
     if (!c_.quiet) {
       fmt::print("scene      {}: {} triangles, {} lights\n", s_.scene.name,
                  s_.scene.mesh().num_triangles, s_.scene.lights.size());
@@ -368,31 +284,70 @@ class Master {
   }
 
  private:
-  // Tiles and per-worker preference lists for this frame.
+  // The host backends' format (WriteHostStats) with the options of the tiles backend that runs
+  // the same tiling (one "thread" per worker; PBT lists with stealing, as the master hands out
+  // tiles), backend "mpi", then the cluster's own fields.
+  void WriteStats() const {
+    BackendOptions o;
+    o.kind = BackendKind::kTiles;
+    o.threads = workers_;
+    o.tile_width = c_.tile_width;
+    o.tile_height = c_.tile_height;
+    o.pbt_tiles_per_worker = c_.pbt_tiles_per_worker;
+    o.pbt_workers = workers_;
+    o.pbt_steal = pbt_ != nullptr;
+    o.assign = c_.assign;
+    o.seed = c_.seed;
+    o.pbt_cpu_time = c_.pbt_cpu_time;
+    o.queue_stats = false;
+    StatsExtra extra;
+    extra.backend = "mpi";
+    extra.options = {{"ranks", int64_t{workers_} + 1},
+                     {"workers", int64_t{workers_}},
+                     {"prefetch", int64_t{c_.prefetch}},
+                     {"timeout_seconds", c_.timeout_seconds}};
+    extra.frames = frame_extra_;
+    extra.threads = worker_extra_;
+    WriteHostStats(c_.stats, s_.scene.name, o, frames_, extra);
+  }
+
+  // Tiles, per-worker preference lists and predictions for this frame.
   void PlanFrame(int frame) {
     lists_.assign(static_cast<size_t>(workers_), {});
     next_grid_ = 0;
     if (pbt_) {
       tiles_ = pbt_->Tiles();
-      estimates_ = pbt_->Estimates();
-      Assignment a;
+      const std::vector<double> estimates = pbt_->Estimates();
       switch (c_.assign) {
-        case PbtAssign::kGreedy: a = AssignPbtGreedy(*pbt_); break;
-        case PbtAssign::kVisit: a = AssignPbtVisit(*pbt_); break;
-        case PbtAssign::kStatic: a = AssignPbtRandom(*pbt_, c_.seed); break;
+        case PbtAssign::kGreedy:
+          assignment_ = AssignPbtGreedy(*pbt_);
+          break;
+        case PbtAssign::kVisit:
+          assignment_ = AssignPbtVisit(*pbt_);
+          break;
+        case PbtAssign::kStatic:
+          assignment_ = AssignPbtRandom(*pbt_, c_.seed);
+          break;
         case PbtAssign::kRandom:
-        default: a = AssignPbtRandom(*pbt_, c_.seed + static_cast<uint64_t>(frame)); break;
+        default:
+          assignment_ = AssignPbtRandom(*pbt_, c_.seed + static_cast<uint64_t>(frame));
+          break;
       }
-      predicted_makespan_ = a.PredictedMakespan();
+      owner_.assign(tiles_.size(), -1);
       for (int w = 0; w < workers_; ++w) {
-        const auto& mine = a.tiles[static_cast<size_t>(w)];
+        const auto& mine = assignment_.tiles[static_cast<size_t>(w)];
         lists_[static_cast<size_t>(w)].assign(mine.begin(), mine.end());
+        for (const int32_t t : mine) owner_[static_cast<size_t>(t)] = w;
       }
       has_prediction_ = frame > 0;
+      // The prediction a tile is measured against, as in the tiles backend: PBT's estimate, or
+      // for the never-updated static tiling the same tile's time in the previous frame.
+      predicted_.assign(tiles_.size(), -1.0);
+      if (has_prediction_) predicted_ = c_.assign == PbtAssign::kStatic ? static_times_ : estimates;
       // Before the first measurement, steal by area.
       weight_.resize(tiles_.size());
       for (size_t i = 0; i < tiles_.size(); ++i) {
-        weight_[i] = has_prediction_ ? estimates_[i] : double(tiles_[i].NumPixels());
+        weight_[i] = has_prediction_ ? estimates[i] : double(tiles_[i].NumPixels());
       }
     } else {
       tiles_.clear();
@@ -402,6 +357,8 @@ class Master {
                                 std::min(y + c_.tile_height, c_.options.height)});
         }
       }
+      owner_.clear();
+      predicted_.assign(tiles_.size(), -1.0);
       has_prediction_ = false;
     }
   }
@@ -438,9 +395,9 @@ class Master {
     const Tile& tile = tiles_[static_cast<size_t>(t)];
     const int msg[kTileWords] = {frame, t, tile.x0, tile.y0, tile.x1, tile.y1};
     MPI_Send(msg, kTileWords, MPI_INT, w + 1, kTagTile, MPI_COMM_WORLD);
-    WorkerFrame& wf = wstats_[static_cast<size_t>(w)];
-    ++wf.msgs_sent;
-    wf.bytes_sent += sizeof(msg);
+    WorkerTraffic& traffic = traffic_[static_cast<size_t>(w)];
+    ++traffic.msgs_sent;
+    traffic.bytes_sent += sizeof(msg);
     in_flight_[static_cast<size_t>(w)].push_back(t);
     // The silence clock starts when the worker gets work after having none.
     if (in_flight_[static_cast<size_t>(w)].size() == 1) {
@@ -451,33 +408,43 @@ class Master {
   // Tops up w's tiles in flight to c_.prefetch. PBT: prefetching takes only w's own tiles; a
   // tile of another worker's list is taken only when w has nothing left to render (so the
   // first round never strips a worker of its own tiles).
-  void FeedWorker(int w, int frame) {
+  void FeedWorker(int w, int frame, HostFrameStats& f) {
     auto& flight = in_flight_[static_cast<size_t>(w)];
     while (flight.size() < static_cast<size_t>(c_.prefetch)) {
       if (pbt_ && !flight.empty() && lists_[static_cast<size_t>(w)].empty()) return;
       bool stolen = false;
       const int t = NextTile(w, &stolen);
       if (t < 0) return;
-      if (stolen) ++wstats_[static_cast<size_t>(w)].steals;
+      if (stolen) ++f.threads[static_cast<size_t>(w)].steals;
       SendTile(w, frame, t);
     }
   }
 
-  Json RenderFrame(int frame) {
+  // Renders one frame into fb_ and appends its statistics to frames_ (and the cluster's fields
+  // to frame_extra_, worker_extra_). Aborts the run on a silent worker or a malformed result.
+  void RenderFrame(int frame) {
+    const auto begin = Clock::now();
+    const double cpu0 = ThreadCpuSeconds();
     PlanFrame(frame);
     fb_.Clear();
     const size_t m = tiles_.size();
-    records_.assign(m, TileRec{});
+    HostFrameStats& f = frames_.emplace_back();
+    f.frame = static_cast<uint64_t>(frame);
+    f.backend = BackendKind::kTiles;
+    f.threads.assign(static_cast<size_t>(workers_), ThreadStats{});
+    f.tiles.assign(m, TileRecord{});
     for (size_t i = 0; i < m; ++i) {
-      records_[i].tile = tiles_[i];
-      if (has_prediction_) records_[i].predicted = estimates_[i];
+      f.tiles[i].tile = tiles_[i];
+      f.tiles[i].predicted = predicted_[i];
+      if (pbt_) f.tiles[i].worker = owner_[i];
     }
     std::vector<char> done(m, 0);
-    wstats_.assign(static_cast<size_t>(workers_), WorkerFrame{});
+    traffic_.assign(static_cast<size_t>(workers_), WorkerTraffic{});
     in_flight_.assign(static_cast<size_t>(workers_), {});
     last_heard_.assign(static_cast<size_t>(workers_), Clock::now());
+    uint64_t nan = 0, clamped = 0;
     const auto t0 = Clock::now();
-    for (int w = 0; w < workers_; ++w) FeedWorker(w, frame);
+    for (int w = 0; w < workers_; ++w) FeedWorker(w, frame, f);
     size_t received = 0;
     std::vector<int64_t> buf;
     const size_t width = static_cast<size_t>(c_.options.width);
@@ -514,13 +481,13 @@ class Master {
       }
       buf.resize(static_cast<size_t>(count));
       MPI_Recv(buf.data(), count, MPI_INT64_T, src, kTagResult, MPI_COMM_WORLD, MPI_STATUS_IGNORE);
-      const int64_t f = buf[0], t = buf[1];
+      const int64_t rf = buf[kResFrame], t = buf[kResTile];
       auto& flight = in_flight_[static_cast<size_t>(w)];
-      if (f != frame || t < 0 || static_cast<size_t>(t) >= m || flight.empty() ||
+      if (rf != frame || t < 0 || static_cast<size_t>(t) >= m || flight.empty() ||
           flight.front() != t || done[static_cast<size_t>(t)]) {
         Abort(0, fmt::format("unexpected result from rank {}: frame {} tile {} (expected frame "
                              "{} tile {})",
-                             src, f, t, frame, flight.empty() ? -1 : flight.front()));
+                             src, rf, t, frame, flight.empty() ? -1 : flight.front()));
       }
       const Tile& tile = tiles_[static_cast<size_t>(t)];
       if (static_cast<size_t>(count) != kHeader + 3 * tile.NumPixels()) {
@@ -540,91 +507,73 @@ class Master {
         for (size_t i = 0; i < 3 * tw; ++i) row[i] += src_sums[i];
         src_sums += 3 * tw;
       }
-      TileRec& rec = records_[static_cast<size_t>(t)];
-      rec.rank = src;
-      rec.seconds = std::bit_cast<double>(buf[2]);
-      rec.cpu_seconds = std::bit_cast<double>(buf[3]);
-      rec.rays = static_cast<uint64_t>(buf[4]);
-      rec.tasks = static_cast<uint64_t>(buf[5]);
-      nan_ += static_cast<uint64_t>(buf[6]);
-      clamped_ += static_cast<uint64_t>(buf[7]);
-      WorkerFrame& wf = wstats_[static_cast<size_t>(w)];
-      ++wf.tiles;
-      wf.busy_seconds += rec.seconds;
-      wf.cpu_seconds += rec.cpu_seconds;
-      wf.rays += rec.rays;
-      ++wf.msgs_recv;
-      wf.bytes_recv += static_cast<uint64_t>(count) * sizeof(int64_t);
-      FeedWorker(w, frame);
+      const FrameStats work = UnpackTileStats(buf.data());
+      TileRecord& rec = f.tiles[static_cast<size_t>(t)];
+      rec.thread = w;
+      if (!pbt_) rec.worker = w;
+      rec.seconds = std::bit_cast<double>(buf[kResSeconds]);
+      rec.cpu_seconds = std::bit_cast<double>(buf[kResCpuSeconds]);
+      rec.rays = work.TotalRays();
+      nan += static_cast<uint64_t>(buf[kResDroppedNan]);
+      clamped += static_cast<uint64_t>(buf[kResClamped]);
+      ThreadStats& ts = f.threads[static_cast<size_t>(w)];
+      ts.work.Merge(work);
+      ++ts.tiles;
+      ts.busy_seconds += rec.seconds;
+      ts.cpu_seconds += rec.cpu_seconds;
+      WorkerTraffic& traffic = traffic_[static_cast<size_t>(w)];
+      ++traffic.msgs_recv;
+      traffic.bytes_recv += static_cast<uint64_t>(count) * sizeof(int64_t);
+      FeedWorker(w, frame, f);
     }
-    const double seconds = Seconds(Clock::now() - t0);
-    return FrameJson(frame, seconds);
+    FinishFrame(f, Seconds(Clock::now() - t0));
+    f.total.total_seconds = Seconds(Clock::now() - begin);
+    f.app_cpu_seconds = ThreadCpuSeconds() - cpu0;
+
+    uint64_t msgs = 0, bytes = 0;
+    std::vector<StatsFields> workers;
+    for (int w = 0; w < workers_; ++w) {
+      const WorkerTraffic& traffic = traffic_[static_cast<size_t>(w)];
+      msgs += traffic.msgs_sent + traffic.msgs_recv;
+      bytes += traffic.bytes_sent + traffic.bytes_recv;
+      workers.push_back({{"rank", int64_t{w} + 1},
+                         {"messages_sent", traffic.msgs_sent},
+                         {"bytes_sent", traffic.bytes_sent},
+                         {"messages_received", traffic.msgs_recv},
+                         {"bytes_received", traffic.bytes_recv}});
+    }
+    frame_extra_.push_back(
+        {{"messages", msgs}, {"bytes", bytes}, {"dropped_nan", nan}, {"clamped", clamped}});
+    worker_extra_.push_back(std::move(workers));
   }
 
-  Json FrameJson(int frame, double seconds) {
-    const size_t m = tiles_.size();
-    std::vector<double> times(m), predicted(m);
-    uint64_t rays = 0;
-    Json tiles = Json::array();
-    for (size_t i = 0; i < m; ++i) {
-      const TileRec& r = records_[i];
-      times[i] = c_.pbt_cpu_time ? r.cpu_seconds : r.seconds;
-      predicted[i] = r.predicted;
-      rays += r.rays;
-      tiles.push_back(Json{{"x0", r.tile.x0}, {"y0", r.tile.y0}, {"x1", r.tile.x1},
-                           {"y1", r.tile.y1}, {"rank", r.rank}, {"seconds", r.seconds},
-                           {"cpu_seconds", r.cpu_seconds}, {"predicted", r.predicted},
-                           {"rays", r.rays}, {"tasks", r.tasks}});
-    }
-    Json workers = Json::array();
+  // After the last result: totals, idle times and imbalance as the host backends define them
+  // (a worker idles for the part of the render span it was not rendering), then with PBT the
+  // tiles backend's measures (pbt.h) and PBT-Update on the measured tile times.
+  void FinishFrame(HostFrameStats& f, double render_seconds) {
+    f.render_seconds = render_seconds;
     std::vector<double> busy;
-    double busy_sum = 0, idle_sum = 0;
-    uint64_t msgs = 0, bytes = 0;
-    for (int w = 0; w < workers_; ++w) {
-      const WorkerFrame& wf = wstats_[static_cast<size_t>(w)];
-      busy.push_back(wf.busy_seconds);
-      busy_sum += wf.busy_seconds;
-      idle_sum += std::max(0.0, seconds - wf.busy_seconds);
-      msgs += wf.msgs_sent + wf.msgs_recv;
-      bytes += wf.bytes_sent + wf.bytes_recv;
-      workers.push_back(Json{{"rank", w + 1}, {"tiles", wf.tiles}, {"steals", wf.steals},
-                             {"busy_seconds", wf.busy_seconds}, {"cpu_seconds", wf.cpu_seconds},
-                             {"idle_seconds", std::max(0.0, seconds - wf.busy_seconds)},
-                             {"rays", wf.rays}, {"messages_sent", wf.msgs_sent},
-                             {"bytes_sent", wf.bytes_sent}, {"messages_received", wf.msgs_recv},
-                             {"bytes_received", wf.bytes_recv}});
+    for (ThreadStats& t : f.threads) {
+      t.idle_seconds = std::max(0.0, render_seconds - t.busy_seconds);
+      f.total.Merge(t.work);
+      busy.push_back(t.busy_seconds);
     }
-    Json j{{"frame", frame},
-           {"seconds", seconds},
-           {"fps", seconds > 0 ? 1.0 / seconds : 0.0},
-           {"busy_seconds", busy_sum},
-           {"idle_seconds", idle_sum},
-           {"rays", rays},
-           {"tiles_count", m},
-           {"imbalance", FrameImbalance(busy)},
-           {"messages", msgs},
-           {"bytes", bytes},
-           {"dropped_nan", nan_},
-           {"clamped", clamped_}};
-    nan_ = clamped_ = 0;
-    if (pbt_) {
-      j["pbt"] = true;
-      j["predicted_makespan"] = predicted_makespan_;
-      if (has_prediction_) {
-        const PredictionAccuracy a = MeasurePredictionAccuracy(predicted, times);
-        j["accuracy"] = Json{{"within5", a.within5}, {"within10", a.within10},
-                             {"within15", a.within15}};
-      }
-      if (c_.assign != PbtAssign::kStatic) {
-        const PbtUpdateStats u = pbt_->Update(times);
-        j["update"] = Json{{"steps", u.steps}, {"hit_step_bound", u.hit_step_bound},
-                           {"variance_before", u.variance_before},
-                           {"variance_after", u.variance_after}};
-      }
+    f.imbalance = FrameImbalance(busy);
+    if (!pbt_) return;
+    std::vector<double> measured(f.tiles.size());
+    for (size_t i = 0; i < f.tiles.size(); ++i) {
+      measured[i] = c_.pbt_cpu_time ? f.tiles[i].cpu_seconds : f.tiles[i].seconds;
     }
-    j["workers"] = workers;
-    j["tiles"] = tiles;
-    return j;
+    f.pbt = true;
+    f.has_prediction = has_prediction_;
+    if (has_prediction_) f.accuracy = MeasurePredictionAccuracy(predicted_, measured);
+    f.worker_imbalance = FrameImbalance(WorkerTimes(assignment_, measured));
+    f.predicted_makespan = has_prediction_ ? assignment_.PredictedMakespan() : 0.0;
+    if (c_.assign == PbtAssign::kStatic) {
+      static_times_ = measured;  // tiling and assignment stay as they are
+    } else {
+      f.update = pbt_->Update(measured);  // Algorithm 1 between frames
+    }
   }
 
   const MpiRenderConfig& c_;
@@ -633,17 +582,20 @@ class Master {
   Framebuffer fb_;
   std::vector<float> rgb_;
   std::unique_ptr<Pbt> pbt_;
+  Assignment assignment_;
   std::vector<Tile> tiles_;
-  std::vector<double> estimates_, weight_;
+  std::vector<int32_t> owner_;  // PBT: per tile, the worker whose list holds it
+  std::vector<double> predicted_, static_times_, weight_;
   std::vector<std::deque<int32_t>> lists_;
   size_t next_grid_ = 0;
   bool has_prediction_ = false;
-  double predicted_makespan_ = 0;
-  std::vector<TileRec> records_;
-  std::vector<WorkerFrame> wstats_;
+  std::vector<WorkerTraffic> traffic_;
   std::vector<std::deque<int32_t>> in_flight_;
   std::vector<Clock::time_point> last_heard_;
-  uint64_t nan_ = 0, clamped_ = 0;
+  // Per frame: the statistics and the cluster's fields (WriteStats).
+  std::vector<HostFrameStats> frames_;
+  std::vector<StatsFields> frame_extra_;
+  std::vector<std::vector<StatsFields>> worker_extra_;
 };
 
 }  // namespace

@@ -20,9 +20,20 @@ struct MpiRenderConfig {
   float lambda = 0;       // grid density (BuildOptions::lambda); <= 0: the default
   int frames = 1;
   float speed = 1.0f;
-  std::string out;       // image pattern ('#' = frame number, every frame); empty: SCENE.png
-  std::string stats;     // per-frame statistics: .json, or .csv (the host backends' columns
-                         // plus rank, steals, messages and bytes); empty: none
+  std::string out;  // image pattern ('#' = frame number, every frame); empty: SCENE.png
+  // Per-frame statistics, .json or .csv (empty: none), written by the host backends' writer
+  // (WriteHostStats) in their format: one "threads" entry / thread row per worker (thread =
+  // worker index = rank - 1), one tile record per tile (thread = the worker that rendered it,
+  // worker = PBT: the worker whose list held it), the PBT fields, backend "mpi", options as the
+  // tiles backend's with pbt_workers = workers and steal = true under PBT. Times: seconds = the
+  // frame from planning to PBT-Update on the master, render_seconds = first tile sent -> last
+  // result, a worker's busy / cpu = the sums of its tiles' wall / CPU times as it measured them,
+  // idle = render_seconds - busy, app_cpu_seconds = the master's CPU time in the frame. Then the
+  // cluster's own (CSV: columns after the host columns): options ranks, workers, prefetch,
+  // timeout_seconds; per frame messages, bytes (both directions, all workers), dropped_nan,
+  // clamped; per worker rank, messages_sent, bytes_sent (master -> worker), messages_received,
+  // bytes_received (worker -> master).
+  std::string stats;
   std::string dump_raw;  // hidden: raw fixed-point framebuffer per written frame ('#' allowed)
   // Without PBT (pbt_tiles_per_worker == 0): tile_width x tile_height tiles in row-major order,
   // handed out on demand by a counter at the master.

@@ -3,7 +3,8 @@
 # with 3 and 5 ranks, every frame of a 3-frame walk-through (PBT re-tiled between frames) equals
 # the serial backend's framebuffer bit for bit (hidden --dump-raw: the int64 fixed-point sums),
 # statistics are written, and a dead or silent worker ends the run non-zero within bounded time,
-# naming the rank, with no image.
+# naming the rank, with no image. The statistics are the host backends' format (same JSON keys and
+# CSV columns as the tiles backend, the cluster's after them) with the serial render's ray counts.
 # usage: mpi_test.sh RAYSTREAM_BINARY MPIRUN   (env CI=true: a missing shared scene is a FAIL)
 set -uo pipefail
 rs=$1
@@ -50,7 +51,7 @@ for scene in "${scenes[@]}"; do
   n=$(size_of "$scene")
   size=(--width "$n" --height "$n" "${walk[@]}")
   mkdir -p "$tmp/$scene/serial"
-  if ! "$rs" render --backend serial --scene "$scene" "${size[@]}" -q \
+  if ! "$rs" render --backend serial --scene "$scene" "${size[@]}" -q --stats "$tmp/$scene/serial/s.json" \
       --out "$tmp/$scene/serial/i#.png" --dump-raw "$tmp/$scene/serial/r#.raw" 2>"$tmp/serial.log"
   then
     bad "$scene: serial render"; cat "$tmp/serial.log"; continue
@@ -80,46 +81,103 @@ for scene in "${scenes[@]}"; do
   done
 done
 
-# Statistics: 3 frames, per-worker idle, messages and bytes, tile times, PBT update and accuracy.
+# Statistics: the host backends' format (the tiles backend's keys and CSV columns, the same
+# PBT k and worker count), the cluster's fields after them; 3 frames, tiles covering the image,
+# rays equal to the serial render's, per-worker idle, messages and bytes, PBT accuracy and update.
+# Host references: cornell with the tiles backend, 4 threads (JSON, as -np 5) and 2 (CSV, -np 3).
+h="$tmp/cornell/host"; mkdir -p "$h"
+if "$rs" render --backend tiles --threads 4 --pbt 2 --assign greedy --scene cornell \
+      --width 96 --height 96 "${walk[@]}" -q --out "$h/i.png" --stats "$h/s.json" &&
+   "$rs" render --backend tiles --threads 2 --pbt 2 --scene cornell \
+      --width 96 --height 96 "${walk[@]}" -q --out "$h/i.png" --stats "$h/s.csv"; then
+  ok "host tiles statistics for the comparison"
+else bad "host tiles statistics"; fi
 s="$tmp/cornell/np5/s.json"
-if python3 - "$s" <<'PY'
+if python3 - "$s" "$h/s.json" "$tmp/cornell/serial/s.json" <<'PY'
 import json, sys
-d = json.load(open(sys.argv[1]))
+d, host, serial = (json.load(open(p)) for p in sys.argv[1:4])
 f = d["frames"]
-assert d["backend"] == "mpi" and d["workers"] == 4 and len(f) == 3, d.keys()
-for fr in f:
-    assert len(fr["workers"]) == 4
-    assert sum(w["tiles"] for w in fr["workers"]) == fr["tiles_count"] == len(fr["tiles"]) == 8
-    assert all(w["messages_sent"] >= 1 and w["bytes_received"] > 0 for w in fr["workers"]), fr["workers"]
-    assert all(0 <= w["idle_seconds"] <= fr["seconds"] for w in fr["workers"]), fr["workers"]
-    assert all(t["seconds"] > 0 and 1 <= t["rank"] <= 4 for t in fr["tiles"])
-    assert fr["rays"] > 0 and fr["imbalance"] >= 1 and fr["fps"] > 0
-    # Every tile is one message each way; results carry 3 int64 sums per pixel.
-    assert fr["messages"] == 2 * fr["tiles_count"], fr["messages"]
-    assert fr["bytes"] >= 96 * 96 * 3 * 8, fr["bytes"]
-    assert "update" in fr
-assert "accuracy" in f[1] and "accuracy" not in f[0]
+# Same keys as the host backends, in the same order, the cluster's after them.
+assert list(d) == list(host), (list(d), list(host))
+assert d["backend"] == "mpi" and d["threads"] == 4 and len(f) == 3, d
+o = d["options"]
+assert list(o) == list(host["options"]) + ["ranks", "workers", "prefetch", "timeout_seconds"], o
+assert o["name"] == "mpi" and o["ranks"] == 5 and o["workers"] == 4 and o["pbt_workers"] == 4, o
+cluster_frame = ["messages", "bytes", "dropped_nan", "clamped"]
+cluster_worker = ["rank", "messages_sent", "bytes_sent", "messages_received", "bytes_received"]
+for fr, hf, sf in zip(f, host["frames"], serial["frames"]):
+    assert list(fr) == list(hf) + cluster_frame, (list(fr), list(hf))
+    assert list(fr["pbt"]) == list(hf["pbt"]), (fr["pbt"], hf["pbt"])
+    assert all(list(t) == list(hf["tiles"][0]) for t in fr["tiles"])
+    assert all(list(w) == list(hf["threads"][0]) + cluster_worker for w in fr["threads"])
+    ws, tiles = fr["threads"], fr["tiles"]
+    assert len(ws) == 4 and len(tiles) == 8
+    # Tiles partition the 96x96 image; each was rendered by one worker.
+    covered = set()
+    for t in tiles:
+        assert 0 <= t["x0"] < t["x1"] <= 96 and 0 <= t["y0"] < t["y1"] <= 96, t
+        px = {(x, y) for x in range(t["x0"], t["x1"]) for y in range(t["y0"], t["y1"])}
+        assert not covered & px, t
+        covered |= px
+        assert t["seconds"] > 0 and 0 <= t["thread"] < 4 and 0 <= t["worker"] < 4, t
+    assert len(covered) == 96 * 96
+    # Rays by kind equal the serial render's; workers' and tiles' rays add up to them.
+    assert fr["rays"] == sf["rays"], (fr["rays"], sf["rays"])
+    total = sum(fr["rays"].values())
+    assert sum(t["rays"] for t in tiles) == total
+    for kind in fr["rays"]:
+        assert sum(w["rays"][kind] for w in ws) == fr["rays"][kind], kind
+    assert sum(w["tasks"] for w in ws) == fr["tasks"] > 0
+    assert fr["cell_steps"] > 0 and fr["triangle_tests"] > 0 and fr["trace_seconds"] > 0
+    assert sum(w["tiles"] for w in ws) == 8 and [w["rank"] for w in ws] == [1, 2, 3, 4]
+    assert sum(1 for t in tiles if t["thread"] != t["worker"]) == sum(w["steals"] for w in ws)
+    assert all(w["messages_sent"] >= 1 and w["bytes_received"] > 0 for w in ws), ws
+    assert all(0 <= w["idle_seconds"] <= fr["render_seconds"] <= fr["seconds"] for w in ws), ws
+    assert fr["imbalance"] >= 1 and fr["fps"] > 0 and fr["mrays_per_second"] > 0
+    # Every tile is one message each way: 6 int32 out; back 16 int64 of header and statistics
+    # plus 3 int64 sums per pixel.
+    assert fr["messages"] == sum(w["messages_sent"] + w["messages_received"] for w in ws) == 16
+    assert fr["bytes"] == sum(w["bytes_sent"] + w["bytes_received"] for w in ws), fr
+    assert fr["bytes"] == 8 * (24 + 128) + 96 * 96 * 3 * 8, fr["bytes"]
+    pbt = fr["pbt"]
+    assert pbt["has_prediction"] == (fr["frame"] > 0) and pbt["worker_imbalance"] >= 1
+    assert ("within10" in pbt) == (fr["frame"] > 0), pbt
+    assert all((t["predicted_seconds"] >= 0) == (fr["frame"] > 0) for t in tiles)
 PY
-then ok "stats JSON: 3 frames, 4 workers, tiles, idle, messages, bytes, PBT update"
+then ok "stats JSON: host keys + cluster's, tiles cover the image, rays = serial, messages, bytes, PBT"
 else bad "stats JSON"; fi
 s="$tmp/cornell/np3/s.csv"
-if python3 - "$s" <<'PY'
-import csv, sys
+if python3 - "$s" "$h/s.csv" "$tmp/cornell/serial/s.json" <<'PY'
+import csv, json, sys
+header = open(sys.argv[1]).readline().strip().split(",")
+host_header = open(sys.argv[2]).readline().strip().split(",")
+assert header == host_header + ["messages", "bytes", "dropped_nan", "clamped", "rank",
+    "messages_sent", "bytes_sent", "messages_received", "bytes_received"], header
+serial = json.load(open(sys.argv[3]))["frames"]
 rows = list(csv.DictReader(open(sys.argv[1])))
 frames = [r for r in rows if r["scope"] == "frame"]
 assert [r["frame"] for r in frames] == ["0", "1", "2"], frames
-for fr in frames:
-    workers = [r for r in rows if r["scope"] == "worker" and r["frame"] == fr["frame"]]
-    tiles = [r for r in rows if r["scope"] == "tile" and r["frame"] == fr["frame"]]
+kinds = ("primary", "shadow", "reflection", "refraction")
+for fr, sf in zip(frames, serial):
+    mine = [r for r in rows if r["frame"] == fr["frame"]]
+    workers = [r for r in mine if r["scope"] == "thread"]
+    tiles = [r for r in mine if r["scope"] == "tile"]
+    assert sum(r["scope"] == "app" for r in mine) == 1
     assert len(workers) == 2 and len(tiles) == int(fr["tiles"]) == 4, (workers, tiles)
-    assert all(float(t["seconds"]) > 0 and t["rank"] in ("1", "2") for t in tiles)
+    assert [w["rank"] for w in workers] == ["1", "2"]
+    assert sum((int(t["x1"]) - int(t["x0"])) * (int(t["y1"]) - int(t["y0"])) for t in tiles) == 96 * 96
+    assert all(float(t["seconds"]) > 0 and t["thread"] in ("0", "1") for t in tiles)
     assert all(float(w["idle_seconds"]) >= 0 and int(w["bytes_received"]) > 0 for w in workers)
-    assert int(fr["messages"]) == sum(int(w["messages"]) for w in workers) == 8
-    assert int(fr["bytes"]) == sum(int(w["bytes"]) for w in workers) > 0
+    assert [int(fr[k]) for k in kinds] == [sf["rays"][k] for k in kinds], fr
+    assert sum(int(t["rays"]) for t in tiles) == int(fr["rays"]) == sum(int(w["rays"]) for w in workers)
+    assert int(fr["messages"]) == 8 == sum(int(w["messages_sent"]) + int(w["messages_received"])
+                                           for w in workers)
+    assert int(fr["bytes"]) == sum(int(w["bytes_sent"]) + int(w["bytes_received"])
+                                   for w in workers) > 0
     assert (fr["within10"] != "") == (fr["frame"] != "0")
     assert all((t["predicted_seconds"] != "") == (fr["frame"] != "0") for t in tiles)
 PY
-then ok "stats CSV: frame, worker and tile rows with times, idle, messages, bytes"
+then ok "stats CSV: host columns + cluster's, frame/app/thread/tile rows, rays = serial, messages, bytes"
 else bad "stats CSV"; fi
 
 # Only the last frame is written without '#'.

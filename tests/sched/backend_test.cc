@@ -702,5 +702,109 @@ TEST_CASE("statistics export: JSON and CSV by extension") {
   std::filesystem::remove_all(dir);
 }
 
+std::vector<std::string> Keys(const nlohmann::ordered_json& object) {
+  std::vector<std::string> keys;
+  for (auto it = object.begin(); it != object.end(); ++it) keys.push_back(it.key());
+  return keys;
+}
+
+std::vector<std::string> Lines(const std::string& path) {
+  std::ifstream f(path);
+  std::vector<std::string> lines;
+  for (std::string line; std::getline(f, line);) lines.push_back(line);
+  return lines;
+}
+
+// The MPI master writes its statistics through WriteHostStats with StatsExtra: the host keys and
+// columns must stay as they are, in order, with the extra ones after them.
+TEST_CASE("statistics export: extra fields after the host keys and columns") {
+  const Loaded l = Load("cornell");
+  const RenderOptions ro = Options(16, 16, 2);
+  const BackendOptions o = PbtBackend(2, 1, PbtAssign::kRandom);
+  HostRenderer r(o);
+  Framebuffer fb(16, 16);
+  std::vector<HostFrameStats> frames;
+  for (int f = 0; f < 2; ++f) {
+    fb.Clear();
+    frames.push_back(r.RenderFrame(
+        MakeFrameContext(l.scene, *l.accel, l.scene.path.At(f, 1.0f, l.scene.camera), ro), fb));
+  }
+  const std::filesystem::path dir =
+      std::filesystem::temp_directory_path() / ("rs_backend_extra_" + std::to_string(getpid()));
+  std::filesystem::create_directories(dir);
+  auto path = [&](const char* name) { return (dir / name).string(); };
+  WriteHostStats(path("plain.json"), "cornell", o, frames);
+  WriteHostStats(path("plain.csv"), "cornell", o, frames);
+  StatsExtra extra;
+  extra.backend = "mpi";
+  extra.options = {{"ranks", int64_t{3}}, {"timeout_seconds", 2.5}};
+  extra.frames = {{{"messages", uint64_t{8}}, {"note", std::string("a,\"b\"")}},
+                  {{"messages", uint64_t{9}}}};
+  extra.threads = {{{{"rank", int64_t{1}}}, {{"rank", int64_t{2}}, {"ok", true}}}, {}};
+  WriteHostStats(path("extra.json"), "cornell", o, frames, extra);
+  WriteHostStats(path("extra.csv"), "cornell", o, frames, extra);
+
+  using OJson = nlohmann::ordered_json;
+  std::ifstream pf(path("plain.json")), ef(path("extra.json"));
+  const OJson plain = OJson::parse(pf), ext = OJson::parse(ef);
+  CHECK(Keys(ext) == Keys(plain));
+  CHECK(ext["backend"] == "mpi");
+  std::vector<std::string> options = Keys(plain["options"]);
+  options.insert(options.end(), {"ranks", "timeout_seconds"});
+  CHECK(Keys(ext["options"]) == options);
+  CHECK(ext["options"]["name"] == "mpi");
+  CHECK(ext["options"]["timeout_seconds"] == 2.5);
+  REQUIRE(ext["frames"].size() == 2);
+  std::vector<std::string> frame0 = Keys(plain["frames"][0]);
+  frame0.insert(frame0.end(), {"messages", "note"});
+  CHECK(Keys(ext["frames"][0]) == frame0);
+  CHECK(ext["frames"][0]["note"] == "a,\"b\"");
+  CHECK(ext["frames"][1]["messages"] == 9);
+  CHECK(ext["frames"][1]["rays"] == plain["frames"][1]["rays"]);
+  std::vector<std::string> thread1 = Keys(plain["frames"][0]["threads"][1]);
+  thread1.insert(thread1.end(), {"rank", "ok"});
+  CHECK(Keys(ext["frames"][0]["threads"][1]) == thread1);
+  CHECK(ext["frames"][0]["threads"][1]["ok"] == true);
+  CHECK(Keys(ext["frames"][1]["threads"][0]) == Keys(plain["frames"][1]["threads"][0]));
+
+  const std::vector<std::string> pc = Lines(path("plain.csv")), ec = Lines(path("extra.csv"));
+  REQUIRE(ec.size() == pc.size());
+  CHECK(ec[0] == pc[0] + ",messages,note,rank,ok");
+  // Frame 0: frame row, app row, thread rows 0 and 1, then its tile rows.
+  const std::string quoted = "\"a,\"\"b\"\"\"";
+  CHECK(ec[1].size() > quoted.size());
+  CHECK(ec[1].ends_with(",8," + quoted + ",,"));
+  CHECK(ec[2].ends_with(",,,,"));
+  CHECK(ec[3].ends_with(",,,1,"));
+  CHECK(ec[4].ends_with(",,,2,true"));
+  const size_t frame1 = 1 + pc.size() / 2;  // both frames have the same number of rows
+  CHECK(ec[frame1].rfind("1,frame,", 0) == 0);
+  CHECK(ec[frame1].ends_with(",9,,,"));
+
+  // Sizes that do not match the frames, and names the host already uses, are errors, and no
+  // file is left behind.
+  const std::string bad = path("bad.json"), bad_csv = path("bad.csv");
+  StatsExtra e = extra;
+  e.frames.pop_back();
+  CHECK_THROWS_AS(WriteHostStats(bad, "x", o, frames, e), Error);
+  e = extra;
+  e.threads[0].push_back({});
+  CHECK_THROWS_AS(WriteHostStats(bad, "x", o, frames, e), Error);
+  e = extra;
+  e.frames[1].push_back({"fps", 1.0});  // a host JSON key
+  CHECK_THROWS_AS(WriteHostStats(bad, "x", o, frames, e), Error);
+  e = extra;
+  e.threads[0][0].push_back({"tiles", int64_t{1}});  // a host key and CSV column
+  CHECK_THROWS_AS(WriteHostStats(bad, "x", o, frames, e), Error);
+  CHECK_THROWS_AS(WriteHostStats(bad_csv, "x", o, frames, e), Error);
+  e = extra;
+  e.frames[0].push_back({"messages", uint64_t{1}});  // twice in one object
+  CHECK_THROWS_AS(WriteHostStats(bad, "x", o, frames, e), Error);
+  CHECK_THROWS_AS(WriteHostStats(bad_csv, "x", o, frames, e), Error);
+  CHECK_FALSE(std::filesystem::exists(bad));
+  CHECK_FALSE(std::filesystem::exists(bad_csv));
+  std::filesystem::remove_all(dir);
+}
+
 }  // namespace
 }  // namespace rs
