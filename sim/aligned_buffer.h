@@ -1,5 +1,6 @@
-// An owning byte buffer aligned to a 128-B line, standing for an array in main memory that SPEs
-// reach by DMA (128-B alignment is the MFC's best case and what atomic lines need).
+// An owning byte buffer aligned to a 128-B line: the host storage of an array in simulated main
+// memory. SPEs reach it by DMA at the effective address MainMemory::Register gives it (never at
+// its host address, which differs between processes).
 #pragma once
 
 #include <cstddef>
@@ -32,7 +33,6 @@ class AlignedBuffer {
     return reinterpret_cast<const T*>(data_);
   }
   size_t size() const { return size_; }
-  uint64_t ea() const { return reinterpret_cast<uint64_t>(data_); }
 
  private:
   std::unique_ptr<uint8_t[]> storage_;

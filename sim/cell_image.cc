@@ -51,6 +51,7 @@ CellImage::CellImage(const Scene& scene, const Accel& accel) : scene_(&scene), a
   }
   num_packets_ = packets;
   packets_.Resize(std::max<size_t>(packets, 1) * sizeof(TrianglePacket));
+  packets_ea_ = Place(packets_, "triangle packets");
   TrianglePacket* out = packets_.As<TrianglePacket>();
   const float nan = std::numeric_limits<float>::quiet_NaN();
   for (size_t c = 0; c < leaves; ++c) {
@@ -68,6 +69,7 @@ CellImage::CellImage(const Scene& scene, const Accel& accel) : scene_(&scene), a
     }
   }
   cell_records_.Resize(std::max<size_t>(cells, 1) * sizeof(CellRecord));
+  cell_records_ea_ = Place(cell_records_, "cell records");
   CellRecord* records = cell_records_.As<CellRecord>();
   for (size_t c = 0; c < cells; ++c) records[c] = leaf[c];
   if (two_level) {
@@ -90,10 +92,13 @@ CellImage::CellImage(const Scene& scene, const Accel& accel) : scene_(&scene), a
     subgrids_.Resize(128);
     leaf_records_.Resize(128);
   }
+  subgrids_ea_ = Place(subgrids_, "sub-grid records");
+  leaf_records_ea_ = Place(leaf_records_, "leaf records");
 
   // Shading records.
   const size_t n = scene.triangles.size();
   shading_.Resize(std::max<size_t>(n, 1) * sizeof(ShadingRecord));
+  shading_ea_ = Place(shading_, "shading records");
   ShadingRecord* sr = shading_.As<ShadingRecord>();
   const bool normals = !scene.normals.empty();
   const bool uvs = !scene.uvs.empty();
@@ -114,13 +119,16 @@ CellImage::CellImage(const Scene& scene, const Accel& accel) : scene_(&scene), a
   // Texels: copied into 128-B aligned, line-padded buffers so software-cache lines stay inside
   // registered memory.
   texels_.resize(scene.textures.size());
+  std::vector<Ea> texel_ea(scene.textures.size());
   for (size_t t = 0; t < scene.textures.size(); ++t) {
     const Texture& tex = scene.textures[t];
     texels_[t].Resize(std::max<size_t>(tex.rgb.size(), 1) * sizeof(float));
     if (!tex.rgb.empty()) std::memcpy(texels_[t].data(), tex.rgb.data(), tex.rgb.size() * 4);
+    texel_ea[t] = Place(texels_[t], "texture " + std::to_string(t));
   }
 
   materials_.Resize(std::max<size_t>(scene.materials.size(), 1) * sizeof(MaterialRecord));
+  materials_ea_ = Place(materials_, "material records");
   MaterialRecord* mr = materials_.As<MaterialRecord>();
   for (size_t i = 0; i < scene.materials.size(); ++i) {
     const Material& mat = scene.materials[i];
@@ -145,12 +153,13 @@ CellImage::CellImage(const Scene& scene, const Accel& accel) : scene_(&scene), a
       if (usable) {
         r.tex_width = tex.width;
         r.tex_height = tex.height;
-        r.texels = texels_[static_cast<size_t>(mat.texture)].ea();
+        r.texels = texel_ea[static_cast<size_t>(mat.texture)];
       }
     }
   }
 
   lights_.Resize(std::max<size_t>(scene.lights.size(), 1) * sizeof(LightRecord));
+  lights_ea_ = Place(lights_, "lights");
   LightRecord* lr = lights_.As<LightRecord>();
   for (size_t i = 0; i < scene.lights.size(); ++i) {
     for (int a = 0; a < 3; ++a) {
@@ -164,21 +173,22 @@ CellImage::CellImage(const Scene& scene, const Accel& accel) : scene_(&scene), a
   const size_t words = (cells + 63) / 64;
   occupancy_.Resize(std::max<size_t>(words, 1) * 8);
   if (words > 0) std::memcpy(occupancy_.data(), g.occupancy.get(), words * 8);
+  occupancy_ea_ = Place(occupancy_, "occupancy bits");
 
   build_seconds_ = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
 }
 
+Ea CellImage::Place(const AlignedBuffer& buffer, std::string name) {
+  const Ea ea = next_ea_;
+  const Ea align = MainMemory::kRegionAlign;
+  next_ea_ = (ea + std::max<size_t>(buffer.size(), 1) + align - 1) / align * align;
+  layout_.push_back(Placed{&buffer, std::move(name), ea});
+  return ea;
+}
+
 void CellImage::Register(MainMemory& memory) const {
-  memory.Register(cell_records_.data(), cell_records_.size(), "cell records");
-  memory.Register(subgrids_.data(), subgrids_.size(), "sub-grid records");
-  memory.Register(leaf_records_.data(), leaf_records_.size(), "leaf records");
-  memory.Register(packets_.data(), packets_.size(), "triangle packets");
-  memory.Register(shading_.data(), shading_.size(), "shading records");
-  memory.Register(materials_.data(), materials_.size(), "material records");
-  memory.Register(lights_.data(), lights_.size(), "lights");
-  memory.Register(occupancy_.data(), occupancy_.size(), "occupancy bits");
-  for (size_t t = 0; t < texels_.size(); ++t) {
-    memory.Register(texels_[t].data(), texels_[t].size(), "texture " + std::to_string(t));
+  for (const Placed& p : layout_) {
+    memory.RegisterAt(p.ea, p.buffer->data(), p.buffer->size(), p.name);
   }
 }
 
@@ -201,14 +211,14 @@ void CellImage::FillConstants(FrameConstants* fc) const {
   fc->num_materials = static_cast<uint32_t>(s.materials.size());
   fc->num_textures = static_cast<uint32_t>(s.textures.size());
   fc->occupancy_bytes = occupancy_.size();
-  fc->cell_records = cell_records_.ea();
-  fc->subgrids = subgrids_.ea();
-  fc->leaf_records = leaf_records_.ea();
-  fc->packets = packets_.ea();
-  fc->shading = shading_.ea();
-  fc->materials = materials_.ea();
-  fc->lights = lights_.ea();
-  fc->occupancy = occupancy_.ea();
+  fc->cell_records = cell_records_ea_;
+  fc->subgrids = subgrids_ea_;
+  fc->leaf_records = leaf_records_ea_;
+  fc->packets = packets_ea_;
+  fc->shading = shading_ea_;
+  fc->materials = materials_ea_;
+  fc->lights = lights_ea_;
+  fc->occupancy = occupancy_ea_;
 }
 
 }  // namespace rs::sim

@@ -7,6 +7,7 @@
 
 #include <cstddef>
 #include <cstdint>
+#include <string>
 #include <vector>
 
 #include "include/raystream/raystream.h"
@@ -122,13 +123,22 @@ struct alignas(128) FrameConstants {
 static_assert(sizeof(Tile) == 16);
 
 // Built once per (scene, accel); read-only for the SPEs. Mirrors what the accel traverses: the
-// flat grid, or the two-level grid (leaf lists of kernels/two_level.h) when it has one.
+// flat grid, or the two-level grid (leaf lists of kernels/two_level.h) when it has one. The
+// arrays get simulated effective addresses when they are laid out (from
+// MainMemory::kMainMemoryBase, each on a MainMemory::kRegionAlign boundary, in a fixed order), so
+// the EAs stored inside the image (a material's texels) and the FrameConstants are the same in
+// every process.
 class CellImage {
  public:
   // Lays out the arrays above. Throws rs::Error if the scene and the accel disagree (triangle
   // count) or a packet index would overflow 32 bits.
   CellImage(const Scene& scene, const Accel& accel);
+  CellImage(const CellImage&) = delete;  // the layout points at the members
+  CellImage& operator=(const CellImage&) = delete;
 
+  // Registers every array at its planned EA (`memory` must not hold regions there yet: register
+  // the image first, then the frame's buffers with MainMemory::Register, which places them
+  // after it).
   void Register(MainMemory& memory) const;
 
   const GridHeader& grid() const { return grid_; }
@@ -155,6 +165,17 @@ class CellImage {
   AlignedBuffer lights_;
   AlignedBuffer occupancy_;
   std::vector<AlignedBuffer> texels_;
+  // The planned EA of each array, in layout order.
+  struct Placed {
+    const AlignedBuffer* buffer;
+    std::string name;
+    Ea ea;
+  };
+  Ea Place(const AlignedBuffer& buffer, std::string name);
+  std::vector<Placed> layout_;
+  Ea next_ea_ = MainMemory::kMainMemoryBase;
+  Ea cell_records_ea_ = 0, subgrids_ea_ = 0, leaf_records_ea_ = 0, packets_ea_ = 0;
+  Ea shading_ea_ = 0, materials_ea_ = 0, lights_ea_ = 0, occupancy_ea_ = 0;
   size_t num_packets_ = 0;
   size_t num_subgrids_ = 0;
   double build_seconds_ = 0;

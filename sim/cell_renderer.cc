@@ -101,9 +101,12 @@ CellFrameStats CellRenderer::RenderTiles(const FrameContext& ctx, Framebuffer& f
   stats.image_bytes = image_->Bytes();
   const auto t0 = Clock::now();
 
+  // Main memory of the frame: the scene image at its planned EAs, then the frame's buffers.
   Machine machine(config_);
   image_->Register(machine.memory);
   AlignedBuffer constants(sizeof(FrameConstants));
+  const Ea constants_ea =
+      machine.memory.Register(constants.data(), constants.size(), "frame constants");
   FrameConstants& fc = *constants.As<FrameConstants>();
   fc = FrameConstants{};
   image_->FillConstants(&fc);
@@ -123,16 +126,12 @@ CellFrameStats CellRenderer::RenderTiles(const FrameContext& ctx, Framebuffer& f
     fc.tiles_x = (width + fc.tile_width - 1) / fc.tile_width;
   }
   fc.num_tiles = static_cast<uint32_t>(tiles.size());
+  fc.tiles = machine.memory.Register(tile_buffer.data(), tile_buffer.size(), "tile list");
   AlignedBuffer counter(128);
-  fc.tile_counter = counter.ea();
-  fc.tiles = tile_buffer.ea();
+  fc.tile_counter = machine.memory.Register(counter.data(), counter.size(), "tile counter", true);
   const size_t pixel_bytes = size_t(width) * size_t(height) * 16;
   if (pixels_.size() < pixel_bytes) pixels_.Resize(pixel_bytes);
-  fc.pixels = pixels_.ea();
-  machine.memory.Register(constants.data(), constants.size(), "frame constants");
-  machine.memory.Register(tile_buffer.data(), tile_buffer.size(), "tile list");
-  machine.memory.Register(counter.data(), counter.size(), "tile counter", true);
-  machine.memory.Register(pixels_.data(), pixels_.size(), "pixel image", true);
+  fc.pixels = machine.memory.Register(pixels_.data(), pixels_.size(), "pixel image", true);
 
   std::vector<double> tile_cycles(tiles.size(), 0.0);
   std::vector<int32_t> tile_spe(tiles.size(), -1);
@@ -142,7 +141,7 @@ CellFrameStats CellRenderer::RenderTiles(const FrameContext& ctx, Framebuffer& f
   outputs.tile_spe = &tile_spe;
   std::vector<std::unique_ptr<Spe>> spes;
   for (int i = 0; i < config_.num_spes; ++i) {
-    spes.push_back(std::make_unique<Spe>(i, machine, constants.ea(), outputs));
+    spes.push_back(std::make_unique<Spe>(i, machine, constants_ea, outputs));
   }
 
   // Discrete-event loop: always step the SPE with the earliest clock (lowest id on ties). Each

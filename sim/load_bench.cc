@@ -27,10 +27,10 @@ struct Bench {
     table.Resize(table_bytes);
     uint64_t* t = table.As<uint64_t>();
     for (uint32_t i = 0; i < table_bytes / 8; ++i) t[i] = 0x9E3779B97F4A7C15ull * (i + 1);
-    memory.Register(table.data(), table.size(), "record table");
+    table_ea = memory.Register(table.data(), table.size(), "record table");
     slots = ls.Allocate("load slots", kRays * 128, 128);
   }
-  Ea RecordEa(uint32_t index) const { return table.ea() + uint64_t{index} * 8; }
+  Ea RecordEa(uint32_t index) const { return table_ea + uint64_t{index} * 8; }
   uint64_t Expected(uint32_t index) const { return table.As<uint64_t>()[index]; }
   void Check(uint64_t got, uint32_t index, const char* method) const {
     if (got != Expected(index)) {
@@ -47,6 +47,7 @@ struct Bench {
   Mfc mfc;
   AtomicUnit atomic;
   AlignedBuffer table;
+  Ea table_ea = 0;
   Lsa slots = 0;
 };
 

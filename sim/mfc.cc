@@ -61,11 +61,28 @@ void SpuClock::Charge(Cost c, uint64_t cycles) {
 // ------------------------------------------------------------------------------------------
 // MainMemory
 
-void MainMemory::Register(const void* data, size_t bytes, std::string name, bool writable) {
-  if (bytes == 0) return;
+Ea MainMemory::NextEa() const {
+  if (regions_.empty()) return kMainMemoryBase;
+  Ea top = 0;
+  for (const Region& r : regions_) top = std::max(top, r.end);
+  return (top + kRegionAlign - 1) / kRegionAlign * kRegionAlign;
+}
+
+Ea MainMemory::Register(const void* data, size_t bytes, std::string name, bool writable) {
+  return RegisterAt(NextEa(), data, bytes, std::move(name), writable);
+}
+
+Ea MainMemory::RegisterAt(Ea ea, const void* data, size_t bytes, std::string name,
+                          bool writable) {
+  if (ea == 0 || ea % 128 != 0 || ea + bytes < ea) {
+    throw Error("main memory: region '" + name + "' at " + Hex(ea) +
+                " must start on a nonzero 128-byte boundary");
+  }
+  if (bytes == 0) return ea;
   Region r;
-  r.begin = reinterpret_cast<Ea>(data);
-  r.end = r.begin + bytes;
+  r.begin = ea;
+  r.end = ea + bytes;
+  r.host = static_cast<uint8_t*>(const_cast<void*>(data));
   r.name = std::move(name);
   r.writable = writable;
   auto it = std::upper_bound(regions_.begin(), regions_.end(), r.begin,
@@ -75,29 +92,33 @@ void MainMemory::Register(const void* data, size_t bytes, std::string name, bool
     throw Error("main memory: region '" + r.name + "' overlaps a registered region");
   }
   regions_.insert(it, std::move(r));
+  return ea;
 }
 
-uint8_t* MainMemory::Find(Ea ea, uint64_t bytes, bool write) const {
+const MainMemory::Region* MainMemory::Lookup(Ea ea, uint64_t bytes) const {
   auto it = std::upper_bound(regions_.begin(), regions_.end(), ea,
                              [](Ea a, const Region& x) { return a < x.begin; });
   if (it == regions_.begin() || ea + bytes < ea) return nullptr;
   const Region& r = *std::prev(it);
-  if (r.end < ea + bytes || (write && !r.writable)) return nullptr;
-  return reinterpret_cast<uint8_t*>(ea);
+  return r.end < ea + bytes ? nullptr : &r;
+}
+
+uint8_t* MainMemory::Find(Ea ea, uint64_t bytes, bool write) const {
+  const Region* r = Lookup(ea, bytes);
+  if (r == nullptr || (write && !r->writable)) return nullptr;
+  return r->host + (ea - r->begin);
 }
 
 uint8_t* MainMemory::Check(Ea ea, uint64_t bytes, bool write, const std::string& op) const {
-  auto it = std::upper_bound(regions_.begin(), regions_.end(), ea,
-                             [](Ea a, const Region& x) { return a < x.begin; });
-  if (it == regions_.begin() || std::prev(it)->end < ea + bytes || ea + bytes < ea) {
+  const Region* r = Lookup(ea, bytes);
+  if (r == nullptr) {
     throw Error(op + ": effective-address range [" + Hex(ea) + ", +" + std::to_string(bytes) +
                 ") is not inside registered main memory");
   }
-  const Region& r = *std::prev(it);
-  if (write && !r.writable) {
-    throw Error(op + ": main-memory region '" + r.name + "' is read-only");
+  if (write && !r->writable) {
+    throw Error(op + ": main-memory region '" + r->name + "' is read-only");
   }
-  return reinterpret_cast<uint8_t*>(ea);
+  return r->host + (ea - r->begin);
 }
 
 // ------------------------------------------------------------------------------------------
@@ -237,7 +258,7 @@ void Mfc::Issue(Kind kind, Order order, Lsa ls, Ea ea, uint32_t size, uint32_t t
   }
   clock_.Charge(Cost::kDma, timing_.dma_issue_cycles);
   const uint32_t first = static_cast<uint32_t>(pieces_.size());
-  pieces_.push_back(Piece{ls, ea, size});
+  pieces_.push_back(Piece{ls, ea, size, host});
   Schedule(kind, order, tag, first, 1);
 }
 
@@ -299,7 +320,7 @@ void Mfc::IssueList(Kind kind, Lsa ls, uint32_t ea_high, Lsa list, uint32_t list
     } else {
       std::memset(ls_.Bytes(at, e.size), kPoison, e.size);
     }
-    pieces_.push_back(Piece{at, ea, e.size});
+    pieces_.push_back(Piece{at, ea, e.size, host});
     at += e.size;
   }
   clock_.Charge(Cost::kDma, timing_.dma_issue_cycles);
@@ -371,7 +392,7 @@ void Mfc::Land(const Command& c) {
   if (c.kind != kGet) return;
   for (uint32_t i = 0; i < c.num_pieces; ++i) {
     const Piece& p = pieces_[c.first_piece + i];
-    std::memcpy(ls_.Bytes(p.ls, p.size), reinterpret_cast<const void*>(p.ea), p.size);
+    std::memcpy(ls_.Bytes(p.ls, p.size), p.host, p.size);
   }
 }
 
@@ -441,10 +462,12 @@ void AtomicUnit::Reset() {
   stats_ = AtomicStats{};
 }
 
-void AtomicUnit::Begin(const char* op, Lsa ls, Ea ea) {
+uint8_t* AtomicUnit::Begin(const char* op, Lsa ls, Ea ea) {
   const bool write = std::strcmp(op, "getllar") != 0;
-  if (ls % kAtomicLine != 0 || ea % kAtomicLine != 0 || !ls_.Contains(ls, kAtomicLine) ||
-      memory_.Find(ea, kAtomicLine, write) == nullptr) {
+  uint8_t* host = ls % kAtomicLine == 0 && ea % kAtomicLine == 0 && ls_.Contains(ls, kAtomicLine)
+                      ? memory_.Find(ea, kAtomicLine, write)
+                      : nullptr;
+  if (host == nullptr) {
     const std::string what =
         "SPE " + std::to_string(spe_) + " " + op + "(ls " + Hex(ls) + ", ea " + Hex(ea) + ")";
     if (ls % kAtomicLine != 0 || ea % kAtomicLine != 0) {
@@ -453,7 +476,7 @@ void AtomicUnit::Begin(const char* op, Lsa ls, Ea ea) {
                   "addresses");
     }
     if (!ls_.Contains(ls, kAtomicLine)) throw Error(what + ": line runs past the local store");
-    memory_.Check(ea, kAtomicLine, write, what);
+    host = memory_.Check(ea, kAtomicLine, write, what);
   }
   // One atomic command at a time: a second issue waits for the first to complete.
   if (pending_) {
@@ -461,6 +484,7 @@ void AtomicUnit::Begin(const char* op, Lsa ls, Ea ea) {
     pending_ = false;
   }
   clock_.Charge(Cost::kAtomic, timing_.atomic_issue_cycles);
+  return host;
 }
 
 bool AtomicUnit::CacheAccess(Ea line, uint64_t version) {
@@ -482,10 +506,10 @@ bool AtomicUnit::CacheAccess(Ea line, uint64_t version) {
 }
 
 void AtomicUnit::Getllar(Lsa ls, Ea ea) {
-  Begin("getllar", ls, ea);
+  const uint8_t* host = Begin("getllar", ls, ea);
   ++stats_.getllar;
   const uint64_t version = atomic_memory_.Version(ea);
-  std::memcpy(ls_.Bytes(ls, kAtomicLine), reinterpret_cast<const void*>(ea), kAtomicLine);
+  std::memcpy(ls_.Bytes(ls, kAtomicLine), host, kAtomicLine);
   reserved_ = true;
   reserved_line_ = ea;
   reserved_version_ = version;
@@ -500,12 +524,12 @@ void AtomicUnit::Getllar(Lsa ls, Ea ea) {
 }
 
 void AtomicUnit::Putllc(Lsa ls, Ea ea) {
-  Begin("putllc", ls, ea);
+  uint8_t* host = Begin("putllc", ls, ea);
   const uint64_t version = atomic_memory_.Version(ea);
   const bool ok = reserved_ && reserved_line_ == ea && reserved_version_ == version;
   reserved_ = false;
   if (ok) {
-    std::memcpy(reinterpret_cast<void*>(ea), ls_.Bytes(ls, kAtomicLine), kAtomicLine);
+    std::memcpy(host, ls_.Bytes(ls, kAtomicLine), kAtomicLine);
     const uint64_t v = atomic_memory_.Bump(ea);
     // The line is in this SPE's atomic cache (getllar put it there): the store is local.
     CacheAccess(ea, v);
@@ -520,9 +544,9 @@ void AtomicUnit::Putllc(Lsa ls, Ea ea) {
 }
 
 void AtomicUnit::Putlluc(Lsa ls, Ea ea) {
-  Begin("putlluc", ls, ea);
+  uint8_t* host = Begin("putlluc", ls, ea);
   const bool hit = CacheAccess(ea, atomic_memory_.Version(ea));
-  std::memcpy(reinterpret_cast<void*>(ea), ls_.Bytes(ls, kAtomicLine), kAtomicLine);
+  std::memcpy(host, ls_.Bytes(ls, kAtomicLine), kAtomicLine);
   const uint64_t v = atomic_memory_.Bump(ea);
   CacheAccess(ea, v);
   if (reserved_ && reserved_line_ == ea) reserved_ = false;

@@ -15,7 +15,10 @@
 
 namespace rs::sim {
 
-// Effective addresses are host addresses of arrays registered with MainMemory.
+// A simulated effective address: a byte address in the simulated 64-bit main memory, never a
+// host pointer. MainMemory places every registered host array at an EA of its own (see there),
+// so everything that depends on addresses (software-cache sets, 128-B line counts, atomic lines,
+// DMA-list high words) is the same in every process, whatever the host allocator returns.
 using Ea = uint64_t;
 
 inline constexpr uint32_t kMaxDmaSize = 16384;         // MFC_MAX_DMA_SIZE
@@ -70,11 +73,25 @@ class SpuClock {
   int redirect_ = -1;
 };
 
-// The host arrays that stand for main memory. Every DMA's effective-address range must lie inside
-// one registered region (writable for puts), else the DMA is illegal (rs::Error).
+// The host arrays that stand for main memory, each mapped at its own simulated EA range. Every
+// DMA's effective-address range must lie inside one registered region (writable for puts), else
+// the DMA is illegal (rs::Error). Regions start on kRegionAlign boundaries: Register places a
+// region at the first such boundary above every region so far, starting at kMainMemoryBase, so
+// the EAs depend only on the order and sizes of the registrations (deterministic, like a PPE
+// program laying out its arrays); RegisterAt places one at an EA chosen by the caller (a
+// layout planned ahead, e.g. CellImage). EA 0 is never valid.
 class MainMemory {
  public:
-  void Register(const void* data, size_t bytes, std::string name, bool writable = false);
+  static constexpr Ea kMainMemoryBase = 0x10000000;  // 256 MiB: PS3 user memory starts higher
+  static constexpr Ea kRegionAlign = 4096;           // a page, as a PPE allocator hands them out
+
+  // Returns the region's EA. Throws rs::Error if it would overlap a registered region. A
+  // region of 0 bytes is not registered (returns the EA it would have had).
+  Ea Register(const void* data, size_t bytes, std::string name, bool writable = false);
+  // The same at `ea` (a multiple of 128).
+  Ea RegisterAt(Ea ea, const void* data, size_t bytes, std::string name, bool writable = false);
+  // The EA the next Register call would use (for a region laid out by RegisterAt after it).
+  Ea NextEa() const;
   void Clear() { regions_.clear(); }
   // Host pointer for [ea, ea + bytes); throws rs::Error naming `op` if no registered region
   // holds the whole range, or `write` and the region is read-only.
@@ -87,9 +104,11 @@ class MainMemory {
   struct Region {
     Ea begin = 0;
     Ea end = 0;
+    uint8_t* host = nullptr;
     std::string name;
     bool writable = false;
   };
+  const Region* Lookup(Ea ea, uint64_t bytes) const;
   std::vector<Region> regions_;  // sorted by begin, disjoint
 };
 
@@ -187,6 +206,7 @@ class Mfc {
     Lsa ls;
     Ea ea;
     uint32_t size;
+    const uint8_t* host;  // main-memory bytes of [ea, ea + size) (gets land from here)
   };
   struct Command {
     uint64_t done = 0;
@@ -218,8 +238,8 @@ class Mfc {
   MfcStats stats_;
 };
 
-// Version counters of the 128-B lines written through the atomic unit (shared by all SPEs). A
-// line never written has version 0.
+// Version counters of the 128-B lines (by EA) written through the atomic unit (shared by all
+// SPEs). A line never written has version 0.
 class AtomicMemory {
  public:
   uint64_t Version(Ea line) const {
@@ -271,7 +291,8 @@ class AtomicUnit {
   void Reset();
 
  private:
-  void Begin(const char* op, Lsa ls, Ea ea);
+  // Checks the command, waits for a pending one, charges the issue; returns the line's host bytes.
+  uint8_t* Begin(const char* op, Lsa ls, Ea ea);
   // Atomic-cache lookup; true on a hit. Inserts (LRU) on a miss.
   bool CacheAccess(Ea line, uint64_t version);
 

@@ -214,6 +214,7 @@ struct Spe::Impl {
   uint32_t staging_count = 0;
   bool staging_put_pending = false;
   std::vector<std::unique_ptr<AlignedBuffer>> spill_blocks;
+  std::vector<Ea> spill_ea;  // per block: its EA
   std::vector<size_t> spill_used, spill_free;
 
   // Tiles.
@@ -614,14 +615,15 @@ void Spe::Impl::FlushStaging() {
   if (spill_free.empty()) {
     // The PPE hands out spill memory on demand (main memory is not simulated for capacity).
     spill_blocks.push_back(std::make_unique<AlignedBuffer>(size_t{config.staging_rays} * 128));
-    machine.memory.Register(spill_blocks.back()->data(), spill_blocks.back()->size(),
-                            "SPE " + std::to_string(id) + " ray spill block", true);
+    spill_ea.push_back(
+        machine.memory.Register(spill_blocks.back()->data(), spill_blocks.back()->size(),
+                                "SPE " + std::to_string(id) + " ray spill block", true));
     block = spill_blocks.size() - 1;
   } else {
     block = spill_free.back();
     spill_free.pop_back();
   }
-  mfc.MfcPut(staging_lsa, spill_blocks[block]->ea(), config.staging_rays * 128, kSpillTag);
+  mfc.MfcPut(staging_lsa, spill_ea[block], config.staging_rays * 128, kSpillTag);
   staging_put_pending = true;
   spill_used.push_back(block);
   counters.spilled_rays += staging_count;
@@ -635,7 +637,7 @@ void Spe::Impl::FetchSpillBlock() {
     mfc.WaitTagsAll(1u << kSpillTag);
     staging_put_pending = false;
   }
-  mfc.MfcGet(staging_lsa, spill_blocks[block]->ea(), config.staging_rays * 128, kSpillTag);
+  mfc.MfcGet(staging_lsa, spill_ea[block], config.staging_rays * 128, kSpillTag);
   mfc.WaitTagsAll(1u << kSpillTag);
   staging_count = config.staging_rays;
   spill_free.push_back(block);

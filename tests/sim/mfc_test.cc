@@ -5,8 +5,10 @@
 
 #include <doctest/doctest.h>
 
+#include <cstdint>
 #include <cstring>
 #include <string>
+#include <vector>
 
 #include "include/raystream/raystream.h"
 #include "sim/aligned_buffer.h"
@@ -30,8 +32,8 @@ struct Env {
     ro.Resize(256 * 1024);
     rw.Resize(64 * 1024);
     for (size_t i = 0; i < ro.size(); ++i) ro.data()[i] = static_cast<uint8_t>(i * 7 + 3);
-    memory.Register(ro.data(), ro.size(), "read-only table");
-    memory.Register(rw.data(), rw.size(), "writable table", true);
+    ro_ea = memory.Register(ro.data(), ro.size(), "read-only table");
+    rw_ea = memory.Register(rw.data(), rw.size(), "writable table", true);
   }
   MemoryTiming timing;
   MainMemory memory;
@@ -42,6 +44,7 @@ struct Env {
   Mfc mfc, mfc2;
   AtomicUnit atomic, atomic2;
   AlignedBuffer ro, rw;
+  Ea ro_ea = 0, rw_ea = 0;  // simulated effective addresses of ro and rw
 };
 
 TEST_CASE("legal DMA sizes move data, which lands at the tag wait") {
@@ -50,7 +53,7 @@ TEST_CASE("legal DMA sizes move data, which lands at the tag wait") {
     INFO("size ", size);
     const uint32_t off = size < 16 ? 8 : 32;  // natural alignment; low 4 bits shared
     const Lsa ls = 1024 + off;
-    e.mfc.MfcGet(ls, e.ro.ea() + 4096 + off, size, 5);
+    e.mfc.MfcGet(ls, e.ro_ea + 4096 + off, size, 5);
     // Before the wait the buffer holds the poison pattern, not the data.
     CHECK(e.ls.Bytes(ls, size)[0] == 0xFF);
     CHECK(e.mfc.outstanding() == 1);
@@ -60,7 +63,7 @@ TEST_CASE("legal DMA sizes move data, which lands at the tag wait") {
   }
   // Put: LS -> main memory.
   std::memset(e.ls.Bytes(2048, 64), 0xAB, 64);
-  e.mfc.MfcPut(2048, e.rw.ea() + 128, 64, 1);
+  e.mfc.MfcPut(2048, e.rw_ea + 128, 64, 1);
   e.mfc.WaitTagsAll(1u << 1);
   CHECK(e.rw.data()[128] == 0xAB);
   CHECK(e.rw.data()[191] == 0xAB);
@@ -71,7 +74,7 @@ TEST_CASE("legal DMA sizes move data, which lands at the tag wait") {
 
 TEST_CASE("illegal DMAs are hard errors naming the rule") {
   Env e;
-  const Ea ea = e.ro.ea();
+  const Ea ea = e.ro_ea;
   for (const uint32_t size : {0u, 3u, 12u, 24u, 16400u, 32768u}) {
     INFO("size ", size);
     CHECK_THROWS_WITH_AS(e.mfc.MfcGet(0, ea, size, 0), doctest::Contains("illegal DMA size"),
@@ -97,14 +100,14 @@ TEST_CASE("a 17th queued DMA stalls until the oldest completes") {
   Env e;
   uint64_t first_done = 0;
   for (uint32_t i = 0; i < 16; ++i) {
-    e.mfc.MfcGet(i * 16384 % (192 * 1024), e.ro.ea() + i * 16384 % (192 * 1024), 16384, i);
+    e.mfc.MfcGet(i * 16384 % (192 * 1024), e.ro_ea + i * 16384 % (192 * 1024), 16384, i);
     if (i == 0) first_done = e.clock.now();  // the first command starts here
   }
   CHECK(e.mfc.QueueOccupancy() == 16);
   CHECK(e.mfc.stats().queue_full_stalls == 0);
   const uint64_t before = e.clock.now();
   CHECK(before == 16 * e.timing.dma_issue_cycles);
-  e.mfc.MfcGet(0, e.ro.ea(), 16, 20);
+  e.mfc.MfcGet(0, e.ro_ea, 16, 20);
   CHECK(e.mfc.stats().queue_full_stalls == 1);
   // The SPU (after issuing) waited for the first 16 KiB get: 128 lines + latency after its start.
   const uint64_t stalled_to = e.clock.now();
@@ -118,7 +121,7 @@ TEST_CASE("a 17th queued DMA stalls until the oldest completes") {
 
 TEST_CASE("synchronous get timing and MIC contention between SPEs") {
   Env e;
-  e.mfc.MfcGet(0, e.ro.ea(), 128, 0);
+  e.mfc.MfcGet(0, e.ro_ea, 128, 0);
   e.mfc.WaitTagsAll(1);
   // issue + one line (slot aligned to 16 cycles) + latency + wait
   const uint64_t one =
@@ -128,10 +131,10 @@ TEST_CASE("synchronous get timing and MIC contention between SPEs") {
 
   // Two SPEs each fetching 16 KiB at the same moment share the MIC's 16 cycles per line.
   Env alone, both;
-  alone.mfc.MfcGet(0, alone.ro.ea(), 16384, 0);
+  alone.mfc.MfcGet(0, alone.ro_ea, 16384, 0);
   alone.mfc.WaitTagsAll(1);
-  both.mfc.MfcGet(0, both.ro.ea(), 16384, 0);
-  both.mfc2.MfcGet(0, both.ro.ea() + 65536, 16384, 0);
+  both.mfc.MfcGet(0, both.ro_ea, 16384, 0);
+  both.mfc2.MfcGet(0, both.ro_ea + 65536, 16384, 0);
   both.mfc.WaitTagsAll(1);
   both.mfc2.WaitTagsAll(1);
   const uint64_t later = std::max(both.clock.now(), both.clock2.now());
@@ -144,7 +147,7 @@ TEST_CASE("synchronous get timing and MIC contention between SPEs") {
 TEST_CASE("DMA lists") {
   Env e;
   DmaListElement* list = e.ls.As<DmaListElement>(8192, 3);
-  const Ea base = e.ro.ea();
+  const Ea base = e.ro_ea;
   list[0] = {32, static_cast<uint32_t>(base + 256)};
   list[1] = {16, static_cast<uint32_t>(base + 1024)};
   list[2] = {128, static_cast<uint32_t>(base + 4096)};
@@ -173,24 +176,24 @@ TEST_CASE("fences order commands of a tag") {
   MemoryTiming t;
   t.mfc_bus_slots = 16;  // pipelined: without a fence both gets overlap
   Env plain(t), fenced(t);
-  plain.mfc.MfcGet(0, plain.ro.ea(), 128, 4);
-  plain.mfc.MfcGet(128, plain.ro.ea() + 128, 128, 4);
+  plain.mfc.MfcGet(0, plain.ro_ea, 128, 4);
+  plain.mfc.MfcGet(128, plain.ro_ea + 128, 128, 4);
   plain.mfc.WaitTagsAll(1u << 4);
-  fenced.mfc.MfcGet(0, fenced.ro.ea(), 128, 4);
-  fenced.mfc.MfcGetf(128, fenced.ro.ea() + 128, 128, 4);
+  fenced.mfc.MfcGet(0, fenced.ro_ea, 128, 4);
+  fenced.mfc.MfcGetf(128, fenced.ro_ea + 128, 128, 4);
   fenced.mfc.WaitTagsAll(1u << 4);
   CHECK(fenced.clock.now() >= plain.clock.now() + t.dma_latency_cycles);
   // A barrier holds later commands of its tag.
   Env barrier(t);
-  barrier.mfc.MfcGetb(0, barrier.ro.ea(), 128, 4);
-  barrier.mfc.MfcGet(128, barrier.ro.ea() + 128, 128, 4);
+  barrier.mfc.MfcGetb(0, barrier.ro_ea, 128, 4);
+  barrier.mfc.MfcGet(128, barrier.ro_ea + 128, 128, 4);
   barrier.mfc.WaitTagsAll(1u << 4);
   CHECK(barrier.clock.now() >= plain.clock.now() + t.dma_latency_cycles);
 }
 
 TEST_CASE("atomic unit: reservations, lost reservations, atomic cache") {
   Env e;
-  const Ea line = e.rw.ea() + 1024;
+  const Ea line = e.rw_ea + 1024;
   uint32_t* mine = e.ls.As<uint32_t>(4096, 32);
   uint32_t* theirs = e.ls2.As<uint32_t>(4096, 32);
   // Uncontended increment.
@@ -239,7 +242,7 @@ TEST_CASE("atomic unit: reservations, lost reservations, atomic cache") {
   // Rules.
   CHECK_THROWS_WITH_AS(e.atomic.Getllar(4096 + 16, line), doctest::Contains("128-byte aligned"),
                        Error);
-  CHECK_THROWS_WITH_AS(e.atomic.Putllc(4096, e.ro.ea()), doctest::Contains("read-only"), Error);
+  CHECK_THROWS_WITH_AS(e.atomic.Putllc(4096, e.ro_ea), doctest::Contains("read-only"), Error);
 }
 
 TEST_CASE("software cache: hits, misses, LRU, lines straddled") {
@@ -247,7 +250,7 @@ TEST_CASE("software cache: hits, misses, LRU, lines straddled") {
   SoftwareCacheConfig c;
   SoftwareCache cache(c, e.ls, e.mfc, e.clock);
   uint8_t out[64];
-  const Ea base = e.ro.ea();
+  const Ea base = e.ro_ea;
   uint64_t t0 = e.clock.now();
   CHECK(!cache.Read(base + 200, 8, out));
   CHECK(std::memcmp(out, e.ro.data() + 200, 8) == 0);
@@ -270,6 +273,73 @@ TEST_CASE("software cache: hits, misses, LRU, lines straddled") {
   bad.ways = 2;
   CHECK_THROWS_WITH_AS(SoftwareCache(bad, e.ls, e.mfc, e.clock), doctest::Contains("1 or 4"),
                        Error);
+}
+
+TEST_CASE("effective addresses are simulated, not host pointers") {
+  AlignedBuffer a(5000), b(128);
+  MainMemory m;
+  const Ea ea_a = m.Register(a.data(), a.size(), "a");
+  const Ea ea_b = m.Register(b.data(), b.size(), "b", true);
+  CHECK(ea_a == MainMemory::kMainMemoryBase);
+  CHECK(ea_b == MainMemory::kMainMemoryBase + 8192);  // next page after a's 5120 bytes
+  CHECK(m.NextEa() == ea_b + 4096);
+  CHECK(m.Find(ea_a + 100, 8, false) == a.data() + 100);
+  CHECK(m.Find(ea_b, 128, true) == b.data());
+  CHECK(m.Find(ea_a, 8, true) == nullptr);  // read-only
+  CHECK(m.Find(ea_a + a.size(), 8, false) == nullptr);
+  // The host address itself is not an effective address.
+  CHECK(m.Find(reinterpret_cast<uintptr_t>(a.data()), 8, false) == nullptr);
+  CHECK_THROWS_WITH_AS(m.RegisterAt(ea_a + 4096, b.data(), 128, "c"),  // inside a
+                       doctest::Contains("overlaps"), Error);
+  CHECK_THROWS_WITH_AS(m.RegisterAt(0, b.data(), 128, "null"),
+                       doctest::Contains("nonzero 128-byte boundary"), Error);
+  // The same registrations give the same EAs whatever the host buffers are.
+  AlignedBuffer a2(5000), b2(128);
+  MainMemory m2;
+  CHECK(m2.Register(a2.data(), a2.size(), "a") == ea_a);
+  CHECK(m2.Register(b2.data(), b2.size(), "b") == ea_b);
+}
+
+// The set index of the software cache comes from simulated EAs: two tables whose host storage
+// sits at different offsets modulo the cache's 8 KiB way size give identical hits, misses and
+// cycles (with host addresses, the second table's lines move to other sets).
+TEST_CASE("software-cache timing does not depend on host addresses") {
+  std::vector<uint64_t> first;
+  for (const size_t shift : {size_t{0}, size_t{4096}, size_t{128 * 5}}) {
+    INFO("host shift ", shift);
+    AlignedBuffer storage(24 * 1024 + 24 * 1024 + 8192);
+    for (size_t i = 0; i < storage.size(); ++i) storage.data()[i] = static_cast<uint8_t>(i * 13);
+    MainMemory memory;
+    const Ea ta = memory.Register(storage.data(), 24 * 1024, "table a");
+    const Ea tb = memory.Register(storage.data() + 24 * 1024 + shift, 24 * 1024, "table b");
+    MemoryTiming timing;
+    MemoryController mic(timing.mic_line_cycles);
+    LocalStore ls(256 * 1024, 0);
+    SpuClock clock;
+    Mfc mfc(0, ls, memory, mic, clock, timing);
+    SoftwareCache cache(SoftwareCacheConfig{}, ls, mfc, clock);
+    // Three lines of each table that share one set by EA (way stride 8 KiB): six lines in a
+    // 4-way set, read round robin, always miss.
+    uint64_t v = 0;
+    for (int round = 0; round < 4; ++round) {
+      for (const Ea t : {ta, tb}) {
+        for (uint64_t k = 0; k < 3; ++k) {
+          cache.Read(t + k * 8192 + 8, 8, &v);
+          const size_t host = size_t(t == ta ? 0 : 24 * 1024 + shift) + k * 8192 + 8;
+          uint64_t want;
+          std::memcpy(&want, storage.data() + host, 8);
+          CHECK(v == want);
+        }
+      }
+    }
+    const std::vector<uint64_t> got = {cache.stats().hits, cache.stats().misses, clock.now()};
+    CHECK(cache.stats().hits == 0);
+    if (first.empty()) {
+      first = got;
+    } else {
+      CHECK(got == first);
+    }
+  }
 }
 
 }  // namespace
