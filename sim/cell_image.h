@@ -74,6 +74,27 @@ struct alignas(16) LightRecord {
 };
 static_assert(sizeof(LightRecord) == 32);
 
+// One pixel of an SPE's local-store pixel buffer and of the main-memory pixel image the buffers
+// are written back to: the framebuffer's 64-bit fixed-point sums (sched/framebuffer.h: the same
+// round(c * 2^32) per contribution, r g b) and a pad word, so a pixel is two quadwords and every
+// row of a sub-tile is a legal DMA (a multiple of 16 bytes on a 16-byte boundary).
+struct alignas(16) PixelSums {
+  int64_t rgb[3];
+  int64_t pad;
+};
+static_assert(sizeof(PixelSums) == 32);
+
+// What an SPE program reports at its end (one 128-B put into FrameConstants::status + 128 * SPE
+// id): the contributions its pixel buffers dropped (a NaN channel) or clamped, counted as
+// Framebuffer::Add counts them, so the PPE's framebuffer gets its counters from main memory too.
+struct alignas(128) SpeStatus {
+  uint64_t dropped_nan;
+  uint64_t clamped;
+  uint64_t pixels_written;  // pixels put back to the pixel image
+  uint64_t pad[13];
+};
+static_assert(sizeof(SpeStatus) == 128);
+
 // The uniform grid's geometry (kernels/grid.h Grid, without the arrays).
 struct GridHeader {
   float lo[3];
@@ -118,7 +139,8 @@ struct alignas(128) FrameConstants {
   Ea occupancy;
   Ea tile_counter;  // 128-B line, counter in its first 4 bytes
   Ea tiles;         // Tile[num_tiles] (16 B each) when explicit_tiles
-  Ea pixels;        // 16 B per pixel output image (pixel-buffer write-back target)
+  Ea pixels;        // PixelSums[image_width * image_height], row-major (write-back target)
+  Ea status;        // SpeStatus[number of SPEs]
 };
 static_assert(sizeof(Tile) == 16);
 

@@ -5,6 +5,8 @@
 #include <algorithm>
 #include <chrono>
 #include <cstdio>
+#include <cstring>
+#include <limits>
 #include <numeric>
 
 namespace rs::sim {
@@ -14,6 +16,15 @@ using Clock = std::chrono::steady_clock;
 
 double Seconds(Clock::time_point a, Clock::time_point b) {
   return std::chrono::duration<double>(b - a).count();
+}
+
+// Framebuffer keeps its drop and clamp counters private; Add counts a contribution with a NaN
+// channel as dropped and one with a negative channel as clamped, and adds nothing to the sums in
+// either case.
+void AddCounters(Framebuffer& fb, uint64_t dropped_nan, uint64_t clamped) {
+  const float nan = std::numeric_limits<float>::quiet_NaN();
+  for (uint64_t i = 0; i < dropped_nan; ++i) fb.Add(0, nan, 0.0f, 0.0f);
+  for (uint64_t i = 0; i < clamped; ++i) fb.Add(0, -1.0f, 0.0f, 0.0f);
 }
 
 }  // namespace
@@ -85,10 +96,28 @@ CellFrameStats CellRenderer::RenderTiles(const FrameContext& ctx, Framebuffer& f
                 std::to_string(fb.height()) + " but the frame is " + std::to_string(width) + "x" +
                 std::to_string(height));
   }
+  // The SPEs put whole pixel buffers into the pixel image, so a pixel must belong to one tile.
+  uint64_t covered = 0;
+  std::vector<uint32_t> owner;  // explicit lists: 1 + the tile holding each pixel, 0 for none
+  if (explicit_tiles) owner.assign(size_t(width) * size_t(height), 0);
   for (size_t i = 0; i < tiles.size(); ++i) {
     const Tile& t = tiles[i];
     if (t.x0 < 0 || t.y0 < 0 || t.x1 > width || t.y1 > height) {
       throw Error("cell backend: tile " + std::to_string(i) + " lies outside the image");
+    }
+    if (t.x1 <= t.x0 || t.y1 <= t.y0) continue;
+    covered += uint64_t(t.NumPixels());
+    if (!explicit_tiles) continue;
+    for (int y = t.y0; y < t.y1; ++y) {
+      for (int x = t.x0; x < t.x1; ++x) {
+        uint32_t& o = owner[size_t(y) * size_t(width) + size_t(x)];
+        if (o != 0) {
+          throw Error("cell backend: tiles " + std::to_string(o - 1) + " and " + std::to_string(i) +
+                      " overlap at pixel (" + std::to_string(x) + ", " + std::to_string(y) +
+                      "); the SPEs write whole tiles back by DMA");
+        }
+        o = static_cast<uint32_t>(i + 1);
+      }
     }
   }
   CellFrameStats stats;
@@ -129,14 +158,18 @@ CellFrameStats CellRenderer::RenderTiles(const FrameContext& ctx, Framebuffer& f
   fc.tiles = machine.memory.Register(tile_buffer.data(), tile_buffer.size(), "tile list");
   AlignedBuffer counter(128);
   fc.tile_counter = machine.memory.Register(counter.data(), counter.size(), "tile counter", true);
-  const size_t pixel_bytes = size_t(width) * size_t(height) * 16;
+  // The pixel image the SPEs put their pixel buffers into (zero where no tile lies).
+  const size_t num_pixels = size_t(width) * size_t(height);
+  const size_t pixel_bytes = (num_pixels * sizeof(PixelSums) + 127) / 128 * 128;
   if (pixels_.size() < pixel_bytes) pixels_.Resize(pixel_bytes);
-  fc.pixels = machine.memory.Register(pixels_.data(), pixels_.size(), "pixel image", true);
+  std::memset(pixels_.data(), 0, pixel_bytes);
+  fc.pixels = machine.memory.Register(pixels_.data(), pixel_bytes, "pixel image", true);
+  AlignedBuffer status(size_t(config_.num_spes) * sizeof(SpeStatus));
+  fc.status = machine.memory.Register(status.data(), status.size(), "SPE status records", true);
 
   std::vector<double> tile_cycles(tiles.size(), 0.0);
   std::vector<int32_t> tile_spe(tiles.size(), -1);
   FrameOutputs outputs;
-  outputs.fb = &fb;
   outputs.tile_cycles = &tile_cycles;
   outputs.tile_spe = &tile_spe;
   std::vector<std::unique_ptr<Spe>> spes;
@@ -155,6 +188,24 @@ CellFrameStats CellRenderer::RenderTiles(const FrameContext& ctx, Framebuffer& f
     if (next == nullptr) break;
     machine.mic.AdvanceFloor(next->now());
     next->Step();
+  }
+
+  // The PPE's part: the image as it arrived in main memory (the pixel-buffer write-backs) into
+  // the framebuffer, with the drop and clamp counts of the SPEs' status records.
+  const PixelSums* px = pixels_.As<const PixelSums>();
+  int64_t* sums = fb.sums();
+  for (size_t p = 0; p < num_pixels; ++p) {
+    for (int c = 0; c < 3; ++c) sums[3 * p + size_t(c)] += px[p].rgb[c];
+  }
+  uint64_t written = 0;
+  for (int i = 0; i < config_.num_spes; ++i) {
+    const SpeStatus& st = status.As<const SpeStatus>()[i];
+    AddCounters(fb, st.dropped_nan, st.clamped);
+    written += st.pixels_written;
+  }
+  if (written != covered) {
+    throw Error("cell backend: the SPEs wrote back " + std::to_string(written) +
+                " pixels but the tiles hold " + std::to_string(covered));
   }
 
   uint64_t frame_end = 0;

@@ -36,7 +36,7 @@ struct SpeReport {
 struct CellTileRecord {
   Tile tile;
   int32_t spe = -1;       // the SPE that took it from the counter
-  double cycles = 0;      // SPE cycles attributed to its rays (iteration time shared per ray)
+  double cycles = 0;      // SPE cycles attributed to its rays (FrameOutputs::tile_cycles)
   double predicted = -1;  // PBT: the estimate it was tiled with (-1: none)
 };
 
@@ -74,13 +74,18 @@ class CellRenderer {
   CellRenderer(const CellRenderer&) = delete;
   CellRenderer& operator=(const CellRenderer&) = delete;
 
-  // Renders the whole image into fb (not cleared first; fb must be width x height of ctx):
-  // regular tiles of config.tile_width x tile_height from the atomic tile counter, or the PBT's
-  // tiles (handed out by the counter in order of decreasing estimate; the PBT is updated with the
-  // simulated tile cycles after the frame). Throws rs::Error if fb's size differs, a local store
+  // Renders the whole image into fb (added to it, not cleared first; fb must be width x height
+  // of ctx): regular tiles of config.tile_width x tile_height from the atomic tile counter, or
+  // the PBT's tiles (handed out by the counter in order of decreasing estimate; the PBT is
+  // updated with the simulated tile cycles after the frame, CellTileRecord::cycles). The SPEs
+  // accumulate the image in their local-store pixel buffers and put them into a main-memory
+  // pixel image by DMA; fb receives that image (and the drop and clamp counts of the SPEs'
+  // status records) after the frame. Throws rs::Error if fb's size differs, a local store
   // overflows (e.g. the grid's occupancy bits do not fit), or a DMA is illegal.
   CellFrameStats Render(const FrameContext& ctx, Framebuffer& fb);
-  // The same with an explicit tile list (inside the image), handed out in list order.
+  // The same with an explicit tile list (inside the image, not overlapping: throws rs::Error
+  // naming the two tiles otherwise), handed out in list order. Pixels outside every tile stay
+  // unchanged in fb.
   CellFrameStats Render(const FrameContext& ctx, Framebuffer& fb, std::span<const Tile> tiles);
 
   const SimConfig& config() const { return config_; }

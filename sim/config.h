@@ -139,7 +139,8 @@ struct SimConfig {
   uint32_t local_store_bytes = 256 * 1024;
   // LS reserved for the SPE program text and its stack. The paper's renderer had "about 100
   // KByte" left for the occupancy bits (3.8: ~800,000 cells); 40 KiB for code and stack plus the
-  // buffers below leave ~96 KiB here.
+  // buffers below would leave ~96 KiB with 16-B pixels, and leave ~57 KiB (~470,000 cells at 4
+  // lights) with the 32-B fixed-point pixels the pixel buffers hold (see pixel_buffer_pixels).
   uint32_t code_stack_bytes = 40 * 1024;
 
   MemoryTiming memory;
@@ -156,10 +157,12 @@ struct SimConfig {
   // Triangle buffer per ray in flight, in packets of 4 triangles (160 B each). Cells with more
   // triangles are streamed through the buffer in chunks.
   uint32_t triangle_buffer_packets = 16;
-  // Pixel buffers in LS (16 B per pixel); a tile is rendered in sub-tiles of at most
-  // pixel_buffer_pixels pixels and max_subtile_rows rows (paper 3.9: "not possible to use tiles
-  // with more than 1280 pixels"). Two buffers let a new sub-tile start while the previous one's
-  // secondary rays finish.
+  // Pixel buffers in LS; a tile is rendered in sub-tiles of at most pixel_buffer_pixels pixels
+  // and max_subtile_rows rows (paper 3.9: "not possible to use tiles with more than 1280
+  // pixels"). A pixel is the framebuffer's three 64-bit fixed-point sums plus a pad word
+  // (sim::PixelSums, 32 B: two quadwords, so rows are legal DMAs), which keeps the image bit for
+  // bit the serial backend's; 2 x 1280 pixels take 80 KiB (the paper's float pixels would take
+  // half). Two buffers let a new sub-tile start while the previous one's secondary rays finish.
   uint32_t pixel_buffer_pixels = 1280;
   uint32_t max_subtile_rows = 64;
   int pixel_buffers = 2;

@@ -3,7 +3,10 @@
 // the software cache (materials, texels); the program holds main-memory addresses only as
 // integers. The per-ray maths is raystream's: DdaBegin/DdaAdvance/DdaStep mirror the reference
 // DDA, IntersectWatertightPermuted tests the triangles, GeneratePrimaryRays and rs::Shade make
-// and shade the rays, so the image is the serial backend's bit for bit.
+// and shade the rays, so the image is the serial backend's bit for bit. The image leaves the SPE
+// the way it would on a Cell: contributions are added, as the framebuffer's 64-bit fixed-point
+// values, into the sub-tile's pixel buffer in LS, which a DMA list puts into the main-memory
+// pixel image when the sub-tile's last ray is done.
 #include "sim/spe.h"
 
 #include <algorithm>
@@ -13,6 +16,7 @@
 #include <type_traits>
 
 #include "scenes/scene.h"
+#include "sched/framebuffer.h"
 #include "sim/aligned_buffer.h"
 #include "sim/cell_image.h"
 #include "sim/spe_dda.h"
@@ -131,6 +135,8 @@ void SpeCounters::Merge(const SpeCounters& o) {
   at_once_tested += o.at_once_tested;
   at_once_resolved += o.at_once_resolved;
   at_once_visits += o.at_once_visits;
+  startup_cycles += o.startup_cycles;
+  tail_cycles += o.tail_cycles;
   shade.Merge(o.shade);
 }
 
@@ -182,6 +188,8 @@ struct Spe::Impl {
   const SubGridRecord* LoadedSubGrid(uint32_t top, uint32_t* index) const;
   AtOnce TraceAtOnce(RayRecord& rec, bool* tested);
   void Shade();
+  void AddContribution(int slot, uint32_t pixel, float r, float g, float b);
+  void AddFixed(int slot, uint32_t pixel, const int64_t* sums);
   void RetireSubtiles();
   void Finish();
   glm::vec3 SampleTextureCached(const MaterialRecord& m, glm::vec2 uv);
@@ -203,7 +211,7 @@ struct Spe::Impl {
   // Local-store layout.
   Lsa fc_lsa = 0, lights_lsa = 0, occ_lsa = 0, ring_lsa = 0, flight_lsa = 0, staging_lsa = 0;
   Lsa tri_lsa = 0, record_lsa = 0, sub_lsa = 0, tile_line_lsa = 0, tile_rec_lsa = 0, hit_lsa = 0;
-  Lsa pixel_lsa = 0, list_lsa = 0;
+  Lsa pixel_lsa = 0, list_lsa = 0, status_lsa = 0;
   uint32_t tri_slot_bytes = 0, pixel_slot_bytes = 0, list_slot_bytes = 0;
   uint32_t elements_per_row = 1;
   FrameConstants fc{};                  // the LS copy, in "registers"
@@ -225,6 +233,10 @@ struct Spe::Impl {
   int sub_x = 0, sub_y = 0, sub_w = 1, sub_h = 1;
   std::vector<PixelSlot> pixel_slots;
   int gen_slot = -1;
+  // Contributions dropped (NaN) or clamped on their way into the pixel buffers ("registers",
+  // reported through the status record at the end).
+  uint64_t dropped_nan = 0, clamped = 0, pixels_written = 0;
+  uint64_t tail_start = 0;  // clock at the start of the last, empty refill
 
   // The current iteration.
   bool in_iteration = false;
@@ -239,8 +251,11 @@ struct Spe::Impl {
   LoadedUnit loaded[kMaxInFlight];
   int loaded_count = 0;
 
-  // Shading scratch ("registers" and stack of the shader).
+  // Shading scratch ("registers" and stack of the shader). rs::Shade adds each ray's
+  // contribution to pixel i of shade_fb for batch ray i (the rays' pixel ids are their batch
+  // indices while they are shaded); the fixed-point sums then go into the LS pixel buffers.
   Scene shade_scene;
+  Framebuffer shade_fb{kMaxInFlight, 1};
   RayStream shade_rays;
   HitStream shade_hits;
   RayStream secondary;
@@ -287,7 +302,7 @@ namespace {
 // The LS layout of the pipeline's buffers, in allocation order; the occupancy bits come last.
 struct LsLayout {
   Lsa fc = 0, ring = 0, flight = 0, staging = 0, tri = 0, record = 0, sub = 0, tile_line = 0;
-  Lsa tile_rec = 0, hit = 0, pixel = 0, list = 0, lights = 0;
+  Lsa tile_rec = 0, hit = 0, pixel = 0, list = 0, status = 0, lights = 0;
   uint32_t tri_slot_bytes = 0, pixel_slot_bytes = 0, list_slot_bytes = 0, elements_per_row = 1;
 };
 
@@ -309,13 +324,14 @@ LsLayout LayOut(const SimConfig& config, LocalStore& ls, Mfc& mfc, SpuClock& clo
   l.tile_rec = ls.Allocate("tile record", sizeof(Tile), 16);
   l.hit = ls.Allocate("hit data", uint64_t{rays} * sizeof(ShadingRecord), 128);
   *cache = std::make_unique<SoftwareCache>(config.sw_cache, ls, mfc, clock);
-  l.pixel_slot_bytes = config.pixel_buffer_pixels * 16;
+  l.pixel_slot_bytes = config.pixel_buffer_pixels * uint32_t{sizeof(PixelSums)};
   l.pixel = ls.Allocate("pixel buffers", uint64_t(config.pixel_buffers) * l.pixel_slot_bytes, 128);
   const uint32_t row_px = std::min<uint32_t>(config.pixel_buffer_pixels,
                                              static_cast<uint32_t>(std::max(image_width, 1)));
-  l.elements_per_row = (row_px * 16 + kMaxDmaSize - 1) / kMaxDmaSize;
+  l.elements_per_row = (row_px * uint32_t{sizeof(PixelSums)} + kMaxDmaSize - 1) / kMaxDmaSize;
   l.list_slot_bytes = config.max_subtile_rows * l.elements_per_row * 8;
   l.list = ls.Allocate("DMA lists", uint64_t(config.pixel_buffers) * l.list_slot_bytes, 16);
+  l.status = ls.Allocate("status record", sizeof(SpeStatus), 128);
   if (num_lights > 0) {
     l.lights = ls.Allocate("lights (" + std::to_string(num_lights) + ")",
                            uint64_t{num_lights} * sizeof(LightRecord), 128);
@@ -364,6 +380,7 @@ void Spe::Impl::Start() {
   hit_lsa = l.hit;
   pixel_lsa = l.pixel;
   list_lsa = l.list;
+  status_lsa = l.status;
   lights_lsa = l.lights;
   tri_slot_bytes = l.tri_slot_bytes;
   pixel_slot_bytes = l.pixel_slot_bytes;
@@ -407,6 +424,7 @@ void Spe::Impl::Start() {
   shade_hits.Reserve(kMaxInFlight);
   primaries.Reserve(kMaxInFlight);
   pixel_slots.assign(static_cast<size_t>(config.pixel_buffers), PixelSlot{});
+  counters.startup_cycles = clock.now();  // the program started at cycle 0
   phase = Phase::kRefill;
 }
 
@@ -450,6 +468,7 @@ void Spe::Impl::Refill() {
       throw Error("SPE " + std::to_string(id) + ": ray pipeline stalled with work left");
     }
     in_iteration = false;
+    tail_start = iteration_start;
     phase = Phase::kFinish;
     return;
   }
@@ -553,8 +572,8 @@ bool Spe::Impl::OpenSubtile() {
     sub_x = tile.x0;
     sub_y += sub_h;
   }
-  std::memset(ls.Bytes(pixel_lsa + uint32_t(b) * pixel_slot_bytes, uint64_t{s.total} * 16), 0,
-              uint64_t{s.total} * 16);
+  const uint64_t bytes = uint64_t{s.total} * sizeof(PixelSums);
+  std::memset(ls.Bytes(pixel_lsa + uint32_t(b) * pixel_slot_bytes, bytes), 0, bytes);
   Compute(costs.iteration);
   ++counters.subtiles;
   gen_slot = b;
@@ -1112,7 +1131,7 @@ void Spe::Impl::Shade() {
       rv.dz[i] = rec.d[2];
       rv.tmin[i] = rec.tmin;
       rv.tmax[i] = rec.tmax;
-      rv.pixel[i] = rec.pixel;
+      rv.pixel[i] = static_cast<uint32_t>(i);  // shade_fb pixel i
       rv.wr[i] = rec.w[0];
       rv.wg[i] = rec.w[1];
       rv.wb[i] = rec.w[2];
@@ -1173,7 +1192,14 @@ void Spe::Impl::Shade() {
     sc.material_ids.resize(size_t(nh));
     secondary.Clear();
     ShadeStats s;
-    rs::Shade(sc, fc.shade, rv, hv, *out.fb, secondary, &s);
+    rs::Shade(sc, fc.shade, rv, hv, shade_fb, secondary, &s);
+    // Each batch ray's contributions, already in fixed point, into its sub-tile's pixel buffer.
+    for (int k = 0; k < nb; ++k) {
+      AddFixed(batch_subtile[k], batch_pixel[k], shade_fb.sums() + 3 * size_t(k));
+    }
+    dropped_nan += shade_fb.dropped_nan();
+    clamped += shade_fb.clamped();
+    shade_fb.Clear();
     uint64_t spawned = 0;
     for (const uint64_t c : s.spawned) spawned += c;
     Compute(uint64_t(nb) * costs.shade_ray + s.shading_calls * costs.shade_hit +
@@ -1191,16 +1217,15 @@ void Spe::Impl::Shade() {
       rec.d[2] = sv.dz[j];
       rec.tmin = sv.tmin[j];
       rec.tmax = sv.tmax[j];
-      rec.pixel = sv.pixel[j];
+      const uint32_t b = sv.pixel[j];  // the batch ray that spawned it
+      rec.pixel = batch_pixel[b];
+      rec.subtile = batch_subtile[b];
       rec.w[0] = sv.wr[j];
       rec.w[1] = sv.wg[j];
       rec.w[2] = sv.wb[j];
       rec.depth = sv.depth[j];
       rec.kind = sv.kind[j];
       rec.state = kRayFresh;
-      int b = 0;
-      while (b < nb - 1 && batch_pixel[b] != rec.pixel) ++b;
-      rec.subtile = batch_subtile[b];
       if (config.secondary_at_once && loaded_count > 0) {
         bool tested = false;
         const AtOnce res = TraceAtOnce(rec, &tested);
@@ -1208,7 +1233,7 @@ void Spe::Impl::Shade() {
         if (res != AtOnce::kResume) ++counters.at_once_resolved;
         if (res == AtOnce::kOccluded || res == AtOnce::kUnoccluded) {
           if (res == AtOnce::kUnoccluded) {
-            out.fb->Add(rec.pixel, rec.w[0], rec.w[1], rec.w[2]);
+            AddContribution(rec.subtile, rec.pixel, rec.w[0], rec.w[1], rec.w[2]);
             Compute(costs.shadow_add);
           }
           ++counters.rays[kShadowKind];
@@ -1226,7 +1251,7 @@ void Spe::Impl::Shade() {
     if (st == Flight::kContinue) continue;
     const RayRecord& rec = FlightRecord(r);
     if (st == Flight::kDoneUnoccluded) {
-      out.fb->Add(rec.pixel, rec.w[0], rec.w[1], rec.w[2]);
+      AddContribution(rec.subtile, rec.pixel, rec.w[0], rec.w[1], rec.w[2]);
       Compute(costs.shadow_add);
     }
     const int32_t kind = rec.kind;
@@ -1248,6 +1273,38 @@ void Spe::Impl::Shade() {
   phase = Phase::kRefill;
 }
 
+// Framebuffer::Add on the LS pixel buffer of sub-tile slot `slot`: the same fixed-point values
+// (Framebuffer::ToFixed per channel), a contribution with a NaN channel dropped entirely and
+// counted, one with a clamped channel counted.
+void Spe::Impl::AddContribution(int slot, uint32_t pixel, float r, float g, float b) {
+  bool nan = false, clamp = false;
+  const int64_t sums[3] = {Framebuffer::ToFixed(r, &nan, &clamp),
+                           Framebuffer::ToFixed(g, &nan, &clamp),
+                           Framebuffer::ToFixed(b, &nan, &clamp)};
+  if (nan) {
+    ++dropped_nan;
+    return;
+  }
+  clamped += clamp ? 1 : 0;
+  AddFixed(slot, pixel, sums);
+}
+
+// Adds fixed-point sums to `pixel` (an image pixel id) in the pixel buffer of slot `slot`, whose
+// sub-tile must hold the pixel (every ray carries the slot of its primary's sub-tile).
+void Spe::Impl::AddFixed(int slot, uint32_t pixel, const int64_t* sums) {
+  const PixelSlot& s = pixel_slots[static_cast<size_t>(slot)];
+  const int x = static_cast<int>(pixel % uint32_t(fc.image_width));
+  const int y = static_cast<int>(pixel / uint32_t(fc.image_width));
+  if (!s.busy || x < s.rect.x0 || x >= s.rect.x1 || y < s.rect.y0 || y >= s.rect.y1) {
+    throw Error("SPE " + std::to_string(id) + ": contribution to pixel " + std::to_string(pixel) +
+                " outside the sub-tile of pixel buffer " + std::to_string(slot));
+  }
+  const uint32_t offset = static_cast<uint32_t>((y - s.rect.y0) * s.rect.Width() + (x - s.rect.x0));
+  PixelSums& p = *ls.As<PixelSums>(pixel_lsa + uint32_t(slot) * pixel_slot_bytes +
+                                   offset * uint32_t{sizeof(PixelSums)});
+  for (int c = 0; c < 3; ++c) p.rgb[c] += sums[c];
+}
+
 // Sub-tiles whose rays have all finished write their pixel buffer back (one DMA list of rows).
 void Spe::Impl::RetireSubtiles() {
   for (int b = 0; b < static_cast<int>(pixel_slots.size()); ++b) {
@@ -1256,16 +1313,18 @@ void Spe::Impl::RetireSubtiles() {
     const Lsa buffer = pixel_lsa + uint32_t(b) * pixel_slot_bytes;
     const Lsa list = list_lsa + uint32_t(b) * list_slot_bytes;
     DmaListElement* e = ls.As<DmaListElement>(list, list_slot_bytes / 8);
-    const uint32_t row_bytes = static_cast<uint32_t>(s.rect.Width()) * 16;
+    constexpr uint64_t kPx = sizeof(PixelSums);
+    const uint32_t row_bytes = static_cast<uint32_t>(s.rect.Width() * kPx);
     const Ea first =
-        fc.pixels + (uint64_t(s.rect.y0) * uint64_t(fc.image_width) + uint64_t(s.rect.x0)) * 16;
+        fc.pixels + (uint64_t(s.rect.y0) * uint64_t(fc.image_width) + uint64_t(s.rect.x0)) * kPx;
     const Ea last =
-        fc.pixels + (uint64_t(s.rect.y1 - 1) * uint64_t(fc.image_width) + uint64_t(s.rect.x1)) * 16;
+        fc.pixels +
+        (uint64_t(s.rect.y1 - 1) * uint64_t(fc.image_width) + uint64_t(s.rect.x1)) * kPx;
     if ((first >> 32) == ((last - 1) >> 32)) {
       uint32_t count = 0;
       for (int y = s.rect.y0; y < s.rect.y1; ++y) {
         const Ea row =
-            fc.pixels + (uint64_t(y) * uint64_t(fc.image_width) + uint64_t(s.rect.x0)) * 16;
+            fc.pixels + (uint64_t(y) * uint64_t(fc.image_width) + uint64_t(s.rect.x0)) * kPx;
         for (uint32_t off = 0; off < row_bytes; off += kMaxDmaSize) {
           e[count].size = std::min(kMaxDmaSize, row_bytes - off);
           e[count].eal = static_cast<uint32_t>(row + off);
@@ -1278,7 +1337,7 @@ void Spe::Impl::RetireSubtiles() {
       Lsa at = buffer;
       for (int y = s.rect.y0; y < s.rect.y1; ++y) {
         const Ea row =
-            fc.pixels + (uint64_t(y) * uint64_t(fc.image_width) + uint64_t(s.rect.x0)) * 16;
+            fc.pixels + (uint64_t(y) * uint64_t(fc.image_width) + uint64_t(s.rect.x0)) * kPx;
         for (uint32_t off = 0; off < row_bytes; off += kMaxDmaSize) {
           const uint32_t size = std::min(kMaxDmaSize, row_bytes - off);
           mfc.MfcPut(at, row + off, size, kPixelTagBase + uint32_t(b));
@@ -1286,14 +1345,24 @@ void Spe::Impl::RetireSubtiles() {
         }
       }
     }
+    pixels_written += s.total;
     s.busy = false;
     s.draining = true;
   }
 }
 
+// The last sub-tiles go out, then the status record; the program ends when every DMA is done.
 void Spe::Impl::Finish() {
   RetireSubtiles();
+  SpeStatus& st = *ls.As<SpeStatus>(status_lsa);
+  st = SpeStatus{};
+  st.dropped_nan = dropped_nan;
+  st.clamped = clamped;
+  st.pixels_written = pixels_written;
+  mfc.MfcPut(status_lsa, fc.status + uint64_t(id) * sizeof(SpeStatus), sizeof(SpeStatus),
+             kSetupTag);
   mfc.WaitAll();
+  counters.tail_cycles = clock.now() - tail_start;
   phase = Phase::kDone;
 }
 

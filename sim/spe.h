@@ -15,7 +15,6 @@
 
 #include "include/raystream/raystream.h"
 #include "kernels/shade.h"
-#include "sched/framebuffer.h"
 #include "sim/config.h"
 #include "sim/local_store.h"
 #include "sim/mfc.h"
@@ -51,6 +50,13 @@ struct SpeCounters {
   uint64_t at_once_tested = 0;
   uint64_t at_once_resolved = 0;
   uint64_t at_once_visits = 0;
+  // Where the SPE's busy cycles (its clock at the program's end) went, apart from the pipeline
+  // iterations, whose cycles are attributed to the tiles of their rays (FrameOutputs::
+  // tile_cycles): the program start (frame constants, lights, occupancy bits into LS) and the
+  // tail (the last, empty refill that finds no tile left, the last write-backs and the final
+  // wait). So over all tiles, sum of tile cycles = sum over SPEs of (finish - startup - tail).
+  uint64_t startup_cycles = 0;
+  uint64_t tail_cycles = 0;
   ShadeStats shade;
   void Merge(const SpeCounters& o);
   uint64_t TotalRays() const;
@@ -65,13 +71,14 @@ struct Machine {
   AtomicMemory atomic;
 };
 
-// Host-side outputs of the frame that are not part of the simulated program's data: the
-// framebuffer the shader adds to (functional; the SPE's pixel buffers and their write-back
-// carry the timing) and per-tile statistics.
+// Host-side statistics of the frame that are not part of the simulated program's data (the image
+// itself goes through main memory: the SPE accumulates it in its LS pixel buffers, puts them into
+// the pixel image at FrameConstants::pixels and its counters into FrameConstants::status).
 struct FrameOutputs {
-  Framebuffer* fb = nullptr;
-  std::vector<double>* tile_cycles = nullptr;  // per tile: SPE cycles attributed to its rays
-  std::vector<int32_t>* tile_spe = nullptr;    // per tile: the SPE that took it
+  // Per tile: SPE cycles attributed to its rays (each pipeline iteration's cycles shared equally
+  // among the iteration's rays, from the refill that starts it to the end of its shading).
+  std::vector<double>* tile_cycles = nullptr;
+  std::vector<int32_t>* tile_spe = nullptr;  // per tile: the SPE that took it
 };
 
 // Occupancy-bit capacity of an SPE's local store: the cells whose bits fit after the code/stack
