@@ -16,7 +16,6 @@ namespace rs::sim {
 namespace {
 
 constexpr int kRays = 8;
-constexpr uint32_t kUseCycles = 6;  // the LS load that reads the record (SDK-PT: 6 cycles)
 
 struct Bench {
   explicit Bench(const SimConfig& config, uint32_t table_bytes)
@@ -62,8 +61,9 @@ LoadCosts MeasureLoadCosts(const SimConfig& config, const LoadBenchOptions& opti
   const uint32_t records = options.table_bytes / 8;
   const uint32_t cache_records = options.cache_working_set / 8;
   const uint64_t loads = uint64_t(options.iterations) * kRays;
-  const uint64_t work = 2 * loads * options.work_cycles;  // traversal + visit per ray
-  const uint32_t w = options.work_cycles;
+  const uint32_t w = config.load_bench.work_cycles;
+  const uint32_t use = config.costs.ls_load;  // reading the loaded record
+  const uint64_t work = 2 * loads * w;        // traversal + visit per ray
   LoadCosts out;
   out.loads = loads;
 
@@ -104,7 +104,7 @@ LoadCosts MeasureLoadCosts(const SimConfig& config, const LoadBenchOptions& opti
       b.clock.Charge(Cost::kCompute, w);
       b.mfc.MfcGet(ls, b.RecordEa(index[i]), 8, r);
       b.mfc.WaitTagsAll(1u << r);
-      b.clock.Charge(Cost::kDma, kUseCycles);
+      b.clock.Charge(Cost::kDma, use);
       b.Check(*b.ls.As<uint64_t>(ls), index[i], "DMA sync");
       b.clock.Charge(Cost::kCompute, w);
     }
@@ -121,7 +121,7 @@ LoadCosts MeasureLoadCosts(const SimConfig& config, const LoadBenchOptions& opti
       for (uint32_t r = 0; r < kRays; ++r) {
         const Ea ea = b.RecordEa(index[it + r]);
         b.mfc.WaitTagsAll(1u << r);
-        b.clock.Charge(Cost::kDma, kUseCycles);
+        b.clock.Charge(Cost::kDma, use);
         b.Check(*b.ls.As<uint64_t>(b.slots + r * 128 + uint32_t(ea & 15)), index[it + r],
                 "DMA async");
         b.clock.Charge(Cost::kCompute, w);
@@ -137,7 +137,7 @@ LoadCosts MeasureLoadCosts(const SimConfig& config, const LoadBenchOptions& opti
       b.clock.Charge(Cost::kCompute, w);
       b.atomic.Getllar(b.slots + r * 128, ea & ~Ea{127});
       b.atomic.ReadStatus();
-      b.clock.Charge(Cost::kAtomic, kUseCycles);
+      b.clock.Charge(Cost::kAtomic, use);
       b.Check(*b.ls.As<uint64_t>(b.slots + r * 128 + uint32_t(ea & 127)), index[i], "atomic sync");
       b.clock.Charge(Cost::kCompute, w);
     }
@@ -149,7 +149,7 @@ LoadCosts MeasureLoadCosts(const SimConfig& config, const LoadBenchOptions& opti
       auto complete = [&](uint32_t q) {
         const Ea ea = b.RecordEa(index[it + q]);
         b.atomic.ReadStatus();
-        b.clock.Charge(Cost::kAtomic, kUseCycles);
+        b.clock.Charge(Cost::kAtomic, use);
         b.Check(*b.ls.As<uint64_t>(b.slots + q * 128 + uint32_t(ea & 127)), index[it + q],
                 "atomic async");
       };

@@ -21,12 +21,13 @@ struct LoadCosts {
 };
 
 // The pattern mirrors the ray pipeline (paper 3.2): per iteration 8 rays; ray r's traversal
-// (work_cycles of compute) finds its cell, then the cell's 8-byte record is loaded:
+// (config.load_bench.work_cycles of compute) finds its cell, then the cell's 8-byte record is
+// loaded (and read with one LS load, config.costs.ls_load):
 //   SW cache:     read through the 4-way cache (records spread over cache_working_set bytes, so
 //                 the hit rate is the dataset's: the paper used "a very cache friendly dataset");
 //   DMA sync:     MfcGet 8 B + wait, then use;
 //   DMA async:    MfcGet 8 B right after each traversal, all 8 waited for in VisitVoxel (each
-//                 visit = work_cycles);
+//                 visit = work_cycles as well);
 //   atomic sync:  getllar of the record's 128-B line + status read, then use;
 //   atomic async: getllar issued after ray r's traversal, its status read after ray r+1's
 //                 traversal (the last ray's after the first visit; one atomic command at a
@@ -36,7 +37,6 @@ struct LoadCosts {
 // table (throws rs::Error on a mismatch: the benchmark doubles as a functional test).
 struct LoadBenchOptions {
   int iterations = 512;                          // x 8 loads per method
-  uint32_t work_cycles = 201;                    // traversal per ray (~8 DDA steps + setup)
   uint32_t table_bytes = 8u << 20;               // 8 MiB of 8-byte records
   uint32_t cache_working_set = 44 * 1024 + 512;  // SW-cache dataset (1.4 x the 32 KiB cache)
   uint64_t seed = 1;
