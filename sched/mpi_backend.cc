@@ -2,15 +2,24 @@
 // images, statistics), ranks 1..N-1 load the scene themselves and render the tiles they are sent.
 
 // Protocol (all point-to-point, MPI_COMM_WORLD):
-//   master -> worker  kTagTile   int32[6] {frame, tile, x0, y0, x1, y1}
-//   worker -> master  kTagResult int64[kHeader + 3 * pixels]: the header (ResultWord: frame,
-//                     tile, the tile's wall and CPU time, NaN / clamped counts, its FrameStats:
-//                     tasks, rays by kind, cell steps, triangle tests, generate / trace / shade
-//                     seconds) + the tile's fixed-point sums
-//   master -> worker  kTagStop   int32[1] (after the last frame)
-// The master polls with MPI_Iprobe (sleeping between polls) and ends the run with MPI_Abort when
-// a worker holding a tile stays silent for timeout_seconds. Its statistics are the host
-// backends' (HostFrameStats, one ThreadStats per worker, WriteHostStats) plus the cluster's own.
+//   worker -> master  kTagSetup     int32[1] 0: scene loaded and grid built, 1: failed
+//   master -> worker  kTagSetupDone int32[1] the lowest failing rank (N: none, render)
+//   master -> worker  kTagTile      int32[6] {frame, tile, x0, y0, x1, y1}
+//   worker -> master  kTagResult    int64[kHeader + 3 * pixels]: the header (ResultWord: frame,
+//                                   tile, the tile's wall and CPU time, NaN / clamped counts, its
+//                                   FrameStats: tasks, rays by kind, cell steps, triangle tests,
+//                                   generate / trace / shade seconds) + the tile's fixed-point sums
+//   master -> worker  kTagStop      int32[1] (after the last frame)
+//   worker -> master  kTagBye       int32[1] (then MPI_Finalize)
+// Every wait of the master is bounded by timeout_seconds: it never blocks in MPI, it posts
+// non-blocking operations (MPI_Irecv, MPI_Isend, MPI_Improbe + MPI_Imrecv) and polls them
+// against a deadline, sleeping between polls (it shares the cores with the workers). A worker
+// that misses a deadline (setup, a tile, a result in transfer, the end of the run) ends the run
+// with one line naming its rank and MPI_Abort; the last frame's image and the statistics are
+// written only after every worker has said goodbye, so a failed run leaves neither. Workers
+// block on the master (it is bounded, and mpirun ends the job if it dies). The master's
+// statistics are the host backends' (HostFrameStats, one ThreadStats per worker,
+// WriteHostStats) plus the cluster's own.
 #include "sched/mpi_backend.h"
 
 #include <fmt/core.h>
@@ -44,6 +53,9 @@ using Clock = std::chrono::steady_clock;
 constexpr int kTagTile = 1;
 constexpr int kTagResult = 2;
 constexpr int kTagStop = 3;
+constexpr int kTagSetup = 4;
+constexpr int kTagSetupDone = 5;
+constexpr int kTagBye = 6;
 constexpr int kTileWords = 6;
 
 // A result's header: int64 words before the tile's sums (doubles travel as their bits).
@@ -88,6 +100,36 @@ FrameStats UnpackTileStats(const int64_t* header) {
 
 double Seconds(Clock::duration d) { return std::chrono::duration<double>(d).count(); }
 
+Clock::time_point Deadline(double seconds) {
+  return Clock::now() +
+         std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(seconds));
+}
+
+// Between polls of a non-blocking operation: 50 us for the first 100 polls, then 500 us (the
+// master shares the cores with the workers; a result rarely waits longer than a tile).
+void PollSleep(int polls) {
+  std::this_thread::sleep_for(std::chrono::microseconds(polls < 100 ? 50 : 500));
+}
+
+// Polls `request` until it completes (true) or `deadline` passes (false; the request is still
+// pending and the caller aborts the run).
+bool TestUntil(MPI_Request& request, Clock::time_point deadline) {
+  for (int polls = 0;; ++polls) {
+    int done = 0;
+    MPI_Test(&request, &done, MPI_STATUS_IGNORE);
+    if (done) return true;
+    if (Clock::now() > deadline) return false;
+    PollSleep(polls);
+  }
+}
+
+// "rank 2" or "ranks 2, 4" for an error line.
+std::string RankList(const std::vector<int>& ranks) {
+  std::string out = ranks.size() == 1 ? "rank " : "ranks ";
+  for (size_t i = 0; i < ranks.size(); ++i) out += (i ? ", " : "") + std::to_string(ranks[i]);
+  return out;
+}
+
 std::string FramePath(const std::string& pattern, int frame) {
   const size_t hash = pattern.find('#');
   if (hash == std::string::npos) return pattern;
@@ -106,6 +148,28 @@ int EnvRank(const char* name) {
   std::fflush(stderr);
   MPI_Abort(MPI_COMM_WORLD, 3);
   std::_Exit(3);
+}
+
+// Test hooks (sched/mpi_backend.h): this rank stops answering for good, without touching MPI.
+[[noreturn]] void HangForever(int rank, const char* when) {
+  fmt::print(stderr, "raystream: test hook: rank {} stops answering {}\n", rank, when);
+  std::fflush(stderr);
+  for (;;) std::this_thread::sleep_for(std::chrono::seconds(1));
+}
+
+// A sendable int32 message from the master, completed within the deadline or the run ends
+// naming the worker. (Tile and control messages are a few bytes, sent eagerly by MPI; the bound
+// still holds if a worker stops taking them.)
+// `unwritten` says what the abort leaves unwritten.
+void MasterSend(const int* msg, int count, int rank, int tag, double timeout,
+                const std::string& what, const std::string& unwritten) {
+  MPI_Request request;
+  MPI_Isend(msg, count, MPI_INT, rank, tag, MPI_COMM_WORLD, &request);
+  if (!TestUntil(request, Deadline(timeout))) {
+    Abort(0, fmt::format("worker rank {} did not take {} within {:g} s (hung); aborting the run, "
+                         "{}",
+                         rank, what, timeout, unwritten));
+  }
 }
 
 // What every rank builds before rendering. Workers own an Accel; the master only the scene.
@@ -154,6 +218,8 @@ void ValidateConfig(const MpiRenderConfig& c, int ranks) {
 void RunWorker(const MpiRenderConfig& c, const Setup& s, int rank) {
   const int kill_rank = EnvRank("RAYSTREAM_MPI_TEST_KILL_RANK");
   const int hang_rank = EnvRank("RAYSTREAM_MPI_TEST_HANG_RANK");
+  const int hang_end_rank = EnvRank("RAYSTREAM_MPI_TEST_HANG_END_RANK");
+  const int stall_rank = EnvRank("RAYSTREAM_MPI_TEST_STALL_RANK");
   Framebuffer fb(c.options.width, c.options.height);
   SerialRenderer renderer;  // one tile's whole ray tree on this rank
   std::vector<int64_t> result;
@@ -164,7 +230,13 @@ void RunWorker(const MpiRenderConfig& c, const Setup& s, int rank) {
     MPI_Status status;
     int msg[kTileWords] = {};
     MPI_Recv(msg, kTileWords, MPI_INT, 0, MPI_ANY_TAG, MPI_COMM_WORLD, &status);
-    if (status.MPI_TAG == kTagStop) return;
+    if (status.MPI_TAG == kTagStop) {
+      // The master writes the last image once every worker has said goodbye.
+      if (rank == hang_end_rank) HangForever(rank, "after its last tile (never says goodbye)");
+      const int bye = 0;
+      MPI_Send(&bye, 1, MPI_INT, 0, kTagBye, MPI_COMM_WORLD);
+      return;
+    }
     if (status.MPI_TAG != kTagTile) Abort(rank, fmt::format("unexpected tag {}", status.MPI_TAG));
     const int frame = msg[0];
     const Tile tile{msg[2], msg[3], msg[4], msg[5]};
@@ -205,6 +277,14 @@ void RunWorker(const MpiRenderConfig& c, const Setup& s, int rank) {
       std::memcpy(dst, sums + 3 * (y * w + tile.x0), 3 * tw * sizeof(int64_t));
       dst += 3 * tw;
     }
+    if (tiles_done == 0 && rank == stall_rank) {
+      // Test hook: start sending the first result, then never make MPI progress again. The
+      // result is larger than the eager limit, so the master matches it but cannot receive it.
+      MPI_Request request;
+      MPI_Isend(result.data(), static_cast<int>(result.size()), MPI_INT64_T, 0, kTagResult,
+                MPI_COMM_WORLD, &request);
+      HangForever(rank, "in the middle of sending its first result");
+    }
     MPI_Send(result.data(), static_cast<int>(result.size()), MPI_INT64_T, 0, kTagResult,
              MPI_COMM_WORLD);
     ++tiles_done;
@@ -213,12 +293,7 @@ void RunWorker(const MpiRenderConfig& c, const Setup& s, int rank) {
       std::fflush(stderr);
       _exit(1);
     }
-    if (tiles_done == 1 && rank == hang_rank) {
-      fmt::print(stderr, "raystream: test hook: rank {} stops answering after its first tile\n",
-                 rank);
-      std::fflush(stderr);
-      for (;;) std::this_thread::sleep_for(std::chrono::seconds(1));
-    }
+    if (tiles_done == 1 && rank == hang_rank) HangForever(rank, "after its first tile");
   }
 }
 
@@ -247,27 +322,27 @@ class Master {
     frames_.reserve(static_cast<size_t>(c_.frames));
     double total = 0;
     uint64_t rays = 0;
-    for (int frame = 0; frame < c_.frames; ++frame) {
+    const auto write = [&](int frame) {
+      fb_.ToRgb(rgb_);
+      WriteImage(FramePath(out, frame), c_.options.width, c_.options.height, rgb_);
+      if (!c_.dump_raw.empty()) WriteRawFramebuffer(FramePath(c_.dump_raw, frame), fb_);
+    };
+    const int last = c_.frames - 1;
+    for (int frame = 0; frame <= last; ++frame) {
       RenderFrame(frame);
       const HostFrameStats& f = frames_.back();
       total += f.total.total_seconds;
       rays += f.total.TotalRays();
-      // Only complete frames reach this point (a failure aborts inside RenderFrame).
-      const bool write = frame + 1 == c_.frames || out.find('#') != std::string::npos;
-      if (write) {
-        fb_.ToRgb(rgb_);
-        WriteImage(FramePath(out, frame), c_.options.width, c_.options.height, rgb_);
-        if (!c_.dump_raw.empty()) WriteRawFramebuffer(FramePath(c_.dump_raw, frame), fb_);
-      }
+      // Only complete frames reach this point (a failure aborts inside RenderFrame); the last
+      // one waits for the end of the run.
+      if (frame < last && out.find('#') != std::string::npos) write(frame);
       if (c_.frames > 1 && !c_.quiet) {
         fmt::print(stderr, "frame {}/{}  {:.1f} ms  imbalance {:.3f}\n", frame + 1, c_.frames,
                    1e3 * f.total.total_seconds, f.imbalance);
       }
     }
-    for (int r = 1; r <= workers_; ++r) {
-      int stop = 0;
-      MPI_Send(&stop, 1, MPI_INT, r, kTagStop, MPI_COMM_WORLD);
-    }
+    EndRun();
+    write(last);
     if (!c_.stats.empty()) WriteStats();
     if (!c_.quiet) {
       fmt::print("scene      {}: {} triangles, {} lights\n", s_.scene.name,
@@ -309,6 +384,40 @@ class Master {
     extra.frames = frame_extra_;
     extra.threads = worker_extra_;
     WriteHostStats(c_.stats, s_.scene.name, o, frames_, extra);
+  }
+
+  // After the last frame: stop every worker and wait (bounded) for each one's goodbye, so that
+  // MPI_Finalize cannot hang on a worker that stopped after its last tile, and a run that fails
+  // here writes neither the last image nor the statistics.
+  void EndRun() {
+    const std::string unwritten = "the last frame's image and the statistics are not written";
+    const int stop = 0;
+    for (int r = 1; r <= workers_; ++r) {
+      MasterSend(&stop, 1, r, kTagStop, c_.timeout_seconds, "the end-of-run message", unwritten);
+    }
+    std::vector<int> bye(static_cast<size_t>(workers_), 0);
+    std::vector<MPI_Request> requests(static_cast<size_t>(workers_));
+    for (int w = 0; w < workers_; ++w) {
+      MPI_Irecv(&bye[static_cast<size_t>(w)], 1, MPI_INT, w + 1, kTagBye, MPI_COMM_WORLD,
+                &requests[static_cast<size_t>(w)]);
+    }
+    const auto deadline = Deadline(c_.timeout_seconds);
+    for (int polls = 0;; ++polls) {
+      std::vector<int> silent;
+      for (int w = 0; w < workers_; ++w) {
+        MPI_Request& request = requests[static_cast<size_t>(w)];
+        int done = 0;
+        if (request != MPI_REQUEST_NULL) MPI_Test(&request, &done, MPI_STATUS_IGNORE);
+        if (request != MPI_REQUEST_NULL) silent.push_back(w + 1);
+      }
+      if (silent.empty()) return;
+      if (Clock::now() > deadline) {
+        Abort(0, fmt::format("worker {} did not answer the end of the run within {:g} s (hung "
+                             "after its last tile); aborting the run, {}",
+                             RankList(silent), c_.timeout_seconds, unwritten));
+      }
+      PollSleep(polls);
+    }
   }
 
   // Tiles, per-worker preference lists and predictions for this frame.
@@ -394,7 +503,9 @@ class Master {
   void SendTile(int w, int frame, int t) {
     const Tile& tile = tiles_[static_cast<size_t>(t)];
     const int msg[kTileWords] = {frame, t, tile.x0, tile.y0, tile.x1, tile.y1};
-    MPI_Send(msg, kTileWords, MPI_INT, w + 1, kTagTile, MPI_COMM_WORLD);
+    MasterSend(msg, kTileWords, w + 1, kTagTile, c_.timeout_seconds,
+               fmt::format("tile {} of frame {}", t, frame),
+               fmt::format("no image written for frame {}", frame));
     WorkerTraffic& traffic = traffic_[static_cast<size_t>(w)];
     ++traffic.msgs_sent;
     traffic.bytes_sent += sizeof(msg);
@@ -450,25 +561,26 @@ class Master {
     const size_t width = static_cast<size_t>(c_.options.width);
     int polls_idle = 0;
     while (received < m) {
-      int flag = 0;
-      MPI_Status status;
-      MPI_Iprobe(MPI_ANY_SOURCE, kTagResult, MPI_COMM_WORLD, &flag, &status);
-      if (!flag) {
-        // Nothing yet: check the deadlines, then sleep a little (the master shares the cores).
-        const auto now = Clock::now();
-        for (int w = 0; w < workers_; ++w) {
-          if (in_flight_[static_cast<size_t>(w)].empty()) continue;
-          const double silent = Seconds(now - last_heard_[static_cast<size_t>(w)]);
-          if (silent > c_.timeout_seconds) {
-            Abort(0, fmt::format("worker rank {} did not return tile {} of frame {} within {:g} s "
-                                 "(dead or hung); aborting the run, no image written for "
-                                 "frame {}",
-                                 w + 1, in_flight_[static_cast<size_t>(w)].front(), frame,
-                                 c_.timeout_seconds, frame));
-          }
+      // Deadlines on every pass, not only when nothing arrives: results from the other workers
+      // must not postpone noticing a silent one.
+      const auto now = Clock::now();
+      for (int w = 0; w < workers_; ++w) {
+        if (in_flight_[static_cast<size_t>(w)].empty()) continue;
+        const double silent = Seconds(now - last_heard_[static_cast<size_t>(w)]);
+        if (silent > c_.timeout_seconds) {
+          Abort(0, fmt::format("worker rank {} did not return tile {} of frame {} within {:g} s "
+                               "(dead or hung); aborting the run, no image written for "
+                               "frame {}",
+                               w + 1, in_flight_[static_cast<size_t>(w)].front(), frame,
+                               c_.timeout_seconds, frame));
         }
-        ++polls_idle;
-        std::this_thread::sleep_for(std::chrono::microseconds(polls_idle < 100 ? 50 : 500));
+      }
+      int flag = 0;
+      MPI_Message message;
+      MPI_Status status;
+      MPI_Improbe(MPI_ANY_SOURCE, kTagResult, MPI_COMM_WORLD, &flag, &message, &status);
+      if (!flag) {
+        PollSleep(polls_idle++);
         continue;
       }
       polls_idle = 0;
@@ -479,8 +591,17 @@ class Master {
       if (w < 0 || w >= workers_ || count < kHeader) {
         Abort(0, fmt::format("malformed result from rank {} ({} words)", src, count));
       }
+      // The matched message's data may still have to come (MPI's rendezvous protocol for large
+      // messages needs the sender's progress): receive it without blocking, within the bound.
       buf.resize(static_cast<size_t>(count));
-      MPI_Recv(buf.data(), count, MPI_INT64_T, src, kTagResult, MPI_COMM_WORLD, MPI_STATUS_IGNORE);
+      MPI_Request request;
+      MPI_Imrecv(buf.data(), count, MPI_INT64_T, &message, &request);
+      if (!TestUntil(request, Deadline(c_.timeout_seconds))) {
+        Abort(0, fmt::format("worker rank {} stopped while sending a result of frame {} ({} "
+                             "bytes, not received within {:g} s: hung or stalled); aborting the "
+                             "run, no image written for frame {}",
+                             src, frame, int64_t{count} * 8, c_.timeout_seconds, frame));
+      }
       const int64_t rf = buf[kResFrame], t = buf[kResTile];
       auto& flight = in_flight_[static_cast<size_t>(w)];
       if (rf != frame || t < 0 || static_cast<size_t>(t) >= m || flight.empty() ||
@@ -598,6 +719,47 @@ class Master {
   std::vector<std::vector<StatsFields>> worker_extra_;
 };
 
+// The master's bounded wait for every worker's setup (scene loaded, grid built): returns the
+// lowest failing rank (`ranks` if none; `first` is the master's own: 0 or `ranks`) after sending
+// it to every worker. A worker that reports nothing within the timeout (hung while loading or
+// building) ends the run with an error naming it; an invalid timeout, which every rank rejects
+// at once, waits the default 120 s at most.
+int GatherSetup(const MpiRenderConfig& c, int ranks, int first) {
+  const double timeout =
+      c.timeout_seconds > 0 && c.timeout_seconds <= 1e6 ? c.timeout_seconds : 120.0;
+  const size_t workers = static_cast<size_t>(ranks - 1);
+  std::vector<int> failed(workers, 0);
+  std::vector<MPI_Request> requests(workers);
+  for (size_t w = 0; w < workers; ++w) {
+    MPI_Irecv(&failed[w], 1, MPI_INT, static_cast<int>(w) + 1, kTagSetup, MPI_COMM_WORLD,
+              &requests[w]);
+  }
+  const auto deadline = Deadline(timeout);
+  for (int polls = 0;; ++polls) {
+    std::vector<int> silent;
+    for (size_t w = 0; w < workers; ++w) {
+      int done = 0;
+      if (requests[w] != MPI_REQUEST_NULL) MPI_Test(&requests[w], &done, MPI_STATUS_IGNORE);
+      if (requests[w] != MPI_REQUEST_NULL) silent.push_back(static_cast<int>(w) + 1);
+    }
+    if (silent.empty()) break;
+    if (Clock::now() > deadline) {
+      Abort(0, fmt::format("worker {} did not finish its setup (loading the scene {}, building "
+                           "its grid) within {:g} s (hung or dead); aborting the run, no image "
+                           "written",
+                           RankList(silent), c.scene, timeout));
+    }
+    PollSleep(polls);
+  }
+  for (size_t w = 0; w < workers && first == ranks; ++w) {
+    if (failed[w] != 0) first = static_cast<int>(w) + 1;
+  }
+  for (int r = 1; r < ranks; ++r) {
+    MasterSend(&first, 1, r, kTagSetupDone, timeout, "the setup outcome", "no image written");
+  }
+  return first;
+}
+
 }  // namespace
 
 int RunMpiRender(const MpiRenderConfig& config) {
@@ -613,6 +775,9 @@ int RunMpiRender(const MpiRenderConfig& config) {
   Setup setup;
   std::string error;
   try {
+    if (rank > 0 && rank == EnvRank("RAYSTREAM_MPI_TEST_HANG_SETUP_RANK")) {
+      HangForever(rank, "while loading the scene");
+    }
     ValidateConfig(config, ranks);
     setup.scene = LoadScene(config.scene);
     if (rank > 0) {
@@ -623,9 +788,14 @@ int RunMpiRender(const MpiRenderConfig& config) {
   } catch (const std::exception& e) {
     error = e.what();
   }
-  int failed = error.empty() ? ranks : rank;  // lowest failing rank, `ranks` if none
-  int first_failed = ranks;
-  MPI_Allreduce(&failed, &first_failed, 1, MPI_INT, MPI_MIN, MPI_COMM_WORLD);
+  int first_failed = ranks;  // the lowest failing rank, `ranks` if none
+  if (rank == 0) {
+    first_failed = GatherSetup(config, ranks, error.empty() ? ranks : 0);
+  } else {
+    const int failed = error.empty() ? 0 : 1;
+    MPI_Send(&failed, 1, MPI_INT, 0, kTagSetup, MPI_COMM_WORLD);
+    MPI_Recv(&first_failed, 1, MPI_INT, 0, kTagSetupDone, MPI_COMM_WORLD, MPI_STATUS_IGNORE);
+  }
   if (first_failed < ranks) {
     if (rank == first_failed) {
       if (rank == 0) {

@@ -51,8 +51,11 @@ struct MpiRenderConfig {
   // Tiles in flight per worker (1: strictly on demand; 2: the next tile waits at the worker
   // while it renders, hiding the round trip).
   int prefetch = 2;
-  // A worker holding a tile that sends nothing for this long ends the run: the master prints
-  // an error naming the rank and calls MPI_Abort (bounded time, never a hang).
+  // Bounds every wait of the master on a worker: its setup (scene load and grid build), each
+  // tile it holds (silence since it was given work or last returned a result), the transfer of
+  // a result once it has begun, and its goodbye after the last frame. A worker that misses it
+  // ends the run: the master prints an error naming the rank and calls MPI_Abort (bounded time,
+  // never a hang).
   double timeout_seconds = 120;
   bool quiet = false;
 };
@@ -67,14 +70,24 @@ bool MpiBuilt();
 // returned by every rank. A failure while
 // rendering (a worker times out or sends a malformed result, an exception on any rank) prints
 // one line naming the rank and calls MPI_Abort, so mpirun exits non-zero; images are written
-// only for complete frames. A worker process that exits is normally noticed by mpirun first: it
-// ends the job and names the rank (Open MPI: "Process name: [[job,1],r]"); the master's timeout
-// covers workers that stay alive but silent (hung, or lost where the launcher does not notice).
-// Without MPI: throws rs::Error("raystream was built without MPI").
+// only for complete frames, and the last frame's image and the statistics only after every
+// worker has acknowledged the end of the run (so a failed run leaves neither). A worker process
+// that exits is normally noticed by mpirun first: it ends the job and names the rank (Open MPI:
+// "Process name: [[job,1],r]"); the master's timeout covers workers that stay alive but silent
+// (hung while loading, rendering, sending or finishing, or lost where the launcher does not
+// notice). Apart from MPI_Init and MPI_Finalize (reached after every worker's goodbye) the
+// master never blocks in MPI, so a run ends within about timeout_seconds of a hung worker's
+// last message. Without MPI: throws rs::Error("raystream was built without MPI")
+// (mpi_none.cc).
 //
-// Hidden test hooks (environment, read by the workers):
-//   RAYSTREAM_MPI_TEST_KILL_RANK=r  rank r _exit(1)s after returning its first tile;
-//   RAYSTREAM_MPI_TEST_HANG_RANK=r  rank r stops answering (sleeps) after its first tile.
+// Hidden test hooks (environment, read by the workers; each rank r >= 1 then sleeps forever,
+// except KILL):
+//   RAYSTREAM_MPI_TEST_KILL_RANK=r        rank r _exit(1)s after returning its first tile;
+//   RAYSTREAM_MPI_TEST_HANG_RANK=r        rank r stops answering after its first tile;
+//   RAYSTREAM_MPI_TEST_HANG_SETUP_RANK=r  rank r hangs before loading the scene;
+//   RAYSTREAM_MPI_TEST_HANG_END_RANK=r    rank r hangs after its last tile (at the stop message);
+//   RAYSTREAM_MPI_TEST_STALL_RANK=r       rank r starts sending its first result (MPI_Isend)
+//                                         and never makes MPI progress again.
 int RunMpiRender(const MpiRenderConfig& config);
 
 // Hidden --dump-raw format, for exact comparisons between backends: "RSFB" (4 bytes), int32

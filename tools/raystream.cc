@@ -167,7 +167,7 @@ struct RenderArgs {
   bool steal = false;
   bool queue_stats = true;
   int spes = 6;  // --backend cell: simulated SPEs
-  double mpi_timeout = 120;  // --backend mpi: seconds a worker may hold a tile silently
+  double mpi_timeout = 120;  // --backend mpi: bound on every wait of the master for a worker
   std::string dump_raw;      // hidden: raw fixed-point framebuffer (sched/mpi_backend.h)
 };
 
@@ -534,8 +534,9 @@ int Main(int argc, char** argv) {
       ->check(CLI::Range(0.0f, 64.0f))
       ->capture_default_str();
   render->add_option("--mpi-timeout", r.mpi_timeout,
-                     "mpi backend: a worker silent this many seconds while holding a tile ends "
-                     "the run with an error naming its rank")
+                     "mpi backend: bound on every wait of the master for a worker (setup, "
+                     "tile, result transfer, end of run); a worker that misses it ends the run "
+                     "with an error naming its rank")
       ->check(CLI::Range(0.001, 1e6))
       ->capture_default_str();
   render->add_option("--dump-raw", r.dump_raw)->group("");  // hidden: exact framebuffer dump

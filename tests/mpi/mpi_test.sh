@@ -2,9 +2,11 @@
 # The cluster backend (sched/mpi_backend.h) under mpirun: on every procedural and shared scene,
 # with 3 and 5 ranks, every frame of a 3-frame walk-through (PBT re-tiled between frames) equals
 # the serial backend's framebuffer bit for bit (hidden --dump-raw: the int64 fixed-point sums),
-# statistics are written, and a dead or silent worker ends the run non-zero within bounded time,
-# naming the rank, with no image. The statistics are the host backends' format (same JSON keys and
-# CSV columns as the tiles backend, the cluster's after them) with the serial render's ray counts.
+# statistics are written, and a dead or silent worker (dead after a tile; hung while loading,
+# after a tile, in the middle of sending a result, or after its last tile) ends the run non-zero
+# within bounded time, naming the rank, with no image. The statistics are the host backends'
+# format (same JSON keys and CSV columns as the tiles backend, the cluster's after them) with the
+# serial render's ray counts.
 # usage: mpi_test.sh RAYSTREAM_BINARY MPIRUN   (env CI=true: a missing shared scene is a FAIL)
 set -uo pipefail
 rs=$1
@@ -15,8 +17,10 @@ export OMPI_ALLOW_RUN_AS_ROOT=1 OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1
 # Keep OpenMPI off the network probes it does not need on one host.
 export OMPI_MCA_btl=self,vader OMPI_MCA_btl_vader_single_copy_mechanism=none
 fails=0 checks=0
-ok() { checks=$((checks+1)); echo "ok   $*"; }
-bad() { checks=$((checks+1)); fails=$((fails+1)); echo "FAIL $*"; }
+# Each line starts with the seconds since the start (the suite must stay well under its meson
+# timeout on a loaded 2-core machine).
+ok() { checks=$((checks+1)); printf 'ok   %4ss %s\n' "$SECONDS" "$*"; }
+bad() { checks=$((checks+1)); fails=$((fails+1)); printf 'FAIL %4ss %s\n' "$SECONDS" "$*"; }
 run_mpi() { local np=$1; shift; timeout 120 "$mpirun" --allow-run-as-root --oversubscribe -np "$np" "$@"; }
 
 # Procedural scenes at 96x96; the shared (file) scenes at 64x64, which keeps the suite short
@@ -212,6 +216,32 @@ expect_fail "silent worker (rank 3 hangs)" 'mpi rank 0: worker rank 3 did not re
   env RAYSTREAM_MPI_TEST_HANG_RANK=3 timeout 120 "$mpirun" --allow-run-as-root --oversubscribe \
   -np 5 -x RAYSTREAM_MPI_TEST_HANG_RANK "$rs" render --backend mpi --scene cornell \
   --width 96 --height 96 --frames 3 --pbt 2 -q --mpi-timeout 3 --out "$tmp/hung.png"
+# A worker that hangs while loading the scene: the master's bounded setup wait names it.
+expect_fail "worker hung in setup (rank 2)" \
+  'mpi rank 0: worker rank 2 did not finish its setup \(loading the scene cornell' 30 \
+  "$tmp/setup.png" \
+  env RAYSTREAM_MPI_TEST_HANG_SETUP_RANK=2 timeout 60 "$mpirun" --allow-run-as-root --oversubscribe \
+  -np 3 -x RAYSTREAM_MPI_TEST_HANG_SETUP_RANK "$rs" render --backend mpi --scene cornell \
+  --width 96 --height 96 --frames 3 --pbt 2 -q --mpi-timeout 3 --out "$tmp/setup.png"
+# A worker that stops in the middle of sending a result (larger than the eager limit, so the
+# master has matched it but its data never comes): the bounded receive names it.
+expect_fail "worker stalled sending a result (rank 1)" \
+  'mpi rank 0: worker rank 1 stopped while sending a result of frame 0' 30 "$tmp/stall.png" \
+  env RAYSTREAM_MPI_TEST_STALL_RANK=1 timeout 60 "$mpirun" --allow-run-as-root --oversubscribe \
+  -np 3 -x RAYSTREAM_MPI_TEST_STALL_RANK "$rs" render --backend mpi --scene cornell \
+  --width 96 --height 96 --frames 3 --pbt 2 -q --mpi-timeout 3 --out "$tmp/stall.png"
+# A worker that hangs after its last tile (holding none, so no tile clock runs): the master's
+# bounded wait for its goodbye names it, so MPI_Finalize never waits for it; neither the last
+# frame's image nor the statistics are written.
+expect_fail "worker hung after its last tile (rank 4)" \
+  'mpi rank 0: worker rank 4 did not answer the end of the run within 3 s' 30 "$tmp/end.png" \
+  env RAYSTREAM_MPI_TEST_HANG_END_RANK=4 timeout 60 "$mpirun" --allow-run-as-root --oversubscribe \
+  -np 5 -x RAYSTREAM_MPI_TEST_HANG_END_RANK "$rs" render --backend mpi --scene cornell \
+  --width 96 --height 96 --frames 3 --pbt 2 -q --mpi-timeout 3 --out "$tmp/end.png" \
+  --stats "$tmp/end.json"
+if [ -e "$tmp/end.json" ]; then bad "worker hung after its last tile: statistics written"
+else ok "worker hung after its last tile: no statistics written"; fi
+
 # Setup errors: one clear line, status 1, no hang.
 expect_fail "one rank only" 'needs at least 2 ranks' 60 "$tmp/one.png" \
   timeout 60 "$rs" render --backend mpi --scene cornell --width 16 --height 16 -q --out "$tmp/one.png"
