@@ -6,11 +6,14 @@
 # after a tile, in the middle of sending a result, or after its last tile) ends the run non-zero
 # within bounded time, naming the rank, with no image. The statistics are the host backends'
 # format (same JSON keys and CSV columns as the tiles backend, the cluster's after them) with the
-# serial render's ray counts.
+# serial render's ray counts; every PBT run's tiles and per-tile owners equal a replay of the
+# master's PBT from the run's own tile times (pbt_check.py: re-tiling between frames, PBT-Greedy
+# and PBT-Visit affinity as sched/pbt.h defines them).
 # usage: mpi_test.sh RAYSTREAM_BINARY MPIRUN   (env CI=true: a missing shared scene is a FAIL)
 set -uo pipefail
 rs=$1
 mpirun=$2
+check_pbt="$(dirname "$0")/pbt_check.py"
 tmp=$(mktemp -d)
 trap 'rm -rf "$tmp"' EXIT
 export OMPI_ALLOW_RUN_AS_ROOT=1 OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1
@@ -64,26 +67,71 @@ for scene in "${scenes[@]}"; do
   if cmp -s "$tmp/$scene/serial/r0000.raw" "$tmp/$scene/serial/r0002.raw"; then
     bad "$scene: serial frames 0 and 2 are equal (camera did not move)"
   fi
-  # Rotate the tilings over the scenes so each one runs somewhere with 3 and with 5 ranks.
+  # Rotate the tilings over the scenes so each one runs somewhere with 3 and with 5 ranks, and
+  # every PBT assignment on the procedural scenes.
   case $((i % 4)) in
-    0) t3=(--pbt 2 --assign random) t5=(--pbt 2 --assign greedy) ;;
-    1) t3=(--pbt 3 --assign visit)  t5=(--pbt 1 --assign static) ;;
-    2) t3=(--tile 16x16)            t5=(--pbt 2 --assign visit --pbt-time cpu) ;;
-    3) t3=(--pbt 2 --assign greedy) t5=(--tile 40x24) ;;
+    0) t3=(--pbt 2 --assign random)                t5=(--pbt 2 --assign greedy) ;;
+    1) t3=(--pbt 3 --assign visit)                 t5=(--pbt 1 --assign static) ;;
+    2) t3=(--pbt 4 --assign random --pbt-time cpu) t5=(--pbt 2 --assign visit --pbt-time cpu) ;;
+    3) t3=(--pbt 2 --assign greedy)                t5=(--tile 40x24) ;;
   esac
   i=$((i+1))
   for np in 3 5; do
     d="$tmp/$scene/np$np"; mkdir -p "$d"
-    # Statistics as CSV with 3 ranks, JSON with 5.
-    if [ $np = 3 ]; then t=("${t3[@]}") st=s.csv; else t=("${t5[@]}") st=s.json; fi
+    # Statistics as JSON (checked against the PBT replay), CSV for cornell with 3 ranks.
+    if [ $np = 3 ]; then t=("${t3[@]}"); else t=("${t5[@]}"); fi
+    st=s.json; if [ $np = 3 ] && [ "$scene" = cornell ]; then st=s.csv; fi
     if run_mpi $np "$rs" render --backend mpi --scene "$scene" "${size[@]}" -q "${t[@]}" \
         --out "$d/i#.png" --dump-raw "$d/r#.raw" --stats "$d/$st" >"$d/log" 2>&1; then
       compare "$scene -np $np ${t[*]}" "$tmp/$scene/serial" "$d"
+      if [ $st = s.json ] && [ "${t[0]}" = --pbt ]; then
+        if python3 "$check_pbt" "$d/s.json" >"$d/pbt.log" 2>&1; then
+          ok "$scene -np $np ${t[*]}: tiles and owners = PBT replay ($(tail -1 "$d/pbt.log"))"
+        else bad "$scene -np $np ${t[*]}: PBT replay"; cat "$d/pbt.log"; fi
+      fi
     else
       bad "$scene -np $np ${t[*]}: mpirun failed"; cat "$d/log"
     fi
   done
 done
+
+# PBT re-tiles between frames on a scene of uneven cost: a glass sphere (reflection and
+# refraction to depth 3 under 3 lights) in one corner of a diffuse wall, its tiles 10-30x the
+# cost of the wall's. Frame 2's tiles differ from frame 0's; PBT-Greedy (4 workers) and
+# PBT-Visit (2 workers) follow the replayed PBT, images bit-identical.
+u="$tmp/uneven"; mkdir -p "$u/serial"
+cat >"$u/uneven.json" <<'JSON'
+{"name": "uneven",
+ "materials": [{"name": "wall", "diffuse": 0.6},
+               {"name": "glass", "diffuse": 0.1, "specular": 0.8, "shininess": 60,
+                "reflectivity": 0.5, "transmission": 0.5, "ior": 1.5}],
+ "meshes": [{"quad": [[-5, -5, 0], [5, -5, 0], [5, 5, 0], [-5, 5, 0]], "material": "wall"},
+            {"sphere": {"center": [-2.2, 1.2, 1.5], "radius": 1.3, "slices": 48, "stacks": 24},
+             "material": "glass"}],
+ "lights": [{"position": [0, 0, 6]}, {"position": [3, 3, 5]}, {"position": [-3, 3, 5]}],
+ "camera": {"eye": [0, 0, 9], "look_at": [0, 0, 0], "fov": 50},
+ "path": {"frames": 8, "keys": [{"eye": [0, 0, 9], "look_at": [0, 0, 0]},
+                                {"eye": [1.5, -0.5, 9], "look_at": [1.5, -0.5, 0]}]}}
+JSON
+usize=(--scene "$u/uneven.json" --width 96 --height 96 "${walk[@]}" -q)
+if "$rs" render --backend serial "${usize[@]}" --out "$u/serial/i#.png" --dump-raw "$u/serial/r#.raw"; then
+  for run in "5 greedy" "3 visit"; do
+    read -r np assign extra <<<"$run"
+    d="$u/np$np"; mkdir -p "$d"
+    # shellcheck disable=SC2086  # $extra: zero or two words
+    if run_mpi "$np" "$rs" render --backend mpi "${usize[@]}" --pbt 4 --assign "$assign" $extra \
+        --out "$d/i#.png" --dump-raw "$d/r#.raw" --stats "$d/s.json" >"$d/log" 2>&1; then
+      compare "uneven -np $np --pbt 4 --assign $assign${extra:+ $extra}" "$u/serial" "$d"
+      if python3 "$check_pbt" "$d/s.json" --expect-retile >"$d/pbt.log" 2>&1; then
+        ok "uneven -np $np $assign: $(grep '^re-tiled' "$d/pbt.log"); $(tail -1 "$d/pbt.log")"
+      else bad "uneven -np $np $assign: PBT re-tiling / replay"; cat "$d/pbt.log"; fi
+    else
+      bad "uneven -np $np $assign: mpirun failed"; cat "$d/log"
+    fi
+  done
+else
+  bad "uneven: serial render"
+fi
 
 # Statistics: the host backends' format (the tiles backend's keys and CSV columns, the same
 # PBT k and worker count), the cluster's fields after them; 3 frames, tiles covering the image,
