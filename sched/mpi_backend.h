@@ -29,10 +29,10 @@ struct MpiRenderConfig {
   // frame from planning to PBT-Update on the master, render_seconds = first tile sent -> last
   // result, a worker's busy / cpu = the sums of its tiles' wall / CPU times as it measured them,
   // idle = render_seconds - busy, app_cpu_seconds = the master's CPU time in the frame. Then the
-  // cluster's own (CSV: columns after the host columns): options ranks, workers, prefetch,
-  // timeout_seconds; per frame messages, bytes (both directions, all workers), dropped_nan,
-  // clamped; per worker rank, messages_sent, bytes_sent (master -> worker), messages_received,
-  // bytes_received (worker -> master).
+  // cluster's own (CSV: columns after the host columns): options ranks, workers,
+  // worker_threads, prefetch, timeout_seconds; per frame messages, bytes (both directions, all
+  // workers), dropped_nan, clamped; per worker rank, messages_sent, bytes_sent (master ->
+  // worker), messages_received, bytes_received (worker -> master).
   std::string stats;
   std::string dump_raw;  // hidden: raw fixed-point framebuffer per written frame ('#' allowed)
   // Without PBT (pbt_tiles_per_worker == 0): tile_width x tile_height tiles in row-major order,
@@ -48,6 +48,9 @@ struct MpiRenderConfig {
   PbtAssign assign = PbtAssign::kRandom;
   uint64_t seed = 1;
   bool pbt_cpu_time = false;
+  // Render threads inside each worker (--threads): a tile's rows are shared among them. A
+  // tile's CPU time is the sum over its threads.
+  int threads = 1;
   // Tiles in flight per worker (1: strictly on demand; 2: the next tile waits at the worker
   // while it renders, hiding the round trip).
   int prefetch = 2;

@@ -354,6 +354,7 @@ int RunRenderMpi(const RenderArgs& args) {
   c.seed = args.seed;
   c.pbt_cpu_time = args.pbt_time == "cpu";
   c.timeout_seconds = args.mpi_timeout;
+  c.threads = args.threads;  // render threads inside each worker
   c.quiet = args.quiet;
   return RunMpiRender(c);
 }
@@ -501,7 +502,8 @@ int Main(int argc, char** argv) {
   render->add_option("--spes", r.spes, "cell backend: simulated SPEs (--tile and --pbt apply)")
       ->check(CLI::Range(1, 8))
       ->capture_default_str();
-  render->add_option("--threads", r.threads, "render threads (lock, lfree, local, tiles)")
+  render->add_option("--threads", r.threads,
+                     "render threads (lock, lfree, local, tiles; mpi: per worker)")
       ->check(CLI::Range(1, 1024))
       ->capture_default_str();
   render->add_option("--tile", r.tile, "tiles backend: tile shape WxH (8x8, 32x32, 640x2, ...)")

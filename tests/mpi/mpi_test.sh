@@ -73,7 +73,7 @@ for scene in "${scenes[@]}"; do
     0) t3=(--pbt 2 --assign random)                t5=(--pbt 2 --assign greedy) ;;
     1) t3=(--pbt 3 --assign visit)                 t5=(--pbt 1 --assign static) ;;
     2) t3=(--pbt 4 --assign random --pbt-time cpu) t5=(--pbt 2 --assign visit --pbt-time cpu) ;;
-    3) t3=(--pbt 2 --assign greedy)                t5=(--tile 40x24) ;;
+    3) t3=(--pbt 2 --assign greedy)                t5=(--tile 40x24 --threads 3) ;;
   esac
   i=$((i+1))
   for np in 3 5; do
@@ -98,7 +98,7 @@ done
 # PBT re-tiles between frames on a scene of uneven cost: a glass sphere (reflection and
 # refraction to depth 3 under 3 lights) in one corner of a diffuse wall, its tiles 10-30x the
 # cost of the wall's. Frame 2's tiles differ from frame 0's; PBT-Greedy (4 workers) and
-# PBT-Visit (2 workers) follow the replayed PBT, images bit-identical.
+# PBT-Visit (2 workers with 2 render threads each) follow the replayed PBT, images bit-identical.
 u="$tmp/uneven"; mkdir -p "$u/serial"
 cat >"$u/uneven.json" <<'JSON'
 {"name": "uneven",
@@ -115,7 +115,7 @@ cat >"$u/uneven.json" <<'JSON'
 JSON
 usize=(--scene "$u/uneven.json" --width 96 --height 96 "${walk[@]}" -q)
 if "$rs" render --backend serial "${usize[@]}" --out "$u/serial/i#.png" --dump-raw "$u/serial/r#.raw"; then
-  for run in "5 greedy" "3 visit"; do
+  for run in "5 greedy" "3 visit --threads 2"; do
     read -r np assign extra <<<"$run"
     d="$u/np$np"; mkdir -p "$d"
     # shellcheck disable=SC2086  # $extra: zero or two words
@@ -129,6 +129,10 @@ if "$rs" render --backend serial "${usize[@]}" --out "$u/serial/i#.png" --dump-r
       bad "uneven -np $np $assign: mpirun failed"; cat "$d/log"
     fi
   done
+  if python3 -c 'import json, sys; sys.exit(json.load(open(sys.argv[1]))["options"]
+                                        ["worker_threads"] != 2)' "$u/np3/s.json" 2>/dev/null
+  then ok "uneven -np 3: statistics say 2 render threads per worker"
+  else bad "uneven -np 3: options.worker_threads is not 2"; fi
 else
   bad "uneven: serial render"
 fi
@@ -153,8 +157,10 @@ f = d["frames"]
 assert list(d) == list(host), (list(d), list(host))
 assert d["backend"] == "mpi" and d["threads"] == 4 and len(f) == 3, d
 o = d["options"]
-assert list(o) == list(host["options"]) + ["ranks", "workers", "prefetch", "timeout_seconds"], o
+assert list(o) == list(host["options"]) + ["ranks", "workers", "worker_threads", "prefetch",
+                                           "timeout_seconds"], o
 assert o["name"] == "mpi" and o["ranks"] == 5 and o["workers"] == 4 and o["pbt_workers"] == 4, o
+assert o["worker_threads"] == 1, o
 cluster_frame = ["messages", "bytes", "dropped_nan", "clamped"]
 cluster_worker = ["rank", "messages_sent", "bytes_sent", "messages_received", "bytes_received"]
 for fr, hf, sf in zip(f, host["frames"], serial["frames"]):
