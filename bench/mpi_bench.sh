@@ -8,7 +8,8 @@
 #   env: MPI_BENCH_SCENE (erw6), MPI_BENCH_SIZE (256), MPI_BENCH_FRAMES (20),
 #        MPI_BENCH_RANKS ("2 3 4 5 6 7 8 9": 1 to 8 workers, rank 0 is the master),
 #        MPI_BENCH_EXTRA_RANKS ("3 5 9": PBT-Greedy, PBT-Visit and the 2x camera also run here),
-#        MPI_BENCH_PBT_TIME (cpu: tile time fed to PBT-Update, see below)
+#        MPI_BENCH_PBT_TIME (cpu: tile time fed to PBT-Update, see below),
+#        MPI_BENCH_BINARY_NOTE (how RAYSTREAM was built, e.g. its commit and buildtype: meta.txt)
 # Full sweep: 52 runs; 256x256 and 20 frames (a third of erw6's 60-frame path, two thirds at 2x
 # speed) keep it at 4-15 minutes on the shared 2-core machine, depending on the other jobs' load
 # (the paper used 512x512: 4x the work per frame).
@@ -116,6 +117,7 @@ fi
   echo "cores=$(nproc) load_start=$load_start load_end=$(cut -d' ' -f1 /proc/loadavg)"
   echo "wall_seconds=$((SECONDS - t_start))"
   echo "host=$(uname -n) date=$(date -u +%Y-%m-%dT%H:%MZ)"
+  echo "binary: ${MPI_BENCH_BINARY_NOTE:-$rs}"
 } >"$out/meta.txt"
 
 # Summary (always) and plot (when matplotlib is importable).

@@ -28,9 +28,10 @@ def load(out):
     path = os.path.join(out, "meta.txt")
     if os.path.exists(path):
         for line in open(path):
-            key, _, value = line.strip().partition(": " if line.startswith("command") else "=")
-            if key == "command":
-                meta["command"] = value
+            free = line.startswith(("command:", "binary:"))  # "key: free text"
+            key, _, value = line.strip().partition(": " if free else "=")
+            if free:
+                meta[key] = value
             else:
                 for part in line.split():
                     k, _, v = part.partition("=")
@@ -98,7 +99,8 @@ def summary(rows, meta, agg, plotted):
         "updated; both are demand-driven (an idle worker takes a waiting tile of the most loaded"
         " worker).",
         f"Command: `{meta.get('command', 'bench/mpi_bench.sh')}`; {meta.get('runs', '?')} runs, "
-        f"{meta.get('wall_seconds', '?')} s wall.", ""]
+        f"{meta.get('wall_seconds', '?')} s wall; binary: {meta.get('binary', 'not recorded')}.",
+        ""]
 
     def pivot(title, value, digits, per_worker=()):
         cols = [(c, k) for k in ks for c in ("static", "pbt") if any((c, k, w) in agg
@@ -164,7 +166,9 @@ def summary(rows, meta, agg, plotted):
                          f"{fmt(st[0], 1)} | {fmt(st[1], 1)} |")
     lines += ["", "A tile costs one 24-byte message to the worker and one result of 128 bytes "
               "(the tile's times and statistics) + 24 bytes per pixel (3 int64 fixed-point sums) "
-              "back, so bytes grow with pixels, messages with m = k * n.", ""]
+              "back, so bytes grow with pixels, messages with m = k * n. Per run (not in these "
+              "per-frame counts) each worker also sends its setup status and its goodbye and "
+              "receives the setup outcome and the stop message: 4 messages of 4 bytes.", ""]
 
     # Table 1.
     extra = sorted({w for (c, _, w) in agg if c == "pbt_x2"})
@@ -218,7 +222,8 @@ def summary(rows, meta, agg, plotted):
             cells.append(f"{fmt(share)} % (n={n})")
         lines.append(f"| {w} | " + " | ".join(cells) + " |")
     if plotted:
-        lines += ["", "![fps, imbalance and prediction accuracy against workers](mpi.png)"]
+        lines += ["", "![fps, imbalance, prediction accuracy, messages and bytes against "
+                  "workers](mpi.png)"]
     return "\n".join(lines) + "\n"
 
 
@@ -230,13 +235,15 @@ def plot(out, meta, agg):
     workers = sorted({w for (_, _, w) in agg})
     ks = sorted({k for (_, k, _) in agg})
     cores = int(meta.get("cores", "2") or 2)
-    fig, grid = plt.subplots(2, 2, figsize=(12, 8.4))
+    fig, grid = plt.subplots(2, 3, figsize=(17, 8.6))
     axes = grid.flatten()
     panels = [("frames per second (measured)", fps),
               ("frames per second, dedicated-core model\n(1 / slowest worker's CPU time)",
                model_fps),
               ("imbalance (cpu): slowest / mean worker",
                lambda rs: mean(float(r["imbalance_cpu"]) for r in rs)),
+              ("imbalance (wall): slowest / mean worker",
+               lambda rs: mean(float(r["imbalance_wall"]) for r in rs)),
               ("share of PBT estimates within 10 % (%)", lambda rs: pooled(rs, "within10")[0])]
     for ax, (ylabel, value) in zip(axes, panels):
         for i, k in enumerate(ks):
@@ -259,9 +266,34 @@ def plot(out, meta, agg):
     axes[0].legend(fontsize=8)
     for k, paper in ((1, PAPER[(1, 1)][1]), (4, PAPER[(4, 1)][1])):
         if k in ks:
-            axes[3].axhline(paper, color=f"C{ks.index(k)}", lw=0.8, ls=":",
+            axes[4].axhline(paper, color=f"C{ks.index(k)}", lw=0.8, ls=":",
                             label=f"paper k={k}, n=32, 1x camera: {paper} %")
-    axes[3].legend(fontsize=8, loc="lower right")
+    axes[4].legend(fontsize=8, loc="best")
+    # Messages and bytes per frame (both directions, PBT runs; static sends the same): messages
+    # (left axis) grow with m = k * n, bytes (right axis) are 24 per pixel plus 152 per tile.
+    ax, twin = axes[5], axes[5].twinx()
+    for i, k in enumerate(ks):
+        xs = [w for w in workers if ("pbt", k, w) in agg]
+        if not xs:
+            continue
+        rs = [agg[("pbt", k, w)] for w in xs]
+        ax.plot(xs, [mean(float(r["messages"]) for r in x) for x in rs], "-", marker="o",
+                color=f"C{i}", label=f"messages, k={k}")
+        twin.plot(xs, [mean(float(r["bytes"]) for r in x) / 1e6 for x in rs], ":", marker="s",
+                  color=f"C{i}", alpha=0.7, label=f"MB, k={k}")
+    ax.set_ylabel("messages per frame (solid)")
+    twin.set_ylabel("MB per frame (dotted)")
+    twin.set_ylim(0, twin.get_ylim()[1] * 1.25)
+    ax.set_ylim(0, ax.get_ylim()[1] * 1.1)
+    ax.set_xlabel("workers (ranks - 1)")
+    ax.set_xticks(workers)
+    ax.grid(alpha=0.3)
+    if max(workers) > cores:
+        ax.axvspan(cores + 0.5, max(workers) + 0.5, color="0.9", zorder=0)
+    lines0, labels0 = ax.get_legend_handles_labels()
+    lines1, labels1 = twin.get_legend_handles_labels()
+    ax.legend(lines0 + lines1, labels0 + labels1, fontsize=8, loc="upper left", ncol=2)
+    ax.set_title("messages and bytes per frame (master <-> workers)", fontsize=9)
     fig.suptitle(f"raystream --backend mpi, {meta.get('scene', '?')} {meta.get('size', '?')}, "
                  f"{meta.get('frames', '?')}-frame walk-through: static tiling vs PBT\n"
                  f"{cores}-core machine, shared with other jobs (load {meta.get('load_start', '?')}"
