@@ -26,6 +26,7 @@
 #include "bench/ray_sets.h"
 #include "bench/tsc.h"
 #include "include/raystream/raystream.h"
+#include "kernels/accel_impl.h"
 #include "scenes/load.h"
 #include "streams/ray_stream.h"
 
@@ -262,11 +263,18 @@ void BM_Trace(benchmark::State& state, const std::string& scene, RaySet set, int
   const bool occlusion = set == RaySet::kShadow;
   const TickMeter meter;
   for (auto _ : state) {
-    if (tracer < 0) {
+    if (tracer == -1) {
       if (occlusion) {
         d.accel->Occluded(rays, d.occluded.data());
       } else {
         d.accel->Intersect(rays, hits);
+      }
+    } else if (tracer == -2) {  // the same structure without packets: the per-ray stream DDA
+      const Accel::Impl& m = d.accel->impl();
+      if (occlusion) {
+        OccludedStreamDda(m.dda, rays, d.occluded.data(), m.dda_options, nullptr);
+      } else {
+        IntersectStreamDda(m.dda, rays, hits, m.dda_options, nullptr);
       }
     } else {
       const auto mode = static_cast<EmbreeMode>(tracer);
@@ -279,7 +287,7 @@ void BM_Trace(benchmark::State& state, const std::string& scene, RaySet set, int
     benchmark::ClobberMemory();
   }
   meter.Report(state, rays.size, "ticks/ray", "cpu_ticks/ray");
-  if (tracer < 0 && rays.size > 0) {
+  if (tracer == -1 && rays.size > 0) {
     // What the grid costs per ray: DDA cell steps and ray/triangle tests.
     const TraceStats& st = d.stats[static_cast<int>(set)];
     state.counters["cells/ray"] =
@@ -482,6 +490,8 @@ void Register(const std::string& scene) {
           [scene, set, m](benchmark::State& s) { BM_Trace(s, scene, set, m); });
     }
     Add(prefix + "raystream", [scene, set](benchmark::State& s) { BM_Trace(s, scene, set, -1); });
+    Add(prefix + "raystream-rays",
+        [scene, set](benchmark::State& s) { BM_Trace(s, scene, set, -2); });
   }
   for (int m = 0; m < kNumEmbreeModes; ++m) {
     Add("frame/" + scene + "/" + EmbreeModeName(static_cast<EmbreeMode>(m)),

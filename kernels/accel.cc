@@ -12,6 +12,7 @@
 
 #include "include/raystream/raystream.h"
 #include "kernels/accel_impl.h"
+#include "kernels/packet_dda.h"
 #include "kernels/dda.h"
 #include "kernels/dda_simd.h"
 #include "kernels/two_level.h"
@@ -129,6 +130,7 @@ Accel::Accel(const MeshView& mesh, const BuildOptions& options) : impl_(std::mak
   }
   BuildDdaGrid(m.grid, &m.two_level, m.triangles, &m.dda);
   m.dda_options.micro_cache = options.micro_cache;
+  m.packets = options.packets;
   // A jump costs a gather and the exact boundary search (dda_simd.cc: JumpEmpty), several
   // plain steps' worth, and steps are not what bounds the stream kernel on real scenes (the
   // triangle tests and lane refills are): bench/dda_bench.cc (Dda vs DdaNoSkip) measured 6-20 %
@@ -147,10 +149,12 @@ Accel& Accel::operator=(Accel&&) noexcept = default;
 void Accel::Intersect(const RayStreamView& rays, const HitStreamView& hits,
                       TraceStats* stats) const {
   HWY_ASSERT(hits.size == rays.size);
+  if (impl_->packets) return IntersectCoherent(impl_->dda, rays, hits, impl_->dda_options, stats);
   IntersectStreamDda(impl_->dda, rays, hits, impl_->dda_options, stats);
 }
 
 void Accel::Occluded(const RayStreamView& rays, int32_t* occluded, TraceStats* stats) const {
+  if (impl_->packets) return OccludedCoherent(impl_->dda, rays, occluded, impl_->dda_options, stats);
   OccludedStreamDda(impl_->dda, rays, occluded, impl_->dda_options, stats);
 }
 

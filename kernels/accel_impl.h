@@ -17,6 +17,7 @@ struct Accel::Impl {
   TwoLevelGrid two_level;  // empty for a flat grid
   DdaGrid dda;             // borrows grid, two_level, triangles (Impl never moves: unique_ptr)
   DdaOptions dda_options;
+  bool packets = true;     // BuildOptions::packets
   float lambda = 0.0f;
   double cost_estimate = 0.0;
   double flat_cost_estimate = 0.0;

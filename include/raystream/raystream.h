@@ -87,6 +87,10 @@ struct BuildOptions {
   int micro_cache = 8;         // traversal micro-cache entries (0 = off, at most 16)
   // Jump over blocks of empty cells where the grid has enough of them (results unchanged).
   bool empty_skip = true;
+  // Trace each run of 64 consecutive rays whose directions agree in sign along one axis as one
+  // packet that walks the grid slice by slice (coherent grid traversal; results unchanged).
+  // Pays for primary and shadow rays in scanline or tile order; others fall back per packet.
+  bool packets = true;
 };
 
 // Figures about a built structure, as printed by `raystream info`.
@@ -125,6 +129,10 @@ struct TraceStats {
   uint64_t cache_lookups = 0;
   uint64_t cache_hits = 0;
   uint64_t empty_skips = 0;  // jumps over blocks of empty cells (BuildOptions::empty_skip)
+  // 64-ray packets traced together (BuildOptions::packets), and those left to the per-ray walk
+  // (not coherent, or diverging too much).
+  uint64_t packets = 0;
+  uint64_t packets_refused = 0;
 };
 
 // The acceleration structure: a uniform grid with an occupancy bit array and CSR cell lists,

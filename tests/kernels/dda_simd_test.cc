@@ -754,6 +754,7 @@ TEST_CASE("options: micro-cache bounds are validated, counters move") {
   CHECK_THROWS_AS(Accel(soup.view(), bad), Error);
 
   // coherent rays (a fan from one point) hit the micro-cache; with it off there are no lookups
+  // (the micro-cache belongs to the per-ray walk: packets off, else these rays are one packet)
   std::vector<Ray> fan;
   for (int i = 0; i < 400; ++i) {
     fan.push_back(Ray{{0.0f, 0.0f, -3.0f}, {F(-0.2 + 0.001 * i), 0.01f, 1.0f}});
@@ -764,6 +765,7 @@ TEST_CASE("options: micro-cache bounds are validated, counters move") {
   b.Resize(fan.size());
   BuildOptions on, off;
   on.grid = off.grid = GridKind::kUniform;
+  on.packets = off.packets = false;
   off.micro_cache = 0;
   TraceStats son, soff;
   Accel(soup.view(), on).Intersect(stream.view(), a.view(), &son);

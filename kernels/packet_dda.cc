@@ -1,0 +1,809 @@
+// Coherent packet traversal (kernels/packet_dda.h). Per-target code; foreach_target re-includes
+// this file.
+//
+// One packet = 64 consecutive rays, NV = 64 / Lanes vectors (8 on AVX2, 4 on AVX-512):
+//   1. setup per vector: validity, slab clip to the grid [t0, t1], the watertight shear; the
+//      major axis K (largest |sum of d|) must have one sign for every live ray, else the packet
+//      is refused (the stream DDA takes it);
+//   2. slices of the grid along K, in the rays' direction. For slice s each vector's footprint is
+//      the box (in the other two axes U, V) of its rays' segments inside the slice, clipped to
+//      [t0, min(t1, best t)] and widened by the rounding of o + t d; the packet box is their
+//      union. Every occupied cell of the slice inside the packet box is visited: its triangles
+//      are tested against the vectors whose box meets the triangle's bounding box, each vector
+//      at most once per triangle (a direct-mapped mailbox keeps, per triangle, the vectors
+//      already tested). Refined cells of a two-level grid are visited the same way one
+//      sub-slice at a time;
+//   3. after the slice a ray is done if its candidate t lies before the slice's far plane (no
+//      closer hit can lie in a later slice) or its segment ends there.
+// Why the result is the per-ray walk's: both return the closest watertight hit (ties: lower id)
+// over the triangles listed in the cells their walk covers, and every triangle whose hit could
+// win is listed in a covered cell: hit points lie inside the cells of the ray's path up to the
+// rounding of the walk, which Grid::margin (1e-3 cell plus coordinate ulps) covers. The packet
+// covers a superset of each ray's cells up to its termination, and a triangle outside a ray's
+// own path cannot beat that ray's true closest hit (it would then be on the path).
+#include "kernels/packet_dda.h"
+
+#include <cfloat>
+#include <cmath>
+#include <algorithm>
+#include <cstring>
+#include <limits>
+
+#undef HWY_TARGET_INCLUDE
+#define HWY_TARGET_INCLUDE "kernels/packet_dda.cc"
+#include <hwy/foreach_target.h>  // IWYU pragma: keep
+#include <hwy/highway.h>         // must follow foreach_target.h
+
+#include "kernels/tri_intersect-inl.h"
+
+HWY_BEFORE_NAMESPACE();
+namespace rs {
+namespace HWY_NAMESPACE {
+namespace hn = hwy::HWY_NAMESPACE;
+
+inline constexpr size_t kPR = kCoherentPacketRays;
+inline constexpr int kMaxFoot = detail::PacketScratch::kMaxFoot;  // cells per axis and slice
+// Slice footprints of at most this many cells are visited whole (after checking that one of
+// their cells is occupied) rather than marked ray by ray.
+inline constexpr int kSmallBox = 4;
+
+// Per-ray state of one packet, SoA.
+struct PacketRays {
+  HWY_ALIGN float o[3][kPR];
+  HWY_ALIGN float d[3][kPR];
+  HWY_ALIGN float inv_k[kPR];  // 1 / d[K]
+  HWY_ALIGN float t0[kPR];     // segment inside the grid
+  HWY_ALIGN float t1[kPR];
+  HWY_ALIGN float tmin[kPR];
+  HWY_ALIGN float tmax[kPR];   // finite (+inf clamped to FLT_MAX)
+  HWY_ALIGN float best[kPR];   // candidate t (starts at tmax)
+  HWY_ALIGN float bu[kPR];     // barycentrics of the candidate
+  HWY_ALIGN float bv[kPR];
+  HWY_ALIGN int32_t prim[kPR];  // candidate (closest) or 1 = occluded (any hit); -1 none
+  HWY_ALIGN int32_t live[kPR];  // -1: valid and not done (as a lane mask), 0 otherwise
+  // watertight setup: origin in (kx, ky, kz) order, shear, the permutation per ray
+  HWY_ALIGN float wo[3][kPR];
+  HWY_ALIGN float shear[3][kPR];
+  HWY_ALIGN int32_t k[3][kPR];
+  // per slice, for the rays in SliceFoot::in: the box of each ray's segment in the slice (U, V;
+  // widened by the rounding)
+  HWY_ALIGN float flo[2][kPR];
+  HWY_ALIGN float fhi[2][kPR];
+};
+
+// Footprint of one slice: the rays in it, per vector the world box of its rays' segments and its
+// cell range, and the union cell range.
+struct SliceFoot {
+  float lo[2][kPR];  // [axis U/V][vector]: world box (filled by Refine)
+  float hi[2][kPR];
+  int c0[2][kPR];    // [axis U/V][vector]: its cell range, inclusive (filled by Refine)
+  int c1[2][kPR];
+  uint64_t in = 0;       // rays with a segment in the slice
+  uint64_t vectors = 0;  // vectors with such a ray
+  int u0 = 0, u1 = -1, v0 = 0, v1 = -1;
+};
+
+// Geometry of one grid level along U and W (top-level grid or a sub-grid record).
+struct Level {
+  float lo[3];
+  float inv_cs[3];
+  int res[3];
+};
+
+template <bool kAny>
+struct PacketTracer {
+  using D = hn::ScalableTag<float>;
+  using DI = hn::RebindToSigned<D>;
+  using V = hn::Vec<D>;
+  using VI = hn::Vec<DI>;
+  using M = hn::Mask<D>;
+
+  const DdaGrid& g;
+  const Grid& grid;
+  PacketRays& r;
+  detail::PacketScratch& sc;
+  TraceStats* stats;
+  size_t nv = 0;            // vectors in the packet
+  int K = 0, U = 1, W = 2;  // major axis and the two others
+  bool positive = true;     // d[K] > 0 for every live ray
+  bool uniform = false;     // every live ray has the same (kx, ky, kz)
+  int perm_k[3] = {0, 1, 2};
+  float err[3] = {0, 0, 0};  // rounding of o + t d, world units, per axis
+  uint64_t cells = 0;
+  uint64_t tests = 0;
+
+  static size_t Lanes() { return hn::Lanes(D()); }
+  static uint64_t LaneMask() {
+    return Lanes() >= 64 ? ~uint64_t{0} : (uint64_t{1} << Lanes()) - 1;
+  }
+
+  // Cell index of coordinate x on a level's axis a, clamped to [0, res - 1] (NaN -> 0).
+  static HWY_INLINE VI CellOf(D d, V x, const Level& lv, int a) {
+    const DI di;
+    const V f = hn::Mul(hn::Sub(x, hn::Set(d, lv.lo[a])), hn::Set(d, lv.inv_cs[a]));
+    const VI res_m1 = hn::Set(di, lv.res[a] - 1);
+    return hn::IfThenElse(
+        hn::RebindMask(di, hn::Gt(f, hn::Zero(d))),
+        hn::IfThenElse(hn::RebindMask(di, hn::Lt(f, hn::Set(d, float(lv.res[a])))),
+                       hn::ConvertTo(di, f), res_m1),
+        hn::Zero(di));
+  }
+
+  // The footprint of the live rays among `filter` whose segment has K in [p0, p1] (p0 < p1),
+  // on level `lv`.
+  HWY_INLINE void Footprint(float p0, float p1, const Level& lv, uint64_t filter,
+                            SliceFoot* f) const {
+    const D d;
+    const DI di;
+    const size_t n = Lanes();
+    const V big = hn::Set(d, FLT_MAX), nbig = hn::Set(d, -FLT_MAX);
+    V plo[2] = {big, big}, phi[2] = {nbig, nbig};
+    f->in = 0;
+    f->vectors = 0;
+    const int axes[2] = {U, W};
+    for (size_t w = 0; w < nv; ++w) {
+      const uint64_t want = (filter >> (w * n)) & LaneMask();
+      if (want == 0) continue;
+      const size_t i = w * n;
+      M live = hn::RebindMask(d, hn::Ne(hn::Load(di, r.live + i), hn::Zero(di)));
+      if (want != LaneMask()) {
+        uint8_t want_bytes[8];
+        std::memcpy(want_bytes, &want, sizeof want_bytes);  // little-endian lane bits
+        live = hn::And(live, hn::LoadMaskBits(d, want_bytes));
+      }
+      if (hn::AllFalse(d, live)) continue;
+      const V ok = hn::Load(d, r.o[K] + i), inv = hn::Load(d, r.inv_k + i);
+      const V ta = hn::Mul(hn::Sub(hn::Set(d, p0), ok), inv);
+      const V tb = hn::Mul(hn::Sub(hn::Set(d, p1), ok), inv);
+      const V t_in = hn::Max(positive ? ta : tb, hn::Load(d, r.t0 + i));
+      const V t_out = hn::Min(positive ? tb : ta,
+                              hn::Min(hn::Load(d, r.t1 + i), hn::Load(d, r.best + i)));
+      const M in = hn::And(live, hn::Le(t_in, t_out));
+      if (hn::AllFalse(d, in)) continue;
+      uint8_t bytes[8] = {};
+      hn::StoreMaskBits(d, in, bytes);
+      uint64_t bits = 0;
+      std::memcpy(&bits, bytes, sizeof bits);
+      f->in |= (bits & LaneMask()) << i;
+      f->vectors |= uint64_t{1} << w;
+      for (int a = 0; a < 2; ++a) {
+        const int ax = axes[a];
+        const V o = hn::Load(d, r.o[ax] + i), dir = hn::Load(d, r.d[ax] + i);
+        const V pa = hn::Add(o, hn::Mul(t_in, dir)), pb = hn::Add(o, hn::Mul(t_out, dir));
+        const V e = hn::Set(d, err[ax]);
+        const V lo = hn::IfThenElse(in, hn::Sub(hn::Min(pa, pb), e), big);
+        const V hi = hn::IfThenElse(in, hn::Add(hn::Max(pa, pb), e), nbig);
+        hn::Store(lo, d, r.flo[a] + i);
+        hn::Store(hi, d, r.fhi[a] + i);
+        plo[a] = hn::Min(plo[a], lo);
+        phi[a] = hn::Max(phi[a], hi);
+      }
+    }
+    if (f->vectors == 0) return;
+    int c[4];
+    for (int a = 0; a < 2; ++a) {
+      const V lo = hn::MinOfLanes(d, plo[a]), hi = hn::MaxOfLanes(d, phi[a]);
+      c[2 * a] = hn::GetLane(CellOf(d, lo, lv, axes[a]));
+      c[2 * a + 1] = hn::GetLane(CellOf(d, hi, lv, axes[a]));
+    }
+    f->u0 = c[0];
+    f->u1 = c[1];
+    f->v0 = c[2];
+    f->v1 = c[3];
+  }
+
+  // The rest of footprint f, needed only where the slice has occupied cells: per vector the box
+  // of its rays (triangle culling) and its cell range on level lv.
+  HWY_INLINE void Refine(const Level& lv, SliceFoot* f) const {
+    const D d;
+    const size_t n = Lanes();
+    const int axes[2] = {U, W};
+    for (uint64_t vb = f->vectors; vb != 0; vb &= vb - 1) {
+      const size_t w = hwy::Num0BitsBelowLS1Bit_Nonzero64(vb);
+      const size_t i = w * n;
+      for (int a = 0; a < 2; ++a) {
+        const V lo = hn::MinOfLanes(d, hn::Load(d, r.flo[a] + i));
+        const V hi = hn::MaxOfLanes(d, hn::Load(d, r.fhi[a] + i));
+        f->lo[a][w] = hn::GetLane(lo);
+        f->hi[a][w] = hn::GetLane(hi);
+        f->c0[a][w] = hn::GetLane(CellOf(d, lo, lv, axes[a]));
+        f->c1[a][w] = hn::GetLane(CellOf(d, hi, lv, axes[a]));
+      }
+    }
+  }
+
+  // Vector w against one triangle (9 floats, x y z per vertex). uniform: broadcast in the
+  // packet's permutation; otherwise each lane picks its own axes.
+  HWY_INLINE void TestVector(size_t w, const float* p, int32_t id) {
+    const D d;
+    const DI di;
+    const size_t i = w * Lanes();
+    const M live = hn::RebindMask(d, hn::Ne(hn::Load(di, r.live + i), hn::Zero(di)));
+    if (kAny && hn::AllFalse(d, live)) return;  // every ray of the vector is occluded
+    V c[9];
+    if (uniform) {
+      for (int vtx = 0; vtx < 3; ++vtx) {
+        for (int a = 0; a < 3; ++a) c[3 * vtx + a] = hn::Set(d, p[3 * vtx + perm_k[a]]);
+      }
+    } else {
+      const VI kx = hn::Load(di, r.k[0] + i), ky = hn::Load(di, r.k[1] + i);
+      const VI kz = hn::Load(di, r.k[2] + i);
+      const VI one = hn::Set(di, 1);
+      const M kx0 = hn::RebindMask(d, hn::Eq(kx, hn::Zero(di)));
+      const M kx1 = hn::RebindMask(d, hn::Eq(kx, one));
+      const M ky0 = hn::RebindMask(d, hn::Eq(ky, hn::Zero(di)));
+      const M ky1 = hn::RebindMask(d, hn::Eq(ky, one));
+      const M kz0 = hn::RebindMask(d, hn::Eq(kz, hn::Zero(di)));
+      const M kz1 = hn::RebindMask(d, hn::Eq(kz, one));
+      for (int vtx = 0; vtx < 3; ++vtx) {
+        const V x = hn::Set(d, p[3 * vtx]), y = hn::Set(d, p[3 * vtx + 1]);
+        const V z = hn::Set(d, p[3 * vtx + 2]);
+        c[3 * vtx + 0] = PickAxis(kx0, kx1, x, y, z);
+        c[3 * vtx + 1] = PickAxis(ky0, ky1, x, y, z);
+        c[3 * vtx + 2] = PickAxis(kz0, kz1, x, y, z);
+      }
+    }
+    const V best = hn::Load(d, r.best + i);
+    tests += hn::CountTrue(d, live);
+    WatertightLanes<D> wt;
+    M m = WatertightTest<false>(d, c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7], c[8],
+                                hn::Load(d, r.wo[0] + i), hn::Load(d, r.wo[1] + i),
+                                hn::Load(d, r.wo[2] + i), hn::Load(d, r.shear[0] + i),
+                                hn::Load(d, r.shear[1] + i), hn::Load(d, r.shear[2] + i),
+                                hn::Load(d, r.tmin + i), best, &wt);
+    m = hn::And(m, live);
+    if (hn::AllFalse(d, m)) return;
+    if constexpr (kAny) {
+      // occluded (prim = 1): the lane is done
+      hn::Store(hn::IfThenZeroElse(hn::RebindMask(di, m), hn::Load(di, r.live + i)), di,
+                r.live + i);
+      hn::Store(hn::IfThenElse(hn::RebindMask(di, m), hn::Set(di, 1), hn::Load(di, r.prim + i)),
+                di, r.prim + i);
+    } else {
+      // the rule of IntersectPackets: t <= best was required; equal t needs a lower id
+      const VI prim = hn::Load(di, r.prim + i);
+      const VI idv = hn::Set(di, id);
+      const auto lower_id = hn::Or(hn::Lt(prim, hn::Zero(di)), hn::Lt(idv, prim));
+      const M beats =
+          hn::Or(hn::Lt(wt.t, best), hn::And(hn::Eq(wt.t, best), hn::RebindMask(d, lower_id)));
+      m = hn::And(m, beats);
+      if (hn::AllFalse(d, m)) return;
+      // u = V / det, v = W / det as the scalar code: V * (1 / det)
+      const V inv_det = hn::Div(hn::Set(d, 1.0f), wt.det);
+      hn::Store(hn::IfThenElse(m, wt.t, best), d, r.best + i);
+      hn::Store(hn::IfThenElse(hn::RebindMask(di, m), idv, prim), di, r.prim + i);
+      hn::Store(hn::IfThenElse(m, hn::Mul(wt.v, inv_det), hn::Load(d, r.bu + i)), d, r.bu + i);
+      hn::Store(hn::IfThenElse(m, hn::Mul(wt.w, inv_det), hn::Load(d, r.bv + i)), d, r.bv + i);
+    }
+  }
+
+  // Triangles [j, j + Lanes(dt)) of a leaf's packets: each against the vectors in `wide` whose
+  // slice box meets the triangle's bounding box (SIMD over triangles), then mailboxed per vector.
+  template <class DT>
+  HWY_INLINE void CullGroup(DT dt, const TriPacketSpan& span, size_t j, uint64_t wide,
+                            const SliceFoot& f) {
+    using VT = hn::Vec<DT>;
+    const size_t stride = span.stride();
+    const float* b = span.block + j;
+    const VT u0 = hn::LoadU(dt, b + size_t(U) * stride);
+    const VT u1 = hn::LoadU(dt, b + size_t(3 + U) * stride);
+    const VT u2 = hn::LoadU(dt, b + size_t(6 + U) * stride);
+    const VT v0 = hn::LoadU(dt, b + size_t(W) * stride);
+    const VT v1 = hn::LoadU(dt, b + size_t(3 + W) * stride);
+    const VT v2 = hn::LoadU(dt, b + size_t(6 + W) * stride);
+    // NaN vertices (padding, degenerate) fail every compare: never tested
+    const VT ulo = hn::Min(u0, hn::Min(u1, u2)), uhi = hn::Max(u0, hn::Max(u1, u2));
+    const VT vlo = hn::Min(v0, hn::Min(v1, v2)), vhi = hn::Max(v0, hn::Max(v1, v2));
+    uint64_t vecs[16] = {};  // per triangle of the group: vectors to test (bit w)
+    bool any = false;
+    for (uint64_t wb = wide; wb != 0; wb &= wb - 1) {
+      const size_t w = hwy::Num0BitsBelowLS1Bit_Nonzero64(wb);
+      const auto m = hn::And(
+          hn::And(hn::Le(ulo, hn::Set(dt, f.hi[0][w])), hn::Ge(uhi, hn::Set(dt, f.lo[0][w]))),
+          hn::And(hn::Le(vlo, hn::Set(dt, f.hi[1][w])), hn::Ge(vhi, hn::Set(dt, f.lo[1][w]))));
+      if (hn::AllFalse(dt, m)) continue;
+      any = true;
+      uint8_t bits[8] = {};
+      hn::StoreMaskBits(dt, m, bits);
+      const uint32_t mb = uint32_t(bits[0]) | uint32_t(bits[1]) << 8;
+      for (uint32_t t = mb; t != 0; t &= t - 1) {
+        vecs[hwy::Num0BitsBelowLS1Bit_Nonzero32(t)] |= uint64_t{1} << w;
+      }
+    }
+    if (!any) return;
+    for (size_t t = 0; t < hn::Lanes(dt); ++t) {
+      if (vecs[t] == 0) continue;
+      const int32_t id = span.ids[j + t];
+      const size_t slot = (uint32_t(id) * 2654435761u) >> 22;  // 10 bits: kMailbox entries
+      const bool mine = sc.mb_id[slot] == id && sc.mb_stamp[slot] == sc.serial;
+      const uint64_t done = mine ? sc.mb_tested[slot] : 0;
+      const uint64_t todo = vecs[t] & ~done;
+      if (todo == 0) continue;
+      float p[9];
+      for (int c = 0; c < 9; ++c) p[c] = span.block[size_t(c) * stride + j + t];
+      for (uint64_t wb = todo; wb != 0; wb &= wb - 1) {
+        TestVector(hwy::Num0BitsBelowLS1Bit_Nonzero64(wb), p, id);
+      }
+      sc.mb_id[slot] = id;
+      sc.mb_stamp[slot] = sc.serial;
+      sc.mb_tested[slot] = done | todo;
+    }
+  }
+
+  // The triangles of one leaf against the vectors with a ray in `rays` (bit i = ray i passes
+  // the leaf): N rays x 1 triangle, each triangle culled by the vector's box in this slice and
+  // mailboxed per vector.
+  HWY_INLINE void VisitLeaf(uint32_t leaf, uint64_t rays, const SliceFoot& f) {
+    const TriPacketSpan span = g.packets.Cell(leaf);
+    if (span.count == 0) return;
+    const size_t L = Lanes();
+    uint64_t wide = 0;
+    for (size_t w = 0; w < nv; ++w) {
+      if (((rays >> (w * L)) & LaneMask()) != 0) wide |= uint64_t{1} << w;
+    }
+    const size_t lanes = span.lanes();
+    size_t j = 0;
+    if constexpr (HWY_MAX_BYTES >= 32) {
+      const hn::CappedTag<float, 8> d8;
+      if (hn::Lanes(d8) == 8) {
+        for (; j + 8 <= lanes; j += 8) CullGroup(d8, span, j, wide, f);
+      }
+    }
+    const hn::CappedTag<float, 4> d4;
+    for (; j < lanes; j += hn::Lanes(d4)) CullGroup(d4, span, j, wide, f);
+  }
+
+  // Marks, for footprint f of a level, the cells each vector's box covers with the vector's rays
+  // in the slice (in `marks`, a ray mask per cell of a kStride x kStride window, all zero on
+  // entry and on return; `list` holds the marked cells); returns false, marking nothing, if the
+  // footprint is wider than the window. Then calls visit(cell (u, v), rays) per marked cell.
+  template <int kStride, class Visit>
+  HWY_INLINE bool ForMarkedCells(const SliceFoot& f, uint64_t* marks, uint16_t* list,
+                                 const Visit& visit) {
+    const int wu = f.u1 - f.u0 + 1, wv = f.v1 - f.v0 + 1;
+    if (wu > kStride || wv > kStride) return false;
+    const size_t L = Lanes();
+    size_t n = 0;
+    for (uint64_t vb = f.vectors; vb != 0; vb &= vb - 1) {
+      const size_t w = hwy::Num0BitsBelowLS1Bit_Nonzero64(vb);
+      const uint64_t bits = f.in & (LaneMask() << (w * L));
+      for (int cv = f.c0[1][w]; cv <= f.c1[1][w]; ++cv) {
+        uint64_t* row = marks + (cv - f.v0) * kStride - f.u0;
+        for (int cu = f.c0[0][w]; cu <= f.c1[0][w]; ++cu) {
+          if (row[cu] == 0) list[n++] = uint16_t((cv - f.v0) * kStride + (cu - f.u0));
+          row[cu] |= bits;
+        }
+      }
+    }
+    cells += n;
+    for (size_t k = 0; k < n; ++k) {
+      const int local = list[k];
+      const uint64_t rays = marks[local];
+      marks[local] = 0;
+      visit(f.u0 + local % kStride, f.v0 + local / kStride, rays);
+    }
+    return true;
+  }
+
+  // A refined top-level cell, entered by `rays`: its 8 sub-slices along K.
+  HWY_INLINE bool VisitSubGrid(const SubGridRecord& rec, uint64_t rays) {
+    Level lv;
+    for (int a = 0; a < 3; ++a) {
+      lv.lo[a] = rec.lo[a];
+      lv.inv_cs[a] = rec.inv_cell_size[a];
+      lv.res[a] = kSubRes;
+    }
+    SliceFoot f;
+    uint64_t marks[kSubRes * kSubRes] = {};
+    uint16_t list[kSubRes * kSubRes];
+    for (int step = 0; step < kSubRes; ++step) {
+      const int k = positive ? step : kSubRes - 1 - step;
+      const float p0 = rec.lo[K] + float(k) * rec.cell_size[K];
+      const float p1 = rec.lo[K] + float(k + 1) * rec.cell_size[K];
+      Footprint(p0 - err[K], p1 + err[K], lv, rays, &f);
+      if (f.vectors == 0) continue;
+      Refine(lv, &f);
+      const bool ok = ForMarkedCells<kSubRes>(f, marks, list, [&](int cu, int cv, uint64_t in) {
+        int c[3];
+        c[K] = k;
+        c[U] = cu;
+        c[W] = cv;
+        if (rec.Occupied(c[0], c[1], c[2])) VisitLeaf(rec.Leaf(c[0], c[1], c[2]), in, f);
+      });
+      HWY_DASSERT(ok);  // 8 x 8 sub-cells always fit
+      (void)ok;
+    }
+    return true;
+  }
+
+  // Returns false if the packet is refused (not coherent, or too wide to pay); then nothing was
+  // written to the output.
+  HWY_INLINE bool Trace(const RayStreamView& rays, size_t first, size_t n) {
+    const D d;
+    const DI di;
+    const size_t L = Lanes();
+    nv = (n + L - 1) / L;
+    if (nv * L > kPR) return false;
+    const V zero = hn::Zero(d), one = hn::Set(d, 1.0f);
+    const V inf = hn::Set(d, std::numeric_limits<float>::infinity());
+    const V flt_max = hn::Set(d, FLT_MAX), min_dir = hn::Set(d, kMinDirection);
+    V sum_d[3] = {zero, zero, zero};
+    V omax[3] = {zero, zero, zero};
+    size_t n_valid = 0;
+    for (size_t w = 0; w < nv; ++w) {
+      const size_t i = w * L;
+      const size_t at = first + i;
+      const M in_packet = hn::FirstN(d, n - i);
+      V o[3], dir[3];
+      o[0] = hn::LoadU(d, rays.ox + at);
+      o[1] = hn::LoadU(d, rays.oy + at);
+      o[2] = hn::LoadU(d, rays.oz + at);
+      dir[0] = hn::LoadU(d, rays.dx + at);
+      dir[1] = hn::LoadU(d, rays.dy + at);
+      dir[2] = hn::LoadU(d, rays.dz + at);
+      const V tmin = hn::LoadU(d, rays.tmin + at), tmax = hn::LoadU(d, rays.tmax + at);
+      // RayIsValid, non-empty (tmin, tmax] (the stream DDA's SetupVector)
+      M valid = in_packet;
+      for (int a = 0; a < 3; ++a) {
+        valid = hn::And(valid, hn::And(hn::Lt(hn::Abs(o[a]), inf), hn::Lt(hn::Abs(dir[a]), inf)));
+      }
+      valid = hn::And(valid, hn::Or(hn::Or(hn::Ge(hn::Abs(dir[0]), min_dir),
+                                           hn::Ge(hn::Abs(dir[1]), min_dir)),
+                                    hn::Ge(hn::Abs(dir[2]), min_dir)));
+      const V tmax_f = hn::IfThenElse(hn::Gt(tmax, flt_max), flt_max, tmax);
+      valid = hn::And(valid, hn::Lt(tmin, tmax_f));
+      // slab clip (parallel axes: origin inside the slab)
+      V t0 = tmin, t1 = tmax_f;
+      for (int a = 0; a < 3; ++a) {
+        const V lo = hn::Set(d, grid.lo[a]), hi = hn::Set(d, grid.hi[a]);
+        const V rcp = hn::Div(one, dir[a]);
+        const M parallel = hn::Not(hn::And(hn::Ne(dir[a], zero), hn::Lt(hn::Abs(rcp), inf)));
+        const M inside = hn::And(hn::Ge(o[a], lo), hn::Le(o[a], hi));
+        valid = hn::And(valid, hn::Or(hn::Not(parallel), inside));
+        const V ta = hn::Mul(hn::Sub(lo, o[a]), rcp), tb = hn::Mul(hn::Sub(hi, o[a]), rcp);
+        t0 = hn::IfThenElse(parallel, t0, hn::Max(t0, hn::Min(ta, tb)));
+        t1 = hn::IfThenElse(parallel, t1, hn::Min(t1, hn::Max(ta, tb)));
+      }
+      valid = hn::And(valid, hn::Le(t0, t1));
+      // zero the invalid lanes' geometry so that sums and bounds stay finite
+      for (int a = 0; a < 3; ++a) {
+        o[a] = hn::IfThenElseZero(valid, o[a]);
+        dir[a] = hn::IfThenElseZero(valid, dir[a]);
+        hn::Store(o[a], d, r.o[a] + i);
+        hn::Store(dir[a], d, r.d[a] + i);
+        sum_d[a] = hn::Add(sum_d[a], dir[a]);
+        omax[a] = hn::Max(omax[a], hn::Abs(o[a]));
+      }
+      t0 = hn::IfThenElseZero(valid, t0);
+      t1 = hn::IfThenElseZero(valid, t1);
+      hn::Store(t0, d, r.t0 + i);
+      hn::Store(t1, d, r.t1 + i);
+      hn::Store(tmin, d, r.tmin + i);
+      hn::Store(tmax_f, d, r.tmax + i);
+      hn::Store(tmax_f, d, r.best + i);
+      hn::Store(hn::Set(di, -1), di, r.prim + i);
+      hn::Store(zero, d, r.bu + i);
+      hn::Store(zero, d, r.bv + i);
+      hn::Store(hn::VecFromMask(di, hn::RebindMask(di, valid)), di, r.live + i);
+      n_valid += hn::CountTrue(d, valid);
+      // watertight setup (PrepareWatertightRay lane by lane, as the stream DDA)
+      const V ax = hn::Abs(dir[0]), ay = hn::Abs(dir[1]), az = hn::Abs(dir[2]);
+      const M y_gt_x = hn::Gt(ay, ax);
+      const M kz2 = hn::Gt(az, hn::IfThenElse(y_gt_x, ay, ax));
+      const M kz1 = hn::AndNot(kz2, y_gt_x);
+      const VI kz = hn::IfThenElse(hn::RebindMask(di, kz2), hn::Set(di, 2),
+                                   hn::IfThenElseZero(hn::RebindMask(di, kz1), hn::Set(di, 1)));
+      const V dkz = hn::IfThenElse(kz2, dir[2], hn::IfThenElse(kz1, dir[1], dir[0]));
+      const VI kx0 =
+          hn::IfThenElse(hn::Eq(kz, hn::Set(di, 2)), hn::Zero(di), hn::Add(kz, hn::Set(di, 1)));
+      const VI ky0 =
+          hn::IfThenElse(hn::Eq(kx0, hn::Set(di, 2)), hn::Zero(di), hn::Add(kx0, hn::Set(di, 1)));
+      const auto swap = hn::RebindMask(di, hn::Lt(dkz, zero));
+      const VI kx = hn::IfThenElse(swap, ky0, kx0), ky = hn::IfThenElse(swap, kx0, ky0);
+      auto pick = [&](const VI& k, const V* v) {
+        return hn::IfThenElse(
+            hn::RebindMask(d, hn::Eq(k, hn::Zero(di))), v[0],
+            hn::IfThenElse(hn::RebindMask(d, hn::Eq(k, hn::Set(di, 1))), v[1], v[2]));
+      };
+      hn::Store(kx, di, r.k[0] + i);
+      hn::Store(ky, di, r.k[1] + i);
+      hn::Store(kz, di, r.k[2] + i);
+      hn::Store(hn::Div(pick(kx, dir), dkz), d, r.shear[0] + i);
+      hn::Store(hn::Div(pick(ky, dir), dkz), d, r.shear[1] + i);
+      hn::Store(hn::Div(one, dkz), d, r.shear[2] + i);
+      hn::Store(pick(kx, o), d, r.wo[0] + i);
+      hn::Store(pick(ky, o), d, r.wo[1] + i);
+      hn::Store(pick(kz, o), d, r.wo[2] + i);
+    }
+    if (n_valid == 0) {
+      Write(first, n);
+      return true;
+    }
+    // major axis: the largest |sum of d| over the valid rays; every valid ray must step the
+    // same way along it (and not be parallel to it)
+    float sums[3], omaxs[3];
+    for (int a = 0; a < 3; ++a) {
+      sums[a] = hn::GetLane(hn::SumOfLanes(d, sum_d[a]));
+      omaxs[a] = hn::GetLane(hn::MaxOfLanes(d, omax[a]));
+    }
+    K = 0;
+    for (int a = 1; a < 3; ++a) {
+      if (std::abs(sums[a]) > std::abs(sums[K])) K = a;
+    }
+    U = K == 0 ? 1 : 0;
+    W = K == 2 ? 1 : 2;
+    positive = sums[K] > 0.0f;
+    const V min_k = hn::Set(d, kMinDirection);
+    uint64_t k0 = ~uint64_t{0};
+    bool same_k = true;
+    V tfar = zero;
+    for (size_t w = 0; w < nv; ++w) {
+      const size_t i = w * L;
+      const M valid = hn::RebindMask(d, hn::Ne(hn::Load(di, r.live + i), hn::Zero(di)));
+      const V dk = hn::Load(d, r.d[K] + i);
+      const M ok = positive ? hn::Ge(dk, min_k) : hn::Le(dk, hn::Neg(min_k));
+      if (!hn::AllTrue(d, hn::Or(ok, hn::Not(valid)))) return false;
+      hn::Store(hn::IfThenElse(valid, hn::Div(one, dk), zero), d, r.inv_k + i);
+      tfar = hn::Max(tfar, hn::IfThenElseZero(valid, hn::Load(d, r.t1 + i)));
+      // one permutation for the whole packet?
+      for (size_t l = 0; l < L; ++l) {
+        if (r.live[i + l] == 0) continue;
+        const uint64_t key = uint64_t(r.k[0][i + l]) | uint64_t(r.k[1][i + l]) << 2 |
+                             uint64_t(r.k[2][i + l]) << 4;
+        if (k0 == ~uint64_t{0}) k0 = key;
+        same_k = same_k && key == k0;
+      }
+    }
+    uniform = same_k;
+    perm_k[0] = int(k0 & 3);
+    perm_k[1] = int((k0 >> 2) & 3);
+    perm_k[2] = int((k0 >> 4) & 3);
+    // rounding of the footprint: o + t d with |t d| <= t_far |d| (|d| summed: an upper bound)
+    const float t_far = hn::GetLane(hn::MaxOfLanes(d, tfar));
+    for (int a = 0; a < 3; ++a) {
+      float dmax = 0.0f;
+      for (size_t i = 0; i < nv * L; ++i) dmax = std::max(dmax, std::abs(r.d[a][i]));
+      const float scale = omaxs[a] + t_far * dmax + std::max(std::abs(grid.lo[a]), std::abs(grid.hi[a]));
+      err[a] = 4e-7f * scale + 1e-4f * grid.cell_size[a];
+    }
+    // slices along K covered by some segment, +-1 for the rounding of the entry cells
+    int s_lo = grid.res[K], s_hi = -1;
+    for (size_t i = 0; i < nv * L; ++i) {
+      if (r.live[i] == 0) continue;
+      for (const float t : {r.t0[i], r.t1[i]}) {
+        const float f = (r.o[K][i] + t * r.d[K][i] - grid.lo[K]) * grid.inv_cell_size[K];
+        const int s = f <= 0.0f ? 0 : f >= float(grid.res[K]) ? grid.res[K] - 1 : int(f);
+        s_lo = std::min(s_lo, s);
+        s_hi = std::max(s_hi, s);
+      }
+    }
+    s_lo = std::max(0, s_lo - 1);
+    s_hi = std::min(grid.res[K] - 1, s_hi + 1);
+    ++sc.serial;  // a new mailbox
+    const int stride[3] = {1, grid.res[0], grid.res[0] * grid.res[1]};
+    const uint64_t* occ = grid.occupancy.get();
+    const TwoLevelGrid* two = g.two_level;
+    // budget of marked cells before the packet is given to the stream DDA (each ray marks at
+    // least one cell per slice it passes: a bound on diverging rays)
+    const uint64_t budget = 4 * uint64_t(n_valid) * uint64_t(s_hi - s_lo + 1) + 64;
+    Level top;
+    for (int a = 0; a < 3; ++a) {
+      top.lo[a] = grid.lo[a];
+      top.inv_cs[a] = grid.inv_cell_size[a];
+      top.res[a] = grid.res[a];
+    }
+    SliceFoot f;
+    for (int step = 0; step <= s_hi - s_lo; ++step) {
+      const int s = positive ? s_lo + step : s_hi - step;
+      const float p0 = grid.lo[K] + float(s) * grid.cell_size[K];
+      const float p1 = grid.lo[K] + float(s + 1) * grid.cell_size[K];
+      Footprint(p0 - err[K], p1 + err[K], top, ~uint64_t{0}, &f);
+      if (f.vectors != 0) {
+        const size_t row0 = size_t(s) * stride[K];
+        auto visit = [&](int cu, int cv, uint64_t in) {
+          const size_t cell = row0 + size_t(cv) * stride[W] + size_t(cu) * stride[U];
+          if (((occ[cell >> 6] >> (cell & 63)) & 1u) == 0) return;
+          if (two != nullptr && two->Refined(cell)) {
+            VisitSubGrid(two->Record(cell), in);
+          } else {
+            VisitLeaf(uint32_t(cell), in, f);
+          }
+        };
+        // a small box: its occupancy first (most slices of a packet are empty), then every
+        // cell with all the slice's rays; a larger one: each ray marks its own cells
+        const int area = (f.u1 - f.u0 + 1) * (f.v1 - f.v0 + 1);
+        if (area <= kSmallBox) {
+          bool any = false;
+          for (int cv = f.v0; cv <= f.v1 && !any; ++cv) {
+            for (int cu = f.u0; cu <= f.u1; ++cu) {
+              const size_t cell = row0 + size_t(cv) * stride[W] + size_t(cu) * stride[U];
+              any = any || ((occ[cell >> 6] >> (cell & 63)) & 1u) != 0;
+            }
+          }
+          cells += uint64_t(area);
+          if (any) {
+            Refine(top, &f);
+            for (int cv = f.v0; cv <= f.v1; ++cv) {
+              for (int cu = f.u0; cu <= f.u1; ++cu) visit(cu, cv, f.in);
+            }
+          }
+        } else {
+          Refine(top, &f);
+          if (!ForMarkedCells<kMaxFoot>(f, sc.marks, sc.list, visit)) return false;
+        }
+        if (cells > budget) return false;
+      }
+      // rays whose candidate (or segment end) lies before the slice's far plane are done; the
+      // plane's t is the per-ray DDA's boundary t, bit for bit ((lo + b * cell - o) * (1 / d)),
+      // so a packet never stops a ray before the per-ray walk would
+      const float far = positive ? p1 : p0;
+      bool any_live = false;
+      for (size_t w = 0; w < nv; ++w) {
+        const size_t i = w * L;
+        VI live = hn::Load(di, r.live + i);
+        const M m = hn::RebindMask(d, hn::Ne(live, hn::Zero(di)));
+        if (hn::AllFalse(d, m)) continue;
+        const V t_far_plane = hn::Mul(hn::Sub(hn::Set(d, far), hn::Load(d, r.o[K] + i)),
+                                      hn::Load(d, r.inv_k + i));
+        const V end = hn::Min(hn::Load(d, r.best + i), hn::Load(d, r.t1 + i));
+        const M done = hn::Le(end, t_far_plane);
+        live = hn::IfThenZeroElse(hn::RebindMask(di, done), live);
+        hn::Store(live, di, r.live + i);
+        any_live = any_live || !hn::AllFalse(d, hn::AndNot(done, m));
+      }
+      if (!any_live) break;
+    }
+    Write(first, n);
+    return true;
+  }
+
+  // Results of rays [first, first + n).
+  HWY_INLINE void Write(size_t first, size_t n) {
+    const D d;
+    const DI di;
+    const size_t L = Lanes();
+    const V zero = hn::Zero(d);
+    const V inf = hn::Set(d, std::numeric_limits<float>::infinity());
+    for (size_t w = 0; w < nv; ++w) {
+      const size_t i = w * L;
+      const VI prim = hn::Load(di, r.prim + i);
+      const auto hit = hn::Gt(prim, hn::Set(di, -1));
+      if constexpr (kAny) {
+        for (size_t l = 0; l < L && i + l < n; ++l) occluded[first + i + l] = r.prim[i + l] > 0;
+      } else {
+        const M live = hn::FirstN(d, n - i);
+        const M hf = hn::RebindMask(d, hit);
+        const V u = hn::Load(d, r.bu + i), v = hn::Load(d, r.bv + i);
+        hn::BlendedStore(hn::IfThenElse(hf, hn::Load(d, r.best + i), inf), live, d,
+                         hits->t + first + i);
+        hn::BlendedStore(hn::IfThenElse(hf, u, zero), live, d, hits->u + first + i);
+        hn::BlendedStore(hn::IfThenElse(hf, v, zero), live, d, hits->v + first + i);
+        hn::BlendedStore(prim, hn::RebindMask(di, live), di, hits->prim + first + i);
+      }
+    }
+    if (stats != nullptr) {
+      stats->rays += n;
+      stats->cell_steps += cells;
+      stats->triangle_tests += tests;
+    }
+  }
+
+  const HitStreamView* hits = nullptr;
+  int32_t* occluded = nullptr;
+};
+
+// One packet, rays [first, first + n), n <= kCoherentPacketRays. False: refused, nothing
+// written (the caller traces it with the stream DDA).
+bool IntersectPacket(const DdaGrid& g, const RayStreamView& rays, size_t first, size_t n,
+                     const HitStreamView& hits, TraceStats* stats, detail::PacketScratch* sc) {
+  PacketRays r;
+  PacketTracer<false> tracer{g, *g.grid, r, *sc, stats};
+  tracer.hits = &hits;
+  return tracer.Trace(rays, first, n);
+}
+
+bool OccludedPacket(const DdaGrid& g, const RayStreamView& rays, size_t first, size_t n,
+                    int32_t* occluded, TraceStats* stats, detail::PacketScratch* sc) {
+  PacketRays r;
+  PacketTracer<true> tracer{g, *g.grid, r, *sc, stats};
+  tracer.occluded = occluded;
+  return tracer.Trace(rays, first, n);
+}
+
+}  // namespace HWY_NAMESPACE
+}  // namespace rs
+HWY_AFTER_NAMESPACE();
+
+#if HWY_ONCE
+namespace rs {
+
+HWY_EXPORT(IntersectPacket);
+HWY_EXPORT(OccludedPacket);
+
+namespace {
+
+RayStreamView Slice(const RayStreamView& rays, size_t first, size_t n) {
+  RayStreamView v;
+  v.ox = rays.ox + first;
+  v.oy = rays.oy + first;
+  v.oz = rays.oz + first;
+  v.dx = rays.dx + first;
+  v.dy = rays.dy + first;
+  v.dz = rays.dz + first;
+  v.tmin = rays.tmin + first;
+  v.tmax = rays.tmax + first;
+  v.size = n;
+  return v;
+}
+
+void InitScratch(detail::PacketScratch* sc) {
+  std::memset(sc->marks, 0, sizeof sc->marks);
+  std::memset(sc->mb_stamp, 0, sizeof sc->mb_stamp);
+  sc->serial = 0;
+}
+
+// Packets in order; runs of refused packets go to `rest(first, n)` (the stream DDA) together,
+// so that its lanes stay busy across them.
+template <class Packet, class Rest>
+void ForPackets(const RayStreamView& rays, TraceStats* stats, const Packet& packet,
+                const Rest& rest) {
+  size_t run = 0, run_n = 0;
+  for (size_t first = 0; first < rays.size; first += kCoherentPacketRays) {
+    const size_t n = std::min(kCoherentPacketRays, rays.size - first);
+    if (packet(first, n)) {
+      if (stats != nullptr) ++stats->packets;
+      if (run_n != 0) rest(run, run_n);
+      run_n = 0;
+    } else {
+      if (stats != nullptr) ++stats->packets_refused;
+      if (run_n == 0) run = first;
+      run_n += n;
+    }
+  }
+  if (run_n != 0) rest(run, run_n);
+}
+
+}  // namespace
+
+void IntersectCoherent(const DdaGrid& g, const RayStreamView& rays, const HitStreamView& hits,
+                       const DdaOptions& options, TraceStats* stats) {
+  if (rays.size < kCoherentPacketRays || g.empty() || !g.simd_ok) {
+    return IntersectStreamDda(g, rays, hits, options, stats);
+  }
+  detail::PacketScratch sc;
+  InitScratch(&sc);
+  ForPackets(
+      rays, stats,
+      [&](size_t first, size_t n) {
+        return HWY_DYNAMIC_DISPATCH(IntersectPacket)(g, rays, first, n, hits, stats, &sc);
+      },
+      [&](size_t first, size_t n) {
+        HitStreamView out = hits;
+        out.t += first;
+        out.u += first;
+        out.v += first;
+        out.prim += first;
+        out.size = n;
+        IntersectStreamDda(g, Slice(rays, first, n), out, options, stats);
+      });
+}
+
+void OccludedCoherent(const DdaGrid& g, const RayStreamView& rays, int32_t* occluded,
+                      const DdaOptions& options, TraceStats* stats) {
+  if (rays.size < kCoherentPacketRays || g.empty() || !g.simd_ok) {
+    return OccludedStreamDda(g, rays, occluded, options, stats);
+  }
+  detail::PacketScratch sc;
+  InitScratch(&sc);
+  ForPackets(
+      rays, stats,
+      [&](size_t first, size_t n) {
+        return HWY_DYNAMIC_DISPATCH(OccludedPacket)(g, rays, first, n, occluded, stats, &sc);
+      },
+      [&](size_t first, size_t n) {
+        OccludedStreamDda(g, Slice(rays, first, n), occluded + first, options, stats);
+      });
+}
+
+}  // namespace rs
+#endif  // HWY_ONCE

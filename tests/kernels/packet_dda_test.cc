@@ -1,0 +1,446 @@
+// Coherent 64-ray packets (kernels/packet_dda.h) on every compiled target against the scalar DDA
+// (TraceClosestTwoLevel / TraceAnyTwoLevel): same triangle, t/u/v bit for bit, same occlusion,
+// on camera rays in scanline and tile order, shadow rays to a point light, parallel bundles on
+// cell boundaries with +-0 components, rays at the vertices and edges of a closed sphere, NaN
+// and Inf rays inside coherent packets, 1e5 offsets and 1e-4 scales, flat and two-level grids;
+// incoherent packets fall back to the stream DDA; rs::Accel with packets on equals packets off.
+#include <doctest/doctest.h>
+
+#include <algorithm>
+#include <array>
+#include <cmath>
+#include <cstdint>
+#include <cstring>
+#include <limits>
+#include <string>
+#include <vector>
+
+#include "bench/icosphere.h"
+#include "include/raystream/raystream.h"
+#include "kernels/accel_impl.h"
+#include "kernels/dda.h"
+#include "kernels/dda_simd.h"
+#include "kernels/grid.h"
+#include "kernels/packet_dda.h"
+#include "kernels/triangle.h"
+#include "kernels/two_level.h"
+#include "scenes/load.h"
+#include "streams/ray_stream.h"
+#include "tests/kernels/geometry_util.h"
+#include "tests/test_util.h"
+
+namespace rs {
+namespace {
+
+using test::F;
+using test::Rng;
+using test::Soup;
+
+constexpr float kInf = std::numeric_limits<float>::infinity();
+constexpr float kNaN = std::numeric_limits<float>::quiet_NaN();
+
+bool SameBits(float a, float b) { return std::memcmp(&a, &b, sizeof a) == 0; }
+
+// A grid (flat if threshold < 0, else two-level with every cell above `threshold` refined).
+struct Built {
+  TriangleSoA tris;
+  Grid grid;
+  TwoLevelGrid two;
+  DdaGrid dda;
+  Built(const MeshView& mesh, float lambda, int threshold) {
+    BuildTriangleSoA(mesh, &tris);
+    BuildGrid(tris, lambda, 512, &grid);
+    if (threshold >= 0) BuildTwoLevel(grid, tris, threshold, false, GridCostModel{}, &two);
+    BuildDdaGrid(grid, &two, tris, &dda);
+  }
+  Built(const Built&) = delete;
+  Built& operator=(const Built&) = delete;
+};
+
+struct Ray {
+  float o[3];
+  float d[3];
+  float tmin = 0.0f;
+  float tmax = kInf;
+};
+
+RayStream MakeStream(const std::vector<Ray>& rays) {
+  RayStream s;
+  for (const Ray& r : rays) {
+    s.Push(r.o[0], r.o[1], r.o[2], r.d[0], r.d[1], r.d[2], r.tmin, r.tmax, 0, 1, 1, 1, 0,
+           RayKind::kPrimary);
+  }
+  s.FillPadding();
+  return s;
+}
+
+// Pinhole camera rays over w x h pixels from `eye` towards `at`, in scanline order or in 8x8
+// tiles (64 rays: one packet per tile).
+std::vector<Ray> CameraRays(const float eye[3], const float at[3], int w, int h, bool tiles) {
+  double f[3], up[3] = {0, 1, 0}, rt[3], u[3];
+  double len = 0;
+  for (int a = 0; a < 3; ++a) {
+    f[a] = double(at[a]) - eye[a];
+    len += f[a] * f[a];
+  }
+  len = std::sqrt(len);
+  for (double& c : f) c /= len;
+  if (std::fabs(f[1]) > 0.99) {
+    up[1] = 0;
+    up[2] = 1;
+  }
+  rt[0] = f[1] * up[2] - f[2] * up[1];
+  rt[1] = f[2] * up[0] - f[0] * up[2];
+  rt[2] = f[0] * up[1] - f[1] * up[0];
+  const double rl = std::sqrt(rt[0] * rt[0] + rt[1] * rt[1] + rt[2] * rt[2]);
+  for (double& c : rt) c /= rl;
+  u[0] = rt[1] * f[2] - rt[2] * f[1];
+  u[1] = rt[2] * f[0] - rt[0] * f[2];
+  u[2] = rt[0] * f[1] - rt[1] * f[0];
+  const double tan_half = std::tan(30.0 * 3.14159265358979 / 180.0);
+  const double aspect = double(w) / h;
+  std::vector<Ray> rays;
+  auto push = [&](int x, int y) {
+    const double sx = (2.0 * (x + 0.5) / w - 1.0) * tan_half * aspect;
+    const double sy = (1.0 - 2.0 * (y + 0.5) / h) * tan_half;
+    Ray r;
+    for (int a = 0; a < 3; ++a) {
+      r.o[a] = eye[a];
+      r.d[a] = F(f[a] + sx * rt[a] + sy * u[a]);
+    }
+    rays.push_back(r);
+  };
+  if (tiles) {
+    for (int ty = 0; ty < h; ty += 8) {
+      for (int tx = 0; tx < w; tx += 8) {
+        for (int y = ty; y < std::min(h, ty + 8); ++y) {
+          for (int x = tx; x < std::min(w, tx + 8); ++x) push(x, y);
+        }
+      }
+    }
+  } else {
+    for (int y = 0; y < h; ++y) {
+      for (int x = 0; x < w; ++x) push(x, y);
+    }
+  }
+  return rays;
+}
+
+// Scalar oracle on one structure.
+struct Oracle {
+  std::vector<RayHit> hit;
+  std::vector<int32_t> any;
+  size_t hits = 0, occluded = 0;
+};
+
+Oracle RunOracle(const Built& b, const std::vector<Ray>& rays) {
+  Oracle o;
+  o.hit.resize(rays.size());
+  o.any.resize(rays.size());
+  for (size_t i = 0; i < rays.size(); ++i) {
+    const Ray& r = rays[i];
+    TraceClosestTwoLevel(b.grid, b.two, b.tris, r.o[0], r.o[1], r.o[2], r.d[0], r.d[1], r.d[2],
+                         r.tmin, r.tmax, &o.hit[i], nullptr);
+    o.any[i] = TraceAnyTwoLevel(b.grid, b.two, b.tris, r.o[0], r.o[1], r.o[2], r.d[0], r.d[1],
+                                r.d[2], r.tmin, r.tmax, nullptr)
+                   ? 1
+                   : 0;
+    o.hits += o.hit[i].prim >= 0;
+    o.occluded += o.any[i];
+  }
+  return o;
+}
+
+// Shadow rays from the oracle's hits (pulled back towards the origin by a relative 1e-4) to
+// `light`, tmax just short of it; misses keep a ray that starts at the light (never occluded).
+std::vector<Ray> ShadowRays(const std::vector<Ray>& primary, const Oracle& o, const float light[3]) {
+  std::vector<Ray> rays;
+  for (size_t i = 0; i < primary.size(); ++i) {
+    if (o.hit[i].prim < 0) continue;
+    const Ray& p = primary[i];
+    Ray r;
+    double dist = 0;
+    for (int a = 0; a < 3; ++a) {
+      r.o[a] = F(p.o[a] + double(o.hit[i].t) * (1.0 - 1e-4) * p.d[a]);
+      r.d[a] = F(double(light[a]) - r.o[a]);
+      dist += double(r.d[a]) * r.d[a];
+    }
+    r.tmin = 0.0f;
+    r.tmax = F(1.0 - 1e-5);  // d reaches the light at t = 1
+    (void)dist;
+    rays.push_back(r);
+  }
+  return rays;
+}
+
+// Packets of parallel rays (d along an axis, the other components +0 or -0, or slightly
+// tilted) whose origins lie on cell boundary planes and edges of the grid.
+std::vector<Ray> BoundaryBundles(Rng& rng, const Built& b) {
+  std::vector<Ray> rays;
+  const Grid& g = b.grid;
+  auto boundary = [&](int a, int k) { return F(double(g.lo[a]) + double(k) * g.cell_size[a]); };
+  for (int axis = 0; axis < 3; ++axis) {
+    for (const float sign : {1.0f, -1.0f}) {
+      for (int kind = 0; kind < 3; ++kind) {
+        const int a1 = (axis + 1) % 3, a2 = (axis + 2) % 3;
+        for (int i = 0; i < 64; ++i) {
+          Ray r;
+          r.d[axis] = sign;
+          r.d[a1] = kind == 0 ? 0.0f : kind == 1 ? -0.0f : F(1e-3 * (i % 8));
+          r.d[a2] = kind == 2 ? F(-1e-3 * (i / 8)) : (i % 2 ? 0.0f : -0.0f);
+          r.o[axis] = sign > 0 ? g.lo[axis] - 0.5f : g.hi[axis] + 0.5f;
+          r.o[a1] = boundary(a1, int(rng.Below(uint32_t(g.res[a1] + 1))));
+          r.o[a2] = i % 3 == 0 ? boundary(a2, int(rng.Below(uint32_t(g.res[a2] + 1))))
+                               : rng.UniformF(g.lo[a2], g.hi[a2]);
+          rays.push_back(r);
+        }
+      }
+    }
+  }
+  return rays;
+}
+
+// Every target: IntersectCoherent / OccludedCoherent against the oracle, bit for bit; returns
+// the packets traced as packets (dispatch target) and checks that some were.
+struct PacketStats {
+  uint64_t packets = 0, refused = 0;
+};
+
+PacketStats CheckCoherent(const Built& b, const std::vector<Ray>& rays, const std::string& what) {
+  const Oracle o = RunOracle(b, rays);
+  const size_t n = rays.size();
+  RayStream stream = MakeStream(rays);
+  DdaOptions options;
+  PacketStats ps;
+  test::ForEachTarget([&](const char* target) {
+    INFO(what, ": target ", std::string(target), ", rays ", n);
+    HitStream hits(n);
+    hits.Resize(n);
+    hits.Reset();
+    const HitStreamView hv = hits.view();
+    for (size_t i = 0; i < n; ++i) {  // garbage that must be overwritten
+      hv.t[i] = 7.0f;
+      hv.prim[i] = 3;
+    }
+    TraceStats st;
+    IntersectCoherent(b.dda, stream.view(), hv, options, &st);
+    size_t bad = 0;
+    for (size_t i = 0; i < n; ++i) {
+      const RayHit& e = o.hit[i];
+      if (e.prim == hv.prim[i] && SameBits(e.t, hv.t[i]) && SameBits(e.u, hv.u[i]) &&
+          SameBits(e.v, hv.v[i])) {
+        continue;
+      }
+      if (++bad <= 3) {
+        const Ray& r = rays[i];
+        INFO("ray ", i, " o ", r.o[0], " ", r.o[1], " ", r.o[2], " d ", r.d[0], " ", r.d[1], " ",
+             r.d[2], " tmin ", r.tmin, " tmax ", r.tmax, ": packet prim ", hv.prim[i], " t ",
+             hv.t[i], ", scalar prim ", e.prim, " t ", e.t);
+        CHECK(e.prim == hv.prim[i]);
+      }
+    }
+    CHECK(bad == 0);
+    CHECK(st.rays == n);
+    std::vector<int32_t> occluded(n + 1, 77);
+    TraceStats sa;
+    OccludedCoherent(b.dda, stream.view(), occluded.data(), options, &sa);
+    size_t any_bad = 0;
+    for (size_t i = 0; i < n; ++i) any_bad += occluded[i] != o.any[i];
+    CHECK(any_bad == 0);
+    CHECK(occluded[n] == 77);
+    CHECK(sa.rays == n);
+    CHECK(st.packets + st.packets_refused == (n + kCoherentPacketRays - 1) / kCoherentPacketRays *
+                                                 (n >= kCoherentPacketRays ? 1 : 0));
+    if (std::string(target) == hwy::TargetName(hwy::SupportedAndGeneratedTargets()[0])) {
+      ps.packets = st.packets;
+      ps.refused = st.packets_refused;
+    }
+  });
+  MESSAGE(what, ": ", n, " rays, ", o.hits, " hits, ", o.occluded, " occluded; packets ",
+          ps.packets, ", refused ", ps.refused);
+  return ps;
+}
+
+void CheckScene(const MeshView& mesh, const std::string& name, int w, int h) {
+  Rng rng(91);
+  for (const auto& [lambda, threshold] : {std::pair{0.5f, -1}, std::pair{4.0f, -1},
+                                          std::pair{1.0f, 8}}) {
+    const Built b(mesh, lambda, threshold);
+    if (threshold >= 0 && b.two.empty()) continue;
+    const std::string what = name + (threshold < 0 ? " flat" : " two-level") + " lambda " +
+                             std::to_string(lambda);
+    const Grid& g = b.grid;
+    const float c[3] = {0.5f * (g.lo[0] + g.hi[0]), 0.5f * (g.lo[1] + g.hi[1]),
+                        0.5f * (g.lo[2] + g.hi[2])};
+    const float ext = std::max({g.hi[0] - g.lo[0], g.hi[1] - g.lo[1], g.hi[2] - g.lo[2]});
+    // from outside, from inside looking along +x, and looking down -y
+    const float out_eye[3] = {c[0] + 0.3f * ext, c[1] + 0.2f * ext, c[2] + 1.3f * ext};
+    const float in_at[3] = {g.hi[0], c[1], c[2]};
+    const float down_eye[3] = {c[0] + 0.01f * ext, c[1] + 0.45f * ext, c[2]};
+    const float down_at[3] = {c[0], g.lo[1], c[2] + 0.001f * ext};
+    std::vector<Ray> primary = CameraRays(out_eye, c, w, h, false);
+    const std::vector<Ray> inside = CameraRays(c, in_at, w, h, true);
+    const std::vector<Ray> down = CameraRays(down_eye, down_at, w / 2, h / 2, true);
+    primary.insert(primary.end(), inside.begin(), inside.end());
+    primary.insert(primary.end(), down.begin(), down.end());
+    const PacketStats pp = CheckCoherent(b, primary, what + " camera rays");
+    CHECK(pp.packets > pp.refused);
+    const Oracle o = RunOracle(b, primary);
+    const float light[3] = {c[0] - 0.1f * ext, g.hi[1] - 0.05f * ext, c[2] + 0.1f * ext};
+    const std::vector<Ray> shadow = ShadowRays(primary, o, light);
+    const PacketStats ps = CheckCoherent(b, shadow, what + " shadow rays");
+    CHECK(ps.packets > 0);
+    CheckCoherent(b, BoundaryBundles(rng, b), what + " boundary bundles");
+  }
+}
+
+TEST_CASE("procedural scenes: camera, shadow and boundary packets equal the scalar DDA") {
+  for (const char* name : {"cornell", "erw6", "spherebox", "amphitheater:1"}) {
+    const Scene scene = LoadScene(name);
+    CheckScene(scene.mesh(), name, 64, 48);
+  }
+}
+
+TEST_CASE("shared scenes: camera and shadow packets equal the scalar DDA") {
+  for (const auto& [file, name] :
+       {std::pair{"bunny/bun_zipper.ply", "bunny"}, std::pair{"sponza/sponza.obj", "sponza"},
+        std::pair{"conference/conference.obj", "conference"}}) {
+    if (!test::HaveSharedScene(file)) continue;
+    const Scene scene = LoadScene(name);
+    CheckScene(scene.mesh(), name, 64, 32);
+  }
+}
+
+TEST_CASE("closed sphere at 1e5: packets of rays at vertices and edges from inside never leak") {
+  // bench/icosphere.h: coordinates snapped so that edge midpoints and o + d are exact floats
+  const bench::Icosphere ico = bench::MakeIcosphere(4, 100.0, {1e5, 1e5, 1e5}, 64.0);
+  Soup s;
+  for (const auto& v : ico.v) s.AddVertex(v[0], v[1], v[2]);
+  for (const auto& t : ico.tri) s.indices.insert(s.indices.end(), {t[0], t[1], t[2]});
+  std::vector<std::array<float, 3>> targets(ico.v.begin(), ico.v.end());
+  for (const auto& t : ico.tri) {
+    for (int k = 0; k < 3; ++k) {
+      const auto& a = ico.v[t[k]];
+      const auto& b = ico.v[t[(k + 1) % 3]];
+      targets.push_back({(a[0] + b[0]) * 0.5f, (a[1] + b[1]) * 0.5f, (a[2] + b[2]) * 0.5f});
+    }
+  }
+  // one origin on the 2^-7 lattice inside; rays sorted by direction, so that consecutive rays
+  // are neighbours (coherent packets)
+  const float o[3] = {100001.0f, 99998.0f, 100000.5f};
+  std::vector<Ray> rays;
+  for (const auto& t : targets) {
+    Ray r;
+    for (int a = 0; a < 3; ++a) {
+      r.o[a] = o[a];
+      r.d[a] = t[a] - o[a];
+    }
+    rays.push_back(r);
+  }
+  std::sort(rays.begin(), rays.end(), [](const Ray& x, const Ray& y) {
+    const int bx = int(std::floor(x.d[2] / 25.0f)), by = int(std::floor(y.d[2] / 25.0f));
+    return bx != by ? bx < by : std::atan2(x.d[1], x.d[0]) < std::atan2(y.d[1], y.d[0]);
+  });
+  for (const float lambda : {0.5f, 4.0f}) {
+    const Built b(s.view(), lambda, -1);
+    const PacketStats ps = CheckCoherent(b, rays, "sphere vertices and edges");
+    CHECK(ps.packets > 0);
+    const Oracle orc = RunOracle(b, rays);
+    CHECK(orc.hits == rays.size());  // watertight: every ray hits the closed sphere
+  }
+}
+
+TEST_CASE("invalid rays inside coherent packets, huge offsets and tiny scales") {
+  Rng rng(7);
+  for (const auto& range : {std::pair{1e5, 1e5 + 20.0}, std::pair{-1e-4, 1e-4}}) {
+    const double lo = range.first, hi = range.second;
+    INFO("range ", lo, " .. ", hi);
+    const Soup soup = test::RandomSoup(rng, 400, lo, hi, 0.2 * (hi - lo));
+    const Built b(soup.view(), 4.0f, -1);
+    const Grid& g = b.grid;
+    const float c[3] = {0.5f * (g.lo[0] + g.hi[0]), 0.5f * (g.lo[1] + g.hi[1]),
+                        0.5f * (g.lo[2] + g.hi[2])};
+    const float ext = g.hi[0] - g.lo[0];
+    const float eye[3] = {c[0] + 0.2f * ext, c[1] + 0.3f * ext, c[2] + 1.5f * ext};
+    std::vector<Ray> rays = CameraRays(eye, c, 48, 32, true);
+    // poison some lanes of coherent packets: NaN/Inf components, zero direction, empty ranges
+    for (size_t i = 5; i < rays.size(); i += 37) {
+      Ray& r = rays[i];
+      switch ((i / 37) % 6) {
+        case 0: r.o[1] = kNaN; break;
+        case 1: r.d[2] = kInf; break;
+        case 2: r.d[0] = r.d[1] = r.d[2] = 0.0f; break;
+        case 3: r.tmin = kNaN; break;
+        case 4: r.tmax = -1.0f; break;
+        default: r.o[0] = -kInf; break;
+      }
+    }
+    const PacketStats ps = CheckCoherent(b, rays, "camera rays with invalid lanes");
+    CHECK(ps.packets > 0);
+  }
+  // a packet of only invalid rays, and streams shorter than a packet
+  const Soup soup = test::RandomSoup(rng, 50, -1, 1, 0.3);
+  const Built b(soup.view(), 4.0f, -1);
+  std::vector<Ray> bad(70, Ray{{0, 0, 0}, {kNaN, 1, 0}});
+  CheckCoherent(b, bad, "all invalid");
+  const float eye[3] = {0.1f, 0.2f, 3.0f}, at[3] = {0, 0, 0};
+  std::vector<Ray> few = CameraRays(eye, at, 7, 9, false);
+  CheckCoherent(b, few, "63 rays");
+}
+
+TEST_CASE("incoherent rays are refused per packet and traced by the stream DDA") {
+  Rng rng(11);
+  const Soup soup = test::RandomSoup(rng, 500, -1, 1, 0.3);
+  const Built b(soup.view(), 2.0f, -1);
+  std::vector<Ray> rays(64 * 20);
+  for (Ray& r : rays) {
+    for (float& x : r.o) x = rng.UniformF(-1.2, 1.2);
+    rng.Direction(r.d);
+  }
+  const PacketStats ps = CheckCoherent(b, rays, "random rays");
+  CHECK(ps.refused == 20);
+  // coherent and incoherent packets interleaved
+  const float eye[3] = {0.1f, 0.2f, 3.0f}, at[3] = {0, 0, 0};
+  const std::vector<Ray> cam = CameraRays(eye, at, 64, 20, false);
+  std::vector<Ray> mixed;
+  for (size_t p = 0; p < 20; ++p) {
+    const std::vector<Ray>& from = p % 3 == 1 ? rays : cam;
+    mixed.insert(mixed.end(), from.begin() + 64 * p, from.begin() + 64 * (p + 1));
+  }
+  const PacketStats pm = CheckCoherent(b, mixed, "mixed");
+  CHECK(pm.packets > 0);
+  CHECK(pm.refused >= 6);
+}
+
+TEST_CASE("rs::Accel: packets on equal packets off on a procedural scene") {
+  const Scene scene = LoadScene("spherebox");
+  BuildOptions on, off;
+  off.packets = false;
+  const Accel a(scene.mesh(), on), b(scene.mesh(), off);
+  const Grid& g = a.impl().grid;
+  const float c[3] = {0.5f * (g.lo[0] + g.hi[0]), 0.5f * (g.lo[1] + g.hi[1]),
+                      0.5f * (g.lo[2] + g.hi[2])};
+  const float at[3] = {g.hi[0], c[1], c[2]};
+  const std::vector<Ray> rays = CameraRays(c, at, 96, 64, false);
+  RayStream stream = MakeStream(rays);
+  const size_t n = rays.size();
+  HitStream ha(n), hb(n);
+  ha.Resize(n);
+  hb.Resize(n);
+  TraceStats sa, sb;
+  a.Intersect(stream.view(), ha.view(), &sa);
+  b.Intersect(stream.view(), hb.view(), &sb);
+  size_t diff = 0;
+  for (size_t i = 0; i < n; ++i) {
+    diff += !(ha.view().prim[i] == hb.view().prim[i] && SameBits(ha.view().t[i], hb.view().t[i]) &&
+              SameBits(ha.view().u[i], hb.view().u[i]) && SameBits(ha.view().v[i], hb.view().v[i]));
+  }
+  CHECK(diff == 0);
+  CHECK(sa.packets > 0);
+  CHECK(sb.packets == 0);
+  CHECK(sa.rays == n);
+  CHECK(sb.rays == n);
+}
+
+}  // namespace
+}  // namespace rs
