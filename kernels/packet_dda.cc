@@ -46,6 +46,11 @@ inline constexpr int kMaxFoot = detail::PacketScratch::kMaxFoot;  // cells per a
 // Slice footprints of at most this many cells are visited whole (after checking that one of
 // their cells is occupied) rather than marked ray by ray.
 inline constexpr int kSmallBox = 4;
+// Packets whose footprint widens by more than this many cells per slice are refused.
+inline constexpr float kMaxSpread = 0.5f;
+// A vector with at most Lanes / kOneRayShare of its rays in a leaf tests them one by one with the
+// 1-ray x 4-triangle kernel (SIMD over the leaf's triangles) instead of N rays x 1 triangle.
+inline constexpr size_t kOneRayShare = 4;
 
 // Per-ray state of one packet, SoA.
 struct PacketRays {
@@ -69,6 +74,7 @@ struct PacketRays {
   // widened by the rounding)
   HWY_ALIGN float flo[2][kPR];
   HWY_ALIGN float fhi[2][kPR];
+  PacketRay one[kPR];  // the 1-ray x 4-triangle kernels' setup of each valid ray
 };
 
 // Footprint of one slice: the rays in it, per vector the world box of its rays' segments and its
@@ -106,8 +112,8 @@ struct PacketTracer {
   size_t nv = 0;            // vectors in the packet
   int K = 0, U = 1, W = 2;  // major axis and the two others
   bool positive = true;     // d[K] > 0 for every live ray
-  bool uniform = false;     // every live ray has the same (kx, ky, kz)
-  int perm_k[3] = {0, 1, 2};
+  // per vector: the (kx, ky, kz) every live ray shares (k0 | k1 << 2 | k2 << 4), or -1
+  int perm[kPR] = {};
   float err[3] = {0, 0, 0};  // rounding of o + t d, world units, per axis
   uint64_t cells = 0;
   uint64_t tests = 0;
@@ -212,8 +218,8 @@ struct PacketTracer {
     }
   }
 
-  // Vector w against one triangle (9 floats, x y z per vertex). uniform: broadcast in the
-  // packet's permutation; otherwise each lane picks its own axes.
+  // Vector w against one triangle (9 floats, x y z per vertex): broadcast in the vector's
+  // permutation if its rays share one, otherwise each lane picks its own axes.
   HWY_INLINE void TestVector(size_t w, const float* p, int32_t id) {
     const D d;
     const DI di;
@@ -221,9 +227,10 @@ struct PacketTracer {
     const M live = hn::RebindMask(d, hn::Ne(hn::Load(di, r.live + i), hn::Zero(di)));
     if (kAny && hn::AllFalse(d, live)) return;  // every ray of the vector is occluded
     V c[9];
-    if (uniform) {
+    if (perm[w] >= 0) {
+      const int k[3] = {perm[w] & 3, (perm[w] >> 2) & 3, (perm[w] >> 4) & 3};
       for (int vtx = 0; vtx < 3; ++vtx) {
-        for (int a = 0; a < 3; ++a) c[3 * vtx + a] = hn::Set(d, p[3 * vtx + perm_k[a]]);
+        for (int a = 0; a < 3; ++a) c[3 * vtx + a] = hn::Set(d, p[3 * vtx + k[a]]);
       }
     } else {
       const VI kx = hn::Load(di, r.k[0] + i), ky = hn::Load(di, r.k[1] + i);
@@ -330,17 +337,52 @@ struct PacketTracer {
     }
   }
 
-  // The triangles of one leaf against the vectors with a ray in `rays` (bit i = ray i passes
-  // the leaf): N rays x 1 triangle, each triangle culled by the vector's box in this slice and
-  // mailboxed per vector.
+  // Ray l against a leaf's packets with the 1-ray x 4-triangle kernel (no mailbox: a repeated
+  // test changes nothing).
+  HWY_INLINE void TestRay(size_t l, const TriPacketSpan& span) {
+    if (r.live[l] == 0) return;
+    tests += span.lanes();
+    if constexpr (kAny) {
+      if (PacketsWidth<TriTest::kWatertight, true>(r.one[l], span, r.tmin[l], r.tmax[l],
+                                                   PacketWidth::kAuto, nullptr)) {
+        r.prim[l] = 1;
+        r.live[l] = 0;
+      }
+    } else {
+      PacketHit h;
+      h.t = r.best[l];
+      h.prim = r.prim[l];
+      if (PacketsWidth<TriTest::kWatertight, false>(r.one[l], span, r.tmin[l], r.tmax[l],
+                                                    PacketWidth::kAuto, &h)) {
+        r.best[l] = h.t;
+        r.prim[l] = h.prim;
+        r.bu[l] = h.u;
+        r.bv[l] = h.v;
+      }
+    }
+  }
+
+  // The triangles of one leaf against the rays in `rays` (bit i = ray i passes the leaf): a
+  // vector with few of its rays there tests them one by one (1 ray x 4 triangles), the others
+  // N rays x 1 triangle, each triangle culled by the vector's box in this slice and mailboxed
+  // per vector.
   HWY_INLINE void VisitLeaf(uint32_t leaf, uint64_t rays, const SliceFoot& f) {
     const TriPacketSpan span = g.packets.Cell(leaf);
     if (span.count == 0) return;
     const size_t L = Lanes();
     uint64_t wide = 0;
     for (size_t w = 0; w < nv; ++w) {
-      if (((rays >> (w * L)) & LaneMask()) != 0) wide |= uint64_t{1} << w;
+      const uint64_t lanes = (rays >> (w * L)) & LaneMask();
+      if (lanes == 0) continue;
+      if (size_t(hwy::PopCount(lanes)) * kOneRayShare <= L) {
+        for (uint64_t b = lanes; b != 0; b &= b - 1) {
+          TestRay(w * L + hwy::Num0BitsBelowLS1Bit_Nonzero64(b), span);
+        }
+      } else {
+        wide |= uint64_t{1} << w;
+      }
     }
+    if (wide == 0) return;
     const size_t lanes = span.lanes();
     size_t j = 0;
     if constexpr (HWY_MAX_BYTES >= 32) {
@@ -534,30 +576,61 @@ struct PacketTracer {
     W = K == 2 ? 1 : 2;
     positive = sums[K] > 0.0f;
     const V min_k = hn::Set(d, kMinDirection);
-    uint64_t k0 = ~uint64_t{0};
-    bool same_k = true;
     V tfar = zero;
+    // slopes of the rays against K, for the coherence test below
+    V slo[2] = {hn::Set(d, FLT_MAX), hn::Set(d, FLT_MAX)};
+    V shi[2] = {hn::Set(d, -FLT_MAX), hn::Set(d, -FLT_MAX)};
     for (size_t w = 0; w < nv; ++w) {
       const size_t i = w * L;
       const M valid = hn::RebindMask(d, hn::Ne(hn::Load(di, r.live + i), hn::Zero(di)));
       const V dk = hn::Load(d, r.d[K] + i);
       const M ok = positive ? hn::Ge(dk, min_k) : hn::Le(dk, hn::Neg(min_k));
       if (!hn::AllTrue(d, hn::Or(ok, hn::Not(valid)))) return false;
-      hn::Store(hn::IfThenElse(valid, hn::Div(one, dk), zero), d, r.inv_k + i);
+      const V inv = hn::IfThenElse(valid, hn::Div(one, dk), zero);
+      hn::Store(inv, d, r.inv_k + i);
       tfar = hn::Max(tfar, hn::IfThenElseZero(valid, hn::Load(d, r.t1 + i)));
-      // one permutation for the whole packet?
+      const int axes[2] = {U, W};
+      for (int a = 0; a < 2; ++a) {
+        const V slope = hn::Mul(hn::Load(d, r.d[axes[a]] + i), inv);
+        slo[a] = hn::Min(slo[a], hn::IfThenElse(valid, slope, hn::Set(d, FLT_MAX)));
+        shi[a] = hn::Max(shi[a], hn::IfThenElse(valid, slope, hn::Set(d, -FLT_MAX)));
+      }
+      // one permutation for the whole vector?
+      int key0 = -2;
       for (size_t l = 0; l < L; ++l) {
         if (r.live[i + l] == 0) continue;
-        const uint64_t key = uint64_t(r.k[0][i + l]) | uint64_t(r.k[1][i + l]) << 2 |
-                             uint64_t(r.k[2][i + l]) << 4;
-        if (k0 == ~uint64_t{0}) k0 = key;
-        same_k = same_k && key == k0;
+        const int key = r.k[0][i + l] | r.k[1][i + l] << 2 | r.k[2][i + l] << 4;
+        key0 = key0 == -2 || key0 == key ? key : -1;
+      }
+      perm[w] = key0 < 0 ? -1 : key0;
+    }
+    // coherence: the footprint of a packet widens per slice by the spread of its slopes; beyond
+    // kMaxSpread cells per slice the rays diverge (diffuse rays, say) and are traced one by one
+    {
+      const int axes[2] = {U, W};
+      for (int a = 0; a < 2; ++a) {
+        const float spread = hn::GetLane(hn::MaxOfLanes(d, shi[a])) -
+                             hn::GetLane(hn::MinOfLanes(d, slo[a]));
+        if (!(spread * grid.cell_size[K] <= kMaxSpread * grid.cell_size[axes[a]])) return false;
       }
     }
-    uniform = same_k;
-    perm_k[0] = int(k0 & 3);
-    perm_k[1] = int((k0 >> 2) & 3);
-    perm_k[2] = int((k0 >> 4) & 3);
+    // the 1-ray kernels' setup, from the same per-lane values (PrepareWatertightRay's)
+    for (size_t i = 0; i < nv * L; ++i) {
+      if (r.live[i] == 0) continue;
+      PacketRay& one = r.one[i];
+      for (int a = 0; a < 3; ++a) {
+        one.wt.o[a] = r.wo[a][i];
+        one.o[a] = r.o[a][i];
+        one.d[a] = r.d[a][i];
+      }
+      one.wt.sx = r.shear[0][i];
+      one.wt.sy = r.shear[1][i];
+      one.wt.sz = r.shear[2][i];
+      one.wt.kx = r.k[0][i];
+      one.wt.ky = r.k[1][i];
+      one.wt.kz = r.k[2][i];
+      one.valid = true;
+    }
     // rounding of the footprint: o + t d with |t d| <= t_far |d| (|d| summed: an upper bound)
     const float t_far = hn::GetLane(hn::MaxOfLanes(d, tfar));
     for (int a = 0; a < 3; ++a) {
@@ -629,6 +702,13 @@ struct PacketTracer {
           }
         } else {
           Refine(top, &f);
+          // diverging rays: the vectors' boxes cover more than a few cells per ray
+          size_t area_sum = 0;
+          for (uint64_t vb = f.vectors; vb != 0; vb &= vb - 1) {
+            const size_t w = hwy::Num0BitsBelowLS1Bit_Nonzero64(vb);
+            area_sum += size_t(f.c1[0][w] - f.c0[0][w] + 1) * size_t(f.c1[1][w] - f.c0[1][w] + 1);
+          }
+          if (area_sum > 2 * size_t(hwy::PopCount(f.in)) + 8) return false;
           if (!ForMarkedCells<kMaxFoot>(f, sc.marks, sc.list, visit)) return false;
         }
         if (cells > budget) return false;
