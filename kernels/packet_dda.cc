@@ -74,6 +74,7 @@ struct PacketRays {
   // widened by the rounding)
   HWY_ALIGN float flo[2][kPR];
   HWY_ALIGN float fhi[2][kPR];
+  int32_t s_start[kPR];  // the slice where the ray's segment starts
   PacketRay one[kPR];  // the 1-ray x 4-triangle kernels' setup of each valid ray
 };
 
@@ -115,6 +116,10 @@ struct PacketTracer {
   // per vector: the (kx, ky, kz) every live ray shares (k0 | k1 << 2 | k2 << 4), or -1
   int perm[kPR] = {};
   float err[3] = {0, 0, 0};  // rounding of o + t d, world units, per axis
+  float sigma[2] = {0, 0};   // most cells (U, W) a ray moves per slice
+  // slices where some ray's segment starts, as bits (slice s = bit s), for res[K] <= 1024
+  uint64_t starts[16] = {};
+  bool starts_ok = false;
   uint64_t cells = 0;
   uint64_t tests = 0;
 
@@ -137,8 +142,12 @@ struct PacketTracer {
 
   // The footprint of the live rays among `filter` whose segment has K in [p0, p1] (p0 < p1),
   // on level `lv`.
-  HWY_INLINE void Footprint(float p0, float p1, const Level& lv, uint64_t filter,
-                            SliceFoot* f) const {
+  // terminate: first retire the rays whose candidate or segment end lies before the plane K =
+  // near (the per-ray DDA's boundary t, bit for bit: no closer hit can lie beyond it); *live_rays
+  // gets the rays still live.
+  template <bool kTerminate>
+  HWY_INLINE void Footprint(float p0, float p1, const Level& lv, uint64_t filter, SliceFoot* f,
+                            float near = 0.0f, size_t* live_rays = nullptr) const {
     const D d;
     const DI di;
     const size_t n = Lanes();
@@ -152,6 +161,18 @@ struct PacketTracer {
       if (want == 0) continue;
       const size_t i = w * n;
       M live = hn::RebindMask(d, hn::Ne(hn::Load(di, r.live + i), hn::Zero(di)));
+      if constexpr (kTerminate) {
+        if (hn::AllFalse(d, live)) continue;
+        const V t_near = hn::Mul(hn::Sub(hn::Set(d, near), hn::Load(d, r.o[K] + i)),
+                                 hn::Load(d, r.inv_k + i));
+        const V end = hn::Min(hn::Load(d, r.best + i), hn::Load(d, r.t1 + i));
+        const M done = hn::And(live, hn::Le(end, t_near));
+        if (!hn::AllFalse(d, done)) {
+          live = hn::AndNot(done, live);
+          hn::Store(hn::VecFromMask(di, hn::RebindMask(di, live)), di, r.live + i);
+        }
+        *live_rays += hn::CountTrue(d, live);
+      }
       if (want != LaneMask()) {
         uint8_t want_bytes[8];
         std::memcpy(want_bytes, &want, sizeof want_bytes);  // little-endian lane bits
@@ -442,7 +463,7 @@ struct PacketTracer {
       const int k = positive ? step : kSubRes - 1 - step;
       const float p0 = rec.lo[K] + float(k) * rec.cell_size[K];
       const float p1 = rec.lo[K] + float(k + 1) * rec.cell_size[K];
-      Footprint(p0 - err[K], p1 + err[K], lv, rays, &f);
+      Footprint<false>(p0 - err[K], p1 + err[K], lv, rays, &f);
       if (f.vectors == 0) continue;
       Refine(lv, &f);
       const bool ok = ForMarkedCells<kSubRes>(f, marks, list, [&](int cu, int cv, uint64_t in) {
@@ -456,6 +477,50 @@ struct PacketTracer {
       (void)ok;
     }
     return true;
+  }
+
+  // Empty-space skipping (DdaGrid::skip): slices the packet may jump over from slice s, whose
+  // footprint is f: k empty rings around the cell at the centre of f's box mean that every cell
+  // within Chebyshev distance k of it is empty. The rays' boxes in slices s .. s + m - 1 lie within
+  // f's box grown by i * sigma cells (each ray moves at most sigma cells per slice), so they are
+  // all empty if that stays within the rings, and if no ray starts its segment in between.
+  // Returns m (0: no jump). Results are unchanged: the slices jumped hold no triangle.
+  HWY_INLINE int EmptyJump(const SliceFoot& f, int s, const uint32_t* skip,
+                           const int stride[3]) const {
+    const int cu = (f.u0 + f.u1) / 2, cv = (f.v0 + f.v1) / 2;
+    const size_t cell = size_t(s) * stride[K] + size_t(cv) * stride[W] + size_t(cu) * stride[U];
+    const int k = int((skip[cell >> 2] >> (8 * (cell & 3))) & 0xffu);
+    if (k < 2) return 0;
+    int m = k;
+    const int hw[2] = {std::max(cu - f.u0, f.u1 - cu), std::max(cv - f.v0, f.v1 - cv)};
+    for (int a = 0; a < 2; ++a) {
+      const int e = k - hw[a] - 1;  // - 1: rounding up of i * sigma
+      if (e < 0) return 0;
+      if (sigma[a] > 0.0f) m = std::min(m, int(float(e) / sigma[a]) + 1);
+    }
+    // rays whose segment starts in a later slice must find their own cells
+    if (!starts_ok) return 0;
+    const int next = NextStart(s);
+    if (next >= 0) m = std::min(m, positive ? next - s : s - next);
+    return m >= 2 ? m : 0;
+  }
+
+  // The nearest slice after s (in the rays' direction) where a segment starts, or -1.
+  HWY_INLINE int NextStart(int s) const {
+    if (positive) {
+      for (int b = s + 1; b < 16 * 64;) {
+        const uint64_t word = starts[b >> 6] >> (b & 63);
+        if (word != 0) return b + int(hwy::Num0BitsBelowLS1Bit_Nonzero64(word));
+        b = (b | 63) + 1;
+      }
+    } else {
+      for (int b = s - 1; b >= 0;) {
+        const uint64_t word = starts[b >> 6] << (63 - (b & 63));
+        if (word != 0) return b - int(hwy::Num0BitsAboveMS1Bit_Nonzero64(word));
+        b = (b & ~63) - 1;
+      }
+    }
+    return -1;
   }
 
   // Returns false if the packet is refused (not coherent, or too wide to pay); then nothing was
@@ -609,9 +674,11 @@ struct PacketTracer {
     {
       const int axes[2] = {U, W};
       for (int a = 0; a < 2; ++a) {
-        const float spread = hn::GetLane(hn::MaxOfLanes(d, shi[a])) -
-                             hn::GetLane(hn::MinOfLanes(d, slo[a]));
-        if (!(spread * grid.cell_size[K] <= kMaxSpread * grid.cell_size[axes[a]])) return false;
+        const float lo_slope = hn::GetLane(hn::MinOfLanes(d, slo[a]));
+        const float hi_slope = hn::GetLane(hn::MaxOfLanes(d, shi[a]));
+        const float to_cells = grid.cell_size[K] * grid.inv_cell_size[axes[a]];
+        if (!((hi_slope - lo_slope) * to_cells <= kMaxSpread)) return false;
+        sigma[a] = std::max(std::abs(lo_slope), std::abs(hi_slope)) * to_cells;
       }
     }
     // the 1-ray kernels' setup, from the same per-lane values (PrepareWatertightRay's)
@@ -643,11 +710,18 @@ struct PacketTracer {
     int s_lo = grid.res[K], s_hi = -1;
     for (size_t i = 0; i < nv * L; ++i) {
       if (r.live[i] == 0) continue;
-      for (const float t : {r.t0[i], r.t1[i]}) {
+      for (const float t : {r.t1[i], r.t0[i]}) {
         const float f = (r.o[K][i] + t * r.d[K][i] - grid.lo[K]) * grid.inv_cell_size[K];
         const int s = f <= 0.0f ? 0 : f >= float(grid.res[K]) ? grid.res[K] - 1 : int(f);
         s_lo = std::min(s_lo, s);
         s_hi = std::max(s_hi, s);
+        r.s_start[i] = s;  // the t0 one, last
+      }
+    }
+    starts_ok = grid.res[K] <= 16 * 64;
+    if (starts_ok) {
+      for (size_t i = 0; i < nv * L; ++i) {
+        if (r.live[i] != 0) starts[r.s_start[i] >> 6] |= uint64_t{1} << (r.s_start[i] & 63);
       }
     }
     s_lo = std::max(0, s_lo - 1);
@@ -656,6 +730,7 @@ struct PacketTracer {
     const int stride[3] = {1, grid.res[0], grid.res[0] * grid.res[1]};
     const uint64_t* occ = grid.occupancy.get();
     const TwoLevelGrid* two = g.two_level;
+    const uint32_t* skip = g.skip.get();
     // budget of marked cells before the packet is given to the stream DDA (each ray marks at
     // least one cell per slice it passes: a bound on diverging rays)
     const uint64_t budget = 4 * uint64_t(n_valid) * uint64_t(s_hi - s_lo + 1) + 64;
@@ -670,7 +745,19 @@ struct PacketTracer {
       const int s = positive ? s_lo + step : s_hi - step;
       const float p0 = grid.lo[K] + float(s) * grid.cell_size[K];
       const float p1 = grid.lo[K] + float(s + 1) * grid.cell_size[K];
-      Footprint(p0 - err[K], p1 + err[K], top, ~uint64_t{0}, &f);
+      // retire the rays done before this slice (their candidate lies before its near plane,
+      // which is the previous slice's far plane, bit for bit), then this slice's footprint
+      size_t live_rays = 0;
+      Footprint<true>(p0 - err[K], p1 + err[K], top, ~uint64_t{0}, &f, positive ? p0 : p1,
+                      &live_rays);
+      if (live_rays == 0) break;
+      if (f.vectors != 0 && skip != nullptr) {
+        const int jump = EmptyJump(f, s, skip, stride);
+        if (jump > 0) {
+          step += jump - 1;  // this slice and the next jump - 1 are empty where the rays pass
+          continue;
+        }
+      }
       if (f.vectors != 0) {
         const size_t row0 = size_t(s) * stride[K];
         auto visit = [&](int cu, int cv, uint64_t in) {
@@ -713,25 +800,6 @@ struct PacketTracer {
         }
         if (cells > budget) return false;
       }
-      // rays whose candidate (or segment end) lies before the slice's far plane are done; the
-      // plane's t is the per-ray DDA's boundary t, bit for bit ((lo + b * cell - o) * (1 / d)),
-      // so a packet never stops a ray before the per-ray walk would
-      const float far = positive ? p1 : p0;
-      bool any_live = false;
-      for (size_t w = 0; w < nv; ++w) {
-        const size_t i = w * L;
-        VI live = hn::Load(di, r.live + i);
-        const M m = hn::RebindMask(d, hn::Ne(live, hn::Zero(di)));
-        if (hn::AllFalse(d, m)) continue;
-        const V t_far_plane = hn::Mul(hn::Sub(hn::Set(d, far), hn::Load(d, r.o[K] + i)),
-                                      hn::Load(d, r.inv_k + i));
-        const V end = hn::Min(hn::Load(d, r.best + i), hn::Load(d, r.t1 + i));
-        const M done = hn::Le(end, t_far_plane);
-        live = hn::IfThenZeroElse(hn::RebindMask(di, done), live);
-        hn::Store(live, di, r.live + i);
-        any_live = any_live || !hn::AllFalse(d, hn::AndNot(done, m));
-      }
-      if (!any_live) break;
     }
     Write(first, n);
     return true;
