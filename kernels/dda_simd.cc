@@ -47,6 +47,7 @@
 
 #include <hwy/cache_control.h>
 
+#include "kernels/ray_setup-inl.h"
 #include "kernels/tri_intersect-inl.h"
 #include "kernels/two_level_dda.h"
 
@@ -124,19 +125,13 @@ inline void CopySlot(const LaneSlots& from, size_t j, LaneSlots* to, size_t l) {
   to->stage[l] = 0;
   to->level[l] = 0;
   to->bits_base[l] = 0;
-  PacketRay& r = to->packet_ray[l];
-  for (int a = 0; a < 3; ++a) {
-    r.wt.o[a] = from.ok[a][j];
-    r.o[a] = from.o[a][j];
-    r.d[a] = from.d[a][j];
-  }
-  r.wt.sx = from.shear[0][j];
-  r.wt.sy = from.shear[1][j];
-  r.wt.sz = from.shear[2][j];
-  r.wt.kx = from.k[0][j];
-  r.wt.ky = from.k[1][j];
-  r.wt.kz = from.k[2][j];
-  r.valid = true;  // only valid rays are queued
+  // only valid rays are queued
+  const float* const o[3] = {from.o[0], from.o[1], from.o[2]};
+  const float* const d[3] = {from.d[0], from.d[1], from.d[2]};
+  const float* const wo[3] = {from.ok[0], from.ok[1], from.ok[2]};
+  const float* const shear[3] = {from.shear[0], from.shear[1], from.shear[2]};
+  const int32_t* const k[3] = {from.k[0], from.k[1], from.k[2]};
+  to->packet_ray[l] = PacketRayFromLanes(o, d, wo, shear, k, j);
 }
 
 // The last few leaves looked up, with their packet spans (see the file comment).
@@ -233,9 +228,8 @@ HWY_INLINE uint64_t SetupVector(D d, const Grid& grid, const RayStreamView& rays
   using V = hn::Vec<D>;
   const hn::RebindToSigned<D> di;
   using VI = hn::Vec<decltype(di)>;
-  const V zero = hn::Zero(d), one = hn::Set(d, 1.0f);
+  const V zero = hn::Zero(d);
   const V inf = hn::Set(d, std::numeric_limits<float>::infinity());
-  const V flt_max = hn::Set(d, FLT_MAX), min_dir = hn::Set(d, kMinDirection);
   const auto live = hn::FirstN(d, rays.size - first);
   const V o[3] = {hn::LoadU(d, rays.ox + first), hn::LoadU(d, rays.oy + first),
                   hn::LoadU(d, rays.oz + first)};
@@ -252,36 +246,15 @@ HWY_INLINE uint64_t SetupVector(D d, const Grid& grid, const RayStreamView& rays
     hn::BlendedStore(zero, live, d, out.hits.v + first);
     hn::BlendedStore(hn::Set(di, -1), hn::RebindMask(di, live), di, out.hits.prim + first);
   }
-  // RayIsValid: all six finite (NaN fails Lt), some |d| >= kMinDirection; then (tmin, tmax]
-  // non-empty with +inf tmax clamped to FLT_MAX (NaN stays NaN and fails)
-  auto valid = live;
-  for (int a = 0; a < 3; ++a) {
-    valid = hn::And(valid, hn::And(hn::Lt(hn::Abs(o[a]), inf), hn::Lt(hn::Abs(dir[a]), inf)));
-  }
-  valid = hn::And(valid, hn::Or(hn::Or(hn::Ge(hn::Abs(dir[0]), min_dir),
-                                       hn::Ge(hn::Abs(dir[1]), min_dir)),
-                                hn::Ge(hn::Abs(dir[2]), min_dir)));
-  const V tmax_f = hn::IfThenElse(hn::Gt(tmax, flt_max), flt_max, tmax);
-  valid = hn::And(valid, hn::Lt(tmin, tmax_f));
+  // RayIsValid and a non-empty (tmin, tmax] (+inf clamped to FLT_MAX), then the slab clip;
+  // parallel axes (d = +-0 or 1/d not finite) need the origin inside the slab
+  const V tmax_f = FiniteTmax(d, tmax);
+  auto valid = ValidRayLanes(d, o, dir, tmin, tmax_f, live);
   if (hn::AllFalse(d, valid)) return 0;
-  // slab clip; parallel axes (d = +-0 or 1/d not finite) need the origin inside the slab
   V t0 = tmin, t1 = tmax_f;
   V inv[3];
   hn::Mask<D> parallel[3];
-  for (int a = 0; a < 3; ++a) {
-    const V lo = hn::Set(d, grid.lo[a]), hi = hn::Set(d, grid.hi[a]);
-    const V r = hn::Div(one, dir[a]);
-    parallel[a] = hn::Not(hn::And(hn::Ne(dir[a], zero), hn::Lt(hn::Abs(r), inf)));
-    const auto inside = hn::And(hn::Ge(o[a], lo), hn::Le(o[a], hi));
-    valid = hn::And(valid, hn::Or(hn::Not(parallel[a]), inside));
-    inv[a] = hn::IfThenZeroElse(parallel[a], r);
-    const V ta = hn::Mul(hn::Sub(lo, o[a]), r), tb = hn::Mul(hn::Sub(hi, o[a]), r);
-    const auto swap = hn::Gt(ta, tb);
-    const V near = hn::IfThenElse(swap, tb, ta), far = hn::IfThenElse(swap, ta, tb);
-    t0 = hn::IfThenElse(parallel[a], t0, hn::IfThenElse(hn::Gt(near, t0), near, t0));
-    t1 = hn::IfThenElse(parallel[a], t1, hn::IfThenElse(hn::Lt(far, t1), far, t1));
-  }
-  valid = hn::And(valid, hn::Le(t0, t1));
+  valid = ClipRayLanes(d, grid.lo, grid.hi, o, dir, valid, &t0, &t1, inv, parallel);
   if (hn::AllFalse(d, valid)) return 0;
   // start cell (entry point clamped into the grid), boundary t, steps
   const int32_t stride[3] = {1, grid.res[0], grid.res[0] * grid.res[1]};
@@ -313,33 +286,14 @@ HWY_INLINE uint64_t SetupVector(D d, const Grid& grid, const RayStreamView& rays
     hn::Store(inv[a], d, st->inv[a]);
     hn::Store(hn::IfThenElse(parallel[a], inf, tn), d, st->t_next[a]);
   }
-  // the watertight test's per-ray setup (PrepareWatertightRay, lane by lane): kz = axis of the
-  // largest |d| (first on ties), kx = kz + 1, ky = kx + 1 (mod 3), swapped where d[kz] < 0
+  // the watertight test's per-ray setup (PrepareWatertightRay, lane by lane)
   {
-    const V ax = hn::Abs(dir[0]), ay = hn::Abs(dir[1]), az = hn::Abs(dir[2]);
-    const auto y_gt_x = hn::Gt(ay, ax);
-    const auto kz2 = hn::Gt(az, hn::IfThenElse(y_gt_x, ay, ax));
-    const auto kz1 = hn::AndNot(kz2, y_gt_x);
-    const VI kz = hn::IfThenElse(hn::RebindMask(di, kz2), hn::Set(di, 2),
-                                 hn::IfThenElseZero(hn::RebindMask(di, kz1), hn::Set(di, 1)));
-    const V dkz = hn::IfThenElse(kz2, dir[2], hn::IfThenElse(kz1, dir[1], dir[0]));
-    const VI kx0 = hn::IfThenElse(hn::Eq(kz, hn::Set(di, 2)), hn::Zero(di), hn::Add(kz, hn::Set(di, 1)));
-    const VI ky0 = hn::IfThenElse(hn::Eq(kx0, hn::Set(di, 2)), hn::Zero(di), hn::Add(kx0, hn::Set(di, 1)));
-    const auto swap = hn::RebindMask(di, hn::Lt(dkz, zero));
-    const VI kx = hn::IfThenElse(swap, ky0, kx0), ky = hn::IfThenElse(swap, kx0, ky0);
-    auto pick = [&](const VI& k, const V* v) {
-      return hn::IfThenElse(hn::RebindMask(d, hn::Eq(k, hn::Zero(di))), v[0],
-                            hn::IfThenElse(hn::RebindMask(d, hn::Eq(k, hn::Set(di, 1))), v[1], v[2]));
-    };
-    hn::Store(kx, di, st->k[0]);
-    hn::Store(ky, di, st->k[1]);
-    hn::Store(kz, di, st->k[2]);
-    hn::Store(hn::Div(pick(kx, dir), dkz), d, st->shear[0]);
-    hn::Store(hn::Div(pick(ky, dir), dkz), d, st->shear[1]);
-    hn::Store(hn::Div(one, dkz), d, st->shear[2]);
-    hn::Store(pick(kx, o), d, st->ok[0]);
-    hn::Store(pick(ky, o), d, st->ok[1]);
-    hn::Store(pick(kz, o), d, st->ok[2]);
+    const WatertightSetupLanes<D> wt = SetupWatertightLanes(d, o, dir);
+    for (int a = 0; a < 3; ++a) {
+      hn::Store(wt.k[a], di, st->k[a]);
+      hn::Store(wt.shear[a], d, st->shear[a]);
+      hn::Store(wt.o[a], d, st->ok[a]);
+    }
   }
   hn::Store(idx, di, st->idx);
   hn::Store(hn::Add(hn::Iota(di, 0), hn::Set(di, int32_t(first))), di, st->ray);
@@ -1091,13 +1045,6 @@ void BuildDdaGrid(const Grid& grid, const TwoLevelGrid* two_level, const Triangl
   }
 }
 
-namespace {
-
-// Streams are traced in chunks of this many rays (the lanes' ray indices are int32); a multiple
-// of kStreamPad, so every chunk starts aligned.
-constexpr size_t kMaxChunk = size_t{1} << 30;
-
-// Rays [first, first + n) of `rays` (only the arrays the trace kernels read).
 RayStreamView SubView(const RayStreamView& rays, size_t first, size_t n) {
   RayStreamView v;
   v.ox = rays.ox + first;
@@ -1111,6 +1058,12 @@ RayStreamView SubView(const RayStreamView& rays, size_t first, size_t n) {
   v.size = n;
   return v;
 }
+
+namespace {
+
+// Streams are traced in chunks of this many rays (the lanes' ray indices are int32); a multiple
+// of kStreamPad, so every chunk starts aligned.
+constexpr size_t kMaxChunk = size_t{1} << 30;
 
 // Rays the SIMD kernels cannot take: an empty grid (all miss) or a grid too large for int32
 // cell indices (the scalar DDA).

@@ -34,6 +34,7 @@
 #include <hwy/foreach_target.h>  // IWYU pragma: keep
 #include <hwy/highway.h>         // must follow foreach_target.h
 
+#include "kernels/ray_setup-inl.h"
 #include "kernels/tri_intersect-inl.h"
 
 HWY_BEFORE_NAMESPACE();
@@ -532,8 +533,6 @@ struct PacketTracer {
     nv = (n + L - 1) / L;
     if (nv * L > kPR) return false;
     const V zero = hn::Zero(d), one = hn::Set(d, 1.0f);
-    const V inf = hn::Set(d, std::numeric_limits<float>::infinity());
-    const V flt_max = hn::Set(d, FLT_MAX), min_dir = hn::Set(d, kMinDirection);
     V sum_d[3] = {zero, zero, zero};
     V omax[3] = {zero, zero, zero};
     size_t n_valid = 0;
@@ -549,29 +548,13 @@ struct PacketTracer {
       dir[1] = hn::LoadU(d, rays.dy + at);
       dir[2] = hn::LoadU(d, rays.dz + at);
       const V tmin = hn::LoadU(d, rays.tmin + at), tmax = hn::LoadU(d, rays.tmax + at);
-      // RayIsValid, non-empty (tmin, tmax] (the stream DDA's SetupVector)
-      M valid = in_packet;
-      for (int a = 0; a < 3; ++a) {
-        valid = hn::And(valid, hn::And(hn::Lt(hn::Abs(o[a]), inf), hn::Lt(hn::Abs(dir[a]), inf)));
-      }
-      valid = hn::And(valid, hn::Or(hn::Or(hn::Ge(hn::Abs(dir[0]), min_dir),
-                                           hn::Ge(hn::Abs(dir[1]), min_dir)),
-                                    hn::Ge(hn::Abs(dir[2]), min_dir)));
-      const V tmax_f = hn::IfThenElse(hn::Gt(tmax, flt_max), flt_max, tmax);
-      valid = hn::And(valid, hn::Lt(tmin, tmax_f));
-      // slab clip (parallel axes: origin inside the slab)
+      // RayIsValid, a non-empty (tmin, tmax] and the slab clip (the stream DDA's setup)
+      const V tmax_f = FiniteTmax(d, tmax);
+      M valid = ValidRayLanes(d, o, dir, tmin, tmax_f, in_packet);
       V t0 = tmin, t1 = tmax_f;
-      for (int a = 0; a < 3; ++a) {
-        const V lo = hn::Set(d, grid.lo[a]), hi = hn::Set(d, grid.hi[a]);
-        const V rcp = hn::Div(one, dir[a]);
-        const M parallel = hn::Not(hn::And(hn::Ne(dir[a], zero), hn::Lt(hn::Abs(rcp), inf)));
-        const M inside = hn::And(hn::Ge(o[a], lo), hn::Le(o[a], hi));
-        valid = hn::And(valid, hn::Or(hn::Not(parallel), inside));
-        const V ta = hn::Mul(hn::Sub(lo, o[a]), rcp), tb = hn::Mul(hn::Sub(hi, o[a]), rcp);
-        t0 = hn::IfThenElse(parallel, t0, hn::Max(t0, hn::Min(ta, tb)));
-        t1 = hn::IfThenElse(parallel, t1, hn::Min(t1, hn::Max(ta, tb)));
-      }
-      valid = hn::And(valid, hn::Le(t0, t1));
+      V inv_d[3];
+      M parallel[3];
+      valid = ClipRayLanes(d, grid.lo, grid.hi, o, dir, valid, &t0, &t1, inv_d, parallel);
       // zero the invalid lanes' geometry so that sums and bounds stay finite
       for (int a = 0; a < 3; ++a) {
         o[a] = hn::IfThenElseZero(valid, o[a]);
@@ -594,33 +577,12 @@ struct PacketTracer {
       hn::Store(hn::VecFromMask(di, hn::RebindMask(di, valid)), di, r.live + i);
       n_valid += hn::CountTrue(d, valid);
       // watertight setup (PrepareWatertightRay lane by lane, as the stream DDA)
-      const V ax = hn::Abs(dir[0]), ay = hn::Abs(dir[1]), az = hn::Abs(dir[2]);
-      const M y_gt_x = hn::Gt(ay, ax);
-      const M kz2 = hn::Gt(az, hn::IfThenElse(y_gt_x, ay, ax));
-      const M kz1 = hn::AndNot(kz2, y_gt_x);
-      const VI kz = hn::IfThenElse(hn::RebindMask(di, kz2), hn::Set(di, 2),
-                                   hn::IfThenElseZero(hn::RebindMask(di, kz1), hn::Set(di, 1)));
-      const V dkz = hn::IfThenElse(kz2, dir[2], hn::IfThenElse(kz1, dir[1], dir[0]));
-      const VI kx0 =
-          hn::IfThenElse(hn::Eq(kz, hn::Set(di, 2)), hn::Zero(di), hn::Add(kz, hn::Set(di, 1)));
-      const VI ky0 =
-          hn::IfThenElse(hn::Eq(kx0, hn::Set(di, 2)), hn::Zero(di), hn::Add(kx0, hn::Set(di, 1)));
-      const auto swap = hn::RebindMask(di, hn::Lt(dkz, zero));
-      const VI kx = hn::IfThenElse(swap, ky0, kx0), ky = hn::IfThenElse(swap, kx0, ky0);
-      auto pick = [&](const VI& k, const V* v) {
-        return hn::IfThenElse(
-            hn::RebindMask(d, hn::Eq(k, hn::Zero(di))), v[0],
-            hn::IfThenElse(hn::RebindMask(d, hn::Eq(k, hn::Set(di, 1))), v[1], v[2]));
-      };
-      hn::Store(kx, di, r.k[0] + i);
-      hn::Store(ky, di, r.k[1] + i);
-      hn::Store(kz, di, r.k[2] + i);
-      hn::Store(hn::Div(pick(kx, dir), dkz), d, r.shear[0] + i);
-      hn::Store(hn::Div(pick(ky, dir), dkz), d, r.shear[1] + i);
-      hn::Store(hn::Div(one, dkz), d, r.shear[2] + i);
-      hn::Store(pick(kx, o), d, r.wo[0] + i);
-      hn::Store(pick(ky, o), d, r.wo[1] + i);
-      hn::Store(pick(kz, o), d, r.wo[2] + i);
+      const WatertightSetupLanes<D> wt = SetupWatertightLanes(d, o, dir);
+      for (int a = 0; a < 3; ++a) {
+        hn::Store(wt.k[a], di, r.k[a] + i);
+        hn::Store(wt.shear[a], d, r.shear[a] + i);
+        hn::Store(wt.o[a], d, r.wo[a] + i);
+      }
     }
     if (n_valid == 0) {
       Write(first, n);
@@ -682,21 +644,15 @@ struct PacketTracer {
       }
     }
     // the 1-ray kernels' setup, from the same per-lane values (PrepareWatertightRay's)
-    for (size_t i = 0; i < nv * L; ++i) {
-      if (r.live[i] == 0) continue;
-      PacketRay& one = r.one[i];
-      for (int a = 0; a < 3; ++a) {
-        one.wt.o[a] = r.wo[a][i];
-        one.o[a] = r.o[a][i];
-        one.d[a] = r.d[a][i];
+    {
+      const float* const o[3] = {r.o[0], r.o[1], r.o[2]};
+      const float* const dd[3] = {r.d[0], r.d[1], r.d[2]};
+      const float* const wo[3] = {r.wo[0], r.wo[1], r.wo[2]};
+      const float* const shear[3] = {r.shear[0], r.shear[1], r.shear[2]};
+      const int32_t* const k[3] = {r.k[0], r.k[1], r.k[2]};
+      for (size_t i = 0; i < nv * L; ++i) {
+        if (r.live[i] != 0) r.one[i] = PacketRayFromLanes(o, dd, wo, shear, k, i);
       }
-      one.wt.sx = r.shear[0][i];
-      one.wt.sy = r.shear[1][i];
-      one.wt.sz = r.shear[2][i];
-      one.wt.kx = r.k[0][i];
-      one.wt.ky = r.k[1][i];
-      one.wt.kz = r.k[2][i];
-      one.valid = true;
     }
     // rounding of the footprint: o + t d with |t d| <= t_far |d| (|d| summed: an upper bound)
     const float t_far = hn::GetLane(hn::MaxOfLanes(d, tfar));
@@ -870,19 +826,6 @@ HWY_EXPORT(OccludedPacket);
 
 namespace {
 
-RayStreamView Slice(const RayStreamView& rays, size_t first, size_t n) {
-  RayStreamView v;
-  v.ox = rays.ox + first;
-  v.oy = rays.oy + first;
-  v.oz = rays.oz + first;
-  v.dx = rays.dx + first;
-  v.dy = rays.dy + first;
-  v.dz = rays.dz + first;
-  v.tmin = rays.tmin + first;
-  v.tmax = rays.tmax + first;
-  v.size = n;
-  return v;
-}
 
 void InitScratch(detail::PacketScratch* sc) {
   std::memset(sc->marks, 0, sizeof sc->marks);
@@ -932,7 +875,7 @@ void IntersectCoherent(const DdaGrid& g, const RayStreamView& rays, const HitStr
         out.v += first;
         out.prim += first;
         out.size = n;
-        IntersectStreamDda(g, Slice(rays, first, n), out, options, stats);
+        IntersectStreamDda(g, SubView(rays, first, n), out, options, stats);
       });
 }
 
@@ -949,7 +892,7 @@ void OccludedCoherent(const DdaGrid& g, const RayStreamView& rays, int32_t* occl
         return HWY_DYNAMIC_DISPATCH(OccludedPacket)(g, rays, first, n, occluded, stats, &sc);
       },
       [&](size_t first, size_t n) {
-        OccludedStreamDda(g, Slice(rays, first, n), occluded + first, options, stats);
+        OccludedStreamDda(g, SubView(rays, first, n), occluded + first, options, stats);
       });
 }
 

@@ -47,6 +47,27 @@ inline PacketRay MakePacketRay(float ox, float oy, float oz, float dx, float dy,
   return r;
 }
 
+// The same from a SIMD setup stored SoA (lane i of arrays o[3], d[3], the permuted origin wo[3],
+// shear[3] and k[3], as ValidRayLanes / SetupWatertightLanes produced them); the ray is valid.
+inline PacketRay PacketRayFromLanes(const float* const o[3], const float* const d[3],
+                                    const float* const wo[3], const float* const shear[3],
+                                    const int32_t* const k[3], size_t i) {
+  PacketRay r;
+  for (int a = 0; a < 3; ++a) {
+    r.wt.o[a] = wo[a][i];
+    r.o[a] = o[a][i];
+    r.d[a] = d[a][i];
+  }
+  r.wt.sx = shear[0][i];
+  r.wt.sy = shear[1][i];
+  r.wt.sz = shear[2][i];
+  r.wt.kx = k[0][i];
+  r.wt.ky = k[1][i];
+  r.wt.kz = k[2][i];
+  r.valid = true;
+  return r;
+}
+
 // Closest hit so far of one ray (in/out of IntersectPackets). A fresh one is a miss.
 struct PacketHit {
   float t = std::numeric_limits<float>::infinity();

@@ -28,6 +28,7 @@
 #include "kernels/two_level.h"
 #include "scenes/load.h"
 #include "streams/ray_stream.h"
+#include "tests/kernels/dda_util.h"
 #include "tests/kernels/geometry_util.h"
 #include "tests/test_util.h"
 
@@ -38,46 +39,15 @@ using test::F;
 using test::Rng;
 using test::Soup;
 
-constexpr float kInf = std::numeric_limits<float>::infinity();
-constexpr float kNaN = std::numeric_limits<float>::quiet_NaN();
+using test::Built;
+using test::kInf;
+using test::kNaN;
+using test::MakeStream;
+using test::Ray;
+using test::SameBits;
+
 constexpr float kSentinelT = -1234.5f;
 constexpr int32_t kSentinelPrim = 0x5a5a5a5a;
-
-bool SameBits(float a, float b) { return std::memcmp(&a, &b, sizeof a) == 0; }
-
-// A grid (flat if threshold < 0, else two-level with every cell above `threshold` refined) and
-// the SIMD traversal data over it. Not movable: the DdaGrid points into it.
-struct Built {
-  TriangleSoA tris;
-  Grid grid;
-  TwoLevelGrid two;
-  DdaGrid dda;
-  Built(const MeshView& mesh, float lambda, int threshold) {
-    BuildTriangleSoA(mesh, &tris);
-    BuildGrid(tris, lambda, 512, &grid);
-    if (threshold >= 0) BuildTwoLevel(grid, tris, threshold, false, GridCostModel{}, &two);
-    BuildDdaGrid(grid, &two, tris, &dda);
-  }
-  Built(const Built&) = delete;
-  Built& operator=(const Built&) = delete;
-};
-
-struct Ray {
-  float o[3];
-  float d[3];
-  float tmin = 0.0f;
-  float tmax = kInf;
-};
-
-RayStream MakeStream(const std::vector<Ray>& rays) {
-  RayStream s;
-  for (const Ray& r : rays) {
-    s.Push(r.o[0], r.o[1], r.o[2], r.d[0], r.d[1], r.d[2], r.tmin, r.tmax, 0, 1, 1, 1, 0,
-           RayKind::kPrimary);
-  }
-  s.FillPadding();
-  return s;
-}
 
 // Scalar oracle results of one ray set on one structure.
 struct Oracle {

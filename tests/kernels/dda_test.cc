@@ -25,15 +25,9 @@ using test::F;
 using test::Rng;
 using test::Soup;
 
-constexpr float kInf = std::numeric_limits<float>::infinity();
-constexpr float kNaN = std::numeric_limits<float>::quiet_NaN();
-
-struct Ray {
-  float o[3];
-  float d[3];
-  float tmin = 0.0f;
-  float tmax = kInf;
-};
+using test::kInf;
+using test::kNaN;
+using test::Ray;
 
 struct World {
   Soup soup;
@@ -66,7 +60,7 @@ bool FloatBrute(const TriangleSoA& tris, const Ray& r, RayHit* hit) {
   return hit->prim >= 0;
 }
 
-bool SameBits(float a, float b) { return std::memcmp(&a, &b, sizeof a) == 0; }
+using test::SameBits;
 
 struct Counts {
   int rays = 0, hits = 0, exact_mismatch = 0, any_mismatch = 0;

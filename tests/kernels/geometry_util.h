@@ -5,6 +5,8 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <cstring>
+#include <limits>
 #include <random>
 #include <vector>
 
@@ -12,6 +14,20 @@
 #include "kernels/reference.h"
 
 namespace rs::test {
+
+inline constexpr float kInf = std::numeric_limits<float>::infinity();
+inline constexpr float kNaN = std::numeric_limits<float>::quiet_NaN();
+
+// Bitwise equality (distinguishes -0 from +0, equal for identical NaNs).
+inline bool SameBits(float a, float b) { return std::memcmp(&a, &b, sizeof a) == 0; }
+
+// One test ray; t in (tmin, tmax].
+struct Ray {
+  float o[3];
+  float d[3];
+  float tmin = 0.0f;
+  float tmax = kInf;
+};
 
 // Rounds to float through a volatile, so a later float -> double conversion really sees the
 // float value (GCC 12.2's SLP vectorizer can drop a (double)(float)x rounding; TOOLCHAIN.md).

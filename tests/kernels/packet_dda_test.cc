@@ -26,6 +26,7 @@
 #include "kernels/two_level.h"
 #include "scenes/load.h"
 #include "streams/ray_stream.h"
+#include "tests/kernels/dda_util.h"
 #include "tests/kernels/geometry_util.h"
 #include "tests/test_util.h"
 
@@ -36,43 +37,12 @@ using test::F;
 using test::Rng;
 using test::Soup;
 
-constexpr float kInf = std::numeric_limits<float>::infinity();
-constexpr float kNaN = std::numeric_limits<float>::quiet_NaN();
-
-bool SameBits(float a, float b) { return std::memcmp(&a, &b, sizeof a) == 0; }
-
-// A grid (flat if threshold < 0, else two-level with every cell above `threshold` refined).
-struct Built {
-  TriangleSoA tris;
-  Grid grid;
-  TwoLevelGrid two;
-  DdaGrid dda;
-  Built(const MeshView& mesh, float lambda, int threshold) {
-    BuildTriangleSoA(mesh, &tris);
-    BuildGrid(tris, lambda, 512, &grid);
-    if (threshold >= 0) BuildTwoLevel(grid, tris, threshold, false, GridCostModel{}, &two);
-    BuildDdaGrid(grid, &two, tris, &dda);
-  }
-  Built(const Built&) = delete;
-  Built& operator=(const Built&) = delete;
-};
-
-struct Ray {
-  float o[3];
-  float d[3];
-  float tmin = 0.0f;
-  float tmax = kInf;
-};
-
-RayStream MakeStream(const std::vector<Ray>& rays) {
-  RayStream s;
-  for (const Ray& r : rays) {
-    s.Push(r.o[0], r.o[1], r.o[2], r.d[0], r.d[1], r.d[2], r.tmin, r.tmax, 0, 1, 1, 1, 0,
-           RayKind::kPrimary);
-  }
-  s.FillPadding();
-  return s;
-}
+using test::Built;
+using test::kInf;
+using test::kNaN;
+using test::MakeStream;
+using test::Ray;
+using test::SameBits;
 
 // Pinhole camera rays over w x h pixels from `eye` towards `at`, in scanline order or in 8x8
 // tiles (64 rays: one packet per tile).

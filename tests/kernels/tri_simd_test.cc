@@ -34,8 +34,8 @@ using test::F;
 using test::Rng;
 using test::Soup;
 
-constexpr float kInf = std::numeric_limits<float>::infinity();
-constexpr float kNaN = std::numeric_limits<float>::quiet_NaN();
+using test::kInf;
+using test::kNaN;
 constexpr TriTest kTests[] = {TriTest::kWatertight, TriTest::kMollerTrumbore};
 constexpr PacketWidth kWidths[] = {PacketWidth::kAuto, PacketWidth::kOne, PacketWidth::kTwo,
                                    PacketWidth::kFour};
