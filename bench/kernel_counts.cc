@@ -6,9 +6,12 @@
 // Usage: kernel_counts --kernel K [--target T] [--workload W] [--print-toggle | --list-targets]
 //   K: dda (SIMD stream DDA, rs::Accel::Intersect), dda_single (the Cell paper's single-ray form),
 //      tri1x4 (1 ray x 4-wide packets, closest hit), any1x4 (any hit), trinx1 (N rays x 1
-//      triangle), shade (rs::Shade). T: a Highway target name (AVX2, SSE4, ...), "ref" for the
-//      scalar oracle, or omitted for dynamic dispatch. W (dda, dda_single): corners (an almost
-//      empty 64^3 grid: DDA steps alone), spherebox (random rays), bunny (primary rays).
+//      triangle), shade (rs::Shade), packet (coherent 64-ray packets, IntersectCoherent; the
+//      count includes the packets left to the stream DDA). T: a Highway target name (AVX2, SSE4, ...), "ref" for the
+//      scalar oracle, or omitted for dynamic dispatch. W (dda, dda_single, packet): corners (an
+//      almost empty 64^3 grid: DDA steps alone), spherebox (random rays), bunny (primary rays),
+//      bunny256 and spherebox256 (256 x 256 primary rays: bunny from its camera, spherebox from
+//      the centre along +x).
 #include <hwy/targets.h>
 
 #include <cstdio>
@@ -24,6 +27,7 @@
 #include "include/raystream/raystream.h"
 #include "kernels/accel_impl.h"
 #include "kernels/dda_simd.h"
+#include "kernels/packet_dda.h"
 #include "kernels/shade.h"
 #include "kernels/tri_intersect.h"
 #include "scenes/load.h"
@@ -62,6 +66,7 @@ std::string TogglePattern(const Args& a, const std::string& target) {
     if (a.kernel == "shade") return "rs::ref::Shade(*";
     return "";
   }
+  if (a.kernel == "packet") return "rs::IntersectCoherent(*";
   const std::string ns = "rs::N_" + target + "::";
   if (a.kernel == "dda") return ns + "IntersectStreamDda(*";
   if (a.kernel == "dda_single") return ns + "IntersectSingleDda(*";
@@ -92,10 +97,19 @@ int RunDda(const Args& a) {
   } else if (a.workload == "spherebox") {
     scene = LoadScene("spherebox");
     RandomRays(scene, rays);
-  } else if (a.workload == "bunny") {
-    scene = LoadScene("bunny");
-    AppendPrimaryRays(MakeCameraBasis(scene.camera, kPrimarySize, kPrimarySize),
-                      Tile{0, 0, kPrimarySize, kPrimarySize}, RayOrder::kScanline, rays);
+  } else if (a.workload == "bunny" || a.workload == "bunny256" || a.workload == "spherebox256") {
+    const bool big = a.workload != "bunny";
+    scene = LoadScene(a.workload == "spherebox256" ? "spherebox" : "bunny");
+    Camera camera = scene.camera;
+    if (a.workload == "spherebox256") {  // inside the room, along +x
+      glm::vec3 lo, hi;
+      scene.Bounds(lo, hi);
+      camera.eye = 0.5f * (lo + hi);
+      camera.look_at = camera.eye + glm::vec3(1.0f, 0.0f, 0.0f);
+    }
+    const int size = big ? 4 * kPrimarySize : kPrimarySize;
+    AppendPrimaryRays(MakeCameraBasis(camera, size, size), Tile{0, 0, size, size},
+                      RayOrder::kScanline, rays);
     rays.FillPadding();
   } else {
     std::fprintf(stderr, "kernel_counts: unknown workload %s\n", a.workload.c_str());
@@ -116,6 +130,8 @@ int RunDda(const Args& a) {
     }
   } else if (a.target == "ref") {
     ref::AccelIntersect(m, rays.view(), hits.view(), &st);
+  } else if (a.kernel == "packet") {
+    IntersectCoherent(m.dda, rays.view(), hits.view(), m.dda_options, &st);
   } else {
     IntersectStreamDda(m.dda, rays.view(), hits.view(), m.dda_options, &st);
   }
@@ -287,7 +303,7 @@ int Main(int argc, char** argv) {
   std::printf("kernel_counts: kernel=%s target=%s toggle=%s\n", a.kernel.c_str(),
               a.target == "ref" ? "ref" : target_name.c_str(), toggle.c_str());
   try {
-    if (a.kernel == "dda" || a.kernel == "dda_single") return RunDda(a);
+    if (a.kernel == "dda" || a.kernel == "dda_single" || a.kernel == "packet") return RunDda(a);
     if (a.kernel == "shade") return RunShade(a);
     return RunTri(a);
   } catch (const Error& e) {

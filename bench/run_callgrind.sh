@@ -69,12 +69,18 @@ run() {
 }
 
 echo "callgrind: targets under valgrind: $targets (dispatch: $dispatch; native: $native_dispatch)" >&2
+first_target=${targets%% *}
 dda_workloads="corners spherebox"
 [[ $have_bunny == 1 ]] && dda_workloads="$dda_workloads bunny"
 for w in $dda_workloads; do
   for t in $targets ref; do run dda "$w" "$t"; done
 done
 for t in $targets; do run dda_single corners "$t"; done
+# coherent packets (dispatch target) against the stream DDA on the same 256 x 256 primary rays
+for w in spherebox $([[ $have_bunny == 1 ]] && echo bunny); do
+  run packet "${w}256" "$first_target"
+  run dda "${w}256" "$first_target"
+done
 for k in tri1x4 any1x4 trinx1 shade; do
   for t in $targets ref; do run "$k" - "$t"; done
 done
