@@ -123,6 +123,7 @@ struct PacketTracer {
   bool starts_ok = false;
   uint64_t cells = 0;
   uint64_t tests = 0;
+  uint64_t one_ready = 0;  // rays whose PacketRay (r.one) is set up
 
   static size_t Lanes() { return hn::Lanes(D()); }
   static uint64_t LaneMask() {
@@ -364,6 +365,15 @@ struct PacketTracer {
   HWY_INLINE void TestRay(size_t l, const TriPacketSpan& span) {
     if (r.live[l] == 0) return;
     tests += span.lanes();
+    if ((one_ready >> l & 1) == 0) {  // the 1-ray kernels' setup, from the same lane values
+      const float* const o[3] = {r.o[0], r.o[1], r.o[2]};
+      const float* const dd[3] = {r.d[0], r.d[1], r.d[2]};
+      const float* const wo[3] = {r.wo[0], r.wo[1], r.wo[2]};
+      const float* const shear[3] = {r.shear[0], r.shear[1], r.shear[2]};
+      const int32_t* const k[3] = {r.k[0], r.k[1], r.k[2]};
+      r.one[l] = PacketRayFromLanes(o, dd, wo, shear, k, l);
+      one_ready |= uint64_t{1} << l;
+    }
     if constexpr (kAny) {
       if (PacketsWidth<TriTest::kWatertight, true>(r.one[l], span, r.tmin[l], r.tmax[l],
                                                    PacketWidth::kAuto, nullptr)) {
@@ -533,8 +543,16 @@ struct PacketTracer {
     nv = (n + L - 1) / L;
     if (nv * L > kPR) return false;
     const V zero = hn::Zero(d), one = hn::Set(d, 1.0f);
+    Level top;
+    for (int a = 0; a < 3; ++a) {
+      top.lo[a] = grid.lo[a];
+      top.inv_cs[a] = grid.inv_cell_size[a];
+      top.res[a] = grid.res[a];
+    }
+
     V sum_d[3] = {zero, zero, zero};
     V omax[3] = {zero, zero, zero};
+    V dmax[3] = {zero, zero, zero};
     size_t n_valid = 0;
     for (size_t w = 0; w < nv; ++w) {
       const size_t i = w * L;
@@ -563,6 +581,7 @@ struct PacketTracer {
         hn::Store(dir[a], d, r.d[a] + i);
         sum_d[a] = hn::Add(sum_d[a], dir[a]);
         omax[a] = hn::Max(omax[a], hn::Abs(o[a]));
+        dmax[a] = hn::Max(dmax[a], hn::Abs(dir[a]));
       }
       t0 = hn::IfThenElseZero(valid, t0);
       t1 = hn::IfThenElseZero(valid, t1);
@@ -604,6 +623,7 @@ struct PacketTracer {
     positive = sums[K] > 0.0f;
     const V min_k = hn::Set(d, kMinDirection);
     V tfar = zero;
+    VI s_min = hn::Set(di, grid.res[K]), s_max = hn::Set(di, -1);
     // slopes of the rays against K, for the coherence test below
     V slo[2] = {hn::Set(d, FLT_MAX), hn::Set(d, FLT_MAX)};
     V shi[2] = {hn::Set(d, -FLT_MAX), hn::Set(d, -FLT_MAX)};
@@ -622,14 +642,21 @@ struct PacketTracer {
         slo[a] = hn::Min(slo[a], hn::IfThenElse(valid, slope, hn::Set(d, FLT_MAX)));
         shi[a] = hn::Max(shi[a], hn::IfThenElse(valid, slope, hn::Set(d, -FLT_MAX)));
       }
-      // one permutation for the whole vector?
-      int key0 = -2;
-      for (size_t l = 0; l < L; ++l) {
-        if (r.live[i + l] == 0) continue;
-        const int key = r.k[0][i + l] | r.k[1][i + l] << 2 | r.k[2][i + l] << 4;
-        key0 = key0 == -2 || key0 == key ? key : -1;
-      }
-      perm[w] = key0 < 0 ? -1 : key0;
+      // one permutation for the whole vector? (the valid lanes' keys all equal)
+      const VI key = hn::Or(hn::Load(di, r.k[0] + i),
+                            hn::Or(hn::ShiftLeft<2>(hn::Load(di, r.k[1] + i)),
+                                   hn::ShiftLeft<4>(hn::Load(di, r.k[2] + i))));
+      const auto vi = hn::RebindMask(di, valid);
+      const VI kmin = hn::MinOfLanes(di, hn::IfThenElse(vi, key, hn::Set(di, 64)));
+      const VI kmax = hn::MaxOfLanes(di, hn::IfThenElse(vi, key, hn::Set(di, -1)));
+      perm[w] = hn::GetLane(kmin) == hn::GetLane(kmax) ? hn::GetLane(kmin) : -1;
+      // the slices where the segment starts and ends
+      const V orig_k = hn::Load(d, r.o[K] + i);
+      const VI s0 = CellOf(d, hn::Add(orig_k, hn::Mul(hn::Load(d, r.t0 + i), dk)), top, K);
+      const VI s1 = CellOf(d, hn::Add(orig_k, hn::Mul(hn::Load(d, r.t1 + i), dk)), top, K);
+      hn::Store(s0, di, r.s_start + i);
+      s_min = hn::Min(s_min, hn::IfThenElse(vi, hn::Min(s0, s1), s_min));
+      s_max = hn::Max(s_max, hn::IfThenElse(vi, hn::Max(s0, s1), s_max));
     }
     // coherence: the footprint of a packet widens per slice by the spread of its slopes; beyond
     // kMaxSpread cells per slice the rays diverge (diffuse rays, say) and are traced one by one
@@ -643,37 +670,16 @@ struct PacketTracer {
         sigma[a] = std::max(std::abs(lo_slope), std::abs(hi_slope)) * to_cells;
       }
     }
-    // the 1-ray kernels' setup, from the same per-lane values (PrepareWatertightRay's)
-    {
-      const float* const o[3] = {r.o[0], r.o[1], r.o[2]};
-      const float* const dd[3] = {r.d[0], r.d[1], r.d[2]};
-      const float* const wo[3] = {r.wo[0], r.wo[1], r.wo[2]};
-      const float* const shear[3] = {r.shear[0], r.shear[1], r.shear[2]};
-      const int32_t* const k[3] = {r.k[0], r.k[1], r.k[2]};
-      for (size_t i = 0; i < nv * L; ++i) {
-        if (r.live[i] != 0) r.one[i] = PacketRayFromLanes(o, dd, wo, shear, k, i);
-      }
-    }
     // rounding of the footprint: o + t d with |t d| <= t_far |d| (|d| summed: an upper bound)
     const float t_far = hn::GetLane(hn::MaxOfLanes(d, tfar));
     for (int a = 0; a < 3; ++a) {
-      float dmax = 0.0f;
-      for (size_t i = 0; i < nv * L; ++i) dmax = std::max(dmax, std::abs(r.d[a][i]));
-      const float scale = omaxs[a] + t_far * dmax + std::max(std::abs(grid.lo[a]), std::abs(grid.hi[a]));
+      const float scale = omaxs[a] + t_far * hn::GetLane(hn::MaxOfLanes(d, dmax[a])) +
+                          std::max(std::abs(grid.lo[a]), std::abs(grid.hi[a]));
       err[a] = 4e-7f * scale + 1e-4f * grid.cell_size[a];
     }
     // slices along K covered by some segment, +-1 for the rounding of the entry cells
-    int s_lo = grid.res[K], s_hi = -1;
-    for (size_t i = 0; i < nv * L; ++i) {
-      if (r.live[i] == 0) continue;
-      for (const float t : {r.t1[i], r.t0[i]}) {
-        const float f = (r.o[K][i] + t * r.d[K][i] - grid.lo[K]) * grid.inv_cell_size[K];
-        const int s = f <= 0.0f ? 0 : f >= float(grid.res[K]) ? grid.res[K] - 1 : int(f);
-        s_lo = std::min(s_lo, s);
-        s_hi = std::max(s_hi, s);
-        r.s_start[i] = s;  // the t0 one, last
-      }
-    }
+    int s_lo = hn::GetLane(hn::MinOfLanes(di, s_min));
+    int s_hi = hn::GetLane(hn::MaxOfLanes(di, s_max));
     starts_ok = grid.res[K] <= 16 * 64;
     if (starts_ok) {
       for (size_t i = 0; i < nv * L; ++i) {
@@ -690,12 +696,6 @@ struct PacketTracer {
     // budget of marked cells before the packet is given to the stream DDA (each ray marks at
     // least one cell per slice it passes: a bound on diverging rays)
     const uint64_t budget = 4 * uint64_t(n_valid) * uint64_t(s_hi - s_lo + 1) + 64;
-    Level top;
-    for (int a = 0; a < 3; ++a) {
-      top.lo[a] = grid.lo[a];
-      top.inv_cs[a] = grid.inv_cell_size[a];
-      top.res[a] = grid.res[a];
-    }
     SliceFoot f;
     for (int step = 0; step <= s_hi - s_lo; ++step) {
       const int s = positive ? s_lo + step : s_hi - step;
