@@ -2,19 +2,24 @@
 // this file.
 //
 // One packet = 64 consecutive rays, NV = 64 / Lanes vectors (8 on AVX2, 4 on AVX-512):
-//   1. setup per vector: validity, slab clip to the grid [t0, t1], the watertight shear; the
-//      major axis K (largest |sum of d|) must have one sign for every live ray, else the packet
-//      is refused (the stream DDA takes it);
-//   2. slices of the grid along K, in the rays' direction. For slice s each vector's footprint is
-//      the box (in the other two axes U, V) of its rays' segments inside the slice, clipped to
-//      [t0, min(t1, best t)] and widened by the rounding of o + t d; the packet box is their
-//      union. Every occupied cell of the slice inside the packet box is visited: its triangles
-//      are tested against the vectors whose box meets the triangle's bounding box, each vector
-//      at most once per triangle (a direct-mapped mailbox keeps, per triangle, the vectors
-//      already tested). Refined cells of a two-level grid are visited the same way one
-//      sub-slice at a time;
-//   3. after the slice a ray is done if its candidate t lies before the slice's far plane (no
-//      closer hit can lie in a later slice) or its segment ends there.
+//   1. setup per vector: validity, slab clip to the grid [t0, t1], the watertight shear (the
+//      stream DDA's, kernels/ray_setup-inl.h). The major axis K (largest |sum of d|) must have
+//      one sign for every live ray, and the rays' slopes against K must spread by at most about
+//      half a cell per slice, else the packet is refused (the stream DDA takes it: diffuse rays);
+//   2. slices of the grid along K, in the rays' direction. First the rays whose candidate (or
+//      segment end) lies before the slice's near plane are retired: that plane's t is the
+//      per-ray DDA's boundary t, bit for bit, so no ray stops before the per-ray walk would.
+//      Then each vector's footprint: the box (in the other two axes U, V) of its rays' segments
+//      inside the slice, clipped to [t0, min(t1, best t)] and widened by the rounding of
+//      o + t d. If the packet's box lies inside a block of empty cells (DdaGrid::skip rings),
+//      the slices it cannot leave are jumped. Otherwise each vector marks the cells of its box
+//      (a small packet box is taken whole), and every occupied marked cell is visited: its
+//      triangles are culled against the boxes of the vectors that marked it (SIMD over 8
+//      triangles) and tested N rays x 1 triangle, each vector at most once per triangle (a
+//      direct-mapped mailbox); a vector with only 1 or 2 of its rays there tests them with the
+//      1-ray x 4-triangle kernel instead. Refined cells of a two-level grid are visited the same
+//      way, one sub-slice at a time. A packet whose vectors' boxes cover more than ~2 cells per
+//      ray, or whose footprint outgrows 64 x 64 cells, is abandoned for the stream DDA.
 // Why the result is the per-ray walk's: both return the closest watertight hit (ties: lower id)
 // over the triangles listed in the cells their walk covers, and every triangle whose hit could
 // win is listed in a covered cell: hit points lie inside the cells of the ray's path up to the
@@ -45,7 +50,7 @@ namespace hn = hwy::HWY_NAMESPACE;
 inline constexpr size_t kPR = kCoherentPacketRays;
 inline constexpr int kMaxFoot = detail::PacketScratch::kMaxFoot;  // cells per axis and slice
 // Slice footprints of at most this many cells are visited whole (after checking that one of
-// their cells is occupied) rather than marked ray by ray.
+// their cells is occupied) rather than marked vector by vector.
 inline constexpr int kSmallBox = 4;
 // Packets whose footprint widens by more than this many cells per slice are refused, scaled down
 // by kDenseCell / (triangles per occupied cell) in grids with denser cells: the wider the
@@ -733,7 +738,7 @@ struct PacketTracer {
           }
         };
         // a small box: its occupancy first (most slices of a packet are empty), then every
-        // cell with all the slice's rays; a larger one: each ray marks its own cells
+        // cell with all the slice's rays; a larger one: each vector marks the cells of its box
         const int area = (f.u1 - f.u0 + 1) * (f.v1 - f.v0 + 1);
         if (area <= kSmallBox) {
           bool any = false;
