@@ -15,7 +15,6 @@
 #include <cstring>
 #include <map>
 #include <memory>
-#include <sstream>
 #include <string>
 #include <vector>
 
@@ -135,40 +134,15 @@ void BM(benchmark::State& state, const std::string& scene, bool shadow, bool pac
   hwy::SetSupportedTargetsForTest(0);
 }
 
-std::vector<std::string> Split(const std::string& s) {
-  std::vector<std::string> out;
-  std::stringstream in(s);
-  std::string item;
-  while (std::getline(in, item, ',')) {
-    if (!item.empty()) out.push_back(item);
-  }
-  return out;
-}
-
-bool Available(const std::string& scene) {
-  try {
-    LoadScene(scene);
-    return true;
-  } catch (const Error&) {
-    return false;
-  }
-}
-
 }  // namespace
 }  // namespace rs::bench
 
 int main(int argc, char** argv) {
   using namespace rs::bench;
-  if (const char* size = std::getenv("RS_BENCH_SIZE")) {
-    std::sscanf(size, "%dx%d", &g_width, &g_height);
-  }
-  std::vector<std::string> scenes = {"bunny", "sponza", "office-graz", "conference", "spherebox"};
-  if (const char* s = std::getenv("RS_BENCH_SCENES")) scenes = Split(s);
-  for (const std::string& scene : scenes) {
-    if (!Available(scene)) {
-      std::fprintf(stderr, "[packet_bench] skipping %s (not found)\n", scene.c_str());
-      continue;
-    }
+  BenchSize("packet_bench", &g_width, &g_height);
+  // a scene that does not load is skipped with its error (Get)
+  for (const std::string& scene :
+       BenchScenes({"bunny", "sponza", "office-graz", "conference", "spherebox"})) {
     for (const bool shadow : {false, true}) {
       for (const int64_t t : hwy::SupportedAndGeneratedTargets()) {
         for (const bool packets : {true, false}) {

@@ -3,6 +3,9 @@
 #include "bench/ray_sets.h"
 
 #include <algorithm>
+#include <cstdio>
+#include <cstdlib>
+#include <sstream>
 #include <cmath>
 #include <limits>
 #include <numbers>
@@ -279,6 +282,31 @@ RaySets MakeRaySets(const Scene& scene, const EmbreePeer& embree, int width, int
   MakeShadowRays(scene, sets.primary.view(), sets.primary_hits.view(), sets.light, sets.shadow);
   MakeDiffuseRays(scene, sets.primary.view(), sets.primary_hits.view(), seed, sets.diffuse);
   return sets;
+}
+
+std::vector<std::string> BenchScenes(const std::vector<std::string>& fallback) {
+  const char* env = std::getenv("RS_BENCH_SCENES");
+  if (env == nullptr) return fallback;
+  std::vector<std::string> parts;
+  std::stringstream in(env);
+  std::string part;
+  while (std::getline(in, part, ',')) {
+    if (!part.empty()) parts.push_back(part);
+  }
+  return parts;
+}
+
+bool BenchSize(const char* who, int* width, int* height) {
+  const char* size = std::getenv("RS_BENCH_SIZE");
+  if (size == nullptr) return false;
+  int w = 0, h = 0;
+  if (std::sscanf(size, "%dx%d", &w, &h) == 2 && w > 0 && h > 0) {
+    *width = w;
+    *height = h;
+    return true;
+  }
+  std::fprintf(stderr, "[%s] ignoring RS_BENCH_SIZE=%s (want WxH)\n", who, size);
+  return false;
 }
 
 }  // namespace rs::bench

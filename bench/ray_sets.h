@@ -5,6 +5,8 @@
 
 #include <cstddef>
 #include <cstdint>
+#include <string>
+#include <vector>
 #include <glm/glm.hpp>
 
 #include "bench/embree_peer.h"
@@ -63,6 +65,11 @@ void MakeDiffuseRays(const Scene& scene, const RayStreamView& rays, const HitStr
 // grown by 10 %; even rays aim at a uniform point of a uniformly chosen triangle (so most
 // hit), odd rays take a uniform direction on the sphere. tmin 0, tmax +inf. Deterministic.
 void MakeRandomRays(const Scene& scene, size_t n, uint64_t seed, RayStream& out);
+
+// The benchmarks' environment: RS_BENCH_SCENES=a,b,c (else `fallback`) and RS_BENCH_SIZE=WxH
+// (false, with a warning naming `who`, if it is set but malformed; false if unset).
+std::vector<std::string> BenchScenes(const std::vector<std::string>& fallback);
+bool BenchSize(const char* who, int* width, int* height);
 
 // The three sets for one scene and image size, with Embree's primary hits.
 struct RaySets {

@@ -444,16 +444,6 @@ class RatioReporter : public Base {
   std::vector<std::pair<std::string, std::string>> order_;
 };
 
-std::vector<std::string> Split(const std::string& text, char sep) {
-  std::vector<std::string> parts;
-  std::stringstream in(text);
-  std::string part;
-  while (std::getline(in, part, sep)) {
-    if (!part.empty()) parts.push_back(part);
-  }
-  return parts;
-}
-
 void Configure() {
   Config& c = Cfg();
   const char* full = std::getenv("RS_BENCH_FULL");
@@ -462,16 +452,8 @@ void Configure() {
     c.repetitions = 5;
     c.min_time = 0.5;
   }
-  if (const char* size = std::getenv("RS_BENCH_SIZE")) {
-    int w = 0, h = 0;
-    if (std::sscanf(size, "%dx%d", &w, &h) == 2 && w > 0 && h > 0) {
-      c.width = w;
-      c.height = h;
-    } else {
-      std::fprintf(stderr, "[trace_bench] ignoring RS_BENCH_SIZE=%s (want WxH)\n", size);
-    }
-  }
-  if (const char* scenes = std::getenv("RS_BENCH_SCENES")) c.scenes = Split(scenes, ',');
+  BenchSize("trace_bench", &c.width, &c.height);
+  c.scenes = BenchScenes(c.scenes);
 }
 
 // Rates use the CPU time of the (single) benchmark thread, Google Benchmark's default, not wall

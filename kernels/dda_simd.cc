@@ -1059,6 +1059,16 @@ RayStreamView SubView(const RayStreamView& rays, size_t first, size_t n) {
   return v;
 }
 
+HitStreamView SubView(const HitStreamView& hits, size_t first, size_t n) {
+  HitStreamView v = hits;
+  v.t += first;
+  v.u += first;
+  v.v += first;
+  v.prim += first;
+  v.size = n;
+  return v;
+}
+
 namespace {
 
 // Streams are traced in chunks of this many rays (the lanes' ray indices are int32); a multiple
@@ -1111,13 +1121,8 @@ void IntersectStreamDda(const DdaGrid& g, const RayStreamView& rays, const HitSt
   // lanes hold int32 ray indices: chunks of at most kMaxChunk rays (aligned sub-views)
   for (size_t first = 0; first < rays.size; first += kMaxChunk) {
     const RayStreamView part = SubView(rays, first, std::min(kMaxChunk, rays.size - first));
-    HitStreamView out = hits;
-    out.t += first;
-    out.u += first;
-    out.v += first;
-    out.prim += first;
-    out.size = part.size;
-    HWY_DYNAMIC_DISPATCH(IntersectStreamDda)(g, part, out, options, stats);
+    HWY_DYNAMIC_DISPATCH(IntersectStreamDda)(g, part, SubView(hits, first, part.size), options,
+                                             stats);
   }
 }
 

@@ -97,6 +97,8 @@ bool OccludedSingleDda(const DdaGrid& g, float ox, float oy, float oz, float dx,
 
 // Rays [first, first + n) of `rays`: the arrays the trace kernels read (o, d, tmin, tmax), offset.
 RayStreamView SubView(const RayStreamView& rays, size_t first, size_t n);
+// Hits [first, first + n) of `hits` (t, u, v, prim offset; size n).
+HitStreamView SubView(const HitStreamView& hits, size_t first, size_t n);
 
 // Name of the target dynamic dispatch runs the kernels above on (e.g. "AVX3").
 const char* DdaTargetName();

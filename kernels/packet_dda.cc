@@ -86,6 +86,8 @@ struct PacketRays {
   HWY_ALIGN float flo[2][kPR];
   HWY_ALIGN float fhi[2][kPR];
   int32_t s_start[kPR];  // the slice where the ray's segment starts
+  // per vector: the (kx, ky, kz) every live ray shares (k0 | k1 << 2 | k2 << 4), or -1
+  int32_t perm[kPR];
   PacketRay one[kPR];  // the 1-ray x 4-triangle kernels' setup of each valid ray
 };
 
@@ -124,8 +126,6 @@ struct PacketTracer {
   size_t nv = 0;            // vectors in the packet
   int K = 0, U = 1, W = 2;  // major axis and the two others
   bool positive = true;     // d[K] > 0 for every live ray
-  // per vector: the (kx, ky, kz) every live ray shares (k0 | k1 << 2 | k2 << 4), or -1
-  int perm[kPR] = {};
   float err[3] = {0, 0, 0};  // rounding of o + t d, world units, per axis
   float sigma[2] = {0, 0};   // most cells (U, W) a ray moves per slice
   // slices where some ray's segment starts, as bits (slice s = bit s), for res[K] <= 1024
@@ -260,8 +260,8 @@ struct PacketTracer {
     const M live = hn::RebindMask(d, hn::Ne(hn::Load(di, r.live + i), hn::Zero(di)));
     if (kAny && hn::AllFalse(d, live)) return;  // every ray of the vector is occluded
     V c[9];
-    if (perm[w] >= 0) {
-      const int k[3] = {perm[w] & 3, (perm[w] >> 2) & 3, (perm[w] >> 4) & 3};
+    if (r.perm[w] >= 0) {
+      const int k[3] = {r.perm[w] & 3, (r.perm[w] >> 2) & 3, (r.perm[w] >> 4) & 3};
       for (int vtx = 0; vtx < 3; ++vtx) {
         for (int a = 0; a < 3; ++a) c[3 * vtx + a] = hn::Set(d, p[3 * vtx + k[a]]);
       }
@@ -659,7 +659,7 @@ struct PacketTracer {
       const auto vi = hn::RebindMask(di, valid);
       const VI kmin = hn::MinOfLanes(di, hn::IfThenElse(vi, key, hn::Set(di, 64)));
       const VI kmax = hn::MaxOfLanes(di, hn::IfThenElse(vi, key, hn::Set(di, -1)));
-      perm[w] = hn::GetLane(kmin) == hn::GetLane(kmax) ? hn::GetLane(kmin) : -1;
+      r.perm[w] = hn::GetLane(kmin) == hn::GetLane(kmax) ? hn::GetLane(kmin) : -1;
       // the slices where the segment starts and ends
       const V orig_k = hn::Load(d, r.o[K] + i);
       const VI s0 = CellOf(d, hn::Add(orig_k, hn::Mul(hn::Load(d, r.t0 + i), dk)), top, K);
@@ -881,13 +881,7 @@ void IntersectCoherent(const DdaGrid& g, const RayStreamView& rays, const HitStr
         return HWY_DYNAMIC_DISPATCH(IntersectPacket)(g, rays, first, n, hits, stats, &sc);
       },
       [&](size_t first, size_t n) {
-        HitStreamView out = hits;
-        out.t += first;
-        out.u += first;
-        out.v += first;
-        out.prim += first;
-        out.size = n;
-        IntersectStreamDda(g, SubView(rays, first, n), out, options, stats);
+        IntersectStreamDda(g, SubView(rays, first, n), SubView(hits, first, n), options, stats);
       });
 }
 
