@@ -156,8 +156,8 @@ int main(int argc, char** argv) {
     }
   }
   benchmark::Initialize(&argc, argv);
-  std::printf("cycles: cpu_ticks/ray = thread CPU time x tsc_ghz per ray (rdtsc reference ticks, not "
-              "core cycles: hardware perf counters are not available on these machines)\n");
+  std::printf("cycles: cpu_ticks/ray = thread CPU time x tsc_ghz per ray (rdtsc reference ticks, "
+              "not core cycles: hardware perf counters are not available on these machines)\n");
   benchmark::RunSpecifiedBenchmarks();
   benchmark::Shutdown();
   return 0;

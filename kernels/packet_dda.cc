@@ -478,8 +478,7 @@ struct PacketTracer {
       lv.res[a] = kSubRes;
     }
     SliceFoot f;
-    uint64_t marks[kSubRes * kSubRes] = {};
-    uint16_t list[kSubRes * kSubRes];
+    static_assert(sizeof(sc.sub_marks) == kSubRes * kSubRes * sizeof(uint64_t), "sub-slice");
     for (int step = 0; step < kSubRes; ++step) {
       const int k = positive ? step : kSubRes - 1 - step;
       const float p0 = rec.lo[K] + float(k) * rec.cell_size[K];
@@ -487,13 +486,14 @@ struct PacketTracer {
       Footprint<false>(p0 - err[K], p1 + err[K], lv, rays, &f);
       if (f.vectors == 0) continue;
       Refine(lv, &f);
-      const bool ok = ForMarkedCells<kSubRes>(f, marks, list, [&](int cu, int cv, uint64_t in) {
+      const auto visit = [&](int cu, int cv, uint64_t in) {
         int c[3];
         c[K] = k;
         c[U] = cu;
         c[W] = cv;
         if (rec.Occupied(c[0], c[1], c[2])) VisitLeaf(rec.Leaf(c[0], c[1], c[2]), in, f);
-      });
+      };
+      const bool ok = ForMarkedCells<kSubRes>(f, sc.sub_marks, sc.sub_list, visit);
       HWY_DASSERT(ok);  // 8 x 8 sub-cells always fit
       (void)ok;
     }
@@ -841,6 +841,7 @@ namespace {
 
 void InitScratch(detail::PacketScratch* sc) {
   std::memset(sc->marks, 0, sizeof sc->marks);
+  std::memset(sc->sub_marks, 0, sizeof sc->sub_marks);
   std::memset(sc->mb_stamp, 0, sizeof sc->mb_stamp);
   sc->serial = 0;
 }

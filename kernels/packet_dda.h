@@ -45,6 +45,8 @@ struct PacketScratch {
   static constexpr size_t kMailbox = 1024;
   uint64_t marks[kMaxFoot * kMaxFoot];
   uint16_t list[kMaxFoot * kMaxFoot];
+  uint64_t sub_marks[8 * 8];  // the same for one sub-slice of an 8x8x8 sub-grid
+  uint16_t sub_list[8 * 8];
   int32_t mb_id[kMailbox];
   uint32_t mb_stamp[kMailbox];
   uint64_t mb_tested[kMailbox];

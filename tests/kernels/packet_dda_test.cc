@@ -123,22 +123,20 @@ Oracle RunOracle(const Built& b, const std::vector<Ray>& rays) {
 }
 
 // Shadow rays from the oracle's hits (pulled back towards the origin by a relative 1e-4) to
-// `light`, tmax just short of it; misses keep a ray that starts at the light (never occluded).
-std::vector<Ray> ShadowRays(const std::vector<Ray>& primary, const Oracle& o, const float light[3]) {
+// `light`, tmax just short of it (primary misses spawn nothing).
+std::vector<Ray> ShadowRays(const std::vector<Ray>& primary, const Oracle& o,
+                            const float light[3]) {
   std::vector<Ray> rays;
   for (size_t i = 0; i < primary.size(); ++i) {
     if (o.hit[i].prim < 0) continue;
     const Ray& p = primary[i];
     Ray r;
-    double dist = 0;
     for (int a = 0; a < 3; ++a) {
       r.o[a] = F(p.o[a] + double(o.hit[i].t) * (1.0 - 1e-4) * p.d[a]);
       r.d[a] = F(double(light[a]) - r.o[a]);
-      dist += double(r.d[a]) * r.d[a];
     }
     r.tmin = 0.0f;
     r.tmax = F(1.0 - 1e-5);  // d reaches the light at t = 1
-    (void)dist;
     rays.push_back(r);
   }
   return rays;
