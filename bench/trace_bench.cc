@@ -22,6 +22,7 @@
 #include <utility>
 #include <vector>
 
+#include "bench/bench_scenes.h"
 #include "bench/embree_peer.h"
 #include "bench/ray_sets.h"
 #include "bench/tsc.h"
@@ -51,19 +52,6 @@ struct Config {
 Config& Cfg() {
   static Config config;
   return config;
-}
-
-// A shared scene's file, to test for presence without loading; "" for procedural scenes.
-std::string ProbeFile(const std::string& scene) {
-  static const std::map<std::string, std::string> files = {
-      {"bunny", "bunny/bun_zipper.ply"},
-      {"teapot", "teapot/teapot.obj"},
-      {"sponza", "sponza/sponza.obj"},
-      {"office-graz", "office-graz/office-graz.obj"},
-      {"conference", "conference/conference.obj"},
-      {"sibenik", "sibenik/sibenik.obj"}};
-  const auto it = files.find(scene);
-  return it == files.end() ? std::string() : it->second;
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -495,16 +483,7 @@ int Main(int argc, char** argv) {
   Configure();
   const Config& c = Cfg();
   for (const std::string& scene : c.scenes) {
-    const std::string probe = ProbeFile(scene);
-    if (!probe.empty()) {
-      try {
-        FindSceneFile(probe);
-      } catch (const Error& e) {
-        std::fprintf(stderr, "[trace_bench] skipping %s: %s\n", scene.c_str(), e.what());
-        continue;
-      }
-    }
-    Register(scene);
+    if (SceneAvailable("trace_bench", scene)) Register(scene);
   }
   benchmark::AddCustomContext(
       "embree", std::string(EmbreeVersion()) + " (robust, medium build quality, threads=1)");
