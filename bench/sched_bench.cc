@@ -325,15 +325,17 @@ void PbtAccuracy(const Args& a, const std::filesystem::path& dir) {
   fmt::print("PBT {} {}x{}, n = {} workers on 2 threads, {} frames (load {})\n", name, size, size,
              workers, frames, LoadAverage());
   struct Run {
-    bool cpu;
+    PbtCost cost;
     PbtAssign assign;
   };
   std::vector<Run> runs;
-  for (const PbtAssign as :
-       {PbtAssign::kStatic, PbtAssign::kRandom, PbtAssign::kGreedy, PbtAssign::kVisit}) {
-    runs.push_back({true, as});
+  for (const PbtCost cost : {PbtCost::kWork, PbtCost::kCpu}) {
+    for (const PbtAssign as :
+         {PbtAssign::kStatic, PbtAssign::kRandom, PbtAssign::kGreedy, PbtAssign::kVisit}) {
+      runs.push_back({cost, as});
+    }
   }
-  runs.push_back({false, PbtAssign::kRandom});  // wall-clock tile times, as in the paper
+  runs.push_back({PbtCost::kWall, PbtAssign::kRandom});  // wall-clock tile times, the paper's
   for (const Run& run : runs) {
     for (const int k : {1, 4}) {
       for (const float speed : {1.0f, 2.0f}) {
@@ -343,7 +345,7 @@ void PbtAccuracy(const Args& a, const std::filesystem::path& dir) {
         o.pbt_tiles_per_worker = k;
         o.pbt_workers = workers;
         o.assign = run.assign;
-        o.pbt_cpu_time = run.cpu;
+        o.pbt_cost = run.cost;
         o.seed = 12345;
         HostRenderer r(o);
         Framebuffer fb(size, size);
@@ -354,7 +356,7 @@ void PbtAccuracy(const Args& a, const std::filesystem::path& dir) {
           const HostFrameStats& s =
               r.RenderFrame(MakeFrameContext(l.scene, *l.accel, cam, Options(size, size)), fb);
           per_frame.Row("{},{},{},{},{},{:.4f},{:.4f},{:.4f},{:.4f},{:.6g},{:.6g},{},{:.3f}",
-                        run.cpu ? "cpu" : "wall", PbtAssignName(run.assign), k, speed, f,
+                        PbtCostName(run.cost), PbtAssignName(run.assign), k, speed, f,
                         s.accuracy.within5, s.accuracy.within10, s.accuracy.within15,
                         s.worker_imbalance, s.update.variance_before, s.update.variance_after,
                         s.update.steps, 1e3 * s.total.total_seconds);
@@ -368,13 +370,13 @@ void PbtAccuracy(const Args& a, const std::filesystem::path& dir) {
           steps.push_back(s.update.steps);
         }
         table.Row("{},{},{},{},{},{},{},{},{},{:.4f},{:.4f},{:.4f},{:.4f},{:.4f},{:.3f},{:.2f},{}",
-                  name, size, run.cpu ? "cpu" : "wall", PbtAssignName(run.assign), k, speed,
+                  name, size, PbtCostName(run.cost), PbtAssignName(run.assign), k, speed,
                   workers, o.threads, frames - 1, Mean(w5), Mean(w10), Mean(w15), Mean(wimb),
                   Mean(timb), 1e3 * Median(ms), Mean(steps), LoadAverage());
         fmt::print(
             "  {:4} {:6} k={} x{}: within 5/10/15 % = {:.1f} / {:.1f} / {:.1f} %, worker "
             "imbalance {:.3f}\n",
-            run.cpu ? "cpu" : "wall", PbtAssignName(run.assign), k, speed, 100 * Mean(w5),
+            PbtCostName(run.cost), PbtAssignName(run.assign), k, speed, 100 * Mean(w5),
             100 * Mean(w10), 100 * Mean(w15), Mean(wimb));
       }
     }
@@ -410,7 +412,7 @@ void Amphitheater(const Args& a, const std::filesystem::path& dir) {
       o.pbt_tiles_per_worker = rounds_k;
       o.assign = v.assign;
       o.pbt_steal = v.steal;
-      o.pbt_cpu_time = true;
+      o.pbt_cost = PbtCost::kCpu;
       o.seed = 777;
       renderers.push_back(std::make_unique<HostRenderer>(o));
     }

@@ -61,31 +61,6 @@ bool ParseBackendKind(std::string_view name, BackendKind* kind) {
 
 std::vector<std::string> BackendNames() { return {"serial", "lock", "lfree", "local", "tiles"}; }
 
-const char* PbtAssignName(PbtAssign assign) {
-  switch (assign) {
-    case PbtAssign::kRandom:
-      return "random";
-    case PbtAssign::kGreedy:
-      return "greedy";
-    case PbtAssign::kVisit:
-      return "visit";
-    case PbtAssign::kStatic:
-      return "static";
-  }
-  return "?";
-}
-
-bool ParsePbtAssign(std::string_view name, PbtAssign* assign) {
-  for (const PbtAssign a :
-       {PbtAssign::kRandom, PbtAssign::kGreedy, PbtAssign::kVisit, PbtAssign::kStatic}) {
-    if (name == PbtAssignName(a)) {
-      *assign = a;
-      return true;
-    }
-  }
-  return false;
-}
-
 void ValidateBackendOptions(const BackendOptions& o) {
   auto fail = [](const std::string& what) { throw Error("backend options: " + what); };
   const int kind = static_cast<int>(o.kind);
@@ -116,9 +91,31 @@ void ValidateBackendOptions(const BackendOptions& o) {
   if (o.pbt_steal && o.pbt_tiles_per_worker == 0) {
     fail("pbt_steal needs a PBT tiling (pbt_tiles_per_worker > 0)");
   }
+  if (o.pbt_workers > 0 && o.pbt_tiles_per_worker == 0) {
+    fail(fmt::format("pbt_workers {} needs a PBT tiling (pbt_tiles_per_worker > 0)",
+                     o.pbt_workers));
+  }
   const int assign = static_cast<int>(o.assign);
-  if (assign < 0 || assign > static_cast<int>(PbtAssign::kStatic)) {
+  if (assign < 0 || assign > static_cast<int>(PbtAssign::kCounter)) {
     fail(fmt::format("unknown PBT assignment {}", assign));
+  }
+  const int cost = static_cast<int>(o.pbt_cost);
+  if (cost < 0 || cost > static_cast<int>(PbtCost::kWork)) {
+    fail(fmt::format("unknown PBT cost {}", cost));
+  }
+  if (o.pbt_cost != PbtCost::kWall && o.pbt_tiles_per_worker == 0) {
+    fail(fmt::format("pbt_cost {} needs a PBT tiling (pbt_tiles_per_worker > 0)",
+                     PbtCostName(o.pbt_cost)));
+  }
+  if (o.pbt_tiles_per_worker > 0 && o.assign == PbtAssign::kCounter) {
+    if (o.pbt_steal) {
+      fail("pbt_steal needs per-worker lists; assign counter has one shared counter");
+    }
+    if (o.pbt_workers != 0 && o.pbt_workers != o.threads) {
+      fail(fmt::format("assign counter: the {} threads take the tiles from one counter, so "
+                       "pbt_workers must be 0 or {}, not {}",
+                       o.threads, o.threads, o.pbt_workers));
+    }
   }
 }
 
@@ -485,30 +482,38 @@ class TilesImpl final : public HostRenderer::Impl {
   }
   ~TilesImpl() override { loop_.reset(); }
 
-  const Pbt* pbt() const override { return pbt_.get(); }
+  const Pbt* pbt() const override { return plan_ ? plan_->pbt() : nullptr; }
 
   void Begin(const std::vector<Tile>* tiles) override {
     const bool use_pbt = options_.pbt_tiles_per_worker > 0;
     if (use_pbt && tiles != nullptr) {
       throw Error("tiles backend: explicit tiles cannot be combined with PBT tiling");
     }
-    if (use_pbt) {
-      PreparePbt();
-    } else if (tiles != nullptr) {
+    frame_ = nullptr;
+    lists_ = false;
+    if (tiles != nullptr) {
       tiles_ = *tiles;
+      explicit_order_.resize(tiles_.size());
+      for (size_t i = 0; i < tiles_.size(); ++i) explicit_order_[i] = static_cast<int32_t>(i);
+      order_ = &explicit_order_;
     } else {
-      tiles_ = GridTiles(ctx_.options.width, ctx_.options.height, options_.tile_width,
-                         options_.tile_height);
+      const int width = ctx_.options.width;
+      const int height = ctx_.options.height;
+      if (!plan_ || plan_->width() != width || plan_->height() != height) {
+        plan_.reset();
+        plan_ = std::make_unique<TilePlan>(width, height, PlanOptions());
+      }
+      frame_ = &plan_->Begin();  // published to the threads by the opening barrier
+      order_ = &frame_->order;
+      lists_ = use_pbt && options_.assign != PbtAssign::kCounter;
     }
-    records_.assign(tiles_.size(), TileRecord{});
-    for (auto& w : workers_) {
-      w->stats = FrameStats();
-      w->ticks = 0;
-      w->ops = 0;
-      w->tiles = 0;
-      w->steals = 0;
+    try {
+      Load();
+    } catch (...) {
+      if (frame_ != nullptr) plan_->Cancel();
+      frame_ = nullptr;
+      throw;
     }
-    next_.store(0, std::memory_order_relaxed);  // published by the opening barrier
     loop_->Release();
   }
 
@@ -540,8 +545,11 @@ class TilesImpl final : public HostRenderer::Impl {
     stats_.tiles = records_;
     stats_.primary_tasks = 0;
     stats_.app_queue_seconds = 0;
-    if (error) std::rethrow_exception(error);
-    if (options_.pbt_tiles_per_worker > 0) FinishPbt();
+    if (error) {
+      if (frame_ != nullptr) plan_->Cancel();  // the same tiles and lists again next frame
+      std::rethrow_exception(error);
+    }
+    if (frame_ != nullptr) FinishPlan();
   }
 
  private:
@@ -554,23 +562,53 @@ class TilesImpl final : public HostRenderer::Impl {
     uint64_t steals = 0;
   };
 
-  // tw x th tiles in row-major order (partial at the right and bottom), clamped to the image.
-  static std::vector<Tile> GridTiles(int width, int height, int tw, int th) {
-    std::vector<Tile> tiles;
-    tw = std::min(tw, width);
-    th = std::min(th, height);
-    for (int y = 0; y < height; y += th) {
-      for (int x = 0; x < width; x += tw) {
-        tiles.push_back(Tile{x, y, std::min(x + tw, width), std::min(y + th, height)});
+  // The frame's tiles, steal ranges, records and worker counters (application thread).
+  void Load() {
+    if (frame_ != nullptr) tiles_ = frame_->tiles;
+    if (lists_ && options_.pbt_steal) {
+      const size_t lists = frame_->assignment.tiles.size();
+      if (lists != num_ranges_) {
+        ranges_ = std::make_unique<Range[]>(lists);
+        num_ranges_ = lists;
+      }
+      for (size_t v = 0; v < lists; ++v) {
+        ranges_[v].word.store(
+            PackRange(0, static_cast<uint32_t>(frame_->assignment.tiles[v].size())),
+            std::memory_order_relaxed);  // published by the opening barrier
       }
     }
-    return tiles;
+    records_.assign(tiles_.size(), TileRecord{});
+    for (auto& w : workers_) {
+      w->stats = FrameStats();
+      w->ticks = 0;
+      w->ops = 0;
+      w->tiles = 0;
+      w->steals = 0;
+    }
+    next_.store(0, std::memory_order_relaxed);  // published by the opening barrier
+  }
+
+  int PbtWorkers() const {
+    return options_.pbt_workers > 0 ? options_.pbt_workers : options_.threads;
+  }
+
+  TilePlanOptions PlanOptions() const {
+    TilePlanOptions p;
+    p.tile_width = options_.tile_width;
+    p.tile_height = options_.tile_height;
+    p.pbt_tiles_per_worker = options_.pbt_tiles_per_worker;
+    p.workers = PbtWorkers();
+    p.assign = options_.assign;
+    p.seed = options_.seed;
+    p.steal = options_.pbt_steal;
+    p.cost = options_.pbt_cost;
+    return p;
   }
 
   void RenderTile(Worker& me, int thread, int worker, size_t i) {
     const Clock::time_point wall0 = Clock::now();
     const double cpu0 = ThreadCpuSeconds();
-    const uint64_t rays0 = me.stats.TotalRays();
+    const FrameStats before = me.stats;
     me.fifo.RenderTiles(ctx_, &tiles_[i], 1, *fb_, me.stats);
     TileRecord& r = records_[i];  // this tile is ours alone (counter RMW or assignment)
     r.tile = tiles_[i];
@@ -578,18 +616,20 @@ class TilesImpl final : public HostRenderer::Impl {
     r.worker = worker;
     r.cpu_seconds = ThreadCpuSeconds() - cpu0;
     r.seconds = Seconds(wall0, Clock::now());
-    r.predicted = i < predicted_.size() ? predicted_[i] : -1.0;
-    r.rays = me.stats.TotalRays() - rays0;
+    r.predicted = frame_ != nullptr ? frame_->predicted[i] : -1.0;
+    r.counts = TileWorkDelta(me.stats, before);
+    r.rays = r.counts.rays;
+    r.work = TileWorkCost(r.counts);
     ++me.tiles;
   }
 
   void Work(int w) {
     Worker& me = *workers_[static_cast<size_t>(w)];
-    if (options_.pbt_tiles_per_worker > 0) {
+    if (lists_) {
       // Thread w runs the lists of (virtual) workers w, w + threads, ... in list order.
-      const size_t lists = assignment_.tiles.size();
-      for (size_t v = static_cast<size_t>(w); v < lists; v += workers_.size()) {
-        const std::vector<int32_t>& list = assignment_.tiles[v];
+      const auto& lists = frame_->assignment.tiles;
+      for (size_t v = static_cast<size_t>(w); v < lists.size(); v += workers_.size()) {
+        const std::vector<int32_t>& list = lists[v];
         if (!options_.pbt_steal) {
           for (const int32_t i : list)
             RenderTile(me, w, static_cast<int>(v), static_cast<size_t>(i));
@@ -604,15 +644,16 @@ class TilesImpl final : public HostRenderer::Impl {
       // Demand-driven: steal from the list with the most predicted work still waiting.
       for (;;) {
         const size_t victim = RichestList();
-        if (victim == lists) return;
+        if (victim == lists.size()) return;
         uint32_t pos = 0;
         if (!Take(victim, /*front=*/false, &pos)) continue;  // raced with its owner; look again
         ++me.steals;
-        RenderTile(me, w, static_cast<int>(victim),
-                   static_cast<size_t>(assignment_.tiles[victim][pos]));
+        RenderTile(me, w, static_cast<int>(victim), static_cast<size_t>(lists[victim][pos]));
       }
     }
-    const size_t count = tiles_.size();
+    // The tile counter over the plan's order (row-major, or decreasing prediction).
+    const std::vector<int32_t>& order = *order_;
+    const size_t count = order.size();
     for (;;) {
       // The counter only has to hand each index to one thread: relaxed RMW. The tile list was
       // published by the opening barrier, the records are read after the closing one.
@@ -621,13 +662,13 @@ class TilesImpl final : public HostRenderer::Impl {
       if (options_.queue_stats) me.ticks += QueueClock::Now() - t0;
       ++me.ops;
       if (i >= count) return;
-      RenderTile(me, w, w, i);
+      RenderTile(me, w, w, static_cast<size_t>(order[i]));
     }
   }
 
-  // List v's waiting tiles are [head, tail) of assignment_.tiles[v], packed in one word so the
-  // owner (front) and thieves (back) arbitrate the last tile with one CAS. Relaxed: the CAS only
-  // decides who renders a tile; the lists were published by the opening barrier and the
+  // List v's waiting tiles are [head, tail) of the assignment's list v, packed in one word so
+  // the owner (front) and thieves (back) arbitrate the last tile with one CAS. Relaxed: the CAS
+  // only decides who renders a tile; the lists were published by the opening barrier and the
   // records are read after the closing one.
   static uint64_t PackRange(uint32_t head, uint32_t tail) {
     return static_cast<uint64_t>(head) | (static_cast<uint64_t>(tail) << 32);
@@ -647,20 +688,21 @@ class TilesImpl final : public HostRenderer::Impl {
       }
     }
   }
-  // The list with the most predicted work waiting (ties: lowest index), or lists.size() if all
-  // are empty. Racy snapshot by design: a stale choice only costs one failed Take.
+  // The list with the most predicted work waiting (the plan's steal weights; ties: lowest
+  // index), or the number of lists if all are empty. Racy snapshot by design: a stale choice
+  // only costs one failed Take.
   size_t RichestList() const {
-    const size_t lists = assignment_.tiles.size();
-    size_t best = lists;
+    const auto& lists = frame_->assignment.tiles;
+    const std::vector<double>& weight = frame_->weight;
+    size_t best = lists.size();
     double best_work = -1.0;
-    for (size_t v = 0; v < lists; ++v) {
+    for (size_t v = 0; v < lists.size(); ++v) {
       const uint64_t r = ranges_[v].word.load(std::memory_order_relaxed);
       const uint32_t head = static_cast<uint32_t>(r);
       const uint32_t tail = static_cast<uint32_t>(r >> 32);
       if (head >= tail) continue;
       double work = 0;
-      for (uint32_t p = head; p < tail; ++p)
-        work += weight_[static_cast<size_t>(assignment_.tiles[v][p])];
+      for (uint32_t p = head; p < tail; ++p) work += weight[static_cast<size_t>(lists[v][p])];
       if (work > best_work) {
         best_work = work;
         best = v;
@@ -669,97 +711,42 @@ class TilesImpl final : public HostRenderer::Impl {
     return best;
   }
 
-  int PbtWorkers() const {
-    return options_.pbt_workers > 0 ? options_.pbt_workers : options_.threads;
-  }
-
-  Assignment Assign(uint64_t frame) const {
-    const int n = PbtWorkers();
-    switch (options_.assign) {
-      case PbtAssign::kGreedy:
-        return AssignPbtGreedy(*pbt_);
-      case PbtAssign::kVisit:
-        return AssignPbtVisit(*pbt_);
-      case PbtAssign::kStatic:
-        return AssignRandom(pbt_->Estimates(), n, options_.seed);
-      case PbtAssign::kRandom:
-        break;
-    }
-    // A different permutation each frame (splitmix-style mix of seed and frame).
-    return AssignPbtRandom(*pbt_, options_.seed ^ (0x9E3779B97F4A7C15ull * (frame + 1)));
-  }
-
-  void PreparePbt() {
-    const int width = ctx_.options.width;
-    const int height = ctx_.options.height;
-    if (!pbt_ || pbt_->width() != width || pbt_->height() != height) {
-      pbt_ = std::make_unique<Pbt>(width, height, PbtWorkers(), options_.pbt_tiles_per_worker);
-      assignment_ = Assign(0);
-      has_prediction_ = false;
-      static_times_.clear();
-    }
-    tiles_ = pbt_->Tiles();
-    predicted_.assign(tiles_.size(), -1.0);
-    if (has_prediction_) {
-      if (options_.assign == PbtAssign::kStatic) {
-        predicted_ = static_times_;  // the same tile's time in the previous frame
-      } else {
-        predicted_ = pbt_->Estimates();
-      }
-    }
-    if (options_.pbt_steal) {
-      const size_t lists = assignment_.tiles.size();
-      if (lists != num_ranges_) {
-        ranges_ = std::make_unique<Range[]>(lists);
-        num_ranges_ = lists;
-      }
-      for (size_t v = 0; v < lists; ++v) {
-        ranges_[v].word.store(PackRange(0, static_cast<uint32_t>(assignment_.tiles[v].size())),
-                              std::memory_order_relaxed);  // published by the opening barrier
-      }
-      weight_.resize(tiles_.size());
-      for (size_t i = 0; i < tiles_.size(); ++i) {
-        weight_[i] = has_prediction_ ? predicted_[i] : static_cast<double>(tiles_[i].NumPixels());
-      }
-    }
-  }
-
-  void FinishPbt() {
-    std::vector<double> measured(records_.size());
+  // After the closing barrier: the measured costs to the plan (PBT-Update, next assignment).
+  void FinishPlan() {
+    std::vector<double> costs(records_.size());
+    std::vector<int32_t> ran_by(records_.size());
     for (size_t i = 0; i < records_.size(); ++i) {
-      measured[i] = options_.pbt_cpu_time ? records_[i].cpu_seconds : records_[i].seconds;
+      const TileRecord& r = records_[i];
+      costs[i] = options_.pbt_cost == PbtCost::kCpu    ? r.cpu_seconds
+                 : options_.pbt_cost == PbtCost::kWork ? r.work
+                                                       : r.seconds;
+      ran_by[i] = r.thread;
     }
+    const TilePlanReport report = plan_->End(costs, ran_by);
+    frame_ = nullptr;
+    if (!report.pbt) return;
     stats_.pbt = true;
-    stats_.has_prediction = has_prediction_;
-    stats_.accuracy = PredictionAccuracy{};
-    if (has_prediction_) stats_.accuracy = MeasurePredictionAccuracy(predicted_, measured);
-    stats_.worker_imbalance = FrameImbalance(WorkerTimes(assignment_, measured));
-    stats_.predicted_makespan = has_prediction_ ? assignment_.PredictedMakespan() : 0.0;
-    stats_.update = PbtUpdateStats{};
-    if (options_.assign == PbtAssign::kStatic) {
-      static_times_ = measured;  // tiling and assignment stay as they are
-    } else {
-      stats_.update = pbt_->Update(measured);  // Algorithm 1 between frames
-      assignment_ = Assign(frames_ + 1);
-    }
-    has_prediction_ = true;
+    stats_.has_prediction = report.has_prediction;
+    stats_.accuracy = report.accuracy;
+    stats_.worker_imbalance = report.worker_imbalance;
+    stats_.predicted_makespan = report.predicted_makespan;
+    stats_.update = report.update;
   }
 
   std::vector<std::unique_ptr<Worker>> workers_;
+  std::unique_ptr<TilePlan> plan_;
+  const TilePlanFrame* frame_ = nullptr;  // the plan's frame (nullptr: explicit tiles)
+  bool lists_ = false;                    // PBT per-worker lists (not the counter)
   std::vector<Tile> tiles_;
+  const std::vector<int32_t>* order_ = nullptr;  // counter: tile indices in hand-out order
+  std::vector<int32_t> explicit_order_;
   std::vector<TileRecord> records_;
-  std::vector<double> predicted_;
   alignas(kQueueFalseSharing) std::atomic<size_t> next_{0};
-  std::unique_ptr<Pbt> pbt_;
-  Assignment assignment_;
-  std::vector<double> static_times_;
-  bool has_prediction_ = false;
   struct alignas(kQueueFalseSharing) Range {
     std::atomic<uint64_t> word{0};
   };
   std::unique_ptr<Range[]> ranges_;  // pbt_steal: per list {head, tail}
   size_t num_ranges_ = 0;
-  std::vector<double> weight_;       // pbt_steal: per tile, predicted work (or pixels)
   std::unique_ptr<FrameLoop> loop_;  // last: its threads use everything above
 };
 
@@ -1021,7 +1008,11 @@ Json FrameJson(const HostFrameStats& f, const StatsFields& frame_extra,
                            {"seconds", r.seconds},
                            {"cpu_seconds", r.cpu_seconds},
                            {"predicted_seconds", r.predicted},
-                           {"rays", r.rays}});
+                           {"rays", r.rays},
+                           {"work", r.work},
+                           {"cell_steps", r.counts.cell_steps},
+                           {"triangle_tests", r.counts.triangle_tests},
+                           {"shading_calls", r.counts.shading_calls}});
     }
     j["tiles"] = tiles;
   }
@@ -1046,7 +1037,8 @@ Json FrameJson(const HostFrameStats& f, const StatsFields& frame_extra,
 //   scope=app    (index -1; seconds = primary generation, queue = PushPrimary time,
 //                 tasks = primary tasks)
 //   scope=thread (index = thread)
-//   scope=tile   (index = tile; seconds = wall time, worker = PBT worker, predicted, cpu)
+//   scope=tile   (index = tile; seconds = wall time, worker = PBT worker, predicted, cpu, work
+//                 and its counts cell_steps, triangle_tests, shading_calls)
 // Columns that do not apply are empty. A caller's extra fields (StatsExtra) follow as columns
 // of their own, on the frame and thread rows.
 enum CsvColumn : int {
@@ -1079,6 +1071,10 @@ enum CsvColumn : int {
   kWithin5,
   kWithin10,
   kWithin15,
+  kWork,
+  kCellSteps,
+  kTriangleTests,
+  kShadingCalls,
   kNumCsvColumns
 };
 constexpr const char* kCsvNames[kNumCsvColumns] = {"frame",
@@ -1109,7 +1105,11 @@ constexpr const char* kCsvNames[kNumCsvColumns] = {"frame",
                                                    "worker_imbalance",
                                                    "within5",
                                                    "within10",
-                                                   "within15"};
+                                                   "within15",
+                                                   "work",
+                                                   "cell_steps",
+                                                   "triangle_tests",
+                                                   "shading_calls"};
 
 // The extra columns: every extra name in order of first occurrence (frame fields, then thread
 // fields). Throws rs::Error for a name that is a host column.
@@ -1198,6 +1198,8 @@ void WriteCsv(std::ostream& out, std::span<const HostFrameStats> frames, const S
     frame.Set(kFrame, f.frame).Set(kScope, "frame").Set(kIndex, -1).Set(kSeconds, s.total_seconds);
     frame.Set(kBusy, f.render_seconds).Set(kIdle, f.IdleSeconds()).Set(kQueue, f.QueueSeconds());
     frame.Set(kTasks, s.tasks).Set(kTiles, f.tiles.size()).SetRays(s).Set(kImbalance, f.imbalance);
+    frame.Set(kCellSteps, s.trace.cell_steps).Set(kTriangleTests, s.trace.triangle_tests);
+    frame.Set(kShadingCalls, s.shade.shading_calls);
     if (f.pbt) {
       frame.Set(kWorkerImbalance, f.worker_imbalance);
       if (f.has_prediction) {
@@ -1223,7 +1225,8 @@ void WriteCsv(std::ostream& out, std::span<const HostFrameStats> frames, const S
       row.Set(kFrame, f.frame).Set(kScope, "tile").Set(kIndex, i).Set(kThread, r.thread);
       row.Set(kWorker, r.worker).Set(kSeconds, r.seconds).Set(kRays, r.rays);
       row.Set(kX0, r.tile.x0).Set(kY0, r.tile.y0).Set(kX1, r.tile.x1).Set(kY1, r.tile.y1);
-      row.Set(kCpu, r.cpu_seconds);
+      row.Set(kCpu, r.cpu_seconds).Set(kWork, r.work).Set(kCellSteps, r.counts.cell_steps);
+      row.Set(kTriangleTests, r.counts.triangle_tests).Set(kShadingCalls, r.counts.shading_calls);
       if (r.predicted >= 0) row.Set(kPredicted, r.predicted);
       row.Write(out);
     }
@@ -1256,7 +1259,9 @@ void WriteHostStats(const std::string& path, const std::string& scene,
       if (options.pbt_tiles_per_worker > 0) {
         backend["pbt_workers"] = options.pbt_workers > 0 ? options.pbt_workers : options.threads;
         backend["assign"] = PbtAssignName(options.assign);
-        backend["pbt_time"] = options.pbt_cpu_time ? "cpu" : "wall";
+        // pbt_time: the older name of pbt_cost, kept for readers of earlier files.
+        backend["pbt_time"] = PbtCostName(options.pbt_cost);
+        backend["pbt_cost"] = PbtCostName(options.pbt_cost);
         backend["steal"] = options.pbt_steal;
       }
     }

@@ -17,6 +17,7 @@
 #include "sched/framebuffer.h"
 #include "sched/pbt.h"
 #include "sched/render.h"
+#include "sched/tile_plan.h"  // PbtAssign, PbtCost, TileWork
 #include "streams/raygen.h"
 
 namespace rs {
@@ -34,19 +35,6 @@ enum class BackendKind : int {
 const char* BackendName(BackendKind kind);
 bool ParseBackendKind(std::string_view name, BackendKind* kind);
 std::vector<std::string> BackendNames();
-
-// How the tiles backend assigns PBT tiles to workers (only with pbt_tiles_per_worker > 0).
-enum class PbtAssign : int {
-  kRandom = 0,  // PBT-Random: PBT updated every frame, tiles dealt by a seeded permutation
-                // (a different seed each frame)
-  kGreedy = 1,  // PBT-Greedy: PBT updated, each tile to its affine worker (pbt.h)
-  kVisit = 2,   // PBT-Visit: PBT updated, in-order runs of equal predicted load
-  kStatic = 3,  // baseline: the initial PBT tiling, never updated, random assignment with the
-                // same seed every frame (the paper's "static random assignment")
-};
-const char* PbtAssignName(PbtAssign assign);
-bool ParsePbtAssign(std::string_view name,
-                    PbtAssign* assign);  // "random" "greedy" "visit" "static"
 
 struct BackendOptions {
   BackendKind kind = BackendKind::kSerial;
@@ -69,11 +57,14 @@ struct BackendOptions {
   // before the first prediction), so the owner keeps its spatial order. Lock-free: each list is
   // one 64-bit {head, tail} word; the owner CASes head forward, thieves CAS tail back.
   bool pbt_steal = false;
+  // PBT assignment (tile_plan.h). kCounter: no lists, the threads take the tiles from the tile
+  // counter in order of decreasing prediction.
   PbtAssign assign = PbtAssign::kRandom;
   uint64_t seed = 1;  // PBT-Random / static assignment
-  // Which tile time PBT-Update gets: wall-clock (false, the paper's) or the rendering thread's
-  // CPU time (true; steadier when threads outnumber cores or the machine is shared).
-  bool pbt_cpu_time = false;
+  // Which tile cost PBT-Update gets: wall-clock seconds (the paper's), the rendering thread's
+  // CPU seconds (steadier when threads outnumber cores), or the deterministic work count
+  // (TileWorkCost: the same in every run, whatever the machine's load or the threads).
+  PbtCost pbt_cost = PbtCost::kWall;
   // Time queue operations (LOCK/LFREE/LOCAL) and tile-counter accesses (tiles), the paper's
   // Fig. 7. Costs two time-stamp reads per operation.
   bool queue_stats = true;
@@ -81,8 +72,8 @@ struct BackendOptions {
 
 // Throws rs::Error naming the option: threads outside [1, FrameLoop::kMaxThreads], serial with
 // threads != 1, tile sizes < 1, pbt_tiles_per_worker < 0 or > 4096, pbt_workers < 0 or > 65536,
-// PBT options (k > 0, pbt_steal) on a backend other than tiles, pbt_steal without k > 0,
-// unknown enum values.
+// PBT options (k > 0, pbt_steal, pbt_workers, pbt_cost other than wall) on a backend other than
+// tiles or without k > 0, pbt_steal with assign counter, unknown enum values.
 void ValidateBackendOptions(const BackendOptions& options);
 
 // Per render thread, one frame.
@@ -107,6 +98,8 @@ struct TileRecord {
   double cpu_seconds = 0;  // the thread's CPU time for the same span
   double predicted = -1;   // PBT: the estimate e(l) this frame was tiled with (-1: none)
   uint64_t rays = 0;       // rays traced for this tile, all kinds
+  TileWork counts;         // the deterministic counters of the tile's ray tree
+  double work = 0;         // TileWorkCost(counts): its work in calibrated seconds
 };
 
 struct HostFrameStats {

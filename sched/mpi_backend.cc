@@ -5,10 +5,11 @@
 //   worker -> master  kTagSetup     int32[1] 0: scene loaded and grid built, 1: failed
 //   master -> worker  kTagSetupDone int32[1] the lowest failing rank (N: none, render)
 //   master -> worker  kTagTile      int32[6] {frame, tile, x0, y0, x1, y1}
-//   worker -> master  kTagResult    int64[kHeader + 3 * pixels]: the header (ResultWord: frame,
-//                                   tile, the tile's wall and CPU time, NaN / clamped counts, its
-//                                   FrameStats: tasks, rays by kind, cell steps, triangle tests,
-//                                   generate / trace / shade seconds) + the tile's fixed-point sums
+//   worker -> master  kTagResult    int64[kHeader + 3 * pixels]: the header (ResultWord: frame
+//                                   and tile in one word, the tile's wall and CPU time, NaN /
+//                                   clamped counts, its FrameStats: tasks, rays by kind, cell
+//                                   steps, triangle tests, shading calls, generate / trace /
+//                                   shade seconds) + the tile's fixed-point sums
 //   master -> worker  kTagStop      int32[1] (after the last frame)
 //   worker -> master  kTagBye       int32[1] (then MPI_Finalize)
 // Every wait of the master is bounded by timeout_seconds: it never blocks in MPI, it posts
@@ -45,6 +46,7 @@
 #include "scenes/load.h"
 #include "sched/frame_loop.h"  // ThreadCpuSeconds
 #include "sched/pbt.h"
+#include "sched/tile_plan.h"
 
 namespace rs {
 namespace {
@@ -61,8 +63,7 @@ constexpr int kTileWords = 6;
 
 // A result's header: int64 words before the tile's sums (doubles travel as their bits).
 enum ResultWord : int {
-  kResFrame,
-  kResTile,
+  kResFrameTile,   // frame << 32 | tile (both in [0, 2^31))
   kResSeconds,     // wall time of the tile's whole ray tree on the worker
   kResCpuSeconds,  // the CPU time of the worker's render threads for the same span
   kResDroppedNan,  // Framebuffer::dropped_nan() added by the tile
@@ -71,6 +72,7 @@ enum ResultWord : int {
   kResRays,        //   rays by RayKind, kNumRayKinds words
   kResCellSteps = kResRays + kNumRayKinds,
   kResTriangleTests,
+  kResShadingCalls,
   kResGenerateSeconds,
   kResTraceSeconds,
   kResShadeSeconds,
@@ -82,6 +84,7 @@ void PackTileStats(const FrameStats& s, int64_t* header) {
   for (int k = 0; k < kNumRayKinds; ++k) header[kResRays + k] = static_cast<int64_t>(s.rays[k]);
   header[kResCellSteps] = static_cast<int64_t>(s.trace.cell_steps);
   header[kResTriangleTests] = static_cast<int64_t>(s.trace.triangle_tests);
+  header[kResShadingCalls] = static_cast<int64_t>(s.shade.shading_calls);
   header[kResGenerateSeconds] = std::bit_cast<int64_t>(s.generate_seconds);
   header[kResTraceSeconds] = std::bit_cast<int64_t>(s.trace_seconds);
   header[kResShadeSeconds] = std::bit_cast<int64_t>(s.shade_seconds);
@@ -93,6 +96,7 @@ FrameStats UnpackTileStats(const int64_t* header) {
   for (int k = 0; k < kNumRayKinds; ++k) s.rays[k] = static_cast<uint64_t>(header[kResRays + k]);
   s.trace.cell_steps = static_cast<uint64_t>(header[kResCellSteps]);
   s.trace.triangle_tests = static_cast<uint64_t>(header[kResTriangleTests]);
+  s.shade.shading_calls = static_cast<uint64_t>(header[kResShadingCalls]);
   s.generate_seconds = std::bit_cast<double>(header[kResGenerateSeconds]);
   s.trace_seconds = std::bit_cast<double>(header[kResTraceSeconds]);
   s.shade_seconds = std::bit_cast<double>(header[kResShadeSeconds]);
@@ -215,6 +219,18 @@ void ValidateConfig(const MpiRenderConfig& c, int ranks) {
                               c.options.height));
     }
   }
+  const int cost = static_cast<int>(c.pbt_cost);
+  if (cost < 0 || cost > static_cast<int>(PbtCost::kWork)) {
+    throw Error(fmt::format("--pbt-cost {}: unknown", cost));
+  }
+  if (c.pbt_cost != PbtCost::kWall && c.pbt_tiles_per_worker == 0) {
+    throw Error(
+        fmt::format("--pbt-cost {}: needs a PBT tiling (--pbt k)", PbtCostName(c.pbt_cost)));
+  }
+  const int assign = static_cast<int>(c.assign);
+  if (assign < 0 || assign > static_cast<int>(PbtAssign::kCounter)) {
+    throw Error(fmt::format("--assign {}: unknown", assign));
+  }
 }
 
 // ------------------------------------------------------------------------------------------------
@@ -297,8 +313,8 @@ void RunWorker(const MpiRenderConfig& c, const Setup& s, int rank) {
     if (status.MPI_TAG != kTagTile) Abort(rank, fmt::format("unexpected tag {}", status.MPI_TAG));
     const int frame = msg[0];
     const Tile tile{msg[2], msg[3], msg[4], msg[5]};
-    if (frame < 0 || frame >= c.frames || tile.x0 < 0 || tile.y0 < 0 || tile.x1 > c.options.width ||
-        tile.y1 > c.options.height || tile.NumPixels() == 0) {
+    if (frame < 0 || frame >= c.frames || msg[1] < 0 || tile.x0 < 0 || tile.y0 < 0 ||
+        tile.x1 > c.options.width || tile.y1 > c.options.height || tile.NumPixels() == 0) {
       Abort(rank, fmt::format("malformed tile message (frame {}, tile {})", frame, msg[1]));
     }
     if (frame != ctx_frame) {
@@ -320,8 +336,7 @@ void RunWorker(const MpiRenderConfig& c, const Setup& s, int rank) {
     const double seconds = Seconds(Clock::now() - t0);
     const size_t tw = static_cast<size_t>(tile.Width());
     result.resize(kHeader + 3 * tile.NumPixels());
-    result[kResFrame] = frame;
-    result[kResTile] = msg[1];
+    result[kResFrameTile] = (int64_t{frame} << 32) | static_cast<int64_t>(msg[1]);
     result[kResSeconds] = std::bit_cast<int64_t>(seconds);
     result[kResCpuSeconds] = std::bit_cast<int64_t>(cpu);
     result[kResDroppedNan] = static_cast<int64_t>(fb.dropped_nan() - nan0);
@@ -366,10 +381,16 @@ class Master {
  public:
   Master(const MpiRenderConfig& c, const Setup& s, int ranks)
       : c_(c), s_(s), workers_(ranks - 1), fb_(c.options.width, c.options.height) {
-    if (c.pbt_tiles_per_worker > 0) {
-      pbt_ = std::make_unique<Pbt>(c.options.width, c.options.height, workers_,
-                                   c.pbt_tiles_per_worker);
-    }
+    TilePlanOptions p;
+    p.tile_width = c.tile_width;
+    p.tile_height = c.tile_height;
+    p.pbt_tiles_per_worker = c.pbt_tiles_per_worker;
+    p.workers = workers_;
+    p.assign = c.assign;
+    p.seed = c.seed;
+    p.steal = c.pbt_tiles_per_worker > 0 && c.assign != PbtAssign::kCounter;  // always, lists
+    p.cost = c.pbt_cost;
+    plan_ = std::make_unique<TilePlan>(c.options.width, c.options.height, p);
   }
 
   void Run() {
@@ -404,9 +425,10 @@ class Master {
                  s_.scene.mesh().num_triangles, s_.scene.lights.size());
       fmt::print("image      {}x{}, depth {}, {} frame(s), backend mpi, {} workers, {}\n",
                  c_.options.width, c_.options.height, c_.options.max_depth, c_.frames, workers_,
-                 pbt_ ? fmt::format("PBT k={} assign {}", c_.pbt_tiles_per_worker,
-                                    PbtAssignName(c_.assign))
-                      : fmt::format("tiles {}x{}", c_.tile_width, c_.tile_height));
+                 plan_->uses_pbt()
+                     ? fmt::format("PBT k={} assign {} cost {}", c_.pbt_tiles_per_worker,
+                                   PbtAssignName(c_.assign), PbtCostName(c_.pbt_cost))
+                     : fmt::format("tiles {}x{}", c_.tile_width, c_.tile_height));
       fmt::print("trace      {:.1f} ms, {} rays, {:.2f} Mrays/s\n", 1e3 * total, rays,
                  total > 0 ? rays / total * 1e-6 : 0.0);
       fmt::print("wrote      {}\n", FramePath(out, c_.frames - 1));
@@ -425,10 +447,10 @@ class Master {
     o.tile_height = c_.tile_height;
     o.pbt_tiles_per_worker = c_.pbt_tiles_per_worker;
     o.pbt_workers = workers_;
-    o.pbt_steal = pbt_ != nullptr;
+    o.pbt_steal = plan_->options().steal;
     o.assign = c_.assign;
     o.seed = c_.seed;
-    o.pbt_cpu_time = c_.pbt_cpu_time;
+    o.pbt_cost = c_.pbt_cost;
     o.queue_stats = false;
     StatsExtra extra;
     extra.backend = "mpi";
@@ -476,62 +498,33 @@ class Master {
     }
   }
 
-  // Tiles, per-worker preference lists and predictions for this frame.
-  void PlanFrame(int frame) {
+  // Tiles, per-worker preference lists (PBT) or the shared hand-out order, and predictions for
+  // this frame: the tile plan's (sched/tile_plan.h), as the tiles backend runs it.
+  void PlanFrame() {
+    frame_ = &plan_->Begin();
+    tiles_ = frame_->tiles;
+    lists_mode_ = !frame_->assignment.tiles.empty();
     lists_.assign(static_cast<size_t>(workers_), {});
-    next_grid_ = 0;
-    if (pbt_) {
-      tiles_ = pbt_->Tiles();
-      const std::vector<double> estimates = pbt_->Estimates();
-      switch (c_.assign) {
-        case PbtAssign::kGreedy:
-          assignment_ = AssignPbtGreedy(*pbt_);
-          break;
-        case PbtAssign::kVisit:
-          assignment_ = AssignPbtVisit(*pbt_);
-          break;
-        case PbtAssign::kStatic:
-          assignment_ = AssignPbtRandom(*pbt_, c_.seed);
-          break;
-        case PbtAssign::kRandom:
-        default:
-          assignment_ = AssignPbtRandom(*pbt_, c_.seed + static_cast<uint64_t>(frame));
-          break;
-      }
-      owner_.assign(tiles_.size(), -1);
+    shared_.clear();
+    if (lists_mode_) {
       for (int w = 0; w < workers_; ++w) {
-        const auto& mine = assignment_.tiles[static_cast<size_t>(w)];
+        const auto& mine = frame_->assignment.tiles[static_cast<size_t>(w)];
         lists_[static_cast<size_t>(w)].assign(mine.begin(), mine.end());
-        for (const int32_t t : mine) owner_[static_cast<size_t>(t)] = w;
-      }
-      has_prediction_ = frame > 0;
-      // The prediction a tile is measured against, as in the tiles backend: PBT's estimate, or
-      // for the never-updated static tiling the same tile's time in the previous frame.
-      predicted_.assign(tiles_.size(), -1.0);
-      if (has_prediction_) predicted_ = c_.assign == PbtAssign::kStatic ? static_times_ : estimates;
-      // Before the first measurement, steal by area.
-      weight_.resize(tiles_.size());
-      for (size_t i = 0; i < tiles_.size(); ++i) {
-        weight_[i] = has_prediction_ ? estimates[i] : double(tiles_[i].NumPixels());
       }
     } else {
-      tiles_.clear();
-      for (int y = 0; y < c_.options.height; y += c_.tile_height) {
-        for (int x = 0; x < c_.options.width; x += c_.tile_width) {
-          tiles_.push_back(Tile{x, y, std::min(x + c_.tile_width, c_.options.width),
-                                std::min(y + c_.tile_height, c_.options.height)});
-        }
-      }
-      owner_.clear();
-      predicted_.assign(tiles_.size(), -1.0);
-      has_prediction_ = false;
+      shared_.assign(frame_->order.begin(), frame_->order.end());
     }
   }
 
   // The next tile for worker w (0-based), or -1 if none is waiting. *stolen: not from w's list.
   int NextTile(int w, bool* stolen) {
     *stolen = false;
-    if (!pbt_) return next_grid_ < tiles_.size() ? static_cast<int>(next_grid_++) : -1;
+    if (!lists_mode_) {  // fixed tiles or assign counter: one shared order
+      if (shared_.empty()) return -1;
+      const int t = shared_.front();
+      shared_.pop_front();
+      return t;
+    }
     auto& own = lists_[static_cast<size_t>(w)];
     if (!own.empty()) {
       const int t = own.front();
@@ -542,7 +535,9 @@ class Master {
     double most = -1;
     for (int v = 0; v < workers_; ++v) {
       double waiting = 0;
-      for (int32_t t : lists_[static_cast<size_t>(v)]) waiting += weight_[static_cast<size_t>(t)];
+      for (int32_t t : lists_[static_cast<size_t>(v)]) {
+        waiting += frame_->weight[static_cast<size_t>(t)];
+      }
       if (!lists_[static_cast<size_t>(v)].empty() && waiting > most) {
         most = waiting;
         victim = v;
@@ -578,7 +573,7 @@ class Master {
   void FeedWorker(int w, int frame, HostFrameStats& f) {
     auto& flight = in_flight_[static_cast<size_t>(w)];
     while (flight.size() < static_cast<size_t>(c_.prefetch)) {
-      if (pbt_ && !flight.empty() && lists_[static_cast<size_t>(w)].empty()) return;
+      if (lists_mode_ && !flight.empty() && lists_[static_cast<size_t>(w)].empty()) return;
       bool stolen = false;
       const int t = NextTile(w, &stolen);
       if (t < 0) return;
@@ -592,7 +587,7 @@ class Master {
   void RenderFrame(int frame) {
     const auto begin = Clock::now();
     const double cpu0 = ThreadCpuSeconds();
-    PlanFrame(frame);
+    PlanFrame();
     fb_.Clear();
     const size_t m = tiles_.size();
     HostFrameStats& f = frames_.emplace_back();
@@ -602,8 +597,8 @@ class Master {
     f.tiles.assign(m, TileRecord{});
     for (size_t i = 0; i < m; ++i) {
       f.tiles[i].tile = tiles_[i];
-      f.tiles[i].predicted = predicted_[i];
-      if (pbt_) f.tiles[i].worker = owner_[i];
+      f.tiles[i].predicted = frame_->predicted[i];
+      if (lists_mode_) f.tiles[i].worker = frame_->owner[i];
     }
     std::vector<char> done(m, 0);
     traffic_.assign(static_cast<size_t>(workers_), WorkerTraffic{});
@@ -658,7 +653,7 @@ class Master {
                              "run, no image written for frame {}",
                              src, frame, int64_t{count} * 8, c_.timeout_seconds, frame));
       }
-      const int64_t rf = buf[kResFrame], t = buf[kResTile];
+      const int64_t rf = buf[kResFrameTile] >> 32, t = buf[kResFrameTile] & 0xFFFFFFFF;
       auto& flight = in_flight_[static_cast<size_t>(w)];
       if (rf != frame || t < 0 || static_cast<size_t>(t) >= m || flight.empty() ||
           flight.front() != t || done[static_cast<size_t>(t)]) {
@@ -687,10 +682,12 @@ class Master {
       const FrameStats work = UnpackTileStats(buf.data());
       TileRecord& rec = f.tiles[static_cast<size_t>(t)];
       rec.thread = w;
-      if (!pbt_) rec.worker = w;
+      if (!lists_mode_) rec.worker = w;
       rec.seconds = std::bit_cast<double>(buf[kResSeconds]);
       rec.cpu_seconds = std::bit_cast<double>(buf[kResCpuSeconds]);
-      rec.rays = work.TotalRays();
+      rec.counts = TileWorkDelta(work, FrameStats{});
+      rec.rays = rec.counts.rays;
+      rec.work = TileWorkCost(rec.counts);
       nan += static_cast<uint64_t>(buf[kResDroppedNan]);
       clamped += static_cast<uint64_t>(buf[kResClamped]);
       ThreadStats& ts = f.threads[static_cast<size_t>(w)];
@@ -725,8 +722,8 @@ class Master {
   }
 
   // After the last result: totals, idle times and imbalance as the host backends define them
-  // (a worker idles for the part of the render span it was not rendering), then with PBT the
-  // tiles backend's measures (pbt.h) and PBT-Update on the measured tile times.
+  // (a worker idles for the part of the render span it was not rendering), then the tile
+  // plan's measures and PBT-Update on the measured tile costs (tile_plan.h).
   void FinishFrame(HostFrameStats& f, double render_seconds) {
     f.render_seconds = render_seconds;
     std::vector<double> busy;
@@ -736,21 +733,24 @@ class Master {
       busy.push_back(t.busy_seconds);
     }
     f.imbalance = FrameImbalance(busy);
-    if (!pbt_) return;
-    std::vector<double> measured(f.tiles.size());
+    std::vector<double> costs(f.tiles.size());
+    std::vector<int32_t> ran_by(f.tiles.size());
     for (size_t i = 0; i < f.tiles.size(); ++i) {
-      measured[i] = c_.pbt_cpu_time ? f.tiles[i].cpu_seconds : f.tiles[i].seconds;
+      const TileRecord& r = f.tiles[i];
+      costs[i] = c_.pbt_cost == PbtCost::kCpu    ? r.cpu_seconds
+                 : c_.pbt_cost == PbtCost::kWork ? r.work
+                                                 : r.seconds;
+      ran_by[i] = r.thread;
     }
+    const TilePlanReport report = plan_->End(costs, ran_by);  // PBT-Update between frames
+    frame_ = nullptr;
+    if (!report.pbt) return;
     f.pbt = true;
-    f.has_prediction = has_prediction_;
-    if (has_prediction_) f.accuracy = MeasurePredictionAccuracy(predicted_, measured);
-    f.worker_imbalance = FrameImbalance(WorkerTimes(assignment_, measured));
-    f.predicted_makespan = has_prediction_ ? assignment_.PredictedMakespan() : 0.0;
-    if (c_.assign == PbtAssign::kStatic) {
-      static_times_ = measured;  // tiling and assignment stay as they are
-    } else {
-      f.update = pbt_->Update(measured);  // Algorithm 1 between frames
-    }
+    f.has_prediction = report.has_prediction;
+    f.accuracy = report.accuracy;
+    f.worker_imbalance = report.worker_imbalance;
+    f.predicted_makespan = report.predicted_makespan;
+    f.update = report.update;
   }
 
   const MpiRenderConfig& c_;
@@ -758,14 +758,12 @@ class Master {
   int workers_;
   Framebuffer fb_;
   std::vector<float> rgb_;
-  std::unique_ptr<Pbt> pbt_;
-  Assignment assignment_;
+  std::unique_ptr<TilePlan> plan_;
+  const TilePlanFrame* frame_ = nullptr;  // the plan's frame being rendered
   std::vector<Tile> tiles_;
-  std::vector<int32_t> owner_;  // PBT: per tile, the worker whose list holds it
-  std::vector<double> predicted_, static_times_, weight_;
-  std::vector<std::deque<int32_t>> lists_;
-  size_t next_grid_ = 0;
-  bool has_prediction_ = false;
+  bool lists_mode_ = false;                 // PBT per-worker lists (else: shared_)
+  std::vector<std::deque<int32_t>> lists_;  // per worker: its waiting tiles
+  std::deque<int32_t> shared_;              // fixed tiles / assign counter: waiting tiles
   std::vector<WorkerTraffic> traffic_;
   std::vector<std::deque<int32_t>> in_flight_;
   std::vector<Clock::time_point> last_heard_;

@@ -6,7 +6,7 @@
 #include <cstdint>
 #include <string>
 
-#include "sched/backends.h"  // PbtAssign
+#include "sched/backends.h"  // PbtAssign, PbtCost (sched/tile_plan.h)
 #include "sched/framebuffer.h"
 #include "sched/render.h"
 
@@ -25,8 +25,8 @@ struct MpiRenderConfig {
   // (WriteHostStats) in their format: one "threads" entry / thread row per worker (thread =
   // worker index = rank - 1), one tile record per tile (thread = the worker that rendered it,
   // worker = PBT: the worker whose list held it), the PBT fields, backend "mpi", options as the
-  // tiles backend's with pbt_workers = workers and steal = true under PBT. Times: seconds = the
-  // frame from planning to PBT-Update on the master, render_seconds = first tile sent -> last
+  // tiles backend's with pbt_workers = workers and steal = true under PBT lists. Times: seconds =
+  // the frame from planning to PBT-Update on the master, render_seconds = first tile sent -> last
   // result, a worker's busy / cpu = the sums of its tiles' wall / CPU times as it measured them,
   // idle = render_seconds - busy, app_cpu_seconds = the master's CPU time in the frame. Then the
   // cluster's own (CSV: columns after the host columns): options ranks, workers,
@@ -39,15 +39,18 @@ struct MpiRenderConfig {
   // handed out on demand by a counter at the master.
   int tile_width = 32;
   int tile_height = 32;
-  // k > 0: a PBT of m = k * n tiles (n = ranks - 1 workers), updated between frames with the
-  // tile times measured by the workers (wall, or the worker's CPU time with pbt_cpu_time). Each
-  // worker first takes the tiles of its own list (assign); a worker whose list is empty takes
-  // the last waiting tile of the list with the most predicted work left (demand-driven with
-  // affinity, as SimulateDemandDriven in pbt.h models).
+  // k > 0: a PBT of m = k * n tiles (n = ranks - 1 workers), the tile plan of the tiles
+  // backend (sched/tile_plan.h), updated between frames with the tile costs the workers measured
+  // (pbt_cost: wall or CPU seconds, or the deterministic work count of the tile's ray tree;
+  // with worker threads > 1 a tile's rows are split among them, which may change its counts
+  // slightly, never between runs of the same configuration). Each worker first takes the tiles
+  // of its own list (assign); a worker whose list is empty takes the last waiting tile of the
+  // list with the most predicted work left (demand-driven with affinity, as SimulateDemandDriven
+  // in pbt.h models). assign counter: no lists, tiles on demand by decreasing prediction.
   int pbt_tiles_per_worker = 0;
   PbtAssign assign = PbtAssign::kRandom;
   uint64_t seed = 1;
-  bool pbt_cpu_time = false;
+  PbtCost pbt_cost = PbtCost::kWall;
   // Render threads inside each worker (--threads): a tile's rows are shared among them. A
   // tile's CPU time is the sum over its threads.
   int threads = 1;

@@ -33,54 +33,78 @@ double CellFrameStats::SimulatedMraysPerSecond() const {
   return seconds > 0 ? double(totals.TotalRays()) / seconds * 1e-6 : 0.0;
 }
 
-CellRenderer::CellRenderer(const SimConfig& config) : config_(config) { ValidateConfig(config_); }
+CellRenderer::CellRenderer(const SimConfig& config, const CellPlanOptions& plan)
+    : config_(config), plan_options_(plan) {
+  ValidateConfig(config_);
+  const int assign = static_cast<int>(plan.assign);
+  if (assign < 0 || assign > static_cast<int>(PbtAssign::kCounter)) {
+    throw Error("cell backend: unknown PBT assignment " + std::to_string(assign));
+  }
+  if (plan.pbt_workers < 0 || plan.pbt_workers > 65536) {
+    throw Error("cell backend: pbt workers " + std::to_string(plan.pbt_workers) +
+                " must be in [0, 65536]");
+  }
+  if (plan.assign == PbtAssign::kCounter && plan.pbt_workers != 0 &&
+      plan.pbt_workers != config.num_spes) {
+    throw Error("cell backend: assignment counter: the " + std::to_string(config.num_spes) +
+                " SPEs take the tiles from one counter, so pbt workers must be 0 or " +
+                std::to_string(config.num_spes) + ", not " + std::to_string(plan.pbt_workers));
+  }
+}
 CellRenderer::~CellRenderer() = default;
 
 CellFrameStats CellRenderer::Render(const FrameContext& ctx, Framebuffer& fb) {
-  if (config_.pbt_tiles_per_spe > 0) {
-    const int w = ctx.options.width, h = ctx.options.height;
-    if (!pbt_ || pbt_->width() != w || pbt_->height() != h) {
-      pbt_ = std::make_unique<Pbt>(w, h, config_.num_spes, config_.pbt_tiles_per_spe);
-    }
-    const std::vector<Tile> pbt_tiles = pbt_->Tiles();
-    const std::vector<double> estimates = pbt_->Estimates();
-    const bool predicted =
-        std::any_of(estimates.begin(), estimates.end(), [](double e) { return e > 0; });
-    // The counter hands the costliest tiles out first (ties: tile order).
-    std::vector<size_t> order(pbt_tiles.size());
-    std::iota(order.begin(), order.end(), size_t{0});
-    std::stable_sort(order.begin(), order.end(),
-                     [&](size_t a, size_t b) { return estimates[a] > estimates[b]; });
-    std::vector<Tile> list(order.size());
-    for (size_t i = 0; i < order.size(); ++i) list[i] = pbt_tiles[order[i]];
-    CellFrameStats stats = RenderTiles(ctx, fb, list, true);
-    // Back to PBT tile indices.
-    std::vector<CellTileRecord> by_index(order.size());
-    std::vector<double> measured(order.size()), predicted_times(order.size());
-    for (size_t i = 0; i < order.size(); ++i) {
-      by_index[order[i]] = stats.tiles[i];
-      by_index[order[i]].predicted = predicted ? estimates[order[i]] : -1.0;
-      measured[order[i]] = stats.tiles[i].cycles;
-      predicted_times[order[i]] = estimates[order[i]];
-    }
-    stats.tiles = std::move(by_index);
-    stats.pbt = true;
-    stats.has_prediction = predicted;
-    if (predicted) stats.accuracy = MeasurePredictionAccuracy(predicted_times, measured);
-    stats.update = pbt_->Update(measured);
-    return stats;
-  }
   const int w = ctx.options.width, h = ctx.options.height;
-  const int tw = std::min(config_.tile_width, w), th = std::min(config_.tile_height, h);
-  const int tiles_x = (w + tw - 1) / tw, tiles_y = (h + th - 1) / th;
-  std::vector<Tile> tiles;
-  tiles.reserve(size_t(tiles_x) * size_t(tiles_y));
-  for (int y = 0; y < h; y += th) {
-    for (int x = 0; x < w; x += tw) {
-      tiles.push_back(Tile{x, y, std::min(x + tw, w), std::min(y + th, h)});
+  if (config_.pbt_tiles_per_spe == 0) {
+    // Regular tiles: the SPEs compute a tile's rectangle from its counter value.
+    return RenderTiles(ctx, fb, GridTiles(w, h, config_.tile_width, config_.tile_height), false);
+  }
+  if (!plan_ || plan_->width() != w || plan_->height() != h) {
+    TilePlanOptions p;
+    p.pbt_tiles_per_worker = config_.pbt_tiles_per_spe;
+    p.workers = plan_options_.pbt_workers > 0 ? plan_options_.pbt_workers : config_.num_spes;
+    p.assign = plan_options_.assign;
+    p.seed = plan_options_.seed;
+    p.cost = PbtCost::kWork;  // the simulated tile cycles: deterministic
+    plan_.reset();
+    plan_ = std::make_unique<TilePlan>(w, h, p);
+  }
+  const TilePlanFrame& frame = plan_->Begin();
+  std::vector<std::vector<int32_t>> queues;
+  if (frame.assignment.tiles.empty()) {
+    queues.push_back(frame.order);  // one counter, costliest predicted first
+  } else {
+    queues.resize(size_t(config_.num_spes));
+    const auto& lists = frame.assignment.tiles;
+    for (size_t v = 0; v < lists.size(); ++v) {
+      auto& q = queues[v % queues.size()];
+      q.insert(q.end(), lists[v].begin(), lists[v].end());
     }
   }
-  return RenderTiles(ctx, fb, tiles, false);
+  CellFrameStats stats;
+  try {
+    stats = RenderTiles(ctx, fb, frame.tiles, true, queues);
+  } catch (...) {
+    plan_->Cancel();
+    throw;
+  }
+  std::vector<double> cycles(stats.tiles.size());
+  std::vector<int32_t> ran_by(stats.tiles.size());
+  for (size_t i = 0; i < stats.tiles.size(); ++i) {
+    CellTileRecord& t = stats.tiles[i];
+    t.predicted = frame.predicted[i];
+    t.worker = frame.owner.empty() ? -1 : frame.owner[i];
+    cycles[i] = t.cycles;
+    ran_by[i] = t.spe;
+  }
+  const TilePlanReport report = plan_->End(cycles, ran_by);
+  stats.pbt = true;
+  stats.has_prediction = report.has_prediction;
+  stats.accuracy = report.accuracy;
+  stats.worker_imbalance = report.worker_imbalance;
+  stats.predicted_makespan = report.predicted_makespan;
+  stats.update = report.update;
+  return stats;
 }
 
 CellFrameStats CellRenderer::Render(const FrameContext& ctx, Framebuffer& fb,
@@ -89,7 +113,8 @@ CellFrameStats CellRenderer::Render(const FrameContext& ctx, Framebuffer& fb,
 }
 
 CellFrameStats CellRenderer::RenderTiles(const FrameContext& ctx, Framebuffer& fb,
-                                         std::span<const Tile> tiles, bool explicit_tiles) {
+                                         std::span<const Tile> tiles, bool explicit_tiles,
+                                         const std::vector<std::vector<int32_t>>& queues_in) {
   const int width = ctx.options.width, height = ctx.options.height;
   if (fb.width() != width || fb.height() != height) {
     throw Error("cell backend: framebuffer is " + std::to_string(fb.width()) + "x" +
@@ -130,22 +155,38 @@ CellFrameStats CellRenderer::RenderTiles(const FrameContext& ctx, Framebuffer& f
   stats.image_bytes = image_->Bytes();
   const auto t0 = Clock::now();
 
-  // Main memory of the frame: the scene image at its planned EAs, then the frame's buffers.
+  // The tile counters: one queue that every SPE takes from, or one per SPE (PBT lists).
+  std::vector<std::vector<int32_t>> queues = queues_in;
+  if (queues.empty()) {
+    queues.emplace_back(tiles.size());
+    std::iota(queues[0].begin(), queues[0].end(), int32_t{0});
+  }
+  const size_t nq = queues.size();
+  if (nq != 1 && nq != size_t(config_.num_spes)) {
+    throw Error("cell backend: " + std::to_string(nq) + " tile queues for " +
+                std::to_string(config_.num_spes) + " SPEs");
+  }
+
+  // Main memory of the frame: the scene image at its planned EAs, then the frame's buffers (per
+  // queue: its frame constants, tile list and counter line; with one queue the layout is the
+  // one-counter program's).
   Machine machine(config_);
   image_->Register(machine.memory);
-  AlignedBuffer constants(sizeof(FrameConstants));
-  const Ea constants_ea =
-      machine.memory.Register(constants.data(), constants.size(), "frame constants");
-  FrameConstants& fc = *constants.As<FrameConstants>();
-  fc = FrameConstants{};
+  std::vector<AlignedBuffer> constants;
+  std::vector<Ea> constants_ea;
+  constants.reserve(nq);
+  for (size_t q = 0; q < nq; ++q) {
+    constants.emplace_back(sizeof(FrameConstants));
+    constants_ea.push_back(
+        machine.memory.Register(constants[q].data(), constants[q].size(), "frame constants"));
+  }
+  FrameConstants fc{};
   image_->FillConstants(&fc);
   fc.camera = ctx.camera;
   fc.shade = ctx.shade;
   fc.image_width = width;
   fc.image_height = height;
-  AlignedBuffer tile_buffer(std::max<size_t>(tiles.size(), 1) * sizeof(Tile));
   if (explicit_tiles) {
-    std::copy(tiles.begin(), tiles.end(), tile_buffer.As<Tile>());
     fc.explicit_tiles = 1;
     fc.tile_width = fc.tile_height = fc.tiles_x = 1;
   } else {
@@ -154,10 +195,21 @@ CellFrameStats CellRenderer::RenderTiles(const FrameContext& ctx, Framebuffer& f
     fc.tile_height = std::min(config_.tile_height, height);
     fc.tiles_x = (width + fc.tile_width - 1) / fc.tile_width;
   }
-  fc.num_tiles = static_cast<uint32_t>(tiles.size());
-  fc.tiles = machine.memory.Register(tile_buffer.data(), tile_buffer.size(), "tile list");
-  AlignedBuffer counter(128);
-  fc.tile_counter = machine.memory.Register(counter.data(), counter.size(), "tile counter", true);
+  std::vector<AlignedBuffer> tile_buffers, counters;
+  std::vector<Ea> tiles_ea, counter_ea;
+  tile_buffers.reserve(nq);
+  counters.reserve(nq);
+  for (size_t q = 0; q < nq; ++q) {
+    const std::vector<int32_t>& queue = queues[q];
+    tile_buffers.emplace_back(std::max<size_t>(queue.size(), 1) * sizeof(Tile));
+    Tile* list = tile_buffers[q].As<Tile>();
+    for (size_t p = 0; p < queue.size(); ++p) list[p] = tiles[size_t(queue[p])];
+    tiles_ea.push_back(
+        machine.memory.Register(tile_buffers[q].data(), tile_buffers[q].size(), "tile list"));
+    counters.emplace_back(128);
+    counter_ea.push_back(
+        machine.memory.Register(counters[q].data(), counters[q].size(), "tile counter", true));
+  }
   // The pixel image the SPEs put their pixel buffers into (zero where no tile lies).
   const size_t num_pixels = size_t(width) * size_t(height);
   const size_t pixel_bytes = (num_pixels * sizeof(PixelSums) + 127) / 128 * 128;
@@ -166,15 +218,28 @@ CellFrameStats CellRenderer::RenderTiles(const FrameContext& ctx, Framebuffer& f
   fc.pixels = machine.memory.Register(pixels_.data(), pixel_bytes, "pixel image", true);
   AlignedBuffer status(size_t(config_.num_spes) * sizeof(SpeStatus));
   fc.status = machine.memory.Register(status.data(), status.size(), "SPE status records", true);
+  for (size_t q = 0; q < nq; ++q) {
+    FrameConstants& mine = *constants[q].As<FrameConstants>();
+    mine = fc;
+    mine.num_tiles = static_cast<uint32_t>(queues[q].size());
+    mine.tiles = tiles_ea[q];
+    mine.tile_counter = counter_ea[q];
+  }
 
-  std::vector<double> tile_cycles(tiles.size(), 0.0);
-  std::vector<int32_t> tile_spe(tiles.size(), -1);
-  FrameOutputs outputs;
-  outputs.tile_cycles = &tile_cycles;
-  outputs.tile_spe = &tile_spe;
+  // Per queue: the cycles and SPE of its tiles, by position in the queue.
+  std::vector<std::vector<double>> queue_cycles(nq);
+  std::vector<std::vector<int32_t>> queue_spe(nq);
+  std::vector<FrameOutputs> outputs(nq);
+  for (size_t q = 0; q < nq; ++q) {
+    queue_cycles[q].assign(queues[q].size(), 0.0);
+    queue_spe[q].assign(queues[q].size(), -1);
+    outputs[q].tile_cycles = &queue_cycles[q];
+    outputs[q].tile_spe = &queue_spe[q];
+  }
   std::vector<std::unique_ptr<Spe>> spes;
   for (int i = 0; i < config_.num_spes; ++i) {
-    spes.push_back(std::make_unique<Spe>(i, machine, constants_ea, outputs));
+    const size_t q = nq == 1 ? 0 : size_t(i);
+    spes.push_back(std::make_unique<Spe>(i, machine, constants_ea[q], outputs[q]));
   }
 
   // Discrete-event loop: always step the SPE with the earliest clock (lowest id on ties). Each
@@ -232,10 +297,13 @@ CellFrameStats CellRenderer::RenderTiles(const FrameContext& ctx, Framebuffer& f
   stats.mic_lines = machine.mic.lines();
   stats.mic_queue_cycles = machine.mic.queue_cycles();
   stats.tiles.resize(tiles.size());
-  for (size_t i = 0; i < tiles.size(); ++i) {
-    stats.tiles[i].tile = tiles[i];
-    stats.tiles[i].spe = tile_spe[i];
-    stats.tiles[i].cycles = tile_cycles[i];
+  for (size_t i = 0; i < tiles.size(); ++i) stats.tiles[i].tile = tiles[i];
+  for (size_t q = 0; q < nq; ++q) {
+    for (size_t p = 0; p < queues[q].size(); ++p) {
+      CellTileRecord& r = stats.tiles[size_t(queues[q][p])];
+      r.spe = queue_spe[q][p];
+      r.cycles = queue_cycles[q][p];
+    }
   }
 
   FrameStats& f = stats.frame;

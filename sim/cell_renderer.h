@@ -13,6 +13,7 @@
 #include "sched/framebuffer.h"
 #include "sched/pbt.h"
 #include "sched/render.h"
+#include "sched/tile_plan.h"
 #include "sim/cell_image.h"
 #include "sim/config.h"
 #include "sim/mfc.h"
@@ -35,7 +36,8 @@ struct SpeReport {
 
 struct CellTileRecord {
   Tile tile;
-  int32_t spe = -1;       // the SPE that took it from the counter
+  int32_t spe = -1;       // the SPE that took it from its tile counter
+  int32_t worker = -1;    // PBT lists: the (virtual) worker whose list held it (-1: counter)
   double cycles = 0;      // SPE cycles attributed to its rays (FrameOutputs::tile_cycles)
   double predicted = -1;  // PBT: the estimate it was tiled with (-1: none)
 };
@@ -60,24 +62,40 @@ struct CellFrameStats {
   bool pbt = false;
   bool has_prediction = false;
   PredictionAccuracy accuracy;
+  double worker_imbalance = 1.0;  // slowest / mean worker, in simulated tile cycles
+  double predicted_makespan = 0;  // the largest predicted worker load (cycles)
   PbtUpdateStats update;
 
   // Rays per simulated second / 1e6.
   double SimulatedMraysPerSecond() const;
 };
 
+// The cell backend's PBT policy (with config.pbt_tiles_per_spe = k > 0), run by the tile plan
+// of the host backends (sched/tile_plan.h) on the simulated tile cycles, its deterministic cost.
+struct CellPlanOptions {
+  // kCounter (the default): every SPE takes the PBT's tiles from one atomic tile counter, the
+  // costliest predicted first. random / greedy / visit / static: per-worker lists; SPE s runs
+  // the lists of workers s, s + spes, ... through a tile counter of its own (its own tile list
+  // and counter line in main memory, so the SPE program is unchanged), without stealing: the
+  // SPE program reads no other SPE's counter.
+  PbtAssign assign = PbtAssign::kCounter;
+  uint64_t seed = 1;    // PBT-Random / static
+  int pbt_workers = 0;  // PBT workers n (0: config.num_spes); lists only (counter: 0 or spes)
+};
+
 class CellRenderer {
  public:
-  // Throws rs::Error if the config is invalid (ValidateConfig).
-  explicit CellRenderer(const SimConfig& config);
+  // Throws rs::Error if the config is invalid (ValidateConfig) or the plan options are
+  // (unknown assignment, pbt_workers outside [0, 65536], or not 0 / num_spes with kCounter).
+  explicit CellRenderer(const SimConfig& config, const CellPlanOptions& plan = {});
   ~CellRenderer();
   CellRenderer(const CellRenderer&) = delete;
   CellRenderer& operator=(const CellRenderer&) = delete;
 
   // Renders the whole image into fb (added to it, not cleared first; fb must be width x height
   // of ctx): regular tiles of config.tile_width x tile_height from the atomic tile counter, or
-  // the PBT's tiles (handed out by the counter in order of decreasing estimate; the PBT is
-  // updated with the simulated tile cycles after the frame, CellTileRecord::cycles). The SPEs
+  // the PBT's tiles as CellPlanOptions says (the PBT is updated with the simulated tile cycles
+  // after the frame, CellTileRecord::cycles). The SPEs
   // accumulate the image in their local-store pixel buffers and put them into a main-memory
   // pixel image by DMA; fb receives that image (and the drop and clamp counts of the SPEs'
   // status records) after the frame. Throws rs::Error if fb's size differs, a local store
@@ -89,17 +107,22 @@ class CellRenderer {
   CellFrameStats Render(const FrameContext& ctx, Framebuffer& fb, std::span<const Tile> tiles);
 
   const SimConfig& config() const { return config_; }
-  const Pbt* pbt() const { return pbt_.get(); }
+  const CellPlanOptions& plan_options() const { return plan_options_; }
+  const Pbt* pbt() const { return plan_ ? plan_->pbt() : nullptr; }
   // The main-memory image of the last frame's scene (nullptr before the first frame).
   const CellImage* image() const { return image_.get(); }
 
  private:
+  // queues: tile indices per tile counter. One queue: every SPE takes from it; num_spes
+  // queues: SPE s takes from queue s only. Empty: one queue of all tiles in list order.
   CellFrameStats RenderTiles(const FrameContext& ctx, Framebuffer& fb, std::span<const Tile> tiles,
-                             bool explicit_tiles);
+                             bool explicit_tiles,
+                             const std::vector<std::vector<int32_t>>& queues = {});
 
   SimConfig config_;
+  CellPlanOptions plan_options_;
   std::unique_ptr<CellImage> image_;
-  std::unique_ptr<Pbt> pbt_;
+  std::unique_ptr<TilePlan> plan_;
   AlignedBuffer pixels_;
   uint64_t frames_ = 0;
 };

@@ -161,8 +161,8 @@ struct RenderArgs {
   std::string tile = "32x32";
   int pbt = 0;
   int pbt_workers = 0;
-  std::string assign = "random";
-  std::string pbt_time = "wall";
+  std::string assign;    // empty: the backend's default (PbtAssignFor)
+  std::string pbt_cost;  // empty: the backend's default (wall; cell: its simulated cycles)
   uint64_t seed = 1;
   bool steal = false;
   bool queue_stats = true;
@@ -188,6 +188,115 @@ void ParseTileShape(const std::string& text, int& width, int& height) {
   }
 }
 
+// The PBT assignment the backend runs: --assign, or its default (cell: one shared counter,
+// costliest tile first; the others: PBT-Random). Throws rs::Error naming the option.
+PbtAssign PbtAssignFor(const RenderArgs& args) {
+  PbtAssign assign = args.backend == "cell" ? PbtAssign::kCounter : PbtAssign::kRandom;
+  if (!args.assign.empty() && !ParsePbtAssign(args.assign, &assign)) {
+    throw Error(fmt::format("--assign {}: expected random, greedy, visit, static or counter",
+                            args.assign));
+  }
+  return assign;
+}
+
+// --pbt-cost (alias --pbt-time): wall (the default), cpu or work.
+PbtCost PbtCostFor(const RenderArgs& args) {
+  PbtCost cost = PbtCost::kWall;
+  if (!args.pbt_cost.empty() && !ParsePbtCost(args.pbt_cost, &cost)) {
+    throw Error(fmt::format("--pbt-cost {}: expected wall, cpu or work", args.pbt_cost));
+  }
+  return cost;
+}
+
+// Every option a backend cannot honour is an error naming the option and the backend (checked
+// before anything is loaded or rendered). An option left at its default is not "given".
+void CheckBackendOptions(const RenderArgs& args) {
+  const std::string& b = args.backend;
+  const bool cell = b == "cell", mpi = b == "mpi";
+  BackendKind kind = BackendKind::kSerial;
+  if (!cell && !mpi && !ParseBackendKind(b, &kind)) return;  // MakeBackendOptions names it
+  const bool tiles = !cell && !mpi && kind == BackendKind::kTiles;
+  const bool serial = !cell && !mpi && kind == BackendKind::kSerial;
+  const bool tiled = tiles || cell || mpi;
+  const bool pbt = args.pbt > 0;
+  auto fail = [&](const std::string& option, const std::string& why) {
+    throw Error(fmt::format("{}: {}", option, why));
+  };
+  if (args.tile != "32x32" && !tiled) {
+    fail("--tile " + args.tile,
+         fmt::format("the {} backend cuts the image into tasks, not tiles (use --backend tiles, "
+                     "cell or mpi)",
+                     b));
+  }
+  if (args.tile != "32x32" && pbt) {
+    fail("--tile " + args.tile, fmt::format("with --pbt the PBT makes the tiles (backend {})", b));
+  }
+  if (pbt && !tiled) {
+    fail(fmt::format("--pbt {}", args.pbt),
+         fmt::format("PBT tiling needs --backend tiles, cell or mpi, not {}", b));
+  }
+  // The PBT's options need a PBT.
+  const bool seed_given = args.seed != 1;
+  const bool pbt_cost_given = !args.pbt_cost.empty();
+  if (!pbt) {
+    if (args.pbt_workers != 0) {
+      fail(fmt::format("--pbt-workers {}", args.pbt_workers), "needs --pbt k");
+    }
+    if (!args.assign.empty()) fail("--assign " + args.assign, "needs --pbt k");
+    if (seed_given) fail(fmt::format("--seed {}", args.seed), "needs --pbt k");
+    if (args.steal) fail("--steal", "needs a PBT tiling (--backend tiles --pbt k)");
+    if (pbt_cost_given) fail("--pbt-cost " + args.pbt_cost, "needs --pbt k");
+  } else {
+    const PbtAssign assign = PbtAssignFor(args);
+    const PbtCost cost = PbtCostFor(args);
+    if (seed_given && assign != PbtAssign::kRandom && assign != PbtAssign::kStatic) {
+      fail(fmt::format("--seed {}", args.seed),
+           fmt::format("only --assign random and static use a seed, not {} (backend {})",
+                       PbtAssignName(assign), b));
+    }
+    if (cell && args.steal) {
+      fail("--steal", "the cell backend's SPEs take tiles only from their own list (the SPE "
+                      "program reads no other SPE's counter); use --assign counter for tiles "
+                      "on demand");
+    }
+    if (args.steal && assign == PbtAssign::kCounter) {
+      fail("--steal", fmt::format("--assign counter has no per-worker lists to steal from "
+                                  "(backend {})",
+                                  b));
+    }
+    if (cell && pbt_cost_given && cost != PbtCost::kWork) {
+      fail("--pbt-cost " + args.pbt_cost,
+           "the cell backend feeds PBT its simulated tile cycles, its deterministic work "
+           "(--pbt-cost work or none)");
+    }
+    if (mpi && args.pbt_workers != 0) {
+      fail(fmt::format("--pbt-workers {}", args.pbt_workers),
+           "the mpi backend's PBT workers are its worker ranks (mpirun -np N: N - 1)");
+    }
+  }
+  // Options of one backend only.
+  if (!cell && args.spes != 6) {
+    fail(fmt::format("--spes {}", args.spes), "needs --backend cell, not " + b);
+  }
+  if (!mpi && args.mpi_timeout != 120) {
+    fail(fmt::format("--mpi-timeout {:g}", args.mpi_timeout), "needs --backend mpi, not " + b);
+  }
+  if (!args.queue_stats && (serial || cell || mpi)) {
+    fail("--no-queue-stats", fmt::format("the {} backend has no queue operations to time", b));
+  }
+  if (cell) {
+    if (args.task_size != RenderOptions{}.task_size) {
+      fail(fmt::format("--task-size {}", args.task_size),
+           "the cell backend's SPE ray pipeline keeps 8 rays in flight, it has no tasks");
+    }
+    if (args.order != "scanline") {
+      fail("--order " + args.order,
+           "the cell backend's SPEs generate primary rays in their own sub-tile order");
+    }
+    if (!args.dump_raw.empty()) fail("--dump-raw", "not written by the cell backend");
+  }
+}
+
 BackendOptions MakeBackendOptions(const RenderArgs& args) {
   BackendOptions o;
   if (!ParseBackendKind(args.backend, &o.kind)) {
@@ -200,10 +309,8 @@ BackendOptions MakeBackendOptions(const RenderArgs& args) {
   ParseTileShape(args.tile, o.tile_width, o.tile_height);
   o.pbt_tiles_per_worker = args.pbt;
   o.pbt_workers = args.pbt_workers;
-  if (!ParsePbtAssign(args.assign, &o.assign)) {
-    throw Error(fmt::format("--assign {}: expected random, greedy, visit or static", args.assign));
-  }
-  o.pbt_cpu_time = args.pbt_time == "cpu";
+  o.assign = PbtAssignFor(args);
+  o.pbt_cost = PbtCostFor(args);
   o.seed = args.seed;
   o.pbt_steal = args.steal;
   o.queue_stats = args.queue_stats;
@@ -211,11 +318,11 @@ BackendOptions MakeBackendOptions(const RenderArgs& args) {
     throw Error(fmt::format("--threads {}: the serial backend runs one thread (use lock, lfree, "
                             "local or tiles)", o.threads));
   }
-  if (o.pbt_tiles_per_worker > 0 && o.kind != BackendKind::kTiles) {
-    throw Error(fmt::format("--pbt {}: PBT tiling needs --backend tiles", args.pbt));
-  }
-  if (o.pbt_steal && o.pbt_tiles_per_worker == 0) {
-    throw Error("--steal: needs a PBT tiling (--backend tiles --pbt k)");
+  if (o.pbt_tiles_per_worker > 0 && o.assign == PbtAssign::kCounter && o.pbt_workers != 0 &&
+      o.pbt_workers != o.threads) {
+    throw Error(fmt::format("--pbt-workers {}: with --assign counter the {} threads take the "
+                            "tiles from one counter (backend tiles)",
+                            o.pbt_workers, o.threads));
   }
   ValidateBackendOptions(o);
   return o;
@@ -236,6 +343,16 @@ int RunRenderCell(const RenderArgs& args) {
   ParseTileShape(args.tile, config.tile_width, config.tile_height);
   config.pbt_tiles_per_spe = args.pbt;
   sim::ValidateConfig(config);
+  sim::CellPlanOptions plan;
+  plan.assign = PbtAssignFor(args);
+  plan.seed = args.seed;
+  plan.pbt_workers = args.pbt_workers;
+  if (args.pbt > 0 && plan.assign == PbtAssign::kCounter && plan.pbt_workers != 0 &&
+      plan.pbt_workers != config.num_spes) {
+    throw Error(fmt::format("--pbt-workers {}: with --assign counter the {} SPEs take the tiles "
+                            "from one counter (backend cell)",
+                            plan.pbt_workers, config.num_spes));
+  }
   if (args.threads != 1) {
     throw Error(fmt::format("--threads {}: the cell backend simulates --spes SPEs on one host "
                             "thread", args.threads));
@@ -263,7 +380,7 @@ int RunRenderCell(const RenderArgs& args) {
   options.height = args.height;
   options.max_depth = args.depth;
   options.weight_cutoff = args.cutoff;
-  sim::CellRenderer renderer(config);
+  sim::CellRenderer renderer(config, plan);
   Framebuffer fb(args.width, args.height);
   std::vector<float> rgb;
   Json frames = Json::array();
@@ -322,7 +439,8 @@ int RunRenderCell(const RenderArgs& args) {
     fmt::print("image      {}x{}, depth {}, {} frame(s), backend cell, {} SPEs, {}\n", args.width,
                args.height, args.depth, args.frames, config.num_spes,
                config.pbt_tiles_per_spe > 0
-                   ? fmt::format("PBT k={}", config.pbt_tiles_per_spe)
+                   ? fmt::format("PBT k={} assign {}", config.pbt_tiles_per_spe,
+                                 PbtAssignName(plan.assign))
                    : fmt::format("tiles {}x{}", config.tile_width, config.tile_height));
     fmt::print("{}", sim::FormatCellReport(last, config));
     fmt::print("wrote      {}\n", FrameFileName(out, args.frames - 1));
@@ -348,11 +466,9 @@ int RunRenderMpi(const RenderArgs& args) {
   c.dump_raw = args.dump_raw;
   ParseTileShape(args.tile, c.tile_width, c.tile_height);
   c.pbt_tiles_per_worker = args.pbt;
-  if (!ParsePbtAssign(args.assign, &c.assign)) {
-    throw Error(fmt::format("--assign {}: expected random, greedy, visit or static", args.assign));
-  }
+  c.assign = PbtAssignFor(args);
   c.seed = args.seed;
-  c.pbt_cpu_time = args.pbt_time == "cpu";
+  c.pbt_cost = PbtCostFor(args);
   c.timeout_seconds = args.mpi_timeout;
   c.threads = args.threads;  // render threads inside each worker
   c.quiet = args.quiet;
@@ -360,6 +476,7 @@ int RunRenderMpi(const RenderArgs& args) {
 }
 
 int RunRender(const RenderArgs& args) {
+  CheckBackendOptions(args);
   if (args.backend == "cell") return RunRenderCell(args);
   if (args.backend == "mpi") return RunRenderMpi(args);
   const BackendOptions backend = MakeBackendOptions(args);
@@ -499,7 +616,9 @@ int Main(int argc, char** argv) {
   render->add_option("--backend", r.backend,
                      "scheduler: serial, lock, lfree, local, tiles, cell, mpi (under mpirun)")
       ->capture_default_str();
-  render->add_option("--spes", r.spes, "cell backend: simulated SPEs (--tile and --pbt apply)")
+  render->add_option("--spes", r.spes,
+                     "cell backend: simulated SPEs (--tile, --pbt, --pbt-workers, --assign and "
+                     "--seed apply)")
       ->check(CLI::Range(1, 8))
       ->capture_default_str();
   render->add_option("--threads", r.threads,
@@ -508,18 +627,23 @@ int Main(int argc, char** argv) {
       ->capture_default_str();
   render->add_option("--tile", r.tile, "tiles backend: tile shape WxH (8x8, 32x32, 640x2, ...)")
       ->capture_default_str();
-  render->add_option("--pbt", r.pbt, "tiles backend: PBT tiling with k tiles per worker (0: off)")
+  render->add_option("--pbt", r.pbt,
+                     "tiles, cell, mpi: PBT tiling with k tiles per worker (0: off)")
       ->check(CLI::Range(0, 4096))
       ->capture_default_str();
-  render->add_option("--pbt-workers", r.pbt_workers, "PBT workers n (0: --threads)")
+  render->add_option("--pbt-workers", r.pbt_workers,
+                     "PBT workers n (0: --threads; cell: --spes; mpi: the worker ranks)")
       ->check(CLI::Range(0, 65536))
       ->capture_default_str();
-  render->add_option("--assign", r.assign, "PBT tile assignment: random, greedy, visit, static")
+  render->add_option("--assign", r.assign,
+                     "PBT tile assignment: random, greedy, visit, static, counter (default "
+                     "random; cell: counter)");
+  render->add_option("--pbt-cost,--pbt-time", r.pbt_cost,
+                     "tile cost fed to PBT-Update: wall (default), cpu, or work (deterministic "
+                     "counts; cell: its simulated cycles)")
+      ->check(CLI::IsMember({"wall", "cpu", "work"}));
+  render->add_option("--seed", r.seed, "seed of PBT-Random and static assignments")
       ->capture_default_str();
-  render->add_option("--pbt-time", r.pbt_time, "tile time fed to PBT-Update: wall or cpu")
-      ->check(CLI::IsMember({"wall", "cpu"}))
-      ->capture_default_str();
-  render->add_option("--seed", r.seed, "seed of the random tile assignments")->capture_default_str();
   render->add_flag("--steal", r.steal,
                    "PBT: a thread done with its tiles takes waiting tiles of the most loaded "
                    "worker (demand-driven with affinity)");

@@ -1,0 +1,291 @@
+// The tile plan (tile_plan.h): fixed tiles or the per-frame PBT policy, the deterministic tile
+// work cost and its calibrated coefficients. Scalar code run once per frame by the master.
+#include "sched/tile_plan.h"
+
+#include <fmt/core.h>
+
+#include <algorithm>
+#include <cmath>
+#include <numeric>
+#include <string>
+
+#include "include/raystream/raystream.h"
+#include "sched/render.h"
+
+namespace rs {
+
+const char* PbtAssignName(PbtAssign assign) {
+  switch (assign) {
+    case PbtAssign::kRandom:
+      return "random";
+    case PbtAssign::kGreedy:
+      return "greedy";
+    case PbtAssign::kVisit:
+      return "visit";
+    case PbtAssign::kStatic:
+      return "static";
+    case PbtAssign::kCounter:
+      return "counter";
+  }
+  return "?";
+}
+
+bool ParsePbtAssign(std::string_view name, PbtAssign* assign) {
+  for (const PbtAssign a : {PbtAssign::kRandom, PbtAssign::kGreedy, PbtAssign::kVisit,
+                            PbtAssign::kStatic, PbtAssign::kCounter}) {
+    if (name == PbtAssignName(a)) {
+      *assign = a;
+      return true;
+    }
+  }
+  return false;
+}
+
+const char* PbtCostName(PbtCost cost) {
+  switch (cost) {
+    case PbtCost::kWall:
+      return "wall";
+    case PbtCost::kCpu:
+      return "cpu";
+    case PbtCost::kWork:
+      return "work";
+  }
+  return "?";
+}
+
+bool ParsePbtCost(std::string_view name, PbtCost* cost) {
+  for (const PbtCost c : {PbtCost::kWall, PbtCost::kCpu, PbtCost::kWork}) {
+    if (name == PbtCostName(c)) {
+      *cost = c;
+      return true;
+    }
+  }
+  return false;
+}
+
+// ---------------------------------------------------------------------------------------------
+// Deterministic tile work.
+
+TileWork TileWorkDelta(const FrameStats& after, const FrameStats& before) {
+  TileWork w;
+  w.rays = after.TotalRays() - before.TotalRays();
+  w.cell_steps = after.trace.cell_steps - before.trace.cell_steps;
+  w.triangle_tests = after.trace.triangle_tests - before.trace.triangle_tests;
+  w.shading_calls = after.shade.shading_calls - before.shade.shading_calls;
+  return w;
+}
+
+// Provisional round numbers, to be replaced by a calibration against tile CPU times.
+const TileWorkCoefficients kTileWorkCoefficients = {
+    /*per_ray=*/1.0e-7,
+    /*per_cell_step=*/1.0e-8,
+    /*per_triangle_test=*/1.0e-8,
+    /*per_shading_call=*/1.0e-7,
+};
+
+double TileWorkCost(const TileWork& w, const TileWorkCoefficients& c) {
+  double cost = c.per_ray * static_cast<double>(w.rays);
+  cost += c.per_cell_step * static_cast<double>(w.cell_steps);
+  cost += c.per_triangle_test * static_cast<double>(w.triangle_tests);
+  cost += c.per_shading_call * static_cast<double>(w.shading_calls);
+  return cost;
+}
+
+// ---------------------------------------------------------------------------------------------
+// Tiling.
+
+std::vector<Tile> GridTiles(int width, int height, int tw, int th) {
+  if (width < 1 || height < 1 || tw < 1 || th < 1) {
+    throw Error(fmt::format("tiles: image {}x{} in {}x{} tiles: sizes must be at least 1", width,
+                            height, tw, th));
+  }
+  tw = std::min(tw, width);
+  th = std::min(th, height);
+  std::vector<Tile> tiles;
+  tiles.reserve(static_cast<size_t>((width + tw - 1) / tw) *
+                static_cast<size_t>((height + th - 1) / th));
+  for (int y = 0; y < height; y += th) {
+    for (int x = 0; x < width; x += tw) {
+      tiles.push_back(Tile{x, y, std::min(x + tw, width), std::min(y + th, height)});
+    }
+  }
+  return tiles;
+}
+
+uint64_t PbtRandomSeed(uint64_t seed, uint64_t frame) {
+  return seed ^ (0x9E3779B97F4A7C15ull * (frame + 1));
+}
+
+void ValidateTilePlanOptions(const TilePlanOptions& o) {
+  auto fail = [](const std::string& what) { throw Error("tile plan: " + what); };
+  if (o.tile_width < 1 || o.tile_height < 1) {
+    fail(fmt::format("tile {}x{} must be at least 1x1", o.tile_width, o.tile_height));
+  }
+  if (o.pbt_tiles_per_worker < 0 || o.pbt_tiles_per_worker > 4096) {
+    fail(fmt::format("pbt tiles per worker {} must be in [0, 4096]", o.pbt_tiles_per_worker));
+  }
+  if (o.workers < 1 || o.workers > 65536) {
+    fail(fmt::format("workers {} must be in [1, 65536]", o.workers));
+  }
+  const int assign = static_cast<int>(o.assign);
+  if (assign < 0 || assign > static_cast<int>(PbtAssign::kCounter)) {
+    fail(fmt::format("unknown PBT assignment {}", assign));
+  }
+  const int cost = static_cast<int>(o.cost);
+  if (cost < 0 || cost > static_cast<int>(PbtCost::kWork)) {
+    fail(fmt::format("unknown PBT cost {}", cost));
+  }
+  if (o.steal && o.pbt_tiles_per_worker == 0) {
+    fail("stealing needs a PBT tiling (pbt tiles per worker > 0)");
+  }
+  if (o.steal && o.assign == PbtAssign::kCounter) {
+    fail("stealing needs per-worker lists; assignment counter has none (one shared counter)");
+  }
+}
+
+// ---------------------------------------------------------------------------------------------
+// The plan.
+
+TilePlan::TilePlan(int width, int height, const TilePlanOptions& options)
+    : width_(width), height_(height), options_(options) {
+  ValidateTilePlanOptions(options_);
+  if (width < 1 || height < 1) {
+    throw Error(fmt::format("tile plan: image {}x{} must be at least 1x1", width, height));
+  }
+  if (uses_pbt()) {
+    pbt_ = std::make_unique<Pbt>(width, height, options_.workers, options_.pbt_tiles_per_worker);
+  }
+  Plan();
+}
+
+TilePlan::~TilePlan() = default;
+
+void TilePlan::Plan() {
+  TilePlanFrame& f = frame_;
+  f.frame = frames_;
+  f.assignment = Assignment{};
+  f.owner.clear();
+  f.order.clear();
+  if (!pbt_) {
+    f.tiles = GridTiles(width_, height_, options_.tile_width, options_.tile_height);
+    f.has_prediction = false;
+    f.predicted.assign(f.tiles.size(), -1.0);
+    f.order.resize(f.tiles.size());
+    std::iota(f.order.begin(), f.order.end(), int32_t{0});
+    f.weight.resize(f.tiles.size());
+    for (size_t i = 0; i < f.tiles.size(); ++i) {
+      f.weight[i] = static_cast<double>(f.tiles[i].NumPixels());
+    }
+    return;
+  }
+  const Pbt& pbt = *pbt_;
+  const size_t m = pbt.NumLeaves();
+  const int n = options_.workers;
+  f.tiles = pbt.Tiles();
+  f.has_prediction = frames_ > 0;
+  // The prediction a tile is measured against: PBT's estimate, or for the never-updated static
+  // tiling the same tile's cost in the previous frame.
+  std::vector<double> known(m, 0.0);  // predictions, 0 before the first
+  if (f.has_prediction) {
+    known = options_.assign == PbtAssign::kStatic ? static_costs_ : pbt.Estimates();
+  }
+  f.predicted = known;
+  if (!f.has_prediction) f.predicted.assign(m, -1.0);
+  switch (options_.assign) {
+    case PbtAssign::kGreedy:
+      f.assignment = AssignPbtGreedy(pbt);
+      break;
+    case PbtAssign::kVisit:
+      f.assignment = AssignPbtVisit(pbt);
+      break;
+    case PbtAssign::kStatic:
+      // The permutation depends on m and the seed only: the same lists every frame.
+      f.assignment = AssignRandom(known, n, options_.seed);
+      break;
+    case PbtAssign::kRandom:
+      f.assignment = AssignRandom(known, n, PbtRandomSeed(options_.seed, frames_));
+      break;
+    case PbtAssign::kCounter: {
+      f.order.resize(m);
+      std::iota(f.order.begin(), f.order.end(), int32_t{0});
+      std::stable_sort(f.order.begin(), f.order.end(), [&](int32_t a, int32_t b) {
+        return known[static_cast<size_t>(a)] > known[static_cast<size_t>(b)];
+      });
+      break;
+    }
+  }
+  if (options_.assign != PbtAssign::kCounter) {
+    f.owner.assign(m, -1);
+    for (size_t w = 0; w < f.assignment.tiles.size(); ++w) {
+      for (const int32_t t : f.assignment.tiles[w]) {
+        f.owner[static_cast<size_t>(t)] = static_cast<int32_t>(w);
+      }
+    }
+  }
+  // Before the first measurement, stealing goes by area.
+  f.weight.resize(m);
+  for (size_t i = 0; i < m; ++i) {
+    f.weight[i] = f.has_prediction ? known[i] : static_cast<double>(f.tiles[i].NumPixels());
+  }
+}
+
+const TilePlanFrame& TilePlan::Begin() {
+  if (in_frame_) throw Error("tile plan: Begin while a frame is running (call End)");
+  in_frame_ = true;
+  return frame_;
+}
+
+TilePlanReport TilePlan::End(std::span<const double> costs, std::span<const int32_t> ran_by) {
+  if (!in_frame_) throw Error("tile plan: End without Begin");
+  const size_t m = frame_.tiles.size();
+  if (costs.size() != m) {
+    throw Error(fmt::format("tile plan: {} costs for {} tiles", costs.size(), m));
+  }
+  for (size_t i = 0; i < m; ++i) {
+    if (!std::isfinite(costs[i]) || costs[i] < 0.0) {
+      throw Error(
+          fmt::format("tile plan: tile {} has cost {} (must be finite and >= 0)", i, costs[i]));
+    }
+  }
+  const bool counter = uses_pbt() && options_.assign == PbtAssign::kCounter;
+  if (counter && ran_by.size() != m) {
+    throw Error(
+        fmt::format("tile plan: assignment counter needs the worker of each of the {} "
+                    "tiles, got {}",
+                    m, ran_by.size()));
+  }
+  TilePlanReport r;
+  if (uses_pbt()) {
+    const int n = options_.workers;
+    r.pbt = true;
+    r.has_prediction = frame_.has_prediction;
+    if (r.has_prediction) r.accuracy = MeasurePredictionAccuracy(frame_.predicted, costs);
+    if (counter) {
+      std::vector<double> load(static_cast<size_t>(n), 0.0);
+      for (size_t i = 0; i < m; ++i) {
+        if (ran_by[i] < 0 || ran_by[i] >= n) {
+          throw Error(fmt::format("tile plan: tile {} ran on worker {} of {}", i, ran_by[i], n));
+        }
+        load[static_cast<size_t>(ran_by[i])] += costs[i];
+      }
+      r.worker_imbalance = FrameImbalance(load);
+      // A shared counter in decreasing order is LPT list scheduling on the predictions.
+      if (r.has_prediction)
+        r.predicted_makespan = AssignLpt(frame_.predicted, n).PredictedMakespan();
+    } else {
+      r.worker_imbalance = FrameImbalance(WorkerTimes(frame_.assignment, costs));
+      if (r.has_prediction) r.predicted_makespan = frame_.assignment.PredictedMakespan();
+    }
+    if (options_.assign == PbtAssign::kStatic) {
+      static_costs_.assign(costs.begin(), costs.end());  // tiling and lists stay as they are
+    } else {
+      r.update = pbt_->Update(costs);  // Algorithm 1 between frames
+    }
+  }
+  ++frames_;
+  in_frame_ = false;
+  Plan();
+  return r;
+}
+
+}  // namespace rs
