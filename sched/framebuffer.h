@@ -11,6 +11,8 @@
 #include <cstdint>
 #include <vector>
 
+#include "streams/ray_stream.h"
+
 namespace rs {
 
 // Pixel values are stored as round(c * 2^kFixedFracBits) per contribution c. Each contribution
@@ -80,6 +82,13 @@ class Framebuffer {
     if (fr != 0) std::atomic_ref<int64_t>(p[0]).fetch_add(fr, std::memory_order_relaxed);
     if (fg != 0) std::atomic_ref<int64_t>(p[1]).fetch_add(fg, std::memory_order_relaxed);
     if (fb != 0) std::atomic_ref<int64_t>(p[2]).fetch_add(fb, std::memory_order_relaxed);
+  }
+
+  // Add(pixel[i], r[i], g[i], b[i]) for every contribution of `c` (pixels < num_pixels()), in
+  // stream order: the same fixed-point sums, NaN drops and clamp counts as adding them one by
+  // one. Thread-safe like Add.
+  void Add(const ContributionView& c) {
+    for (size_t i = 0; i < c.size; ++i) Add(c.pixel[i], c.r[i], c.g[i], c.b[i]);
   }
 
   // Adds every pixel sum and counter of `other` (same size) into this one: partial

@@ -1,4 +1,4 @@
-// Owning SoA ray and hit buffers (see ray_stream.h).
+// Owning SoA ray, hit and contribution buffers (see ray_stream.h).
 #include "streams/ray_stream.h"
 
 #include <limits>
@@ -125,6 +125,18 @@ HitStreamView HitStream::view() {
   h.prim = prim_.data();
   h.size = size_;
   return h;
+}
+
+void ContributionStream::Reserve(size_t capacity) {
+  pixel_.Reserve(capacity);
+  r_.Reserve(capacity);
+  g_.Reserve(capacity);
+  b_.Reserve(capacity);
+}
+
+void ContributionStream::Resize(size_t n) {
+  if (n > capacity() || capacity() == 0) Reserve(n < 2 * capacity() ? 2 * capacity() : n);
+  size_ = n;
 }
 
 }  // namespace rs

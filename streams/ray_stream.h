@@ -1,5 +1,6 @@
-// Owning SoA ray and hit buffers: every array 64-B aligned and padded to kStreamPad, so
-// kernels may load whole vectors past `size` (padding lanes hold a harmless sentinel).
+// Owning SoA ray, hit and contribution buffers: every array 64-B aligned and padded to
+// kStreamPad, so kernels may load whole vectors past `size` (padding lanes hold a harmless
+// sentinel).
 #pragma once
 
 #include <hwy/aligned_allocator.h>
@@ -90,6 +91,55 @@ class HitStream {
  private:
   AlignedArray<float> t_, u_, v_;
   AlignedArray<int32_t> prim_;
+  size_t size_ = 0;
+};
+
+// Framebuffer contributions (pixel, rgb) of a ContributionStream, read-only, SoA. Entry i adds
+// (r[i], g[i], b[i]) to pixel[i]; channels may be NaN, negative or huge (the framebuffer drops or
+// clamps them). Does not own its data.
+struct ContributionView {
+  const uint32_t* pixel = nullptr;
+  const float* r = nullptr;
+  const float* g = nullptr;
+  const float* b = nullptr;
+  size_t size = 0;
+};
+
+// A stream of contributions that owns its arrays (what Shade emits; the caller adds them to its
+// framebuffer). Arrays are aligned and padded like RayStream's. Reserve(n) then at most n
+// Push / Resize(n) never allocates; Clear keeps the capacity.
+class ContributionStream {
+ public:
+  ContributionStream() = default;
+  explicit ContributionStream(size_t capacity) { Reserve(capacity); }
+  // Grows (never shrinks) to at least `capacity`; contents are kept.
+  void Reserve(size_t capacity);
+  void Clear() { size_ = 0; }
+  size_t size() const { return size_; }
+  size_t capacity() const { return pixel_.capacity(); }
+  bool empty() const { return size_ == 0; }
+  // Sets size; grows capacity (at least doubling) only when n > capacity(). Entries
+  // [old size, n) are uninitialised until written through the data pointers.
+  void Resize(size_t n);
+  // Appends one contribution; grows (doubling) only when full.
+  void Push(uint32_t pixel, float r, float g, float b) {
+    const size_t i = size_;
+    Resize(size_ + 1);
+    pixel_[i] = pixel;
+    r_[i] = r;
+    g_[i] = g;
+    b_[i] = b;
+  }
+  // Writable arrays (capacity() elements each), for kernels that append in place.
+  uint32_t* pixel_data() { return pixel_.data(); }
+  float* r_data() { return r_.data(); }
+  float* g_data() { return g_.data(); }
+  float* b_data() { return b_.data(); }
+  ContributionView view() const { return {pixel_.data(), r_.data(), g_.data(), b_.data(), size_}; }
+
+ private:
+  AlignedArray<uint32_t> pixel_;
+  AlignedArray<float> r_, g_, b_;
   size_t size_ = 0;
 };
 

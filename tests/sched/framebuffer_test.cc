@@ -12,6 +12,7 @@
 #include <vector>
 
 #include "include/raystream/raystream.h"
+#include "streams/ray_stream.h"
 
 namespace rs {
 namespace {
@@ -154,6 +155,33 @@ TEST_CASE("NaN contributions are dropped and counted; out-of-range ones clamped"
   CHECK(fb.dropped_nan() == 0);
   CHECK(fb.clamped() == 0);
   for (const float x : fb.ToRgb()) CHECK(x == 0.0f);
+}
+
+TEST_CASE("Add(ContributionView) == Add per contribution: sums, NaN drops and clamps") {
+  const float nan = std::numeric_limits<float>::quiet_NaN();
+  const float inf = std::numeric_limits<float>::infinity();
+  std::mt19937 rng(12);
+  std::uniform_real_distribution<float> unit(0.0f, 2.0f);
+  ContributionStream c;
+  for (int i = 0; i < 1000; ++i) {
+    const uint32_t pixel = static_cast<uint32_t>(rng() % 12);
+    float r = unit(rng), g = unit(rng), b = unit(rng);
+    if (i % 37 == 0) g = nan;
+    if (i % 41 == 0) r = -1.0f;
+    if (i % 43 == 0) b = inf;
+    c.Push(pixel, r, g, b);
+  }
+  Framebuffer one(4, 3), all(4, 3);
+  const ContributionView v = c.view();
+  for (size_t i = 0; i < v.size; ++i) one.Add(v.pixel[i], v.r[i], v.g[i], v.b[i]);
+  all.Add(v);
+  CHECK(std::memcmp(one.sums(), all.sums(), 12 * 3 * sizeof(int64_t)) == 0);
+  CHECK(all.dropped_nan() == one.dropped_nan());
+  CHECK(all.dropped_nan() == 28);  // i % 37 == 0 for i < 1000
+  CHECK(all.clamped() == one.clamped());
+  CHECK(all.clamped() > 0);
+  all.Add(ContributionView{});  // empty: nothing
+  CHECK(std::memcmp(one.sums(), all.sums(), 12 * 3 * sizeof(int64_t)) == 0);
 }
 
 TEST_CASE("size checks and moves") {

@@ -1,5 +1,6 @@
 // SoA ray streams: push/grow/padding invariants, and stable compaction (sizes 0, 1, N; padding
-// refilled; optional arrays absent).
+// refilled; optional arrays absent); contribution streams: push, growth, no reallocation once
+// reserved.
 #include "streams/ray_stream.h"
 
 #include <doctest/doctest.h>
@@ -70,6 +71,57 @@ TEST_CASE("RayStream: push, growth keeps contents, alignment, padding sentinel")
   for (int i = 0; i < 100; i += 3) copy.PushFrom(v, static_cast<size_t>(i));
   const RayStreamView cv = copy.view();
   for (size_t j = 0; j < copy.size(); ++j) CheckTagged(cv, j, static_cast<int>(3 * j));
+}
+
+TEST_CASE("ContributionStream: push, growth keeps contents, alignment, reserve, clear") {
+  ContributionStream s;
+  CHECK(s.empty());
+  CHECK(s.view().size == 0);
+  for (int i = 0; i < 100; ++i) {
+    const float f = static_cast<float>(i);
+    s.Push(static_cast<uint32_t>(3 * i), f, -f, 0.5f * f);
+  }
+  REQUIRE(s.size() == 100);
+  CHECK(s.capacity() % kStreamPad == 0);
+  CHECK(s.capacity() >= PaddedSize(s.size()));
+  const ContributionView v = s.view();
+  CHECK(v.size == 100);
+  CHECK(reinterpret_cast<uintptr_t>(v.pixel) % kStreamAlign == 0);
+  CHECK(reinterpret_cast<uintptr_t>(v.r) % kStreamAlign == 0);
+  CHECK(reinterpret_cast<uintptr_t>(v.g) % kStreamAlign == 0);
+  CHECK(reinterpret_cast<uintptr_t>(v.b) % kStreamAlign == 0);
+  for (int i = 0; i < 100; ++i) {
+    const float f = static_cast<float>(i);
+    CHECK(v.pixel[i] == static_cast<uint32_t>(3 * i));
+    CHECK(v.r[i] == f);
+    CHECK(v.g[i] == -f);
+    CHECK(v.b[i] == 0.5f * f);
+  }
+  // Reserved: no reallocation until the capacity is used up, Clear keeps the capacity, and a
+  // Resize within it keeps the arrays too.
+  ContributionStream r(1000);
+  const size_t capacity = r.capacity();
+  CHECK(capacity >= 1000);
+  const uint32_t* pixel = r.pixel_data();
+  const float* red = r.r_data();
+  for (int round = 0; round < 3; ++round) {
+    r.Clear();
+    CHECK(r.empty());
+    for (size_t i = 0; i < capacity; ++i) r.Push(static_cast<uint32_t>(i), 1.0f, 2.0f, 3.0f);
+    CHECK(r.pixel_data() == pixel);
+    CHECK(r.r_data() == red);
+    CHECK(r.capacity() == capacity);
+  }
+  r.Resize(10);
+  CHECK(r.pixel_data() == pixel);
+  CHECK(r.view().pixel[9] == 9u);
+  // One more than the capacity grows (at least doubling) and keeps the contents.
+  r.Resize(capacity);
+  r.Push(7, 4.0f, 5.0f, 6.0f);
+  CHECK(r.capacity() >= 2 * capacity);
+  CHECK(r.size() == capacity + 1);
+  CHECK(r.view().pixel[capacity - 1] == static_cast<uint32_t>(capacity - 1));
+  CHECK(r.view().b[capacity] == 6.0f);
 }
 
 TEST_CASE("CompactRays: sizes 0 and 1") {
