@@ -222,17 +222,22 @@ int RunShade(const Args& a) {
     chunk_hits.push_back(std::move(h));
   }
   Framebuffer fb(kShadeSize, kShadeSize);
+  ContributionStream contributions(kShadeChunk + kStreamPad);
   RayStream secondary;
   secondary.Reserve(kShadeChunk * (scene.lights.size() + 2) + kStreamPad);
   ShadeStats stats;
   size_t spawned = 0;
   for (size_t k = 0; k < chunk_rays.size(); ++k) {
     secondary.Clear();
+    contributions.Clear();
     if (a.target == "ref") {
-      ref::Shade(scene, options, chunk_rays[k].view(), chunk_hits[k].view(), fb, secondary, &stats);
+      ref::Shade(scene, options, chunk_rays[k].view(), chunk_hits[k].view(), contributions,
+                 secondary, &stats);
     } else {
-      Shade(scene, options, chunk_rays[k].view(), chunk_hits[k].view(), fb, secondary, &stats);
+      Shade(scene, options, chunk_rays[k].view(), chunk_hits[k].view(), contributions, secondary,
+            &stats);
     }
+    fb.Add(contributions.view());
     spawned += secondary.size();
   }
   std::printf(

@@ -265,7 +265,9 @@ void ShadeView(const Scene& scene, const Accel& accel, const glm::vec3& centre, 
   Framebuffer fb(size, size);
   RayStream secondary;
   ShadeOptions options;  // max_depth 4, cutoff 1e-3, stages from the scene
-  Shade(scene, options, primary.view(), hits.view(), fb, secondary);
+  ContributionStream contributions;
+  Shade(scene, options, primary.view(), hits.view(), contributions, secondary);
+  fb.Add(contributions.view());
   secondary.FillPadding();
   HitStream sec_hits(secondary.size());
   sec_hits.Resize(secondary.size());

@@ -89,9 +89,12 @@ std::vector<std::array<uint32_t, 14>> SortedRays(RayStream& s) {
 // rs::Shade on the currently selected target must equal ref::Shade bit for bit.
 std::string Validate(Workload& w) {
   Framebuffer fa(kWidth, kHeight), fb(kWidth, kHeight);
+  ContributionStream ca, cb;
   RayStream sa, sb;
-  ref::Shade(w.scene, w.options, w.rays.view(), w.hits.view(), fa, sa, nullptr);
-  Shade(w.scene, w.options, w.rays.view(), w.hits.view(), fb, sb, nullptr);
+  ref::Shade(w.scene, w.options, w.rays.view(), w.hits.view(), ca, sa, nullptr);
+  Shade(w.scene, w.options, w.rays.view(), w.hits.view(), cb, sb, nullptr);
+  fa.Add(ca.view());
+  fb.Add(cb.view());
   if (std::memcmp(fa.sums(), fb.sums(), fa.num_pixels() * 3 * sizeof(int64_t)) != 0) {
     return "framebuffer differs from ref::Shade";
   }
@@ -101,7 +104,8 @@ std::string Validate(Workload& w) {
 
 // One pass over the workload per iteration, in chunks of `chunk` rays, each copied beforehand
 // into its own aligned, padded stream (as the renderer hands tasks to Shade). `target` 0 runs
-// ref::Shade. The framebuffer keeps accumulating (fixed point, far from overflow).
+// ref::Shade. Each call's contributions are added to the framebuffer right after it (as the
+// renderer does), which keeps accumulating (fixed point, far from overflow).
 void BM_Shade(benchmark::State& state, const std::string& scene, size_t chunk, int64_t target) {
   Workload& w = GetWorkload(scene);
   if (target != 0) hwy::SetSupportedTargetsForTest(target);
@@ -134,6 +138,7 @@ void BM_Shade(benchmark::State& state, const std::string& scene, size_t chunk, i
     task_hits.push_back(std::move(h));
   }
   Framebuffer fb(kWidth, kHeight);
+  ContributionStream contributions(chunk + kStreamPad);
   RayStream secondary;
   secondary.Reserve(chunk * (w.scene.lights.size() + 2) + kStreamPad);
   ShadeStats stats;
@@ -142,13 +147,15 @@ void BM_Shade(benchmark::State& state, const std::string& scene, size_t chunk, i
   for (auto _ : state) {
     for (size_t k = 0; k < task_rays.size(); ++k) {
       secondary.Clear();
+      contributions.Clear();
       if (target == 0) {
-        ref::Shade(w.scene, w.options, task_rays[k].view(), task_hits[k].view(), fb, secondary,
-                   &stats);
+        ref::Shade(w.scene, w.options, task_rays[k].view(), task_hits[k].view(), contributions,
+                   secondary, &stats);
       } else {
-        Shade(w.scene, w.options, task_rays[k].view(), task_hits[k].view(), fb, secondary,
-              &stats);
+        Shade(w.scene, w.options, task_rays[k].view(), task_hits[k].view(), contributions,
+              secondary, &stats);
       }
+      fb.Add(contributions.view());
     }
     benchmark::DoNotOptimize(secondary.size());
   }

@@ -22,14 +22,25 @@
 #define RS_KERNELS_SHADE_CC_ONCE_
 namespace rs::detail {
 
+// Contribution arrays the kernel appends to (capacity for every contribution it may emit + one
+// vector of slack from index begin on).
+struct ContributionOut {
+  uint32_t* pixel = nullptr;
+  float* r = nullptr;
+  float* g = nullptr;
+  float* b = nullptr;
+  size_t begin = 0;
+};
+
 // Everything the per-target kernel needs; `out` has room for every ray it may emit (+ one
 // vector of CompressStore slack) from index out_begin on.
 struct ShadeArgs {
-  const Scene* scene = nullptr;
+  const ShadeScene* scene = nullptr;
   const ShadeOptions* options = nullptr;
   RayStreamView rays;
   HitStreamView hits;
-  Framebuffer* fb = nullptr;
+  ContributionOut contrib;
+  size_t* contrib_end = nullptr;  // receives the end index of the contributions
   RayStreamView out;
   size_t out_begin = 0;
   uint32_t stages = 0;  // normalized (NormalizeStages)
@@ -232,24 +243,53 @@ HWY_INLINE VF PhongPowV(VF x, VF e) {
   return hn::IfThenElseZero(hn::AndNot(under, positive), hn::Mul(p, scale));
 }
 
-// ---- framebuffer and output stream
+// ---- output streams (contributions and secondary rays)
 
-// Adds (r, g, b) of the lanes in m to their pixels (scalar atomic adds, lane order).
-HWY_INLINE void AddLanes(MF m, const V3& c, const uint32_t* pixel, Framebuffer& fb) {
+#if HWY_TARGET == HWY_AVX2 || HWY_TARGET == HWY_SSE4 || HWY_TARGET == HWY_SSSE3
+// Highway 1.0.3's AVX2/SSE4 CompressStore decodes a function-local (non-static) constexpr
+// table that GCC 12 copies to the stack on every call (rep movsq, 1 KiB on AVX2): with 14
+// arrays per emission AVX2 ran at half the speed of SSE4. Instead: one permutation per mask
+// from a static table, applied to every array with TableLookupLanes + StoreU. Returns the
+// permutation; *count = lanes set in m.
+HWY_INLINE auto CompressIndices(MF m, size_t* count) {
   const DF df;
-  static_assert(HWY_MAX_BYTES <= kStreamAlign, "stream padding too small");
-  HWY_ALIGN float r[kStreamPad];
-  HWY_ALIGN float g[kStreamPad];
-  HWY_ALIGN float b[kStreamPad];
+  const DI di;
   uint8_t bits[8] = {};
-  hn::Store(c.x, df, r);
-  hn::Store(c.y, df, g);
-  hn::Store(c.z, df, b);
   hn::StoreMaskBits(df, m, bits);
-  const size_t lanes = hn::Lanes(df);
-  for (size_t j = 0; j < lanes; ++j) {
-    if ((bits[j >> 3] >> (j & 7)) & 1) fb.Add(pixel[j], r[j], g[j], b[j]);
-  }
+#if HWY_TARGET == HWY_AVX2
+  const uint8_t* row = detail::kCompress8.rows[bits[0]].data();
+#else
+  const uint8_t* row = detail::kCompress4.rows[bits[0] & 15].data();
+#endif
+  *count = static_cast<size_t>(std::popcount(static_cast<unsigned>(bits[0])));
+  const hn::Rebind<uint8_t, DF> d8;
+  return hn::IndicesFromVec(df, hn::PromoteTo(di, hn::LoadU(d8, row)));
+}
+#endif
+
+// One contribution (pixel, c) per lane of m, appended at index pos with the lanes packed to the
+// front (lane order); may write up to a vector of garbage past the new end, which `out` has
+// room for. Returns the new end.
+HWY_INLINE size_t EmitContributions(MF m, const V3& c, hn::Vec<DU> pixel,
+                                    const detail::ContributionOut& out, size_t pos) {
+  const DF df;
+  static_assert(HWY_MAX_BYTES <= kStreamPad * sizeof(float), "slack below one vector");
+#if HWY_TARGET == HWY_AVX2 || HWY_TARGET == HWY_SSE4 || HWY_TARGET == HWY_SSSE3
+  size_t count = 0;
+  const auto idx = CompressIndices(m, &count);
+  hn::StoreU(hn::TableLookupLanes(hn::BitCast(df, pixel), idx), df,
+             reinterpret_cast<float*>(out.pixel + pos));
+  hn::StoreU(hn::TableLookupLanes(c.x, idx), df, out.r + pos);
+  hn::StoreU(hn::TableLookupLanes(c.y, idx), df, out.g + pos);
+  hn::StoreU(hn::TableLookupLanes(c.z, idx), df, out.b + pos);
+  return pos + count;
+#else  // AVX3: native vcompressps; SCALAR: one lane
+  const DU du;
+  hn::CompressStore(pixel, hn::RebindMask(du, m), du, out.pixel + pos);
+  hn::CompressStore(c.x, m, df, out.r + pos);
+  hn::CompressStore(c.y, m, df, out.g + pos);
+  return pos + hn::CompressStore(c.z, m, df, out.b + pos);
+#endif
 }
 
 // One secondary ray per lane of m, appended at out[pos] with its live lanes packed to the front;
@@ -259,19 +299,8 @@ HWY_INLINE size_t Emit(MF m, const V3& o, const V3& d, VF tmax, hn::Vec<DU> pixe
   const DF df;
   const DI di;
 #if HWY_TARGET == HWY_AVX2 || HWY_TARGET == HWY_SSE4 || HWY_TARGET == HWY_SSSE3
-  // Highway 1.0.3's AVX2/SSE4 CompressStore decodes a function-local (non-static) constexpr
-  // table that GCC 12 copies to the stack on every call (rep movsq, 1 KiB on AVX2): with 14
-  // arrays per emission AVX2 ran at half the speed of SSE4. Instead: one permutation per mask
-  // from a static table, applied to all 14 arrays with TableLookupLanes + StoreU.
-  uint8_t bits[8] = {};
-  hn::StoreMaskBits(df, m, bits);
-#if HWY_TARGET == HWY_AVX2
-  const uint8_t* row = detail::kCompress8.rows[bits[0]].data();
-#else
-  const uint8_t* row = detail::kCompress4.rows[bits[0] & 15].data();
-#endif
-  const hn::Rebind<uint8_t, DF> d8;
-  const auto idx = hn::IndicesFromVec(df, hn::PromoteTo(di, hn::LoadU(d8, row)));
+  size_t count = 0;
+  const auto idx = CompressIndices(m, &count);
   auto put = [&](VF v, float* p) { hn::StoreU(hn::TableLookupLanes(v, idx), df, p); };
   auto put_bits = [&](VF v, void* p) {
     hn::StoreU(hn::TableLookupLanes(v, idx), df, static_cast<float*>(p));
@@ -290,7 +319,7 @@ HWY_INLINE size_t Emit(MF m, const V3& o, const V3& d, VF tmax, hn::Vec<DU> pixe
   put(w.z, out.wb + pos);
   put_bits(hn::BitCast(df, depth), out.depth + pos);
   put_bits(hn::BitCast(df, kind), out.kind + pos);
-  return pos + static_cast<size_t>(std::popcount(static_cast<unsigned>(bits[0])));
+  return pos + count;
 #else  // AVX3: native vcompressps; SCALAR: one lane
   const DU du;
   const auto mi = hn::RebindMask(di, m);
@@ -364,7 +393,7 @@ HWY_INLINE V3 SampleTextureV(const Texture& t, VF uvx, VF uvy) {
 
 // kd *= texture colour on the lanes of `fetch`, one pass per distinct texture among them
 // (streams are usually coherent: one or two textures per vector).
-HWY_INLINE V3 ApplyTextures(const Scene& scene, MF fetch, VI tex, VF uvx, VF uvy, V3 kd) {
+HWY_INLINE V3 ApplyTextures(const ShadeScene& scene, MF fetch, VI tex, VF uvx, VF uvy, V3 kd) {
   const DF df;
   const DI di;
   HWY_ALIGN int32_t tex_lane[kStreamPad];
@@ -414,12 +443,12 @@ HWY_NOINLINE size_t ShadeBlocks(const detail::ShadeArgs& a) {
   const DI di;
   const DU du;
   const size_t lanes = hn::Lanes(df);
-  const Scene& scene = *a.scene;
+  const ShadeScene& scene = *a.scene;
   const RayStreamView& rays = a.rays;
   const HitStreamView& hits = a.hits;
-  Framebuffer& fb = *a.fb;
   ShadeStats& s = *a.stats;
   size_t pos = a.out_begin;
+  size_t cpos = a.contrib.begin;
 
   const bool smooth = !scene.normals.empty();
   const bool textured = kTexture && !scene.uvs.empty();
@@ -473,12 +502,14 @@ HWY_NOINLINE size_t ShadeBlocks(const detail::ShadeArgs& a) {
     const MF hit = hn::And(live, hn::RebindMask(df, hn::Gt(prim, hn::Set(di, -1))));
     const MF miss = hn::AndNot(hit, live);
     const V3 w{hn::Load(df, rays.wr + i), hn::Load(df, rays.wg + i), hn::Load(df, rays.wb + i)};
-    const uint32_t* pixel = rays.pixel + i;
+    const hn::Vec<DU> pixel_v = hn::Load(du, rays.pixel + i);
 
     // miss -> w * background
     if (!hn::AllFalse(df, miss)) {
       s.misses += hn::CountTrue(df, miss);
-      if (background) AddLanes(miss, Mul3(w, background3), pixel, fb);
+      if (background) {
+        cpos = EmitContributions(miss, Mul3(w, background3), pixel_v, a.contrib, cpos);
+      }
     }
     if (hn::AllFalse(df, hit)) continue;  // Embree-style early out: nothing to shade
     ++s.blocks;
@@ -558,12 +589,12 @@ HWY_NOINLINE size_t ShadeBlocks(const detail::ShadeArgs& a) {
     VF local = hn::Sub(hn::Sub(one, refl), trans);
     local = hn::IfThenElse(hn::Lt(local, zero), zero, hn::IfThenElse(hn::Lt(one, local), one, local));
     const MF lit = hn::And(hit, hn::Gt(local, zero));
-    const hn::Vec<DU> pixel_v = hn::Load(du, rays.pixel + i);
     const VI depth = hn::Load(di, rays.depth + i);
     if (!hn::AllFalse(df, lit)) {
       const V3 wl = Scale3(w, local);
       const V3 ambient = Mul3(Scale3(wl, hn::Set(df, scene.ambient)), kd);
-      AddLanes(hn::And(lit, hn::Gt(MaxChannel3(ambient), zero)), ambient, pixel, fb);
+      cpos = EmitContributions(hn::And(lit, hn::Gt(MaxChannel3(ambient), zero)), ambient, pixel_v,
+                               a.contrib, cpos);
 
       if constexpr (kShadow) {
         ++s.stage_runs[0];
@@ -679,6 +710,7 @@ HWY_NOINLINE size_t ShadeBlocks(const detail::ShadeArgs& a) {
       }
     }
   }
+  *a.contrib_end = cpos;
   return pos;
 }
 
@@ -711,7 +743,7 @@ const char* ShadeStageName(int stage_index) {
   return stage_index >= 0 && stage_index < kNumShadeStages ? kNames[stage_index] : "unknown";
 }
 
-uint32_t ShadeStagesFor(const Scene& scene, const ShadeOptions& options) {
+uint32_t ShadeStagesFor(const ShadeScene& scene, const ShadeOptions& options) {
   const SceneFeatures& f = scene.features;
   uint32_t s = 0;
   if (f.lights && !scene.lights.empty()) {
@@ -819,7 +851,7 @@ void PushRay(RayStream& out, const glm::vec3& o, const glm::vec3& d, float tmax,
   out.Push(o.x, o.y, o.z, d.x, d.y, d.z, 0.0f, tmax, pixel, w.x, w.y, w.z, depth, kind);
 }
 
-uint32_t EffectiveStages(const Scene& scene, const ShadeOptions& options) {
+uint32_t EffectiveStages(const ShadeScene& scene, const ShadeOptions& options) {
   const uint32_t s =
       options.stages == kShadeStagesAuto ? ShadeStagesFor(scene, options) : options.stages;
   return detail::NormalizeStages(s);
@@ -829,8 +861,8 @@ uint32_t EffectiveStages(const Scene& scene, const ShadeOptions& options) {
 
 namespace ref {
 
-void Shade(const Scene& scene, const ShadeOptions& options, const RayStreamView& rays,
-           const HitStreamView& hits, Framebuffer& fb, RayStream& secondary,
+void Shade(const ShadeScene& scene, const ShadeOptions& options, const RayStreamView& rays,
+           const HitStreamView& hits, ContributionStream& contributions, RayStream& secondary,
            ShadeStats* stats) {
   HWY_DASSERT(hits.size == rays.size);
   const uint32_t stages = EffectiveStages(scene, options);
@@ -856,7 +888,7 @@ void Shade(const Scene& scene, const ShadeOptions& options, const RayStreamView&
       ++s.misses;
       if (background) {
         const glm::vec3 c = w * scene.background;
-        fb.Add(pixel, c.x, c.y, c.z);
+        contributions.Push(pixel, c.x, c.y, c.z);
       }
       continue;
     }
@@ -908,7 +940,7 @@ void Shade(const Scene& scene, const ShadeOptions& options, const RayStreamView&
     if (local > 0.0f) {
       const glm::vec3 wl = w * local;
       const glm::vec3 ambient = wl * scene.ambient * kd;
-      if (MaxChannel(ambient) > 0.0f) fb.Add(pixel, ambient.x, ambient.y, ambient.z);
+      if (MaxChannel(ambient) > 0.0f) contributions.Push(pixel, ambient.x, ambient.y, ambient.z);
 
       if (shadow_stage) {
         ++s.stage_runs[0];
@@ -987,8 +1019,9 @@ void Shade(const Scene& scene, const ShadeOptions& options, const RayStreamView&
 
 }  // namespace ref
 
-void Shade(const Scene& scene, const ShadeOptions& options, const RayStreamView& rays,
-           const HitStreamView& hits, Framebuffer& fb, RayStream& secondary, ShadeStats* stats) {
+void Shade(const ShadeScene& scene, const ShadeOptions& options, const RayStreamView& rays,
+           const HitStreamView& hits, ContributionStream& contributions, RayStream& secondary,
+           ShadeStats* stats) {
   HWY_DASSERT(hits.size == rays.size);
   const uint32_t stages = EffectiveStages(scene, options);
   ShadeStats s;
@@ -1004,18 +1037,28 @@ void Shade(const Scene& scene, const ShadeOptions& options, const RayStreamView&
     const size_t begin = secondary.size();
     const size_t need = begin + rays.size * per_ray + kStreamPad;
     if (need > secondary.capacity()) secondary.Reserve(std::max(need, 2 * secondary.capacity()));
+    // At most one contribution per ray (background or ambient); the rest arrive as shadow rays.
+    const size_t cbegin = contributions.size();
+    const size_t cneed = cbegin + rays.size + kStreamPad;
+    if (cneed > contributions.capacity()) {
+      contributions.Reserve(std::max(cneed, 2 * contributions.capacity()));
+    }
+    size_t cend = cbegin;
     detail::ShadeArgs args;
     args.scene = &scene;
     args.options = &options;
     args.rays = rays;
     args.hits = hits;
-    args.fb = &fb;
+    args.contrib = {contributions.pixel_data(), contributions.r_data(), contributions.g_data(),
+                    contributions.b_data(), cbegin};
+    args.contrib_end = &cend;
     args.out = secondary.view();
     args.out_begin = begin;
     args.stages = stages;
     args.stats = &s;
     const size_t end = HWY_DYNAMIC_DISPATCH(ShadeSimd)(args);
     secondary.Resize(end);
+    contributions.Resize(cend);
   }
   if (stats != nullptr) stats->Merge(s);
 }

@@ -1,5 +1,7 @@
 // Shading of a hit stream: background for misses, ambient + phong lights (as shadow rays whose
 // weight is the contribution), mirror reflection and refraction rays, robust secondary origins.
+// It reads a ShadeScene (spans, no owning Scene) and emits contributions and secondary rays as
+// streams; the caller adds the contributions to its framebuffer (kernels never see one).
 // rs::Shade is the Highway SIMD kernel (one specialization per stage set, see ShadeStage);
 // rs::ref::Shade is the scalar oracle it matches bit for bit on every target.
 #pragma once
@@ -10,10 +12,10 @@
 #include <cmath>
 #include <cstddef>
 #include <cstdint>
+#include <span>
 
 #include "include/raystream/raystream.h"
-#include "scenes/scene.h"
-#include "sched/framebuffer.h"  // header-only use (Framebuffer::Add is inline): no link cycle
+#include "scenes/scene.h"  // Material, Texture, PointLight, SceneFeatures (types only)
 #include "streams/ray_stream.h"
 
 namespace rs {
@@ -44,9 +46,48 @@ struct ShadeOptions {
   uint32_t stages = kShadeStagesAuto;
 };
 
+// What Shade reads of a scene: non-owning views plus the shading constants. The arrays must
+// outlive the call; nothing is copied. ShadeSceneOf(scene) views an rs::Scene; another owner
+// (the Cell simulator's local store copies) fills the spans itself. Indices must be valid as
+// ValidateScene checks them: triangles index positions (and normals / uvs when non-empty),
+// material_ids[prim] < materials.size(), Material::texture < textures.size() or -1.
+struct ShadeScene {
+  std::span<const glm::vec3> positions;
+  std::span<const glm::uvec3> triangles;
+  std::span<const uint32_t> material_ids;  // one per triangle
+  std::span<const glm::vec2> uvs;          // per vertex, or empty (no texturing)
+  std::span<const glm::vec3> normals;      // per vertex, or empty (flat shading)
+  std::span<const Material> materials;
+  std::span<const Texture> textures;
+  std::span<const PointLight> lights;
+  glm::vec3 background{0.0f};
+  float ambient = 0.0f;
+  SceneFeatures features;  // selects the stages (ShadeStagesFor)
+};
+
+// A view of `scene` (valid while scene lives and its arrays are not resized). O(1).
+inline ShadeScene ShadeSceneOf(const Scene& scene) {
+  ShadeScene v;
+  v.positions = scene.positions;
+  v.triangles = scene.triangles;
+  v.material_ids = scene.material_ids;
+  v.uvs = scene.uvs;
+  v.normals = scene.normals;
+  v.materials = scene.materials;
+  v.textures = scene.textures;
+  v.lights = scene.lights;
+  v.background = scene.background;
+  v.ambient = scene.ambient;
+  v.features = scene.features;
+  return v;
+}
+
 // The stages `scene` needs (from scene.features, plus textures only with UVs and bounces only
 // when options.max_depth > 0). Depths of rays given to Shade are assumed >= 0.
-uint32_t ShadeStagesFor(const Scene& scene, const ShadeOptions& options);
+uint32_t ShadeStagesFor(const ShadeScene& scene, const ShadeOptions& options);
+inline uint32_t ShadeStagesFor(const Scene& scene, const ShadeOptions& options) {
+  return ShadeStagesFor(ShadeSceneOf(scene), options);
+}
 
 // Work counters, accumulated (never reset) by Shade.
 struct ShadeStats {
@@ -74,9 +115,10 @@ inline constexpr float kShadowTmax = 1.0f - 1e-4f;
 
 // Shades rays[0, n) with their closest hits (hits.size == rays.size; the rays must not be
 // shadow rays, and pixel/weight/depth/kind must be non-null). Per ray, with weight w:
-//   miss: w * scene.background is added to its pixel.
+//   miss: w * scene.background is emitted for its pixel (if max(background) > 0).
 //   hit:  local = clamp(1 - reflectivity - transmission, 0, 1);
-//         w * local * scene.ambient * kd is added (kd = diffuse x texture when textured);
+//         w * local * scene.ambient * kd is emitted (kd = diffuse x texture when textured) if
+//         local > 0 and std::max(r, std::max(g, b)) > 0 (which lets some NaN channels by);
 //         per light above the surface (only if scene.features.lights): a shadow ray is
 //         appended whose weight is (kd cos + ks max(0, R.V)^shininess) * colour * falloff
 //         * w * local; the caller adds it to the pixel if Accel::Occluded says it is free;
@@ -84,23 +126,33 @@ inline constexpr float kShadowTmax = 1.0f - 1e-4f;
 //         and a refraction ray (w * transmission; total internal reflection emits it as a
 //         reflection ray instead) are appended when their max channel >= weight_cutoff.
 // Stages the scene does not have (SceneFeatures: lights, specular, reflection, transmission,
-// textures) are never run (options.stages; see ShadeStage). Contributions go to `fb` via atomic
-// adds; secondary rays are appended to `secondary` (grown as needed; its padding is not refilled
-// and may hold garbage afterwards). The contributions and rays of one input ray depend on that
-// ray and its hit only, never on the stream around it, the SIMD target or the stage set.
+// textures) are never run (options.stages; see ShadeStage). Contributions (at most one per
+// input ray) are appended to `contributions`, secondary rays to `secondary`; what either held
+// before is kept. Both grow as needed, before the kernel runs: a contributions stream with
+// capacity() >= size() + rays.size + kStreamPad is never reallocated (the SIMD kernel writes up
+// to one vector past the new end); the padding of either stream is not refilled and may hold
+// garbage afterwards. The caller adds the contributions to its framebuffer
+// (Framebuffer::Add(ContributionView)). The contributions and rays of one input ray depend on
+// that ray and its hit only, never on the stream around it, the SIMD target or the stage set.
 // Scene indices must be valid (ValidateScene). Rays whose prim < 0 are misses.
 // Streams: padded and aligned (ray_stream.h); lanes >= size are never read into results.
 // Precision: bit-identical to ref::Shade on every Highway target (no FMA, the same operation
 // order, IEEE add/mul/div/sqrt; the phong exponent uses PhongPow in both). NaN inputs (u, v,
-// direction) give the same NaN-carrying rays as ref::, and the framebuffer drops the same
-// NaN contributions. Within one call, the SIMD kernel emits the rays of each vector of input
-// rays stage by stage (shadow rays light by light, then reflection, then refraction), so the
-// output ORDER differs from ref:: (which emits ray by ray); the multiset of rays is identical.
+// direction) give the same NaN-carrying rays and contributions as ref:: (a framebuffer drops
+// those contributions and counts them). Within one call, the SIMD kernel emits the rays of each
+// vector of input rays stage by stage (shadow rays light by light, then reflection, then
+// refraction) and, per vector, miss contributions before hit ones, so the output ORDER differs from ref:: (which
+// emits ray by ray); the multisets of rays and of contributions are identical.
 // Textures must be smaller than 2^22 texels per side and 2^31 floats (larger ones are sampled
 // per lane with SampleTexture: same result, slower).
-void Shade(const Scene& scene, const ShadeOptions& options, const RayStreamView& rays,
-           const HitStreamView& hits, Framebuffer& fb, RayStream& secondary,
+void Shade(const ShadeScene& scene, const ShadeOptions& options, const RayStreamView& rays,
+           const HitStreamView& hits, ContributionStream& contributions, RayStream& secondary,
            ShadeStats* stats = nullptr);
+inline void Shade(const Scene& scene, const ShadeOptions& options, const RayStreamView& rays,
+                  const HitStreamView& hits, ContributionStream& contributions,
+                  RayStream& secondary, ShadeStats* stats = nullptr) {
+  rs::Shade(ShadeSceneOf(scene), options, rays, hits, contributions, secondary, stats);
+}
 
 // Robust secondary-ray origin (Waechter and Binder, "A Fast and Robust Method for Avoiding
 // Self-Intersection", Ray Tracing Gems ch. 6): moves p by ~256 ulps per unit of the normal in
@@ -156,9 +208,15 @@ float PhongPow(float x, float e);
 namespace ref {
 // The scalar reference (the oracle for SIMD versions). Same contract as rs::Shade, including
 // options.stages; it emits a ray's shadow rays (light by light), reflection and refraction ray
-// in that order, ray by ray. Its block counters count rays.
-void Shade(const Scene& scene, const ShadeOptions& options, const RayStreamView& rays,
-           const HitStreamView& hits, Framebuffer& fb, RayStream& secondary, ShadeStats* stats);
+// in that order, ray by ray, and grows `contributions` by Push. Its block counters count rays.
+void Shade(const ShadeScene& scene, const ShadeOptions& options, const RayStreamView& rays,
+           const HitStreamView& hits, ContributionStream& contributions, RayStream& secondary,
+           ShadeStats* stats);
+inline void Shade(const Scene& scene, const ShadeOptions& options, const RayStreamView& rays,
+                  const HitStreamView& hits, ContributionStream& contributions,
+                  RayStream& secondary, ShadeStats* stats) {
+  ref::Shade(ShadeSceneOf(scene), options, rays, hits, contributions, secondary, stats);
+}
 }  // namespace ref
 
 }  // namespace rs

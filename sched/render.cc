@@ -67,7 +67,9 @@ void TraceAndShade(const FrameContext& ctx, const RayStreamView& rays, Framebuff
     const int32_t kind = rays.kind[i];
     if (kind >= 0 && kind < kNumRayKinds) ++stats.rays[kind];
   }
-  Shade(*ctx.scene, ctx.shade, rays, hits, fb, scratch.spawned, &stats.shade);
+  scratch.contributions.Clear();
+  Shade(*ctx.scene, ctx.shade, rays, hits, scratch.contributions, scratch.spawned, &stats.shade);
+  fb.Add(scratch.contributions.view());
   stats.trace_seconds += Seconds(t0, t1);
   stats.shade_seconds += Seconds(t1, Clock::now());
 }

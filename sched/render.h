@@ -93,6 +93,8 @@ struct TaskScratch {
   HitStream hits;
   AlignedArray<int32_t> occluded;
   RayStream spawned;  // secondary rays of the current task, before cutting
+  // Shade's contributions for the current task, added to fb right after the call.
+  ContributionStream contributions;
   RayStream shadow;   // partitions of a mixed task
   RayStream trace;
   RayStream open_shadow;  // tasks being filled by CutIntoTasks

@@ -12,6 +12,7 @@
 #include <algorithm>
 #include <cstring>
 #include <limits>
+#include <span>
 #include <string>
 #include <type_traits>
 
@@ -251,11 +252,19 @@ struct Spe::Impl {
   LoadedUnit loaded[kMaxInFlight];
   int loaded_count = 0;
 
-  // Shading scratch ("registers" and stack of the shader). rs::Shade adds each ray's
-  // contribution to pixel i of shade_fb for batch ray i (the rays' pixel ids are their batch
-  // indices while they are shaded); the fixed-point sums then go into the LS pixel buffers.
-  Scene shade_scene;
-  Framebuffer shade_fb{kMaxInFlight, 1};
+  // Shading scratch ("registers" and stack of the shader). rs::Shade reads shade_scene, a view
+  // of the arrays below (copied out of LS: the hit triangles' records, their materials, the
+  // lights), and emits each batch ray's contribution with pixel id i for batch ray i (the rays'
+  // pixel ids are their batch indices while they are shaded); the contributions then go into
+  // the LS pixel buffers with the framebuffer's fixed-point add (AddContribution).
+  ShadeScene shade_scene;
+  glm::vec3 shade_positions[3 * kMaxInFlight];
+  glm::vec3 shade_normals[3 * kMaxInFlight];
+  glm::uvec3 shade_triangles[kMaxInFlight];
+  uint32_t shade_material_ids[kMaxInFlight] = {};
+  Material shade_materials[kMaxInFlight];
+  std::vector<PointLight> shade_lights;
+  ContributionStream shade_contributions;
   RayStream shade_rays;
   HitStream shade_hits;
   RayStream secondary;
@@ -408,18 +417,23 @@ void Spe::Impl::Start() {
   occupancy = ls.As<uint64_t>(occ_lsa, std::max<uint64_t>(fc.occupancy_bytes / 8, 1));
 
   // The shader's view of the scene constants, from LS.
+  shade_scene = ShadeScene{};
   shade_scene.features = fc.features;
   shade_scene.background = glm::vec3(fc.background[0], fc.background[1], fc.background[2]);
   shade_scene.ambient = fc.ambient;
-  shade_scene.lights.resize(fc.num_lights);
+  shade_lights.resize(fc.num_lights);
   for (uint32_t i = 0; i < fc.num_lights; ++i) {
     LightRecord lr;
     std::memcpy(&lr, ls.Bytes(lights_lsa + i * sizeof(LightRecord), sizeof(lr)), sizeof(lr));
-    PointLight& l = shade_scene.lights[i];
+    PointLight& l = shade_lights[i];
     l.position = glm::vec3(lr.position[0], lr.position[1], lr.position[2]);
     l.color = glm::vec3(lr.color[0], lr.color[1], lr.color[2]);
     l.falloff = lr.falloff;
   }
+  shade_scene.lights = shade_lights;
+  // No UVs and no textures: Shade never samples; texels come through the software cache and
+  // are folded into each hit's diffuse colour before the call (Spe::Impl::Shade).
+  shade_contributions.Reserve(kMaxInFlight + kStreamPad);  // Shade never reallocates it
   shade_rays.Reserve(kMaxInFlight);
   shade_hits.Reserve(kMaxInFlight);
   primaries.Reserve(kMaxInFlight);
@@ -1111,13 +1125,7 @@ void Spe::Impl::Shade() {
     shade_hits.Resize(static_cast<size_t>(nb));
     const RayStreamView rv = shade_rays.view();
     const HitStreamView hv = shade_hits.view();
-    Scene& sc = shade_scene;
     const bool normals = fc.has_normals != 0;
-    sc.positions.resize(size_t(nb) * 3);
-    sc.normals.resize(normals ? size_t(nb) * 3 : 0);
-    sc.triangles.resize(size_t(nb));
-    sc.material_ids.resize(size_t(nb));
-    sc.materials.resize(size_t(nb));
     int i = 0;
     for (int r = 0; r < n; ++r) {
       const Flight st = flight[r].status;
@@ -1131,7 +1139,7 @@ void Spe::Impl::Shade() {
       rv.dz[i] = rec.d[2];
       rv.tmin[i] = rec.tmin;
       rv.tmax[i] = rec.tmax;
-      rv.pixel[i] = static_cast<uint32_t>(i);  // shade_fb pixel i
+      rv.pixel[i] = static_cast<uint32_t>(i);  // batch index: contribution pixel id
       rv.wr[i] = rec.w[0];
       rv.wg[i] = rec.w[1];
       rv.wb[i] = rec.w[2];
@@ -1148,13 +1156,13 @@ void Spe::Impl::Shade() {
         cache->Read(fc.materials + uint64_t{sr.material} * sizeof(MaterialRecord), sizeof(mr), &mr);
         const size_t k = size_t(nh);
         for (int v = 0; v < 3; ++v) {
-          sc.positions[3 * k + size_t(v)] = glm::vec3(sr.p[v][0], sr.p[v][1], sr.p[v][2]);
+          shade_positions[3 * k + size_t(v)] = glm::vec3(sr.p[v][0], sr.p[v][1], sr.p[v][2]);
           if (normals)
-            sc.normals[3 * k + size_t(v)] = glm::vec3(sr.n[v][0], sr.n[v][1], sr.n[v][2]);
+            shade_normals[3 * k + size_t(v)] = glm::vec3(sr.n[v][0], sr.n[v][1], sr.n[v][2]);
         }
-        sc.triangles[k] = glm::uvec3(3 * k, 3 * k + 1, 3 * k + 2);
-        sc.material_ids[k] = static_cast<uint32_t>(k);
-        Material& mat = sc.materials[k];
+        shade_triangles[k] = glm::uvec3(3 * k, 3 * k + 1, 3 * k + 2);
+        shade_material_ids[k] = static_cast<uint32_t>(k);
+        Material& mat = shade_materials[k];
         glm::vec3 kd(mr.diffuse[0], mr.diffuse[1], mr.diffuse[2]);
         if (fc.features.textures && fc.has_uvs != 0 && mr.texture >= 0 &&
             static_cast<uint32_t>(mr.texture) < fc.num_textures) {
@@ -1186,20 +1194,23 @@ void Spe::Impl::Shade() {
       }
       ++i;
     }
-    sc.positions.resize(size_t(nh) * 3);
-    sc.normals.resize(normals ? size_t(nh) * 3 : 0);
-    sc.triangles.resize(size_t(nh));
-    sc.material_ids.resize(size_t(nh));
+    const size_t hits = size_t(nh);
+    shade_scene.positions = std::span<const glm::vec3>(shade_positions, 3 * hits);
+    shade_scene.normals = std::span<const glm::vec3>(shade_normals, normals ? 3 * hits : 0);
+    shade_scene.triangles = std::span<const glm::uvec3>(shade_triangles, hits);
+    shade_scene.material_ids = std::span<const uint32_t>(shade_material_ids, hits);
+    shade_scene.materials = std::span<const Material>(shade_materials, hits);
     secondary.Clear();
+    shade_contributions.Clear();
     ShadeStats s;
-    rs::Shade(sc, fc.shade, rv, hv, shade_fb, secondary, &s);
-    // Each batch ray's contributions, already in fixed point, into its sub-tile's pixel buffer.
-    for (int k = 0; k < nb; ++k) {
-      AddFixed(batch_subtile[k], batch_pixel[k], shade_fb.sums() + 3 * size_t(k));
+    rs::Shade(shade_scene, fc.shade, rv, hv, shade_contributions, secondary, &s);
+    // Each batch ray's contribution into its sub-tile's pixel buffer, as Framebuffer::Add would
+    // add it (fixed point, NaN dropped and counted, clamps counted).
+    const ContributionView cv = shade_contributions.view();
+    for (size_t j = 0; j < cv.size; ++j) {
+      const uint32_t b = cv.pixel[j];  // the batch ray
+      AddContribution(batch_subtile[b], batch_pixel[b], cv.r[j], cv.g[j], cv.b[j]);
     }
-    dropped_nan += shade_fb.dropped_nan();
-    clamped += shade_fb.clamped();
-    shade_fb.Clear();
     uint64_t spawned = 0;
     for (const uint64_t c : s.spawned) spawned += c;
     Compute(uint64_t(nb) * costs.shade_ray + s.shading_calls * costs.shade_hit +

@@ -188,31 +188,54 @@ std::vector<RayKey> SortedRays(RayStream& s, size_t first = 0, bool merge_nan = 
   return keys;
 }
 
+using ContributionKey = std::array<uint32_t, 4>;
+
+// The contributions of `c` from index `first` on, as sorted bit patterns (pixel, r, g, b): the
+// SIMD kernel emits them in another order than the oracle; the multiset must be identical.
+std::vector<ContributionKey> SortedContributions(const ContributionStream& c, size_t first = 0,
+                                                 bool merge_nan = false) {
+  const ContributionView v = c.view();
+  std::vector<ContributionKey> keys;
+  for (size_t i = first; i < v.size; ++i) {
+    keys.push_back({v.pixel[i], Bits(v.r[i], merge_nan), Bits(v.g[i], merge_nan),
+                    Bits(v.b[i], merge_nan)});
+  }
+  std::sort(keys.begin(), keys.end());
+  return keys;
+}
+
 bool SameSums(const Framebuffer& a, const Framebuffer& b) {
   return a.num_pixels() == b.num_pixels() &&
          std::memcmp(a.sums(), b.sums(), a.num_pixels() * 3 * sizeof(int64_t)) == 0;
 }
 
+// fb holds the contributions, added once after the call (as the renderer does).
 struct Result {
   Framebuffer fb{kFbSide, kFbSide};
+  ContributionStream contributions;
   RayStream secondary;
   ShadeStats stats;
 };
 
 Result RunRef(const Scene& s, const ShadeOptions& opt, Stream& st) {
   Result r;
-  ref::Shade(s, opt, st.rays.view(), st.hits.view(), r.fb, r.secondary, &r.stats);
+  ref::Shade(s, opt, st.rays.view(), st.hits.view(), r.contributions, r.secondary, &r.stats);
+  r.fb.Add(r.contributions.view());
   return r;
 }
 
 Result RunSimd(const Scene& s, const ShadeOptions& opt, Stream& st) {
   Result r;
-  Shade(s, opt, st.rays.view(), st.hits.view(), r.fb, r.secondary, &r.stats);
+  Shade(s, opt, st.rays.view(), st.hits.view(), r.contributions, r.secondary, &r.stats);
+  r.fb.Add(r.contributions.view());
   return r;
 }
 
-// Everything the two must agree on: framebuffer bits and counters, the rays, the per-lane stats.
+// Everything the two must agree on: the contributions (as a multiset, and so the framebuffer
+// bits and counters), the rays, the per-lane stats.
 void CheckSame(Result& simd, Result& want, bool merge_nan = false) {
+  CHECK(SortedContributions(simd.contributions, 0, merge_nan) ==
+        SortedContributions(want.contributions, 0, merge_nan));
   CHECK(SameSums(simd.fb, want.fb));
   CHECK(simd.fb.dropped_nan() == want.fb.dropped_nan());
   CHECK(simd.fb.clamped() == want.fb.clamped());
@@ -423,7 +446,23 @@ TEST_CASE("padding lanes: sentinels are never shaded; inputs untouched; appends 
       got.secondary.Push(-1, -2, -3, -4, -5, -6, -7, -8, 99, -10, -11, -12, -13,
                          RayKind::kRefraction);
       const std::vector<RayKey> before = SortedRays(got.secondary);
-      Shade(s, opt, st.rays.view(), st.hits.view(), got.fb, got.secondary, &got.stats);
+      // And two contributions: kept, the new ones appended after them.
+      got.contributions.Push(3, 0.25f, 0.5f, 0.75f);
+      got.contributions.Push(63, kNaN, 1.0f, 2.0f);
+      const std::vector<ContributionKey> cbefore = SortedContributions(got.contributions);
+      Shade(s, opt, st.rays.view(), st.hits.view(), got.contributions, got.secondary, &got.stats);
+      ContributionStream chead;
+      const ContributionView cv = got.contributions.view();
+      for (size_t i = 0; i < 2; ++i) chead.Push(cv.pixel[i], cv.r[i], cv.g[i], cv.b[i]);
+      CHECK(SortedContributions(chead) == cbefore);
+      CHECK(SortedContributions(got.contributions, 2) == SortedContributions(want.contributions));
+      ContributionView ctail = cv;  // the call's own contributions, into the framebuffer
+      ctail.pixel += 2;
+      ctail.r += 2;
+      ctail.g += 2;
+      ctail.b += 2;
+      ctail.size -= 2;
+      got.fb.Add(ctail);
       RayStream tail;
       const RayStreamView gv = got.secondary.view();
       for (size_t i = 2; i < got.secondary.size(); ++i) tail.PushFrom(gv, i);
@@ -683,6 +722,88 @@ TEST_CASE("render: specialized pipeline image == general pipeline image, on ever
       } else {
         CHECK(SameBits(rgb, first));
       }
+    });
+  }
+}
+
+TEST_CASE("contributions of a scene's primary rays, added to a framebuffer: SIMD == ref image") {
+  for (const char* name : {"cornell", "spherebox"}) {
+    const Scene s = LoadScene(name);
+    const Accel accel(s.mesh());
+    constexpr int kW = 40, kH = 30;
+    RayStream rays;
+    AppendPrimaryRays(MakeCameraBasis(s.camera, kW, kH), Tile{0, 0, kW, kH}, RayOrder::kScanline,
+                      rays);
+    rays.FillPadding();
+    HitStream hits(rays.size());
+    hits.Resize(rays.size());
+    hits.Reset();
+    accel.Intersect(rays.view(), hits.view());
+    ShadeOptions opt;
+    ContributionStream want_c;
+    RayStream want_rays;
+    ref::Shade(s, opt, rays.view(), hits.view(), want_c, want_rays, nullptr);
+    CHECK(want_c.size() > rays.size() / 2);  // background or ambient for most rays
+    CHECK(want_c.size() <= rays.size());     // at most one per ray
+    Framebuffer want(kW, kH);
+    want.Add(want_c.view());
+    // The framebuffer is order-independent: the same contributions one by one, backwards.
+    Framebuffer backwards(kW, kH);
+    const ContributionView wv = want_c.view();
+    for (size_t i = wv.size; i-- > 0;) backwards.Add(wv.pixel[i], wv.r[i], wv.g[i], wv.b[i]);
+    CHECK(SameSums(backwards, want));
+    test::ForEachTarget([&](const char* target) {
+      INFO("scene ", name, " target ", target);
+      ContributionStream c;
+      RayStream secondary;
+      Shade(s, opt, rays.view(), hits.view(), c, secondary, nullptr);
+      CHECK(SortedContributions(c) == SortedContributions(want_c));
+      Framebuffer got(kW, kH);
+      got.Add(c.view());
+      CHECK(SameSums(got, want));
+      CHECK(got.dropped_nan() == want.dropped_nan());
+      CHECK(got.clamped() == want.clamped());
+      CHECK(SameBits(got.ToRgb(), want.ToRgb()));
+    });
+  }
+}
+
+TEST_CASE("a reserved ContributionStream is never reallocated by Shade (SIMD and ref)") {
+  const Scene s = RandomScene(61, SceneOptions{});
+  ShadeOptions opt;
+  opt.max_depth = 2;
+  for (const size_t n : {size_t{1}, size_t{17}, size_t{257}}) {
+    Stream st = RandomHits(s, n, 700 + static_cast<uint32_t>(n), opt.max_depth);
+    constexpr size_t kBefore = 5;  // already in the stream: kept, and counted in the room
+    ContributionStream c(kBefore + n + kStreamPad);
+    const uint32_t* pixel = c.pixel_data();
+    const float* r = c.r_data();
+    const float* b = c.b_data();
+    const size_t capacity = c.capacity();
+    auto run = [&](bool simd) {
+      c.Clear();
+      for (size_t i = 0; i < kBefore; ++i) c.Push(static_cast<uint32_t>(i), 1.0f, 2.0f, 3.0f);
+      RayStream secondary;
+      if (simd) {
+        Shade(s, opt, st.rays.view(), st.hits.view(), c, secondary, nullptr);
+      } else {
+        ref::Shade(s, opt, st.rays.view(), st.hits.view(), c, secondary, nullptr);
+      }
+      CHECK(c.pixel_data() == pixel);
+      CHECK(c.r_data() == r);
+      CHECK(c.b_data() == b);
+      CHECK(c.capacity() == capacity);
+      CHECK(c.size() >= kBefore);
+      const ContributionView v = c.view();
+      for (size_t i = 0; i < kBefore; ++i) {
+        CHECK(v.pixel[i] == i);
+        CHECK(v.g[i] == 2.0f);
+      }
+    };
+    run(false);
+    test::ForEachTarget([&](const char* target) {
+      INFO("target ", target, " n ", n);
+      run(true);
     });
   }
 }

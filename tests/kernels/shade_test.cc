@@ -34,20 +34,22 @@ Scene FloorScene() {
 
 struct Shaded {
   Framebuffer fb;
+  ContributionStream contributions;
   RayStream secondary;
   ShadeStats stats;
   std::vector<float> rgb;
 };
 
-// Traces `rays` against the scene with the brute-force oracle and shades them into a
-// 4-pixel framebuffer.
+// Traces `rays` against the scene with the brute-force oracle, shades them and adds the
+// contributions to a 4-pixel framebuffer.
 Shaded ShadeRays(const Scene& s, RayStream& rays, const ShadeOptions& options = {}) {
-  Shaded out{Framebuffer(2, 2), RayStream(), ShadeStats(), {}};
+  Shaded out{Framebuffer(2, 2), ContributionStream(), RayStream(), ShadeStats(), {}};
   HitStream hits(rays.size());
   hits.Resize(rays.size());
   hits.Reset();
   test::BruteForceIntersect(s, rays.view(), hits.view());
-  Shade(s, options, rays.view(), hits.view(), out.fb, out.secondary, &out.stats);
+  Shade(s, options, rays.view(), hits.view(), out.contributions, out.secondary, &out.stats);
+  out.fb.Add(out.contributions.view());
   out.rgb = out.fb.ToRgb();
   return out;
 }
@@ -85,6 +87,15 @@ TEST_CASE("miss adds weight * background; hit adds ambient * kd * weight") {
   CHECK(r.rgb[8] == doctest::Approx(0.2f * 0.7f * 0.25f).epsilon(1e-6));
   CHECK(r.rgb[0] == 0.0f);  // pixel 0 untouched
   CHECK(r.secondary.size() == 0);  // no lights, no mirrors: nothing spawned
+  // The stream itself: one contribution per ray, background for pixel 1, ambient for pixel 2.
+  const ContributionView c = r.contributions.view();
+  REQUIRE(c.size == 2);
+  const size_t miss = c.pixel[0] == 1 ? 0 : 1;
+  CHECK(c.pixel[miss] == 1);
+  CHECK(c.pixel[1 - miss] == 2);
+  CHECK(c.r[miss] == 0.5f * 0.1f);
+  CHECK(c.g[miss] == 1.0f * 0.2f);
+  CHECK(c.b[miss] == 2.0f * 0.3f);
 }
 
 TEST_CASE("no shadow rays without lights; no light loop at all") {
