@@ -855,7 +855,10 @@ void ForPackets(const RayStreamView& rays, TraceStats* stats, const Packet& pack
   for (size_t first = 0; first < rays.size; first += kCoherentPacketRays) {
     const size_t n = std::min(kCoherentPacketRays, rays.size - first);
     if (packet(first, n)) {
-      if (stats != nullptr) ++stats->packets;
+      if (stats != nullptr) {
+        ++stats->packets;
+        stats->packet_rays += n;
+      }
       if (run_n != 0) rest(run, run_n);
       run_n = 0;
     } else {

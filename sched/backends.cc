@@ -11,12 +11,14 @@
 #include <chrono>
 #include <deque>
 #include <exception>
+#include <mutex>
 #include <fstream>
 #include <sstream>
 #include <thread>
 #include <type_traits>
 #include <utility>
 
+#include "sched/engine.h"
 #include "sched/frame_loop.h"
 #include "sched/queue.h"
 #include "sched/queue_local.h"
@@ -151,11 +153,14 @@ double Seconds(Clock::time_point a, Clock::time_point b) {
   return std::chrono::duration<double>(b - a).count();
 }
 
+// max / mean of the threads' busy seconds (FrameImbalance's definition, without a copy).
 double Imbalance(const std::vector<ThreadStats>& threads) {
-  std::vector<double> busy;
-  busy.reserve(threads.size());
-  for (const ThreadStats& t : threads) busy.push_back(t.busy_seconds);
-  return FrameImbalance(busy);
+  double sum = 0, most = 0;
+  for (const ThreadStats& t : threads) {
+    sum += t.busy_seconds;
+    most = std::max(most, t.busy_seconds);
+  }
+  return sum > 0 ? most * static_cast<double>(threads.size()) / sum : 1.0;
 }
 
 }  // namespace
@@ -187,10 +192,6 @@ class HostRenderer::Impl {
 };
 
 namespace {
-
-std::vector<Tile> WholeImageTiles(const FrameContext& ctx) {
-  return ImageTiles(ctx.options.width, ctx.options.height, ctx.options.tile_size);
-}
 
 // ---------------------------------------------------------------------------------------------
 // serial: the reference renderer on the application thread, run in EndFrame.
@@ -229,20 +230,73 @@ class SerialImpl final : public HostRenderer::Impl {
 };
 
 // ---------------------------------------------------------------------------------------------
-// LOCK / LFREE / LOCAL: listing 2 over a WorkQueue of task pointers.
+// LOCK / LFREE / LOCAL: listing 2 over a WorkQueue of task pointers, fed by image tiles.
 //
-// A task is a RayStream owned by the backend; the queues carry RayStream* (8 bytes: LFREE keeps
-// it inline in the node and reads it before its CAS). Each thread has a free list of streams
-// (with their buffers) and of empty "shells" (the RayStream objects the queue points to, kept
-// in per-thread arenas with stable addresses). A popped task's buffers go to the popping
-// thread's free list. The application thread, which creates every primary task, takes its
-// streams round-robin from the threads' free lists while they are parked, so the total number
-// of streams stays at the peak number of live tasks instead of growing every frame.
+// A task is a RayStream of at most task_size rays of one class (shadow or not), owned by the
+// backend's TaskArena; the queues carry RayStream* (8 bytes: LFREE keeps it inline in the node
+// and reads it before its CAS). A thread pops up to ceil(batch / task_size) tasks at once and
+// traces them as one stream (RayEngine::TraceGeneration), so the kernels see batches while the
+// task stays the unit of the queues and of their statistics. The secondary rays are cut into
+// tasks and pushed back (LOCAL: to the thread's own queue).
 //
-// Termination with shared queues (LOCK, LFREE): TaskCount (frame_loop.h), one Retire(k) per
-// processed task before its k children are pushed; a thread leaves at EMPTY only when the count
-// is 0.
-// LOCAL needs no counter: nobody else pushes into a thread's queue, so EMPTY means done.
+// Tiles feed the queues: a thread that finds its queue empty takes the next tile (an atomic
+// counter) and pushes its primary tasks, so the tasks in flight are those of about one tile per
+// thread, never the whole image. The rays in flight are capped (QueueRayCap): bounce rays that
+// would pass the cap are dropped and counted (FrameStats::budget_dropped) — only exponential
+// ray trees reach it.
+//
+// Termination with shared queues (LOCK, LFREE): TaskCount (frame_loop.h) counts tasks pushed and
+// not yet processed; a tile's primary tasks are counted before they are pushed, a batch's
+// children before its tasks are retired. A thread leaves when the queue is EMPTY, no tile is
+// left and the count is 0. LOCAL needs no counter: nobody else pushes into a thread's queue.
+
+// Rays in flight a queue backend allows: per thread, its engine's budget and at least 64
+// batches or tiles (a breadth-first generation of a tile is wider than the engine's depth-first
+// one). Independent of the image size.
+size_t QueueRayCap(const RenderOptions& o, size_t lights, size_t tile_pixels, int threads) {
+  const size_t wide = 64 * std::max(static_cast<size_t>(o.batch), tile_pixels);
+  return std::max(EngineRayBudget(o, lights), wide) * static_cast<size_t>(threads);
+}
+
+// Task streams shared by the threads: streams move between threads with the tasks, so one pool
+// (a mutex per Get / Put, far below a task's cost) keeps the total at the peak number of live
+// tasks. Addresses are stable (deque); nothing is allocated once the pool has reached its peak.
+class TaskArena {
+ public:
+  // At least n streams of task_size rays (application thread, threads parked).
+  void Reserve(size_t n, size_t task_size) {
+    while (all_.size() < n) {
+      RayStream& s = all_.emplace_back();
+      s.Reserve(task_size);
+      free_.push_back(&s);
+    }
+    free_.reserve(all_.size());
+  }
+  RayStream* Get(size_t task_size) {
+    std::lock_guard<std::mutex> lock(mutex_);
+    if (free_.empty()) {
+      RayStream& s = all_.emplace_back();
+      s.Reserve(task_size);
+      free_.reserve(all_.size());
+      return &s;
+    }
+    RayStream* s = free_.back();
+    free_.pop_back();
+    return s;
+  }
+  void Put(RayStream* const* tasks, size_t n) {
+    std::lock_guard<std::mutex> lock(mutex_);
+    for (size_t i = 0; i < n; ++i) {
+      tasks[i]->Clear();
+      free_.push_back(tasks[i]);
+    }
+  }
+
+ private:
+  std::mutex mutex_;
+  std::deque<RayStream> all_;
+  std::vector<RayStream*> free_;
+};
 
 template <class Q>
 class QueueImpl final : public HostRenderer::Impl {
@@ -252,9 +306,8 @@ class QueueImpl final : public HostRenderer::Impl {
  public:
   explicit QueueImpl(const BackendOptions& options)
       : Impl(options), queue_(MakeQueue(options.threads)) {
-    const int n = options.threads;
-    for (int w = 0; w <= n; ++w) workers_.push_back(std::make_unique<Worker>(this, w, w == n));
-    loop_ = std::make_unique<FrameLoop>(n, [this](int w) { Work(w); });
+    for (int w = 0; w < options.threads; ++w) workers_.push_back(std::make_unique<Worker>());
+    loop_ = std::make_unique<FrameLoop>(options.threads, [this](int w) { Work(w); });
   }
 
   ~QueueImpl() override {
@@ -262,32 +315,45 @@ class QueueImpl final : public HostRenderer::Impl {
   }
 
   void Begin(const std::vector<Tile>* tiles) override {
-    const int n = options_.threads;
-    Worker& app = *workers_[static_cast<size_t>(n)];
     if constexpr (kTimed) queue_.stats().Reset();
-    if constexpr (!kShared) queue_.RewindPrimary();  // deal primary task i to thread i mod n
     abort_.store(false, std::memory_order_relaxed);
-    for (int w = 0; w < n; ++w) {
-      workers_[static_cast<size_t>(w)]->stats = FrameStats();
-      workers_[static_cast<size_t>(w)]->empty_polls = 0;
+    for (auto& w : workers_) {
+      w->stats = FrameStats();
+      w->empty_polls = 0;
+      w->primary = 0;
+      w->engine.Reserve(ctx_);
     }
-    app.stats = FrameStats();
-    app.primary = 0;
-    // Listing 3 line 6: Generate_PrimRays into the queue(s).
-    try {
-      if (tiles == nullptr) {
-        for (const Tile& tile : WholeImageTiles(ctx_))
-          GeneratePrimaryTasks(ctx_, tile, app, app.stats);
-      } else {
-        for (const Tile& tile : *tiles) GeneratePrimaryTasks(ctx_, tile, app, app.stats);
-      }
-    } catch (...) {
-      Drain();
-      throw;
+    size_t tile_pixels = 0;
+    if (tiles == nullptr) {
+      const int t = ctx_.options.tile_size;
+      ImageTiles(ctx_.options.width, ctx_.options.height, t, t, tiles_);
+    } else {
+      tiles_.assign(tiles->begin(), tiles->end());
+    }
+    for (const Tile& t : tiles_) tile_pixels = std::max(tile_pixels, t.NumPixels());
+    const size_t lights = ctx_.scene->lights.size();
+    const size_t cap = QueueRayCap(ctx_.options, lights, tile_pixels, options_.threads);
+    cap_ = static_cast<int64_t>(cap);
+    // Streams for the tasks the cap allows (partial tasks: two per batch and thread on top),
+    // allocated in the first frame only.
+    const size_t ts = TaskSize();
+    const size_t tasks = cap / ts + static_cast<size_t>(options_.threads) * (2 * BatchTasks() + 8);
+    arena_.Reserve(tasks, ts);
+    queue_.Reserve(tasks);
+    // A batch of popped tasks and everything Shade can spawn from it (one per light, two
+    // bounces), so the threads' streams never grow in the steady state.
+    const size_t batch_rays = BatchTasks() * TaskSize() + kStreamPad;
+    for (auto& w : workers_) {
+      w->batch.Reserve(batch_rays);
+      w->spawned.Reserve(batch_rays * (ctx_.scene->lights.size() + 2) + kStreamPad);
+      w->popped.reserve(BatchTasks());
+      w->children.reserve(std::max(tile_pixels, w->spawned.capacity()) / TaskSize() + 2);
     }
     // Published to the threads by the opening barrier (Release), hence relaxed.
-    outstanding_.Reset(static_cast<int64_t>(app.primary));
-    loop_->Release();  // line 7
+    next_tile_.store(0, std::memory_order_relaxed);
+    in_flight_.store(0, std::memory_order_relaxed);
+    outstanding_.Reset(0);
+    loop_->Release();  // listing 3 line 7
   }
 
   void End() override {
@@ -298,9 +364,9 @@ class QueueImpl final : public HostRenderer::Impl {
       error = std::current_exception();
     }
     const int n = options_.threads;
-    Worker& app = *workers_[static_cast<size_t>(n)];
     stats_.threads.assign(static_cast<size_t>(n), ThreadStats{});
-    FrameStats total = app.stats;
+    FrameStats total;
+    uint64_t primary = 0;
     for (int w = 0; w < n; ++w) {
       const Worker& me = *workers_[static_cast<size_t>(w)];
       ThreadStats& t = stats_.threads[static_cast<size_t>(w)];
@@ -314,10 +380,10 @@ class QueueImpl final : public HostRenderer::Impl {
         t.queue_ops = queue_.stats().Ops(w);
       }
       total.Merge(me.stats);
+      primary += me.primary;
     }
     stats_.app_queue_seconds = 0;
-    if constexpr (kTimed) stats_.app_queue_seconds = queue_.stats().Seconds(n);
-    stats_.primary_tasks = app.primary;
+    stats_.primary_tasks = primary;
     stats_.total = total;
     if (error) {
       Drain();
@@ -326,84 +392,15 @@ class QueueImpl final : public HostRenderer::Impl {
   }
 
  private:
-  struct alignas(kQueueFalseSharing) Worker final : public TaskSink {
-    Worker(QueueImpl* owner_in, int id_in, bool app_in) : owner(owner_in), id(id_in), app(app_in) {}
-
-    RayStream NewTask() override {
-      if (!app) return GetStream();
-      // The application thread recycles the streams the threads freed (they are parked).
-      const auto& all = owner->workers_;
-      for (size_t tries = 0; free.empty() && tries + 1 < all.size(); ++tries) {
-        Worker& from = *all[borrow++ % (all.size() - 1)];
-        if (!from.free.empty()) {
-          RayStream s = std::move(from.free.back());
-          from.free.pop_back();
-          return s;  // cleared when it was put back
-        }
-      }
-      return GetStream();
-    }
-
-    void Push(RayStream&& task) override {
-      RayStream* shell = GetShell();
-      *shell = std::move(task);
-      if (app) {
-        owner->queue_.PushPrimary(std::move(shell));
-        ++primary;
-      } else {
-        pending.push_back(shell);
-      }
-    }
-
-    RayStream GetStream() {
-      if (free.empty()) return RayStream();
-      RayStream s = std::move(free.back());
-      free.pop_back();
-      return s;
-    }
-    void PutStream(RayStream&& s) {
-      s.Clear();
-      free.push_back(std::move(s));
-    }
-    RayStream* GetShell() {
-      if (shells.empty() && app) {
-        const auto& all = owner->workers_;
-        for (size_t tries = 0; tries + 1 < all.size(); ++tries) {
-          Worker& from = *all[borrow_shell++ % (all.size() - 1)];
-          if (!from.shells.empty()) {
-            RayStream* s = from.shells.back();
-            from.shells.pop_back();
-            return s;
-          }
-        }
-      }
-      if (shells.empty()) {
-        arena.emplace_back();
-        return &arena.back();
-      }
-      RayStream* s = shells.back();
-      shells.pop_back();
-      return s;
-    }
-    // A processed (or drained) task: its buffers to the free list, its shell to the shells.
-    void Retire(RayStream* task) {
-      PutStream(std::move(*task));
-      shells.push_back(task);
-    }
-
-    QueueImpl* owner;
-    int id;
-    bool app;
-    std::vector<RayStream> free;      // streams with buffers, cleared
-    std::vector<RayStream*> shells;   // empty RayStream objects in some arena
-    std::deque<RayStream> arena;      // shells this worker created (stable addresses)
-    std::vector<RayStream*> pending;  // children of the task being processed
-    TaskScratch scratch;
+  struct alignas(kQueueFalseSharing) Worker {
+    RayEngine engine;
+    RayStream batch;    // the popped tasks, as one stream
+    RayStream spawned;  // their secondary rays, before cutting
+    std::vector<RayStream*> popped;
+    std::vector<RayStream*> children;
     FrameStats stats;
     uint64_t empty_polls = 0;
     uint64_t primary = 0;
-    size_t borrow = 0;
-    size_t borrow_shell = 0;
   };
 
   static Q MakeQueue(int n) {
@@ -414,35 +411,129 @@ class QueueImpl final : public HostRenderer::Impl {
     }
   }
 
-  // Listing 2, lines 4-10, on thread w.
+  size_t TaskSize() const { return static_cast<size_t>(ctx_.options.task_size); }
+  size_t BatchTasks() const {
+    return std::max<size_t>(1, (static_cast<size_t>(ctx_.options.batch) + TaskSize() - 1) / TaskSize());
+  }
+
+  // Appends rays [0, n) of `from` to `to` (capacity grown only while the arenas warm up).
+  static void Append(const RayStreamView& from, RayStream& to) {
+    for (size_t i = 0; i < from.size; ++i) to.PushFrom(from, i);
+  }
+
+  // Cuts `rays` of one class (shadow or not) into tasks of task_size rays, into me.children.
+  void Cut(Worker& me, const RayStreamView& rays, bool shadow) {
+    RayStream* open = nullptr;
+    for (size_t i = 0; i < rays.size; ++i) {
+      if ((rays.kind[i] == static_cast<int32_t>(RayKind::kShadow)) != shadow) continue;
+      if (open == nullptr) {
+        open = arena_.Get(TaskSize());
+        me.children.push_back(open);
+      }
+      open->PushFrom(rays, i);
+      if (open->size() == TaskSize()) {
+        open->FillPadding();
+        open = nullptr;
+      }
+    }
+    if (open != nullptr) open->FillPadding();
+  }
+
+  // Pushes the children of one batch (counted first for termination) or of a tile.
+  void PushChildren(Worker& me, int w, int64_t retired) {
+    if constexpr (kShared) {
+      outstanding_.Retire(static_cast<int64_t>(me.children.size()) - retired + 1);
+    }
+    for (RayStream* child : me.children) {
+      in_flight_.fetch_add(static_cast<int64_t>(child->size()), std::memory_order_relaxed);
+      queue_.Push(w, std::move(child));
+    }
+    me.children.clear();
+  }
+
+  // The next tile's primary tasks into the queue (LOCAL: this thread's own). False: none left.
+  bool FeedTile(Worker& me, int w) {
+    const size_t i = next_tile_.fetch_add(1, std::memory_order_relaxed);
+    if (i >= tiles_.size()) return false;
+    const auto t0 = Clock::now();
+    const Tile& tile = tiles_[i];
+    const size_t n = tile.NumPixels();
+    for (size_t first = 0; first < n; first += TaskSize()) {
+      const size_t count = std::min(TaskSize(), n - first);
+      RayStream* task = arena_.Get(TaskSize());
+      task->Resize(count);
+      GeneratePrimaryRays(ctx_.camera, tile, ctx_.options.order, first, count, task->view(), 0);
+      task->FillPadding();
+      me.children.push_back(task);
+    }
+    me.primary += me.children.size();
+    me.stats.generate_seconds += Seconds(t0, Clock::now());
+    PushChildren(me, w, /*retired=*/0);
+    return true;
+  }
+
+  // Up to ceil(batch / task_size) tasks as one stream through the engine; children pushed.
+  void ProcessBatch(Worker& me, int w) {
+    const auto t0 = Clock::now();
+    me.batch.Clear();
+    int64_t rays = 0;
+    for (RayStream* task : me.popped) {
+      Append(task->view(), me.batch);
+      rays += static_cast<int64_t>(task->size());
+    }
+    me.batch.FillPadding();
+    me.spawned.Clear();
+    me.stats.shade_seconds += Seconds(t0, Clock::now());
+    const uint64_t tasks0 = me.stats.tasks;
+    me.engine.TraceGeneration(ctx_, me.batch.view(), *fb_, me.spawned, me.stats);
+    me.stats.tasks = tasks0 + me.popped.size();
+    const int64_t now = in_flight_.fetch_sub(rays, std::memory_order_relaxed) - rays;
+    const auto t1 = Clock::now();
+    const RayStreamView spawned = me.spawned.view();
+    Cut(me, spawned, /*shadow=*/true);
+    size_t bounce = 0;
+    for (size_t i = 0; i < spawned.size; ++i) {
+      bounce += spawned.kind[i] != static_cast<int32_t>(RayKind::kShadow) ? 1 : 0;
+    }
+    if (now + static_cast<int64_t>(spawned.size) <= cap_) {
+      Cut(me, spawned, /*shadow=*/false);
+    } else {
+      me.stats.budget_dropped += bounce;  // the cap: only exponential ray trees get here
+    }
+    me.stats.shade_seconds += Seconds(t1, Clock::now());
+    PushChildren(me, w, static_cast<int64_t>(me.popped.size()));
+    arena_.Put(me.popped.data(), me.popped.size());
+    me.popped.clear();
+  }
+
+  // Listing 2, lines 4-10, on thread w, with batches and tiles feeding the queue.
   void Work(int w) {
     Worker& me = *workers_[static_cast<size_t>(w)];
-    RayStream* task = nullptr;
+    const size_t batch_tasks = BatchTasks();
     int spins = 0;
     for (;;) {
-      if (queue_.TryPop(w, task)) {
+      RayStream* task = nullptr;
+      while (me.popped.size() < batch_tasks && queue_.TryPop(w, task)) me.popped.push_back(task);
+      if (!me.popped.empty()) {
         spins = 0;
         try {
-          ProcessTask(ctx_, task->view(), *fb_, me, me.scratch, me.stats);
-          const int64_t k = static_cast<int64_t>(me.pending.size());
-          if constexpr (kShared) outstanding_.Retire(k);
-          for (RayStream* child : me.pending) queue_.Push(w, std::move(child));
+          ProcessBatch(me, w);
         } catch (...) {
           // Other threads stop polling; the frame is abandoned (End drains the queues).
           abort_.store(true, std::memory_order_relaxed);
-          for (RayStream* child : me.pending) me.Retire(child);
-          me.pending.clear();
-          me.Retire(task);
+          arena_.Put(me.children.data(), me.children.size());
+          me.children.clear();
+          arena_.Put(me.popped.data(), me.popped.size());
+          me.popped.clear();
           throw;
         }
-        me.pending.clear();
-        me.Retire(task);
         continue;
       }
       ++me.empty_polls;
+      if (abort_.load(std::memory_order_relaxed)) return;
+      if (FeedTile(me, w)) continue;
       if constexpr (!kShared) return;  // LOCAL: nobody else feeds this queue
       if (outstanding_.Done()) return;
-      if (abort_.load(std::memory_order_relaxed)) return;
       // Others are still processing tasks that may spawn children. Pause, and give the core
       // away now and then: with more threads than cores the producer may be descheduled.
       if (++spins < 64) {
@@ -459,14 +550,19 @@ class QueueImpl final : public HostRenderer::Impl {
     const int n = options_.threads;
     RayStream* task = nullptr;
     for (int w = 0; w < n; ++w) {
-      while (queue_.TryPop(w, task)) workers_[static_cast<size_t>(w)]->Retire(task);
+      while (queue_.TryPop(w, task)) arena_.Put(&task, 1);
     }
     outstanding_.Reset(0);
   }
 
   Q queue_;
-  std::vector<std::unique_ptr<Worker>> workers_;  // [0, n) render threads, n = application
+  TaskArena arena_;
+  std::vector<std::unique_ptr<Worker>> workers_;
+  std::vector<Tile> tiles_;
+  int64_t cap_ = 0;
   TaskCount outstanding_;  // shared queues: tasks pushed and not yet processed
+  alignas(kQueueFalseSharing) std::atomic<size_t> next_tile_{0};
+  alignas(kQueueFalseSharing) std::atomic<int64_t> in_flight_{0};  // rays in queued tasks
   alignas(kQueueFalseSharing) std::atomic<bool> abort_{false};
   std::unique_ptr<FrameLoop> loop_;  // last: its threads use everything above
 };
@@ -848,7 +944,14 @@ const HostFrameStats& HostRenderer::EndFrame() {
   if (!impl_->in_frame_) throw Error("renderer: EndFrame without BeginFrame");
   impl_->in_frame_ = false;
   HostFrameStats& s = impl_->stats_;
+  // Reset, keeping the vectors' capacity (no allocation in the steady state).
+  std::vector<ThreadStats> threads = std::move(s.threads);
+  std::vector<TileRecord> tiles = std::move(s.tiles);
   s = HostFrameStats{};
+  s.threads = std::move(threads);
+  s.threads.clear();
+  s.tiles = std::move(tiles);
+  s.tiles.clear();
   s.frame = impl_->frames_;
   s.backend = impl_->options_.kind;
   struct Count {  // frames_ advances even when End rethrows

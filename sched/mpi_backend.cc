@@ -44,6 +44,7 @@
 #include "include/raystream/raystream.h"
 #include "scenes/image_io.h"
 #include "scenes/load.h"
+#include "sched/engine.h"      // SerialRenderer
 #include "sched/frame_loop.h"  // ThreadCpuSeconds
 #include "sched/pbt.h"
 #include "sched/tile_plan.h"

@@ -42,9 +42,11 @@ class BlockFifo {
   BlockFifo(const BlockFifo&) = delete;
   BlockFifo& operator=(const BlockFifo&) = delete;
 
-  // Preallocates free blocks for n tasks. May throw std::bad_alloc.
+  // Preallocates blocks so that n more tasks fit without allocating (the free blocks and the
+  // room left in the tail block count). May throw std::bad_alloc.
   void Reserve(size_t n) {
-    while (free_blocks_ * size_t{kPerBlock} < n) GiveBlock(new Block);
+    const size_t room = tail_ != nullptr ? kPerBlock - tail_->tail : 0;
+    while (free_blocks_ * size_t{kPerBlock} + room < n) GiveBlock(new Block);
   }
 
   // U is T (moved) or const T& (copied). May throw std::bad_alloc or T's copy exception; the
@@ -162,6 +164,10 @@ class LocalQueues {
     [[maybe_unused]] auto scope = stats_.Measure(num_workers_);
     lanes_[next_primary_].fifo.Push(std::move(task));
     if (++next_primary_ == num_workers_) next_primary_ = 0;
+  }
+  // Fill phase only: room for n tasks in every worker's queue before it regrows.
+  void Reserve(size_t n) {
+    for (int w = 0; w < num_workers_; ++w) lanes_[w].fifo.Reserve(n);
   }
   // Fill phase only: the next PushPrimary goes to worker 0 (deterministic per-frame dealing).
   void RewindPrimary() { next_primary_ = 0; }

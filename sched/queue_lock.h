@@ -109,6 +109,19 @@ class LockQueue {
   const Stats& stats() const { return stats_; }
   Stats& stats() { return stats_; }
 
+  // Fill phase only (no concurrent Push / TryPop): at least n consumed nodes wait for reuse, so
+  // the next n pushes allocate nothing. Walks the consumed prefix. Throws std::bad_alloc.
+  void Reserve(size_t n) {
+    const Node* head = head_.load(std::memory_order_relaxed);
+    size_t spare = 0;
+    for (Node* p = first_; p != head; p = p->next.load(std::memory_order_relaxed)) ++spare;
+    for (; spare < n; ++spare) {
+      Node* node = new Node;
+      node->next.store(first_, std::memory_order_relaxed);
+      first_ = node;
+    }
+  }
+
  private:
   struct Node {
     std::atomic<Node*> next{nullptr};

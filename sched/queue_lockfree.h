@@ -208,6 +208,15 @@ class LockFreeQueue {
     }
   }
 
+  // Fill phase only (no concurrent Push / TryPop): grows the node pool to at least n nodes,
+  // so that many tasks can be queued without allocating. Throws std::bad_alloc.
+  void Reserve(size_t n) {
+    while (capacity() < n) {
+      const uint32_t first = Grow();
+      PushFreeChain(first, first);
+    }
+  }
+
   int num_workers() const { return num_workers_; }
   const Stats& stats() const { return stats_; }
   Stats& stats() { return stats_; }

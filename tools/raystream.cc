@@ -151,6 +151,8 @@ struct RenderArgs {
   std::string out;
   std::string backend = "serial";
   int task_size = RenderOptions{}.task_size;
+  int batch = RenderOptions{}.batch;
+  int ray_budget = RenderOptions{}.ray_budget;
   std::string order = "scanline";
   float cutoff = RenderOptions{}.weight_cutoff;
   float lambda = 0.0f;  // 0: chosen by the grid cost model
@@ -288,6 +290,14 @@ void CheckBackendOptions(const RenderArgs& args) {
     if (args.task_size != RenderOptions{}.task_size) {
       fail(fmt::format("--task-size {}", args.task_size),
            "the cell backend's SPE ray pipeline keeps 8 rays in flight, it has no tasks");
+    }
+    if (args.batch != RenderOptions{}.batch) {
+      fail(fmt::format("--batch {}", args.batch),
+           "the cell backend's SPE ray pipeline keeps 8 rays in flight, it has no batches");
+    }
+    if (args.ray_budget != RenderOptions{}.ray_budget) {
+      fail(fmt::format("--ray-budget {}", args.ray_budget),
+           "the cell backend's SPEs bound their rays in flight by the local store");
     }
     if (args.order != "scanline") {
       fail("--order " + args.order,
@@ -456,6 +466,8 @@ int RunRenderMpi(const RenderArgs& args) {
   c.options.height = args.height;
   c.options.max_depth = args.depth;
   c.options.task_size = args.task_size;
+  c.options.batch = args.batch;
+  c.options.ray_budget = args.ray_budget;
   c.options.weight_cutoff = args.cutoff;
   c.options.order = args.order == "block" ? RayOrder::kBlock4x2 : RayOrder::kScanline;
   c.lambda = args.lambda;
@@ -504,6 +516,8 @@ int RunRender(const RenderArgs& args) {
   options.height = args.height;
   options.max_depth = args.depth;
   options.task_size = args.task_size;
+  options.batch = args.batch;
+  options.ray_budget = args.ray_budget;
   options.weight_cutoff = args.cutoff;
   options.order = args.order == "block" ? RayOrder::kBlock4x2 : RayOrder::kScanline;
 
@@ -536,6 +550,13 @@ int RunRender(const RenderArgs& args) {
   }
   if (args.frames > 1 && !args.quiet && tty) fmt::print(stderr, "\n");
 
+  if (total.budget_dropped > 0) {
+    fmt::print(stderr,
+               "raystream: warning: {} bounce rays dropped: the ray tree passed --ray-budget {} "
+               "rays per primary ray (or a queue backend's rays-in-flight cap); the image is "
+               "incomplete\n",
+               total.budget_dropped, args.ray_budget);
+  }
   if (!args.stats.empty()) WriteHostStats(args.stats, scene.name, backend, frames);
   if (!args.quiet) {
     fmt::print("scene      {}: {} triangles, {} lights, grid {}x{}x{}\n", scene.name,
@@ -561,6 +582,14 @@ int RunRender(const RenderArgs& args) {
       rays += total.rays[k];
     }
     fmt::print("rays       {} ({})\n", rays, by_kind);
+    const auto per_call = [&](RayKind k) {
+      const uint64_t calls = total.trace_calls[static_cast<int>(k)];
+      return calls > 0 ? static_cast<double>(total.rays[static_cast<int>(k)]) / calls : 0.0;
+    };
+    fmt::print("kernels    {:.0f} primary, {:.0f} shadow rays per call (batch {}), "
+               "{:.1f} % of rays in coherent packets\n",
+               per_call(RayKind::kPrimary), per_call(RayKind::kShadow), args.batch,
+               total.trace.rays > 0 ? 100.0 * total.trace.packet_rays / total.trace.rays : 0.0);
     fmt::print("trace      {:.1f} ms in {} tasks ({:.1f} ms tracing, {:.1f} ms shading), "
                "{:.2f} Mrays/s\n",
                1e3 * total_seconds, total.tasks, 1e3 * total.trace_seconds,
@@ -650,6 +679,16 @@ int Main(int argc, char** argv) {
   render->add_flag("!--no-queue-stats", r.queue_stats, "do not time queue operations");
   render->add_option("--task-size", r.task_size, "rays per task")
       ->check(CLI::Range(1, 1 << 20))
+      ->capture_default_str();
+  render->add_option("--batch", r.batch,
+                     "rays per kernel call: a worker traces up to this many rays of one "
+                     "generation as one stream (queue backends pop ceil(batch / task-size) tasks)")
+      ->check(CLI::Range(1, RenderOptions::kMaxBatch))
+      ->capture_default_str();
+  render->add_option("--ray-budget", r.ray_budget,
+                     "rays traced per primary ray (its whole tree) before its bounce rays are "
+                     "dropped with a warning: the guard against exponential ray trees")
+      ->check(CLI::Range(1, 1 << 30))
       ->capture_default_str();
   render->add_option("--order", r.order, "primary ray order")
       ->check(CLI::IsMember({"scanline", "block"}))

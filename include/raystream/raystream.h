@@ -133,6 +133,7 @@ struct TraceStats {
   // (not coherent, or diverging too much).
   uint64_t packets = 0;
   uint64_t packets_refused = 0;
+  uint64_t packet_rays = 0;  // rays of the packets counted in `packets`
 };
 
 // The acceleration structure: a uniform grid with an occupancy bit array and CSR cell lists,

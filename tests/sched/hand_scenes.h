@@ -134,4 +134,48 @@ inline void AddIcosphere(Scene& s, glm::vec3 c, float r, int levels, uint32_t ma
   }
 }
 
+// A little room: floor, back wall, a mirror icosphere, a glass icosphere, a blocker, two lights
+// (one with falloff), a background colour, phong highlights on the wall.
+inline Scene HandScene() {
+  Scene s;
+  s.name = "hand";
+  Material floor;
+  floor.diffuse = glm::vec3(0.7f, 0.7f, 0.6f);
+  Material wall;
+  wall.diffuse = glm::vec3(0.8f, 0.2f, 0.2f);
+  wall.specular = glm::vec3(0.4f);
+  wall.shininess = 20.0f;
+  Material mirror;
+  mirror.diffuse = glm::vec3(0.1f);
+  mirror.reflectivity = 0.8f;
+  Material glass;
+  glass.diffuse = glm::vec3(0.1f, 0.3f, 0.1f);
+  glass.transmission = 0.85f;
+  glass.reflectivity = 0.1f;
+  glass.ior = 1.5f;
+  Material block;
+  block.diffuse = glm::vec3(0.2f, 0.4f, 0.9f);
+  s.materials = {floor, wall, mirror, glass, block};
+  AddQuad(s, {-6, 0, 6}, {6, 0, 6}, {6, 0, -6}, {-6, 0, -6}, 0);
+  AddQuad(s, {-6, 0, -3}, {6, 0, -3}, {6, 6, -3}, {-6, 6, -3}, 1);
+  AddIcosphere(s, {-1.3f, 1.0f, 0.0f}, 1.0f, 2, 2);
+  AddIcosphere(s, {1.4f, 0.8f, 0.8f}, 0.8f, 2, 3);
+  AddQuad(s, {2.5f, 0.01f, -1}, {4, 0.01f, -1}, {4, 1.5f, -2}, {2.5f, 1.5f, -2}, 4);
+  PointLight a;
+  a.position = glm::vec3(2, 5, 4);
+  a.color = glm::vec3(0.8f, 0.8f, 0.7f);
+  PointLight b;
+  b.position = glm::vec3(-4, 3, 2);
+  b.color = glm::vec3(6.0f, 6.0f, 8.0f);
+  b.falloff = 0.3f;
+  s.lights = {a, b};
+  s.background = glm::vec3(0.05f, 0.1f, 0.2f);
+  s.ambient = 0.15f;
+  s.camera.eye = glm::vec3(0.5f, 3.0f, 8.0f);
+  s.camera.look_at = glm::vec3(0, 1, 0);
+  s.camera.fov_y_deg = 50.0f;
+  SetFeatures(s);
+  return s;
+}
+
 }  // namespace rs::test

@@ -1,6 +1,7 @@
 // Serial reference renderer: lit vs shadowed pixels, mirror depth, agreement with an independent
 // recursive Whitted renderer, and bit-identical images across task sizes, ray orders, tilings
 // and runs (the property every backend must keep). Also "cornell" and "erw6" when loadable.
+#include "sched/engine.h"
 #include "sched/render.h"
 
 #include <doctest/doctest.h>
@@ -44,50 +45,6 @@ Scene ShadowScene() {
   s.camera.look_at = glm::vec3(0, 0, 0);
   s.camera.up = glm::vec3(0, 0, -1);
   s.camera.fov_y_deg = 77.0f;
-  test::SetFeatures(s);
-  return s;
-}
-
-// A little room: floor, back wall, a mirror icosphere, a glass icosphere, a blocker, two lights
-// (one with falloff), a background colour, phong highlights on the wall.
-Scene HandScene() {
-  Scene s;
-  s.name = "hand";
-  Material floor;
-  floor.diffuse = glm::vec3(0.7f, 0.7f, 0.6f);
-  Material wall;
-  wall.diffuse = glm::vec3(0.8f, 0.2f, 0.2f);
-  wall.specular = glm::vec3(0.4f);
-  wall.shininess = 20.0f;
-  Material mirror;
-  mirror.diffuse = glm::vec3(0.1f);
-  mirror.reflectivity = 0.8f;
-  Material glass;
-  glass.diffuse = glm::vec3(0.1f, 0.3f, 0.1f);
-  glass.transmission = 0.85f;
-  glass.reflectivity = 0.1f;
-  glass.ior = 1.5f;
-  Material block;
-  block.diffuse = glm::vec3(0.2f, 0.4f, 0.9f);
-  s.materials = {floor, wall, mirror, glass, block};
-  test::AddQuad(s, {-6, 0, 6}, {6, 0, 6}, {6, 0, -6}, {-6, 0, -6}, 0);
-  test::AddQuad(s, {-6, 0, -3}, {6, 0, -3}, {6, 6, -3}, {-6, 6, -3}, 1);
-  test::AddIcosphere(s, {-1.3f, 1.0f, 0.0f}, 1.0f, 2, 2);
-  test::AddIcosphere(s, {1.4f, 0.8f, 0.8f}, 0.8f, 2, 3);
-  test::AddQuad(s, {2.5f, 0.01f, -1}, {4, 0.01f, -1}, {4, 1.5f, -2}, {2.5f, 1.5f, -2}, 4);
-  PointLight a;
-  a.position = glm::vec3(2, 5, 4);
-  a.color = glm::vec3(0.8f, 0.8f, 0.7f);
-  PointLight b;
-  b.position = glm::vec3(-4, 3, 2);
-  b.color = glm::vec3(6.0f, 6.0f, 8.0f);
-  b.falloff = 0.3f;
-  s.lights = {a, b};
-  s.background = glm::vec3(0.05f, 0.1f, 0.2f);
-  s.ambient = 0.15f;
-  s.camera.eye = glm::vec3(0.5f, 3.0f, 8.0f);
-  s.camera.look_at = glm::vec3(0, 1, 0);
-  s.camera.fov_y_deg = 50.0f;
   test::SetFeatures(s);
   return s;
 }
@@ -248,7 +205,7 @@ TEST_CASE("lit floor pixels are brighter than shadowed ones; shadow = ambient ex
 }
 
 TEST_CASE("agrees with an independent recursive renderer (depth 0, 1, 4)") {
-  const Scene s = HandScene();
+  const Scene s = test::HandScene();
   const Accel accel(test::MeshOf(s));
   for (const int depth : {0, 1, 4}) {
     INFO("max_depth ", depth);
@@ -274,7 +231,7 @@ TEST_CASE("agrees with an independent recursive renderer (depth 0, 1, 4)") {
 }
 
 TEST_CASE("mirror: depth 0 vs depth 2") {
-  const Scene s = HandScene();
+  const Scene s = test::HandScene();
   const Accel accel(test::MeshOf(s));
   RenderOptions opt;
   opt.width = 64;
@@ -317,7 +274,7 @@ TEST_CASE("mirror: depth 0 vs depth 2") {
 }
 
 TEST_CASE("bit-identical images: repeated runs, task sizes 1/7/20/1000, orders, tile sizes") {
-  const Scene s = HandScene();
+  const Scene s = test::HandScene();
   const Accel accel(test::MeshOf(s));
   RenderOptions base;
   base.width = 40;
@@ -349,6 +306,7 @@ TEST_CASE("bit-identical images: repeated runs, task sizes 1/7/20/1000, orders, 
         INFO("task_size ", task_size, " order ", RayOrderName(order), " tile ", tile);
         RenderOptions o = base;
         o.task_size = task_size;
+        o.batch = task_size;  // 1, 7, 20, 1000 rays per kernel call
         o.order = order;
         o.tile_size = tile;
         const RenderResult r = RenderImage(s, accel, s.camera, o);
@@ -357,107 +315,59 @@ TEST_CASE("bit-identical images: repeated runs, task sizes 1/7/20/1000, orders, 
         CHECK(r.stats.hits == ref.stats.hits);
         CHECK(r.stats.shade.shading_calls == ref.stats.shade.shading_calls);
         if (task_size == 1) CHECK(r.stats.tasks == r.stats.TotalRays());
+        CHECK(r.stats.budget_dropped == 0);
       }
     }
   }
 }
 
-// Collects pushed tasks.
-class VectorSink final : public TaskSink {
- public:
-  void Push(RayStream&& task) override { tasks.push_back(std::move(task)); }
-  std::vector<RayStream> tasks;
-};
-
-TEST_CASE("ProcessTask: mixed tasks equal split ones; pushed tasks are homogeneous and bounded") {
-  const Scene s = HandScene();
+TEST_CASE("TraceGeneration: a mixed generation equals its classes traced apart") {
+  const Scene s = test::HandScene();
   const Accel accel(test::MeshOf(s));
   RenderOptions opt;
   opt.width = 16;
   opt.height = 16;
-  opt.task_size = 6;
+  opt.batch = 4096;
   const FrameContext ctx = MakeFrameContext(s, accel, s.camera, opt);
-  // One task of all 256 primary rays; process it, collect the spawned tasks.
   RayStream primary;
   AppendPrimaryRays(ctx.camera, Tile{0, 0, 16, 16}, RayOrder::kScanline, primary);
   primary.FillPadding();
+  RayEngine engine;
   Framebuffer fb1(16, 16);
-  VectorSink sink;
-  TaskScratch scratch;
+  RayStream spawned;
   FrameStats stats;
-  ProcessTask(ctx, primary.view(), fb1, sink, scratch, stats);
-  REQUIRE(!sink.tasks.empty());
-  size_t shadow_tasks = 0, bounce_tasks = 0, spawned = 0;
-  for (RayStream& t : sink.tasks) {
-    const RayStreamView v = t.view();
-    CHECK(v.size >= 1);
-    CHECK(v.size <= 6);
-    spawned += v.size;
-    const bool shadow = v.kind[0] == static_cast<int32_t>(RayKind::kShadow);
-    (shadow ? shadow_tasks : bounce_tasks) += 1;
-    for (size_t i = 0; i < v.size; ++i) {
-      CHECK((v.kind[i] == static_cast<int32_t>(RayKind::kShadow)) == shadow);
-    }
-    for (size_t i = v.size; i < t.capacity(); ++i) CHECK(std::isnan(v.ox[i]));  // padding
-  }
-  CHECK(shadow_tasks > 0);
-  CHECK(bounce_tasks > 0);
+  engine.TraceGeneration(ctx, primary.view(), fb1, spawned, stats);
+  REQUIRE(spawned.size() > 0);
   uint64_t want_spawned = 0;
   for (const uint64_t k : stats.shade.spawned) want_spawned += k;
-  CHECK(spawned == want_spawned);
-
-  // Interleave all spawned rays into one mixed task, process it once; compare with processing
-  // the homogeneous tasks one by one.
-  RayStream mixed;
-  for (size_t round = 0; round < 6; ++round) {
-    for (RayStream& t : sink.tasks) {
-      if (round < t.size()) mixed.PushFrom(t.view(), round);
-    }
+  CHECK(spawned.size() == want_spawned);
+  CHECK(stats.trace_calls[static_cast<int>(RayKind::kPrimary)] == 1);
+  CHECK(stats.tasks == (256 + 19) / 20);
+  // Both classes must be present for the test to mean anything.
+  RayStream shadow, bounce;
+  const RayStreamView sv = spawned.view();
+  for (size_t i = 0; i < sv.size; ++i) {
+    (sv.kind[i] == static_cast<int32_t>(RayKind::kShadow) ? shadow : bounce).PushFrom(sv, i);
   }
-  mixed.FillPadding();
+  REQUIRE(shadow.size() > 0);
+  REQUIRE(bounce.size() > 0);
+  spawned.FillPadding();
+  shadow.FillPadding();
+  bounce.FillPadding();
   Framebuffer fb_mixed(16, 16), fb_split(16, 16);
-  VectorSink out_mixed, out_split;
+  RayStream out_mixed, out_split;
   FrameStats st_mixed, st_split;
-  ProcessTask(ctx, mixed.view(), fb_mixed, out_mixed, scratch, st_mixed);
-  for (RayStream& t : sink.tasks) ProcessTask(ctx, t.view(), fb_split, out_split, scratch, st_split);
+  engine.TraceGeneration(ctx, spawned.view(), fb_mixed, out_mixed, st_mixed);
+  engine.TraceGeneration(ctx, shadow.view(), fb_split, out_split, st_split);
+  engine.TraceGeneration(ctx, bounce.view(), fb_split, out_split, st_split);
   CHECK(std::memcmp(fb_mixed.sums(), fb_split.sums(), sizeof(int64_t) * 3 * 256) == 0);
   CHECK(st_mixed.TotalRays() == st_split.TotalRays());
-  CHECK(st_mixed.tasks == 1);
-  size_t n_mixed = 0, n_split = 0;
-  for (auto& t : out_mixed.tasks) n_mixed += t.size();
-  for (auto& t : out_split.tasks) n_split += t.size();
-  CHECK(n_mixed == n_split);
-  CHECK(n_mixed > 0);
+  CHECK(st_mixed.TotalRays() == spawned.size());
+  CHECK(out_mixed.size() == out_split.size());
+  CHECK(out_mixed.size() > 0);
 }
 
-TEST_CASE("CutIntoTasks, ImageTiles, GeneratePrimaryTasks") {
-  RayStream rays;
-  for (int i = 0; i < 23; ++i) {
-    rays.Push(0, 0, 0, 1, 0, 0, 0, kInf, static_cast<uint32_t>(i), 1, 1, 1, 0,
-              i % 3 == 0 ? RayKind::kShadow : RayKind::kReflection);
-  }
-  VectorSink sink;
-  TaskScratch scratch;
-  CutIntoTasks(rays.view(), 4, sink, scratch);
-  // 8 shadow rays -> 4 + 4; 15 others -> 4 + 4 + 4 + 3.
-  size_t total = 0, shadow = 0;
-  std::vector<uint32_t> order_shadow, order_other;
-  for (RayStream& t : sink.tasks) {
-    const RayStreamView v = t.view();
-    total += v.size;
-    CHECK(v.size <= 4);
-    for (size_t i = 0; i < v.size; ++i) {
-      (v.kind[i] == static_cast<int32_t>(RayKind::kShadow) ? order_shadow : order_other)
-          .push_back(v.pixel[i]);
-    }
-    shadow += v.kind[0] == static_cast<int32_t>(RayKind::kShadow) ? 1 : 0;
-  }
-  CHECK(total == 23);
-  CHECK(sink.tasks.size() == 6);
-  CHECK(shadow == 2);
-  CHECK(std::is_sorted(order_shadow.begin(), order_shadow.end()));  // order kept per class
-  CHECK(std::is_sorted(order_other.begin(), order_other.end()));
-
+TEST_CASE("ImageTiles") {
   const auto tiles = ImageTiles(10, 7, 4);
   REQUIRE(tiles.size() == 6);
   size_t pixels = 0;
@@ -466,22 +376,7 @@ TEST_CASE("CutIntoTasks, ImageTiles, GeneratePrimaryTasks") {
   CHECK(tiles.back().x0 == 8);
   CHECK(tiles.back().x1 == 10);
   CHECK(tiles.back().y1 == 7);
-
-  const Scene s = ShadowScene();
-  const Accel accel(test::MeshOf(s));
-  RenderOptions opt;
-  opt.width = 10;
-  opt.height = 7;
-  opt.task_size = 3;
-  const FrameContext ctx = MakeFrameContext(s, accel, s.camera, opt);
-  VectorSink prim;
-  FrameStats stats;
-  GeneratePrimaryTasks(ctx, Tile{0, 0, 5, 2}, prim, stats);  // 10 rays -> 3 + 3 + 3 + 1
-  REQUIRE(prim.tasks.size() == 4);
-  CHECK(prim.tasks[3].size() == 1);
-  CHECK(std::isnan(prim.tasks[3].view().ox[1]));  // padding filled
-  CHECK(prim.tasks[0].view().pixel[2] == 2u);
-  CHECK(prim.tasks[1].view().pixel[0] == 3u);
+  CHECK(ImageTiles(0, 7, 4).empty());
 }
 
 TEST_CASE("render options are validated") {
@@ -497,6 +392,9 @@ TEST_CASE("render options are validated") {
   bad([](RenderOptions& o) { o.width = 0; });
   bad([](RenderOptions& o) { o.height = -3; });
   bad([](RenderOptions& o) { o.task_size = 0; });
+  bad([](RenderOptions& o) { o.batch = 0; });
+  bad([](RenderOptions& o) { o.batch = RenderOptions::kMaxBatch + 1; });
+  bad([](RenderOptions& o) { o.ray_budget = 0; });
   bad([](RenderOptions& o) { o.max_depth = -1; });
   bad([](RenderOptions& o) { o.tile_size = 0; });
   bad([](RenderOptions& o) { o.weight_cutoff = std::numeric_limits<float>::quiet_NaN(); });

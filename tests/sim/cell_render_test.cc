@@ -30,9 +30,15 @@ struct Reference {
   FrameStats stats;
 };
 
+// The serial image and counts, at the paper's 20-ray batches: the cell steps of the SPEs'
+// resumable DDA are checked against that configuration (larger batches reach the coherent
+// packets, which count cells per slice, and the stream DDA's counts shift slightly with how rays
+// share a call). The image is the same for any batch.
 Reference RenderReference(const FrameContext& ctx) {
   Reference r{Framebuffer(ctx.options.width, ctx.options.height), {}};
-  r.stats = RenderSerial(ctx, r.fb);
+  FrameContext per_ray = ctx;
+  per_ray.options.batch = 20;
+  r.stats = RenderSerial(per_ray, r.fb);
   return r;
 }
 

@@ -1,0 +1,412 @@
+// The per-worker frame engine (see engine.h): batched kernel calls and a depth-first walk over
+// generations of a tile's ray tree in fixed arenas.
+#include "sched/engine.h"
+
+#include <algorithm>
+#include <chrono>
+#include <limits>
+#include <span>
+
+namespace rs {
+
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+double Seconds(Clock::time_point a, Clock::time_point b) {
+  return std::chrono::duration<double>(b - a).count();
+}
+
+constexpr int32_t kShadowKind = static_cast<int32_t>(RayKind::kShadow);
+
+// Shade output per sub-chunk is at most chunk * (lights + 2) rays; chunks shrink with many lights
+// so that this scratch stays near kMaxSpawned rays. A multiple of kStreamPad (sub-chunks start
+// vector-aligned: Shade loads aligned vectors), at least one vector.
+constexpr size_t kMaxSpawned = 16384;
+
+size_t ShadeChunk(size_t batch, size_t lights) {
+  const size_t chunk = std::min(kMaxSpawned / (lights + 2), batch) / kStreamPad * kStreamPad;
+  return std::max(chunk, kStreamPad);
+}
+
+// Rays [from, from + kStreamPad) of v become rays that can never hit (NaN origin, tmax < tmin):
+// the lanes a kernel may load past the end of a view that ends at `from`. v must have the room.
+void SealLanes(const RayStreamView& v, size_t from) {
+  const float nan = std::numeric_limits<float>::quiet_NaN();
+  for (size_t i = from; i < from + kStreamPad; ++i) {
+    v.ox[i] = v.oy[i] = v.oz[i] = nan;
+    v.dx[i] = v.dy[i] = v.dz[i] = nan;
+    v.tmin[i] = 1.0f;
+    v.tmax[i] = 0.0f;
+    v.pixel[i] = 0;
+    v.wr[i] = v.wg[i] = v.wb[i] = 0.0f;
+    v.depth[i] = 0;
+    v.kind[i] = 0;
+  }
+}
+
+// rays[first, first + n) as a view of its own (pointers offset; not 64-B aligned in general).
+RayStreamView SubView(const RayStreamView& r, size_t first, size_t n) {
+  RayStreamView v = r;
+  v.ox += first;
+  v.oy += first;
+  v.oz += first;
+  v.dx += first;
+  v.dy += first;
+  v.dz += first;
+  v.tmin += first;
+  v.tmax += first;
+  v.pixel += first;
+  v.wr += first;
+  v.wg += first;
+  v.wb += first;
+  v.depth += first;
+  v.kind += first;
+  v.size = n;
+  return v;
+}
+
+HitStreamView SubView(const HitStreamView& h, size_t first, size_t n) {
+  return HitStreamView{h.t + first, h.u + first, h.v + first, h.prim + first, n};
+}
+
+// Appends the rays of `from` that are shadow rays (shadow = true) or not (false) to `to`, whose
+// capacity must hold them (arena: no growth in the steady state), and seals the lanes after it.
+void AppendClass(const RayStreamView& from, bool shadow, RayStream& to) {
+  size_t count = 0;
+  for (size_t i = 0; i < from.size; ++i) count += (from.kind[i] == kShadowKind) == shadow ? 1 : 0;
+  const size_t n0 = to.size();
+  to.Resize(n0 + count);
+  const RayStreamView t = to.view();
+  size_t j = n0;
+  for (size_t i = 0; i < from.size; ++i) {
+    if ((from.kind[i] == kShadowKind) != shadow) continue;
+    t.ox[j] = from.ox[i];
+    t.oy[j] = from.oy[i];
+    t.oz[j] = from.oz[i];
+    t.dx[j] = from.dx[i];
+    t.dy[j] = from.dy[i];
+    t.dz[j] = from.dz[i];
+    t.tmin[j] = from.tmin[i];
+    t.tmax[j] = from.tmax[i];
+    t.pixel[j] = from.pixel[i];
+    t.wr[j] = from.wr[i];
+    t.wg[j] = from.wg[i];
+    t.wb[j] = from.wb[i];
+    t.depth[j] = from.depth[i];
+    t.kind[j] = from.kind[i];
+    ++j;
+  }
+  to.Resize(j);
+}
+
+// Moves rays [from, end) of v to [to, to + end - from), to <= from (memmove order).
+void MoveRays(const RayStreamView& v, size_t from, size_t end, size_t to) {
+  for (size_t i = from; i < end; ++i, ++to) {
+    v.ox[to] = v.ox[i];
+    v.oy[to] = v.oy[i];
+    v.oz[to] = v.oz[i];
+    v.dx[to] = v.dx[i];
+    v.dy[to] = v.dy[i];
+    v.dz[to] = v.dz[i];
+    v.tmin[to] = v.tmin[i];
+    v.tmax[to] = v.tmax[i];
+    v.pixel[to] = v.pixel[i];
+    v.wr[to] = v.wr[i];
+    v.wg[to] = v.wg[i];
+    v.wb[to] = v.wb[i];
+    v.depth[to] = v.depth[i];
+    v.kind[to] = v.kind[i];
+  }
+}
+
+// The light a shadow ray runs to: it goes from o to o + d = the light's position (up to
+// rounding), so the nearest light to o + d.
+uint32_t LightOf(const RayStreamView& r, size_t i, std::span<const PointLight> lights) {
+  const glm::vec3 end(r.ox[i] + r.dx[i], r.oy[i] + r.dy[i], r.oz[i] + r.dz[i]);
+  uint32_t best = 0;
+  float best_d2 = std::numeric_limits<float>::infinity();
+  for (uint32_t l = 0; l < lights.size(); ++l) {
+    const glm::vec3 e = end - lights[l].position;
+    const float d2 = glm::dot(e, e);
+    if (d2 < best_d2) {
+      best_d2 = d2;
+      best = l;
+    }
+  }
+  return best;
+}
+
+// The shadow rays of `from` appended to `to` grouped by light (stable within a light). Shade
+// emits them light by light per SIMD vector, so a 64-ray run would mix several lights and miss
+// the coherent packets; grouped, each run shares its light. Order never changes the image.
+void AppendShadowByLight(const RayStreamView& from, std::span<const PointLight> lights,
+                         std::vector<uint32_t>& light_of, std::vector<size_t>& start,
+                         RayStream& to) {
+  if (lights.size() <= 1) return AppendClass(from, /*shadow=*/true, to);
+  light_of.resize(from.size);
+  start.assign(lights.size() + 1, 0);
+  size_t count = 0;
+  for (size_t i = 0; i < from.size; ++i) {
+    if (from.kind[i] != kShadowKind) continue;
+    light_of[i] = LightOf(from, i, lights);
+    ++start[light_of[i] + 1];
+    ++count;
+  }
+  for (size_t l = 1; l <= lights.size(); ++l) start[l] += start[l - 1];
+  const size_t n0 = to.size();
+  to.Resize(n0 + count);
+  const RayStreamView t = to.view();
+  for (size_t i = 0; i < from.size; ++i) {
+    if (from.kind[i] != kShadowKind) continue;
+    const size_t j = n0 + start[light_of[i]]++;
+    t.ox[j] = from.ox[i];
+    t.oy[j] = from.oy[i];
+    t.oz[j] = from.oz[i];
+    t.dx[j] = from.dx[i];
+    t.dy[j] = from.dy[i];
+    t.dz[j] = from.dz[i];
+    t.tmin[j] = from.tmin[i];
+    t.tmax[j] = from.tmax[i];
+    t.pixel[j] = from.pixel[i];
+    t.wr[j] = from.wr[i];
+    t.wg[j] = from.wg[i];
+    t.wb[j] = from.wb[i];
+    t.depth[j] = from.depth[i];
+    t.kind[j] = from.kind[i];
+  }
+}
+
+uint64_t TasksOf(size_t rays, int task_size) {
+  const size_t t = static_cast<size_t>(task_size);
+  return (rays + t - 1) / t;
+}
+
+}  // namespace
+
+namespace {
+
+// The arena sizes (in rays) for a frame of `o` with `lights` lights. A generation handed to
+// TraceGeneration holds up to ceil(batch / task_size) tasks; every stream keeps kStreamPad lanes
+// after its rays for the seal.
+struct ArenaPlan {
+  size_t primary, level, spawned, shadow, bounce, hits, contributions;
+  size_t levels;
+};
+
+ArenaPlan PlanArenas(size_t batch, int max_depth, int task_size, size_t lights) {
+  const size_t ts = static_cast<size_t>(task_size);
+  const size_t generation = std::max(batch, (batch + ts - 1) / ts * ts);
+  const size_t chunk = ShadeChunk(batch, lights);
+  ArenaPlan p;
+  p.levels = static_cast<size_t>(max_depth) + 1;
+  p.primary = batch + kStreamPad;
+  p.level = 2 * batch + kStreamPad;
+  p.spawned = chunk * (lights + 2) + kStreamPad;
+  p.shadow = std::max(generation, p.spawned) + kStreamPad;
+  p.bounce = generation + kStreamPad;
+  p.hits = generation + kStreamPad;
+  p.contributions = 2 * chunk + kStreamPad;  // background or ambient, per ray
+  return p;
+}
+
+}  // namespace
+
+size_t EngineRayBudget(const RenderOptions& o, size_t lights) {
+  const ArenaPlan p =
+      PlanArenas(static_cast<size_t>(o.batch), o.max_depth, o.task_size, lights);
+  return PaddedSize(p.primary) + (p.levels - 1) * PaddedSize(p.level) + PaddedSize(p.spawned) +
+         PaddedSize(p.shadow) + PaddedSize(p.bounce);
+}
+
+void RayEngine::Reserve(const FrameContext& ctx) {
+  const size_t batch = static_cast<size_t>(ctx.options.batch);
+  const int depth = ctx.options.max_depth;
+  const size_t lights = ctx.scene->lights.size();
+  if (batch <= batch_ && depth <= depth_ && lights <= lights_ &&
+      ctx.options.task_size >= task_size_) {
+    return;
+  }
+  batch_ = std::max(batch, batch_);
+  depth_ = std::max(depth, depth_);
+  lights_ = std::max(lights, lights_);
+  task_size_ = std::min(ctx.options.task_size, task_size_);
+  const ArenaPlan p = PlanArenas(batch_, depth_, task_size_, lights_);
+  levels_.resize(p.levels);
+  levels_[0].Reserve(p.primary);
+  for (size_t d = 1; d < levels_.size(); ++d) levels_[d].Reserve(p.level);
+  spawned_.Reserve(p.spawned);
+  shadow_.Reserve(p.shadow);
+  bounce_.Reserve(p.bounce);
+  hits_.Reserve(p.hits);
+  occluded_.Reserve(p.shadow);
+  contributions_.Reserve(p.contributions);
+  light_of_.reserve(p.spawned);
+  light_start_.reserve(lights_ + 1);
+}
+
+size_t RayEngine::capacity_rays() const {
+  size_t n = spawned_.capacity() + shadow_.capacity() + bounce_.capacity();
+  for (const RayStream& l : levels_) n += l.capacity();
+  return n;
+}
+
+void RayEngine::Occlude(const FrameContext& ctx, const RayStreamView& rays, Framebuffer& fb,
+                        FrameStats& stats) {
+  const size_t n = rays.size;
+  if (n == 0) return;
+  occluded_.Reserve(n);
+  int32_t* occluded = occluded_.data();
+  const AccelTracer accel(*ctx.accel);
+  const Tracer& tracer = ctx.tracer != nullptr ? *ctx.tracer : accel;
+  const auto t0 = Clock::now();
+  tracer.Occluded(rays, occluded, &stats.trace);
+  const auto t1 = Clock::now();
+  uint64_t blocked = 0;
+  for (size_t i = 0; i < n; ++i) {
+    if (occluded[i] != 0) {
+      ++blocked;
+      continue;
+    }
+    fb.Add(rays.pixel[i], rays.wr[i], rays.wg[i], rays.wb[i]);
+  }
+  stats.rays[kShadowKind] += n;
+  ++stats.trace_calls[kShadowKind];
+  stats.tasks += TasksOf(n, ctx.options.task_size);
+  stats.occluded += blocked;
+  stats.trace_seconds += Seconds(t0, t1);
+  stats.shade_seconds += Seconds(t1, Clock::now());
+}
+
+void RayEngine::TraceAndShade(const FrameContext& ctx, const RayStreamView& rays,
+                              Framebuffer& fb, RayStream* bounce, RayStream* spawned_out,
+                              FrameStats& stats) {
+  const size_t n = rays.size;
+  if (n == 0) return;
+  hits_.Resize(n);
+  const HitStreamView hits = hits_.view();
+  const AccelTracer accel(*ctx.accel);
+  const Tracer& tracer = ctx.tracer != nullptr ? *ctx.tracer : accel;
+  const auto t0 = Clock::now();
+  tracer.Intersect(rays, hits, &stats.trace);
+  const auto t1 = Clock::now();
+  // Lanes past n: misses (Shade may load them; stale prims could index another scene).
+  for (size_t i = n; i < PaddedSize(n); ++i) {
+    hits.t[i] = std::numeric_limits<float>::infinity();
+    hits.u[i] = hits.v[i] = 0.0f;
+    hits.prim[i] = -1;
+  }
+  uint64_t kinds[kNumRayKinds] = {};
+  for (size_t i = 0; i < n; ++i) {
+    stats.hits += hits.prim[i] >= 0 ? 1 : 0;
+    const int32_t kind = rays.kind[i];
+    if (kind >= 0 && kind < kNumRayKinds) ++kinds[kind];
+  }
+  for (int k = 0; k < kNumRayKinds; ++k) {
+    stats.rays[k] += kinds[k];
+    stats.trace_calls[k] += kinds[k] != 0 ? 1 : 0;
+  }
+  stats.tasks += TasksOf(n, ctx.options.task_size);
+  stats.trace_seconds += Seconds(t0, t1);
+
+  const size_t chunk = ShadeChunk(batch_, lights_);
+  for (size_t first = 0; first < n; first += chunk) {
+    const size_t m = std::min(chunk, n - first);
+    const auto s0 = Clock::now();
+    RayStream& out = spawned_out != nullptr ? *spawned_out : spawned_;
+    if (spawned_out == nullptr) spawned_.Clear();
+    contributions_.Clear();
+    Shade(*ctx.scene, ctx.shade, SubView(rays, first, m), SubView(hits, first, m),
+          contributions_, out, &stats.shade);
+    fb.Add(contributions_.view());
+    if (spawned_out != nullptr) {
+      stats.shade_seconds += Seconds(s0, Clock::now());
+      continue;
+    }
+    shadow_.Clear();
+    const RayStreamView spawned = spawned_.view();
+    AppendShadowByLight(spawned, ctx.scene->lights, light_of_, light_start_, shadow_);
+    AppendClass(spawned, /*shadow=*/false, *bounce);
+    SealLanes(shadow_.view(), shadow_.size());
+    stats.shade_seconds += Seconds(s0, Clock::now());
+    Occlude(ctx, shadow_.view(), fb, stats);
+  }
+}
+
+void RayEngine::Drain(const FrameContext& ctx, size_t primaries, Framebuffer& fb,
+                      FrameStats& stats) {
+  const uint64_t budget = static_cast<uint64_t>(ctx.options.ray_budget) * primaries;
+  const uint64_t rays0 = stats.TotalRays();
+  const size_t batch = static_cast<size_t>(ctx.options.batch);
+  const size_t top = static_cast<size_t>(ctx.options.max_depth);
+  size_t d = 0;  // the deepest level that may hold rays
+  for (;;) {
+    while (levels_[d].empty() && d > 0) --d;
+    RayStream& level = levels_[d];
+    if (level.empty()) return;
+    if (d > 0 && stats.TotalRays() - rays0 >= budget) {
+      // The batch's tree has used its ray budget: its pending bounce rays are dropped.
+      for (size_t e = 1; e <= top; ++e) {
+        stats.budget_dropped += levels_[e].size();
+        levels_[e].Clear();
+      }
+      continue;
+    }
+    // k rays at the end of the level, from a vector-aligned start (Shade loads aligned
+    // vectors); its earlier rays wait until the children are done. The fewer than kStreamPad
+    // rays after the chunk move down into its place afterwards.
+    const size_t s = level.size();
+    const size_t k = std::min(batch, s);
+    const size_t start = (s - k) / kStreamPad * kStreamPad;
+    const RayStreamView all = level.view();
+    SealLanes(all, s);
+    RayStream* children = d < top ? &levels_[d + 1] : &bounce_;
+    TraceAndShade(ctx, SubView(all, start, k), fb, children, nullptr, stats);
+    HWY_DASSERT(d < top || bounce_.empty());
+    bounce_.Clear();
+    MoveRays(all, start + k, s, start);
+    level.Resize(s - k);
+    if (d < top && !levels_[d + 1].empty()) ++d;
+  }
+}
+
+void RayEngine::RenderTile(const FrameContext& ctx, const Tile& tile, Framebuffer& fb,
+                           FrameStats& stats) {
+  Reserve(ctx);
+  const size_t n = tile.NumPixels();
+  const size_t batch = static_cast<size_t>(ctx.options.batch);
+  for (size_t first = 0; first < n; first += batch) {
+    const auto t0 = Clock::now();
+    const size_t k = std::min(batch, n - first);
+    RayStream& primary = levels_[0];
+    primary.Resize(k);
+    const RayStreamView v = primary.view();
+    GeneratePrimaryRays(ctx.camera, tile, ctx.options.order, first, k, v, 0);
+    SealLanes(v, k);
+    stats.generate_seconds += Seconds(t0, Clock::now());
+    Drain(ctx, k, fb, stats);
+  }
+}
+
+void RayEngine::TraceGeneration(const FrameContext& ctx, const RayStreamView& rays,
+                                Framebuffer& fb, RayStream& spawned, FrameStats& stats) {
+  Reserve(ctx);
+  size_t shadow = 0;
+  for (size_t i = 0; i < rays.size; ++i) shadow += rays.kind[i] == kShadowKind ? 1 : 0;
+  if (shadow == rays.size) return Occlude(ctx, rays, fb, stats);
+  if (shadow == 0) return TraceAndShade(ctx, rays, fb, nullptr, &spawned, stats);
+  // Mixed: split by class (a ray's result does not depend on its neighbours).
+  const auto t0 = Clock::now();
+  shadow_.Clear();
+  bounce_.Clear();
+  AppendClass(rays, /*shadow=*/true, shadow_);
+  AppendClass(rays, /*shadow=*/false, bounce_);
+  SealLanes(shadow_.view(), shadow_.size());
+  SealLanes(bounce_.view(), bounce_.size());
+  stats.shade_seconds += Seconds(t0, Clock::now());
+  Occlude(ctx, shadow_.view(), fb, stats);
+  TraceAndShade(ctx, bounce_.view(), fb, nullptr, &spawned, stats);
+  bounce_.Clear();
+}
+
+}  // namespace rs

@@ -1,0 +1,94 @@
+// The frame engine of one worker: traces rays in batches of RenderOptions::batch rays (so
+// primary and shadow rays reach the coherent packets) and walks a tile's ray tree deepest
+// generation first, so the rays in flight are bounded by the batch and the depth, never by the
+// image. All ray, hit and contribution buffers are the worker's arenas, sized once and reused
+// across tiles and frames: no heap allocation in the steady state of a frame.
+#pragma once
+
+#include <cstddef>
+#include <cstdint>
+#include <vector>
+
+#include "sched/framebuffer.h"
+#include "sched/render.h"
+#include "streams/ray_stream.h"
+#include "streams/raygen.h"
+
+namespace rs {
+
+// Rays one worker holds at most for a frame of `options` in a scene with `lights` lights
+// (primary batch, one pending bounce generation per depth, shadow and spawned scratch). The
+// budget does not depend on the image size.
+size_t EngineRayBudget(const RenderOptions& options, size_t lights);
+
+class RayEngine {
+ public:
+  // Sizes the arenas for ctx (no-op when they are large enough already). Called by RenderTile
+  // and TraceGeneration; call it up front to move the first frame's allocations out of the
+  // frame loop.
+  void Reserve(const FrameContext& ctx);
+
+  // The whole ray tree of `tile` (inside the image): its primary rays in ctx.options.order, in
+  // batches, each batch's tree finished (deepest pending generation first) before the next
+  // batch is generated. Shadow rays are traced as soon as they are spawned; an unoccluded one
+  // adds its weight to its pixel. Counters and stage times go to `stats`.
+  void RenderTile(const FrameContext& ctx, const Tile& tile, Framebuffer& fb, FrameStats& stats);
+
+  // One generation of `rays` (padded; any kinds, at most ctx.options.batch rays for bounded
+  // scratch): shadow rays occluded and added to fb, the others intersected and shaded. Their
+  // secondary rays (both classes) are appended to `spawned`, for a backend that schedules them
+  // itself (queue backends). `rays` must not alias `spawned`.
+  void TraceGeneration(const FrameContext& ctx, const RayStreamView& rays, Framebuffer& fb,
+                       RayStream& spawned, FrameStats& stats);
+
+  // Rays the arenas can hold (for tests of the memory bound).
+  size_t capacity_rays() const;
+
+ private:
+  // Intersects rays (no shadow rays), shades them in sub-chunks; each sub-chunk's shadow rays
+  // are traced at once, its bounce rays appended to `bounce` (or to `spawned_out` with the
+  // shadow rays when that is non-null).
+  void TraceAndShade(const FrameContext& ctx, const RayStreamView& rays, Framebuffer& fb,
+                     RayStream* bounce, RayStream* spawned_out, FrameStats& stats);
+  void Occlude(const FrameContext& ctx, const RayStreamView& rays, Framebuffer& fb,
+               FrameStats& stats);
+  void Drain(const FrameContext& ctx, size_t primaries, Framebuffer& fb, FrameStats& stats);
+
+  std::vector<RayStream> levels_;  // pending non-shadow rays by depth (0: primary)
+  RayStream spawned_;              // Shade's output for one sub-chunk
+  RayStream shadow_;               // shadow rays of one sub-chunk, or of a mixed generation
+  RayStream bounce_;               // non-shadow rays of a mixed generation
+  HitStream hits_;
+  ContributionStream contributions_;
+  AlignedArray<int32_t> occluded_;
+  std::vector<uint32_t> light_of_;   // per spawned ray: its light (shadow rays only)
+  std::vector<size_t> light_start_;  // per light: the next slot of its group
+  // The arenas are sized for the largest batch, depth and light count and the smallest task
+  // size seen so far.
+  size_t batch_ = 0;
+  int depth_ = -1;
+  size_t lights_ = 0;
+  int task_size_ = 1 << 30;
+};
+
+// The serial reference backend: the image's tiles (tile_size x tile_size, row-major) one after
+// the other on the calling thread, each tile's whole ray tree by the frame engine (RayEngine:
+// batches of RenderOptions::batch rays, deepest generation first, bounded memory). Keeps its
+// arenas between frames, so a walk-through allocates only in its first frame. Not thread-safe.
+class SerialRenderer {
+ public:
+  // Renders one frame into fb (not cleared first) and returns its stats.
+  FrameStats Render(const FrameContext& ctx, Framebuffer& fb);
+  // The whole ray tree of `tiles` on this thread, tile by tile. Counters go to `stats`
+  // (total_seconds untouched). This is also the unit of work of the tiles backend's threads
+  // and of an MPI worker.
+  void RenderTiles(const FrameContext& ctx, const Tile* tiles, size_t num_tiles, Framebuffer& fb,
+                   FrameStats& stats);
+  RayEngine& engine() { return engine_; }
+
+ private:
+  RayEngine engine_;
+  std::vector<Tile> tiles_;
+};
+
+}  // namespace rs
