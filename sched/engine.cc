@@ -268,14 +268,17 @@ void RayEngine::Occlude(const FrameContext& ctx, const RayStreamView& rays, Fram
       ++blocked;
       continue;
     }
-    fb.Add(rays.pixel[i], rays.wr[i], rays.wg[i], rays.wb[i]);
+    if (exclusive_) {
+      fb.AddExclusive(rays.pixel[i], rays.wr[i], rays.wg[i], rays.wb[i]);
+    } else {
+      fb.Add(rays.pixel[i], rays.wr[i], rays.wg[i], rays.wb[i]);
+    }
   }
   stats.rays[kShadowKind] += n;
   ++stats.trace_calls[kShadowKind];
   stats.tasks += TasksOf(n, ctx.options.task_size);
   stats.occluded += blocked;
   stats.trace_seconds += Seconds(t0, t1);
-  stats.shade_seconds += Seconds(t1, Clock::now());
 }
 
 void RayEngine::TraceAndShade(const FrameContext& ctx, const RayStreamView& rays,
@@ -318,17 +321,18 @@ void RayEngine::TraceAndShade(const FrameContext& ctx, const RayStreamView& rays
     contributions_.Clear();
     Shade(*ctx.scene, ctx.shade, SubView(rays, first, m), SubView(hits, first, m),
           contributions_, out, &stats.shade);
-    fb.Add(contributions_.view());
-    if (spawned_out != nullptr) {
-      stats.shade_seconds += Seconds(s0, Clock::now());
-      continue;
+    stats.shade_seconds += Seconds(s0, Clock::now());
+    if (exclusive_) {
+      fb.AddExclusive(contributions_.view());
+    } else {
+      fb.Add(contributions_.view());
     }
+    if (spawned_out != nullptr) continue;
     shadow_.Clear();
     const RayStreamView spawned = spawned_.view();
     AppendShadowByLight(spawned, ctx.scene->lights, light_of_, light_start_, shadow_);
     AppendClass(spawned, /*shadow=*/false, *bounce);
     SealLanes(shadow_.view(), shadow_.size());
-    stats.shade_seconds += Seconds(s0, Clock::now());
     Occlude(ctx, shadow_.view(), fb, stats);
   }
 }
@@ -373,6 +377,8 @@ void RayEngine::Drain(const FrameContext& ctx, size_t primaries, Framebuffer& fb
 void RayEngine::RenderTile(const FrameContext& ctx, const Tile& tile, Framebuffer& fb,
                            FrameStats& stats) {
   Reserve(ctx);
+  // Every ray of the tile's tree carries a pixel of the tile, and tiles are disjoint: plain adds.
+  exclusive_ = true;
   const size_t n = tile.NumPixels();
   const size_t batch = static_cast<size_t>(ctx.options.batch);
   for (size_t first = 0; first < n; first += batch) {
@@ -391,19 +397,18 @@ void RayEngine::RenderTile(const FrameContext& ctx, const Tile& tile, Framebuffe
 void RayEngine::TraceGeneration(const FrameContext& ctx, const RayStreamView& rays,
                                 Framebuffer& fb, RayStream& spawned, FrameStats& stats) {
   Reserve(ctx);
+  exclusive_ = false;  // a generation may hold any pixels another thread also adds to
   size_t shadow = 0;
   for (size_t i = 0; i < rays.size; ++i) shadow += rays.kind[i] == kShadowKind ? 1 : 0;
   if (shadow == rays.size) return Occlude(ctx, rays, fb, stats);
   if (shadow == 0) return TraceAndShade(ctx, rays, fb, nullptr, &spawned, stats);
   // Mixed: split by class (a ray's result does not depend on its neighbours).
-  const auto t0 = Clock::now();
   shadow_.Clear();
   bounce_.Clear();
   AppendClass(rays, /*shadow=*/true, shadow_);
   AppendClass(rays, /*shadow=*/false, bounce_);
   SealLanes(shadow_.view(), shadow_.size());
   SealLanes(bounce_.view(), bounce_.size());
-  stats.shade_seconds += Seconds(t0, Clock::now());
   Occlude(ctx, shadow_.view(), fb, stats);
   TraceAndShade(ctx, bounce_.view(), fb, nullptr, &spawned, stats);
   bounce_.Clear();

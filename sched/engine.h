@@ -31,7 +31,9 @@ class RayEngine {
   // The whole ray tree of `tile` (inside the image): its primary rays in ctx.options.order, in
   // batches, each batch's tree finished (deepest pending generation first) before the next
   // batch is generated. Shadow rays are traced as soon as they are spawned; an unoccluded one
-  // adds its weight to its pixel. Counters and stage times go to `stats`.
+  // adds its weight to its pixel. Counters and stage times go to `stats`. The tile's pixels
+  // must be this caller's for the frame (Framebuffer::AddExclusive): no other thread renders
+  // an overlapping tile or adds to them concurrently.
   void RenderTile(const FrameContext& ctx, const Tile& tile, Framebuffer& fb, FrameStats& stats);
 
   // One generation of `rays` (padded; any kinds, at most ctx.options.batch rays for bounded
@@ -69,6 +71,7 @@ class RayEngine {
   int depth_ = -1;
   size_t lights_ = 0;
   int task_size_ = 1 << 30;
+  bool exclusive_ = false;  // RenderTile: the tile's pixels are this worker's (AddExclusive)
 };
 
 // The serial reference backend: the image's tiles (tile_size x tile_size, row-major) one after

@@ -67,7 +67,26 @@ class Framebuffer {
   // Adds (r, g, b) to pixel `pixel` (< num_pixels()). Thread-safe and wait-free: three relaxed
   // atomic adds (only the final sums matter; the frame barrier orders them before ToRgb). A
   // contribution with a NaN channel is dropped entirely (all three channels) and counted.
-  void Add(uint32_t pixel, float r, float g, float b) {
+  void Add(uint32_t pixel, float r, float g, float b) { AddAs<true>(pixel, r, g, b); }
+
+  // Add(pixel[i], r[i], g[i], b[i]) for every contribution of `c` (pixels < num_pixels()), in
+  // stream order: the same fixed-point sums, NaN drops and clamp counts as adding them one by
+  // one. Thread-safe like Add.
+  void Add(const ContributionView& c) {
+    for (size_t i = 0; i < c.size; ++i) AddAs<true>(c.pixel[i], c.r[i], c.g[i], c.b[i]);
+  }
+
+  // The same sums as Add with plain (non-atomic) adds to the pixel, for a caller that owns the
+  // pixel for the whole frame: no other thread adds to it concurrently (the frame engine's
+  // tiles: a tile's rays contribute only to the tile's own pixels, and tiles are disjoint).
+  // The NaN and clamp counters stay atomic.
+  void AddExclusive(uint32_t pixel, float r, float g, float b) { AddAs<false>(pixel, r, g, b); }
+  void AddExclusive(const ContributionView& c) {
+    for (size_t i = 0; i < c.size; ++i) AddAs<false>(c.pixel[i], c.r[i], c.g[i], c.b[i]);
+  }
+  // Add (shared = true) or AddExclusive.
+  template <bool kShared>
+  void AddAs(uint32_t pixel, float r, float g, float b) {
     bool nan = false, clamped = false;
     const int64_t fr = ToFixed(r, &nan, &clamped);
     const int64_t fg = ToFixed(g, &nan, &clamped);
@@ -79,16 +98,15 @@ class Framebuffer {
     if (clamped) std::atomic_ref<uint64_t>(clamped_).fetch_add(1, std::memory_order_relaxed);
     HWY_DASSERT(pixel < num_pixels());
     int64_t* p = sums_.data() + 3 * static_cast<size_t>(pixel);
-    if (fr != 0) std::atomic_ref<int64_t>(p[0]).fetch_add(fr, std::memory_order_relaxed);
-    if (fg != 0) std::atomic_ref<int64_t>(p[1]).fetch_add(fg, std::memory_order_relaxed);
-    if (fb != 0) std::atomic_ref<int64_t>(p[2]).fetch_add(fb, std::memory_order_relaxed);
-  }
-
-  // Add(pixel[i], r[i], g[i], b[i]) for every contribution of `c` (pixels < num_pixels()), in
-  // stream order: the same fixed-point sums, NaN drops and clamp counts as adding them one by
-  // one. Thread-safe like Add.
-  void Add(const ContributionView& c) {
-    for (size_t i = 0; i < c.size; ++i) Add(c.pixel[i], c.r[i], c.g[i], c.b[i]);
+    if constexpr (kShared) {
+      if (fr != 0) std::atomic_ref<int64_t>(p[0]).fetch_add(fr, std::memory_order_relaxed);
+      if (fg != 0) std::atomic_ref<int64_t>(p[1]).fetch_add(fg, std::memory_order_relaxed);
+      if (fb != 0) std::atomic_ref<int64_t>(p[2]).fetch_add(fb, std::memory_order_relaxed);
+    } else {
+      p[0] += fr;
+      p[1] += fg;
+      p[2] += fb;
+    }
   }
 
   // Adds every pixel sum and counter of `other` (same size) into this one: partial

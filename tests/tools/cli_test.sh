@@ -90,10 +90,30 @@ expect_error "zero tile size" '\-\-tile 0x4' "$rs" render --scene cornell --back
 expect_error "PBT needs the tiles backend" 'pbt.*tiles' "$rs" render --scene cornell --backend lock --pbt 2 --width 8 --height 8 --out "$tmp/y.png"
 expect_error "--steal needs PBT" 'steal' "$rs" render --scene cornell --backend tiles --steal --width 8 --height 8 --out "$tmp/y.png"
 expect_error "unknown PBT assignment" 'assign' "$rs" render --scene cornell --backend tiles --pbt 1 --assign lpt --width 8 --height 8 --out "$tmp/y.png"
-expect_error "serial with threads" 'threads' "$rs" render --scene cornell --threads 2 --width 8 --height 8 --out "$tmp/y.png"
+expect_error "serial with threads" 'threads' "$rs" render --scene cornell --backend serial --threads 2 --width 8 --height 8 --out "$tmp/y.png"
 expect_error "more PBT tiles than pixels" '(tile|pixel)' "$rs" render --scene cornell --backend tiles --threads 2 --pbt 64 --width 8 --height 8 --out "$tmp/y.png"
 expect_error "stats file extension" 'stats.*(json|csv)' "$rs" render --scene cornell --width 8 --height 8 --stats "$tmp/s.txt" --out "$tmp/y2.png"
 [ -e "$tmp/y2.png" ] && bad "image written despite a bad --stats name" || ok "bad --stats name: checked before rendering"
+
+# An exponential ray tree (the camera inside two nested boxes whose walls reflect and transmit
+# everything, depth 64, no cutoff) stops at the ray budget with a warning, in bounded memory.
+box() {  # box NAME HALF: a closed cube of 12 triangles
+  h=$2; printf 'v -%s -%s -%s\nv %s -%s -%s\nv %s %s -%s\nv -%s %s -%s\nv -%s -%s %s\nv %s -%s %s\nv %s %s %s\nv -%s %s %s\nf 1 2 3\nf 1 3 4\nf 6 5 8\nf 6 8 7\nf 5 1 4\nf 5 4 8\nf 2 6 7\nf 2 7 3\nf 4 3 7\nf 4 7 8\nf 5 6 2\nf 5 2 1\n' \
+    $h $h $h $h $h $h $h $h $h $h $h $h $h $h $h $h $h $h $h $h $h $h $h $h >"$tmp/$1.obj"
+}
+box inner 1; box outer 3
+cat >"$tmp/mirrors.json" <<'JSON'
+{"name": "mirrors",
+ "materials": [{"name": "glass", "diffuse": 0.5, "reflectivity": 1, "transmission": 1, "ior": 1.2}],
+ "meshes": [{"file": "inner.obj", "material": "glass"}, {"file": "outer.obj", "material": "glass"}],
+ "lights": [{"position": [0.3, 0.4, 0.2]}],
+ "camera": {"eye": [0.1, 0.2, 0.5], "look_at": [0, 0, -1]}}
+JSON
+if timeout 120 "$rs" render --scene "$tmp/mirrors.json" --width 16 --height 16 --depth 64 --cutoff 0 \
+     --out "$tmp/mirrors.png" -q 2>"$tmp/mirrors.err" && grep -q 'bounce rays dropped.*--ray-budget 1024' "$tmp/mirrors.err" \
+   && test -s "$tmp/mirrors.png"; then
+  ok "exponential ray tree: stops at the ray budget with a warning"
+else bad "exponential ray tree: no warning, failure or timeout"; cat "$tmp/mirrors.err"; fi
 
 # Cell simulator backend (--backend cell): the serial image byte for byte (through the SPEs'
 # local-store pixel buffers and their DMA write-back), the cycle report, simulated cycles that are
