@@ -57,9 +57,9 @@ struct FrameStats {
   uint64_t occluded = 0;             // shadow rays found blocked
   ShadeStats shade;                  // shading calls, spawned rays per kind, texture fetches
   TraceStats trace;                  // cell steps, triangle tests (accumulated by Accel)
-  double generate_seconds = 0;       // primary rays + cutting them into tasks
+  double generate_seconds = 0;       // primary rays (queue backends: and cutting them into tasks)
   double trace_seconds = 0;          // Accel::Intersect + Accel::Occluded
-  double shade_seconds = 0;          // Shade + shadow-ray adds + cutting secondaries into tasks
+  double shade_seconds = 0;          // the Shade kernel (shadow-ray adds and partitions: neither)
   double total_seconds = 0;          // frame wall time (set by the backend)
 
   uint64_t TotalRays() const;

@@ -115,6 +115,18 @@ if timeout 120 "$rs" render --scene "$tmp/mirrors.json" --width 16 --height 16 -
   ok "exponential ray tree: stops at the ray budget with a warning"
 else bad "exponential ray tree: no warning, failure or timeout"; cat "$tmp/mirrors.err"; fi
 
+# Memory does not grow with the ray tree: a 2048x2048 render at depth 4 peaks below its
+# framebuffer (24 bytes per pixel) + 256 MiB.
+if python3 -c "
+import resource, subprocess, sys
+subprocess.run(['$rs', 'render', '--width', '2048', '--height', '2048', '--depth', '4',
+                '--out', '$tmp/big.png', '-q'], check=True)
+peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024
+limit = 24 * 2048 * 2048 + 256 * 2**20
+print(f'peak {peak / 2**20:.0f} MiB, limit {limit / 2**20:.0f} MiB')
+sys.exit(0 if peak <= limit else 1)" >"$tmp/mem.out" 2>&1; then ok "2048x2048 depth 4: $(cat "$tmp/mem.out")"
+else bad "2048x2048 depth 4 over framebuffer + 256 MiB: $(cat "$tmp/mem.out")"; fi
+
 # Cell simulator backend (--backend cell): the serial image byte for byte (through the SPEs'
 # local-store pixel buffers and their DMA write-back), the cycle report, simulated cycles that are
 # the same in every process, and clear errors for bad options.
