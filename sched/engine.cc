@@ -242,6 +242,8 @@ void RayEngine::Reserve(const FrameContext& ctx) {
   occluded_.Reserve(p.shadow);
   contributions_.Reserve(p.contributions);
   light_of_.reserve(p.spawned);
+  local_sums_.resize(3 * batch_);
+  batch_pixels_.resize(batch_);
   light_start_.reserve(lights_ + 1);
 }
 
@@ -268,8 +270,8 @@ void RayEngine::Occlude(const FrameContext& ctx, const RayStreamView& rays, Fram
       ++blocked;
       continue;
     }
-    if (exclusive_) {
-      fb.AddExclusive(rays.pixel[i], rays.wr[i], rays.wg[i], rays.wb[i]);
+    if (local_) {
+      AddLocal(rays.pixel[i], rays.wr[i], rays.wg[i], rays.wb[i]);
     } else {
       fb.Add(rays.pixel[i], rays.wr[i], rays.wg[i], rays.wb[i]);
     }
@@ -322,8 +324,9 @@ void RayEngine::TraceAndShade(const FrameContext& ctx, const RayStreamView& rays
     Shade(*ctx.scene, ctx.shade, SubView(rays, first, m), SubView(hits, first, m),
           contributions_, out, &stats.shade);
     stats.shade_seconds += Seconds(s0, Clock::now());
-    if (exclusive_) {
-      fb.AddExclusive(contributions_.view());
+    if (local_) {
+      const ContributionView c = contributions_.view();
+      for (size_t i = 0; i < c.size; ++i) AddLocal(c.pixel[i], c.r[i], c.g[i], c.b[i]);
     } else {
       fb.Add(contributions_.view());
     }
@@ -377,8 +380,10 @@ void RayEngine::Drain(const FrameContext& ctx, size_t primaries, Framebuffer& fb
 void RayEngine::RenderTile(const FrameContext& ctx, const Tile& tile, Framebuffer& fb,
                            FrameStats& stats) {
   Reserve(ctx);
-  // Every ray of the tile's tree carries a pixel of the tile, and tiles are disjoint: plain adds.
-  exclusive_ = true;
+  // A batch's ray tree contributes only to the batch's own pixels: its rays carry the index of
+  // their primary ray in the batch, their contributions are summed here in fixed point, and
+  // each pixel's sums go to the framebuffer once, when the batch's tree is done.
+  local_ = true;
   const size_t n = tile.NumPixels();
   const size_t batch = static_cast<size_t>(ctx.options.batch);
   for (size_t first = 0; first < n; first += batch) {
@@ -389,15 +394,23 @@ void RayEngine::RenderTile(const FrameContext& ctx, const Tile& tile, Framebuffe
     const RayStreamView v = primary.view();
     GeneratePrimaryRays(ctx.camera, tile, ctx.options.order, first, k, v, 0);
     SealLanes(v, k);
+    for (size_t i = 0; i < k; ++i) {
+      batch_pixels_[i] = v.pixel[i];
+      v.pixel[i] = static_cast<uint32_t>(i);
+    }
+    std::fill(local_sums_.begin(), local_sums_.begin() + 3 * k, 0);
+    local_nan_ = local_clamped_ = 0;
     stats.generate_seconds += Seconds(t0, Clock::now());
     Drain(ctx, k, fb, stats);
+    for (size_t i = 0; i < k; ++i) fb.SetPixelSums(batch_pixels_[i], &local_sums_[3 * i]);
+    fb.AddCounters(local_nan_, local_clamped_);
   }
 }
 
 void RayEngine::TraceGeneration(const FrameContext& ctx, const RayStreamView& rays,
                                 Framebuffer& fb, RayStream& spawned, FrameStats& stats) {
   Reserve(ctx);
-  exclusive_ = false;  // a generation may hold any pixels another thread also adds to
+  local_ = false;  // a generation may hold any pixels another thread also adds to
   size_t shadow = 0;
   for (size_t i = 0; i < rays.size; ++i) shadow += rays.kind[i] == kShadowKind ? 1 : 0;
   if (shadow == rays.size) return Occlude(ctx, rays, fb, stats);

@@ -32,8 +32,8 @@ class RayEngine {
   // batches, each batch's tree finished (deepest pending generation first) before the next
   // batch is generated. Shadow rays are traced as soon as they are spawned; an unoccluded one
   // adds its weight to its pixel. Counters and stage times go to `stats`. The tile's pixels
-  // must be this caller's for the frame (Framebuffer::AddExclusive): no other thread renders
-  // an overlapping tile or adds to them concurrently.
+  // must be this caller's for the frame (Framebuffer::SetPixelSums): no other thread renders
+  // an overlapping tile or adds to them concurrently; fb may be kResolved.
   void RenderTile(const FrameContext& ctx, const Tile& tile, Framebuffer& fb, FrameStats& stats);
 
   // One generation of `rays` (padded; any kinds, at most ctx.options.batch rays for bounded
@@ -71,7 +71,24 @@ class RayEngine {
   int depth_ = -1;
   size_t lights_ = 0;
   int task_size_ = 1 << 30;
-  bool exclusive_ = false;  // RenderTile: the tile's pixels are this worker's (AddExclusive)
+  // RenderTile: rays carry their primary's index in the batch, contributions are summed here.
+  bool local_ = false;
+  std::vector<int64_t> local_sums_;     // 3 per primary ray of the batch
+  std::vector<uint32_t> batch_pixels_;  // the batch's pixels
+  uint64_t local_nan_ = 0, local_clamped_ = 0;
+  void AddLocal(uint32_t i, float r, float g, float b) {
+    int64_t f[3];
+    bool clamped = false;
+    if (!ContributionToFixed(r, g, b, f, &clamped)) {
+      ++local_nan_;
+      return;
+    }
+    local_clamped_ += clamped ? 1 : 0;
+    int64_t* p = &local_sums_[3 * static_cast<size_t>(i)];
+    p[0] += f[0];
+    p[1] += f[1];
+    p[2] += f[2];
+  }
 };
 
 // The serial reference backend: the image's tiles (tile_size x tile_size, row-major) one after

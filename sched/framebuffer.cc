@@ -10,7 +10,7 @@
 
 namespace rs {
 
-Framebuffer::Framebuffer(int width, int height) {
+Framebuffer::Framebuffer(int width, int height, Storage storage) {
   if (width < 1 || height < 1 ||
       static_cast<uint64_t>(width) * static_cast<uint64_t>(height) >= (uint64_t{1} << 32)) {
     throw Error("framebuffer: image size " + std::to_string(width) + "x" +
@@ -18,7 +18,12 @@ Framebuffer::Framebuffer(int width, int height) {
   }
   width_ = width;
   height_ = height;
-  sums_.assign(3 * num_pixels(), 0);
+  storage_ = storage;
+  if (storage == Storage::kFixed) {
+    sums_.assign(3 * num_pixels(), 0);
+  } else {
+    rgb_.assign(3 * num_pixels(), 0.0f);
+  }
 }
 
 Framebuffer::Framebuffer(Framebuffer&& other) noexcept { *this = std::move(other); }
@@ -26,8 +31,11 @@ Framebuffer::Framebuffer(Framebuffer&& other) noexcept { *this = std::move(other
 Framebuffer& Framebuffer::operator=(Framebuffer&& other) noexcept {
   width_ = std::exchange(other.width_, 0);
   height_ = std::exchange(other.height_, 0);
+  storage_ = std::exchange(other.storage_, Storage::kFixed);
   sums_ = std::move(other.sums_);
   other.sums_.clear();
+  rgb_ = std::move(other.rgb_);
+  other.rgb_.clear();
   dropped_nan_ = std::exchange(other.dropped_nan_, 0);
   clamped_ = std::exchange(other.clamped_, 0);
   return *this;
@@ -35,15 +43,17 @@ Framebuffer& Framebuffer::operator=(Framebuffer&& other) noexcept {
 
 void Framebuffer::Clear() {
   std::fill(sums_.begin(), sums_.end(), 0);
+  std::fill(rgb_.begin(), rgb_.end(), 0.0f);
   dropped_nan_ = 0;
   clamped_ = 0;
 }
 
 void Framebuffer::Accumulate(const Framebuffer& other) {
-  if (other.width_ != width_ || other.height_ != height_) {
+  if (other.width_ != width_ || other.height_ != height_ || storage_ != Storage::kFixed ||
+      other.storage_ != Storage::kFixed) {
     throw Error("framebuffer: cannot accumulate " + std::to_string(other.width_) + "x" +
                 std::to_string(other.height_) + " into " + std::to_string(width_) + "x" +
-                std::to_string(height_));
+                std::to_string(height_) + " (both must hold fixed-point sums)");
   }
   for (size_t i = 0; i < sums_.size(); ++i) sums_[i] += other.sums_[i];
   dropped_nan_ += other.dropped_nan_;
@@ -51,12 +61,12 @@ void Framebuffer::Accumulate(const Framebuffer& other) {
 }
 
 void Framebuffer::ToRgb(std::vector<float>& rgb) const {
-  rgb.resize(sums_.size());
-  // Exact scaling in double (2^-32), then one rounding to float.
-  constexpr double kInvScale = 1.0 / 4294967296.0;
-  for (size_t i = 0; i < sums_.size(); ++i) {
-    rgb[i] = static_cast<float>(static_cast<double>(sums_[i]) * kInvScale);
+  if (storage_ == Storage::kResolved) {
+    rgb = rgb_;
+    return;
   }
+  rgb.resize(sums_.size());
+  for (size_t i = 0; i < sums_.size(); ++i) rgb[i] = FixedToFloat(sums_[i]);
 }
 
 std::vector<float> Framebuffer::ToRgb() const {

@@ -24,12 +24,32 @@ inline constexpr int kFixedFracBits = 32;
 inline constexpr float kFixedScale = 4294967296.0f;  // 2^32, exact in float
 inline constexpr float kMaxContribution = 4096.0f;   // 2^12
 
+// The fixed-point channels of one contribution (Framebuffer::ToFixed per channel). Returns false
+// if a channel is NaN (the contribution is then dropped whole); *clamped is set when a channel
+// was clamped.
+inline bool ContributionToFixed(float r, float g, float b, int64_t out[3], bool* clamped);
+
+// One fixed-point pixel channel sum as the image's float: sum * 2^-32 (exact in double),
+// rounded once to float.
+inline float FixedToFloat(int64_t sum) {
+  constexpr double kInvScale = 1.0 / 4294967296.0;
+  return static_cast<float>(static_cast<double>(sum) * kInvScale);
+}
+
 class Framebuffer {
  public:
+  // kFixed: per-pixel fixed-point sums (24 bytes per pixel) taking concurrent Adds from any
+  // thread in any order: every backend. kResolved: the float image only (12 bytes per pixel);
+  // each pixel receives its complete sums once per frame through SetPixelSums (the frame
+  // engine's tiles, whose rays contribute only to their own pixels), so a big image needs half
+  // the memory. The image is the same either way.
+  enum class Storage { kFixed, kResolved };
+
   Framebuffer() = default;
   // width * height pixels, all zero. Throws rs::Error if width or height < 1 or the pixel
   // count does not fit 32-bit pixel ids.
-  Framebuffer(int width, int height);
+  Framebuffer(int width, int height, Storage storage = Storage::kFixed);
+  Storage storage() const { return storage_; }
 
   // Movable (not while other threads add), not copyable.
   Framebuffer(Framebuffer&& other) noexcept;
@@ -76,40 +96,52 @@ class Framebuffer {
     for (size_t i = 0; i < c.size; ++i) AddAs<true>(c.pixel[i], c.r[i], c.g[i], c.b[i]);
   }
 
-  // The same sums as Add with plain (non-atomic) adds to the pixel, for a caller that owns the
-  // pixel for the whole frame: no other thread adds to it concurrently (the frame engine's
-  // tiles: a tile's rays contribute only to the tile's own pixels, and tiles are disjoint).
-  // The NaN and clamp counters stay atomic.
-  void AddExclusive(uint32_t pixel, float r, float g, float b) { AddAs<false>(pixel, r, g, b); }
-  void AddExclusive(const ContributionView& c) {
-    for (size_t i = 0; i < c.size; ++i) AddAs<false>(c.pixel[i], c.r[i], c.g[i], c.b[i]);
-  }
-  // Add (shared = true) or AddExclusive.
+  // Add (shared = true: three relaxed atomic adds) or plain adds (false) to a kFixed buffer.
   template <bool kShared>
   void AddAs(uint32_t pixel, float r, float g, float b) {
-    bool nan = false, clamped = false;
-    const int64_t fr = ToFixed(r, &nan, &clamped);
-    const int64_t fg = ToFixed(g, &nan, &clamped);
-    const int64_t fb = ToFixed(b, &nan, &clamped);
-    if (nan) {
+    HWY_DASSERT(storage_ == Storage::kFixed);
+    int64_t f[3];
+    bool clamped = false;
+    if (!ContributionToFixed(r, g, b, f, &clamped)) {
       std::atomic_ref<uint64_t>(dropped_nan_).fetch_add(1, std::memory_order_relaxed);
       return;
     }
     if (clamped) std::atomic_ref<uint64_t>(clamped_).fetch_add(1, std::memory_order_relaxed);
     HWY_DASSERT(pixel < num_pixels());
     int64_t* p = sums_.data() + 3 * static_cast<size_t>(pixel);
-    if constexpr (kShared) {
-      if (fr != 0) std::atomic_ref<int64_t>(p[0]).fetch_add(fr, std::memory_order_relaxed);
-      if (fg != 0) std::atomic_ref<int64_t>(p[1]).fetch_add(fg, std::memory_order_relaxed);
-      if (fb != 0) std::atomic_ref<int64_t>(p[2]).fetch_add(fb, std::memory_order_relaxed);
-    } else {
-      p[0] += fr;
-      p[1] += fg;
-      p[2] += fb;
+    for (int c = 0; c < 3; ++c) {
+      if constexpr (kShared) {
+        if (f[c] != 0) std::atomic_ref<int64_t>(p[c]).fetch_add(f[c], std::memory_order_relaxed);
+      } else {
+        p[c] += f[c];
+      }
     }
   }
 
-  // Adds every pixel sum and counter of `other` (same size) into this one: partial
+  // A pixel's complete sums of the frame (3 channels) from a caller that owns the pixel (no
+  // other thread adds to it, and no other call sets it this frame): kFixed adds them (plain
+  // adds), kResolved stores their floats. The image is then what Add-ing the contributions
+  // behind the sums one by one gives. AddCounters: the contributions the caller dropped (NaN)
+  // and clamped.
+  void SetPixelSums(uint32_t pixel, const int64_t sums[3]) {
+    HWY_DASSERT(pixel < num_pixels());
+    const size_t i = 3 * static_cast<size_t>(pixel);
+    if (storage_ == Storage::kFixed) {
+      for (int c = 0; c < 3; ++c) sums_[i + c] += sums[c];
+    } else {
+      for (int c = 0; c < 3; ++c) rgb_[i + c] = FixedToFloat(sums[c]);
+    }
+  }
+  void AddCounters(uint64_t dropped_nan, uint64_t clamped) {
+    if (dropped_nan != 0) {
+      std::atomic_ref<uint64_t>(dropped_nan_).fetch_add(dropped_nan, std::memory_order_relaxed);
+    }
+    if (clamped != 0) {
+      std::atomic_ref<uint64_t>(clamped_).fetch_add(clamped, std::memory_order_relaxed);
+    }
+  }
+
+  // Adds every pixel sum and counter of `other` (same size, both kFixed) into this one: partial
   // framebuffers (e.g. per MPI rank) merge exactly. Not concurrent with Add.
   void Accumulate(const Framebuffer& other);
 
@@ -118,7 +150,10 @@ class Framebuffer {
   std::vector<float> ToRgb() const;
   void ToRgb(std::vector<float>& rgb) const;
 
-  // Raw fixed-point sums (3 per pixel), for exact comparisons and reductions.
+  // kResolved: the image (width * height * 3 floats, the ToRgb values); empty for kFixed.
+  const std::vector<float>& resolved() const { return rgb_; }
+
+  // Raw fixed-point sums (3 per pixel; kFixed only), for exact comparisons and reductions.
   const int64_t* sums() const { return sums_.data(); }
   int64_t* sums() { return sums_.data(); }
 
@@ -138,9 +173,19 @@ class Framebuffer {
 
   int width_ = 0;
   int height_ = 0;
-  std::vector<int64_t> sums_;  // 3 per pixel
+  Storage storage_ = Storage::kFixed;
+  std::vector<int64_t> sums_;  // kFixed: 3 per pixel
+  std::vector<float> rgb_;     // kResolved: 3 per pixel
   alignas(std::atomic_ref<uint64_t>::required_alignment) uint64_t dropped_nan_ = 0;
   alignas(std::atomic_ref<uint64_t>::required_alignment) uint64_t clamped_ = 0;
 };
+
+inline bool ContributionToFixed(float r, float g, float b, int64_t out[3], bool* clamped) {
+  bool nan = false;
+  out[0] = Framebuffer::ToFixed(r, &nan, clamped);
+  out[1] = Framebuffer::ToFixed(g, &nan, clamped);
+  out[2] = Framebuffer::ToFixed(b, &nan, clamped);
+  return !nan;
+}
 
 }  // namespace rs

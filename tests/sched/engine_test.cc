@@ -8,6 +8,7 @@
 #include <cstring>
 #include <vector>
 
+#include "sched/backends.h"
 #include "tests/sched/hand_scenes.h"
 
 namespace rs {
@@ -150,6 +151,38 @@ TEST_CASE("an exponential ray tree stops at the ray budget, in bounded memory") 
   CHECK(a.budget_dropped == 0);
   CHECK(a.TotalRays() > 40 * pixels);  // the tree did branch (a chain would be ~18 per pixel)
   CHECK(SameSums(fa, fbb));
+}
+
+TEST_CASE("a resolved framebuffer (floats only) holds the fixed-point framebuffer's image") {
+  const Scene s = test::HandScene();
+  const Accel accel(test::MeshOf(s));
+  RenderOptions o;
+  o.width = 70;
+  o.height = 45;
+  o.max_depth = 4;
+  const FrameContext ctx = MakeFrameContext(s, accel, s.camera, o);
+  Framebuffer fixed(o.width, o.height);
+  Framebuffer resolved(o.width, o.height, Framebuffer::Storage::kResolved);
+  SerialRenderer r;
+  r.Render(ctx, fixed);
+  r.Render(ctx, resolved);
+  CHECK(resolved.sums() == nullptr);
+  const std::vector<float> a = fixed.ToRgb();
+  REQUIRE(resolved.resolved().size() == a.size());
+  CHECK(std::memcmp(a.data(), resolved.resolved().data(), a.size() * sizeof(float)) == 0);
+  CHECK(resolved.dropped_nan() == fixed.dropped_nan());
+  CHECK(resolved.clamped() == fixed.clamped());
+  // The queue backends add from any thread to any pixel: they refuse it.
+  BackendOptions b;
+  b.kind = BackendKind::kLock;
+  b.threads = 2;
+  HostRenderer lock(b);
+  CHECK_THROWS_AS(lock.BeginFrame(ctx, resolved), Error);
+  b.kind = BackendKind::kTiles;
+  HostRenderer tiles(b);
+  resolved.Clear();
+  tiles.RenderFrame(ctx, resolved);
+  CHECK(std::memcmp(a.data(), resolved.resolved().data(), a.size() * sizeof(float)) == 0);
 }
 
 }  // namespace
