@@ -121,9 +121,14 @@ void MoveRays(const RayStreamView& v, size_t from, size_t end, size_t to) {
 }
 
 // The light a shadow ray runs to: it goes from o to o + d = the light's position (up to
-// rounding), so the nearest light to o + d.
-uint32_t LightOf(const RayStreamView& r, size_t i, std::span<const PointLight> lights) {
+// rounding), so the nearest light to o + d. Shade emits runs of one light, so `guess` (the
+// previous ray's light) is tried first and taken when o + d lies within `near2` (a quarter of
+// the smallest distance between two lights, squared) of it.
+uint32_t LightOf(const RayStreamView& r, size_t i, std::span<const PointLight> lights,
+                 uint32_t guess, float near2) {
   const glm::vec3 end(r.ox[i] + r.dx[i], r.oy[i] + r.dy[i], r.oz[i] + r.dz[i]);
+  const glm::vec3 g = end - lights[guess].position;
+  if (glm::dot(g, g) < near2) return guess;
   uint32_t best = 0;
   float best_d2 = std::numeric_limits<float>::infinity();
   for (uint32_t l = 0; l < lights.size(); ++l) {
@@ -137,6 +142,18 @@ uint32_t LightOf(const RayStreamView& r, size_t i, std::span<const PointLight> l
   return best;
 }
 
+// A quarter of the smallest distance between two of the lights, squared (0 if two coincide).
+float NearLight2(std::span<const PointLight> lights) {
+  float d2 = std::numeric_limits<float>::infinity();
+  for (size_t a = 0; a < lights.size(); ++a) {
+    for (size_t b = a + 1; b < lights.size(); ++b) {
+      const glm::vec3 e = lights[a].position - lights[b].position;
+      d2 = std::min(d2, glm::dot(e, e));
+    }
+  }
+  return d2 / 16.0f;
+}
+
 // The shadow rays of `from` appended to `to` grouped by light (stable within a light). Shade
 // emits them light by light per SIMD vector, so a 64-ray run would mix several lights and miss
 // the coherent packets; grouped, each run shares its light. Order never changes the image.
@@ -147,9 +164,11 @@ void AppendShadowByLight(const RayStreamView& from, std::span<const PointLight> 
   light_of.resize(from.size);
   start.assign(lights.size() + 1, 0);
   size_t count = 0;
+  const float near2 = NearLight2(lights);
+  uint32_t guess = 0;
   for (size_t i = 0; i < from.size; ++i) {
     if (from.kind[i] != kShadowKind) continue;
-    light_of[i] = LightOf(from, i, lights);
+    guess = light_of[i] = LightOf(from, i, lights, guess, near2);
     ++start[light_of[i] + 1];
     ++count;
   }
