@@ -4,6 +4,7 @@
 // accuracy (Table 1), frame imbalance static vs PBT, and PBT-Greedy / PBT-Visit vs PBT-Random on
 // amphitheater:1 and :32 (Fig. 4). Usage: sched_bench --out DIR [--quick] [--only LIST].
 #include <fmt/core.h>
+#include <fmt/ranges.h>
 #include <sys/resource.h>
 #include <unistd.h>
 
@@ -35,6 +36,8 @@ struct Args {
   std::string out = "sched_results";
   bool quick = false;  // tiny sizes: checks the pipeline, numbers mean nothing
   std::set<std::string> only;
+  // --only pbt: the tile costs fed to PBT (--pbt-costs work,cpu,wall).
+  std::vector<PbtCost> pbt_costs = {PbtCost::kWork, PbtCost::kCpu, PbtCost::kWall};
 };
 
 bool Want(const Args& a, const std::string& part) { return a.only.empty() || a.only.count(part); }
@@ -308,8 +311,14 @@ void TileShapes(const Args& a, const std::filesystem::path& dir) {
 
 // ---------------------------------------------------------------------------------------------
 // PBT paper: prediction accuracy over a walk-through (Table 1) and frame imbalance, static
-// tiling vs PBT-Random / Greedy / Visit; n = 32 PBT workers (the paper's) run by 2 threads.
-
+// tiling vs PBT-Random / Greedy / Visit; n = 32 PBT workers (the paper's) run by 2 threads. Tile
+// costs fed to PBT: work (the deterministic count, sched/tile_plan.h: the same numbers in every
+// run, whatever the load), cpu (the rendering thread's CPU time) and wall (the paper's). With
+// the work cost the accuracy does not depend on the assignment (the tiling does not), so the
+// assignments differ only in their imbalance. Imbalance: worker = slowest / mean of the
+// workers' lists as assigned (no stealing); demand = the paper's demand-driven master-worker
+// (§2, with the §4 affinity) on the measured costs (TilePlanReport::demand_imbalance); counter
+// (not in the paper): no lists, the n workers take the tiles costliest-predicted first.
 void PbtAccuracy(const Args& a, const std::filesystem::path& dir) {
   const std::string name = "erw6";
   const int size = a.quick ? 64 : 256;
@@ -318,10 +327,10 @@ void PbtAccuracy(const Args& a, const std::filesystem::path& dir) {
   const Loaded l = Load(name);
   Csv table(dir / "pbt.csv",
             "scene,size,clock,assign,k,speed,workers,threads,frames,within5,within10,within15,"
-            "worker_imbalance,thread_imbalance,median_ms,update_steps,load_avg");
+            "worker_imbalance,demand_imbalance,thread_imbalance,median_ms,update_steps,load_avg");
   Csv per_frame(dir / "pbt_frames.csv",
                 "clock,assign,k,speed,frame,within5,within10,within15,worker_imbalance,"
-                "variance_before,variance_after,steps,ms");
+                "demand_imbalance,variance_before,variance_after,steps,ms");
   fmt::print("PBT {} {}x{}, n = {} workers on 2 threads, {} frames (load {})\n", name, size, size,
              workers, frames, LoadAverage());
   struct Run {
@@ -329,13 +338,16 @@ void PbtAccuracy(const Args& a, const std::filesystem::path& dir) {
     PbtAssign assign;
   };
   std::vector<Run> runs;
-  for (const PbtCost cost : {PbtCost::kWork, PbtCost::kCpu}) {
-    for (const PbtAssign as :
-         {PbtAssign::kStatic, PbtAssign::kRandom, PbtAssign::kGreedy, PbtAssign::kVisit}) {
+  for (const PbtCost cost : a.pbt_costs) {
+    if (cost == PbtCost::kWall) {
+      runs.push_back({cost, PbtAssign::kRandom});  // noisy on a shared machine: one assignment
+      continue;
+    }
+    for (const PbtAssign as : {PbtAssign::kStatic, PbtAssign::kRandom, PbtAssign::kGreedy,
+                               PbtAssign::kVisit, PbtAssign::kCounter}) {
       runs.push_back({cost, as});
     }
   }
-  runs.push_back({PbtCost::kWall, PbtAssign::kRandom});  // wall-clock tile times, the paper's
   for (const Run& run : runs) {
     for (const int k : {1, 4}) {
       for (const float speed : {1.0f, 2.0f}) {
@@ -349,38 +361,187 @@ void PbtAccuracy(const Args& a, const std::filesystem::path& dir) {
         o.seed = 12345;
         HostRenderer r(o);
         Framebuffer fb(size, size);
-        std::vector<double> w5, w10, w15, wimb, timb, ms, steps;
+        std::vector<double> w5, w10, w15, wimb, dimb, timb, ms, steps;
         for (int f = 0; f < frames; ++f) {
           const Camera cam = l.scene.path.At(f, speed, l.scene.camera);
           fb.Clear();
           const HostFrameStats& s =
               r.RenderFrame(MakeFrameContext(l.scene, *l.accel, cam, Options(size, size)), fb);
-          per_frame.Row("{},{},{},{},{},{:.4f},{:.4f},{:.4f},{:.4f},{:.6g},{:.6g},{},{:.3f}",
+          per_frame.Row("{},{},{},{},{},{:.4f},{:.4f},{:.4f},{:.4f},{:.4f},{:.6g},{:.6g},{},{:.3f}",
                         PbtCostName(run.cost), PbtAssignName(run.assign), k, speed, f,
                         s.accuracy.within5, s.accuracy.within10, s.accuracy.within15,
-                        s.worker_imbalance, s.update.variance_before, s.update.variance_after,
-                        s.update.steps, 1e3 * s.total.total_seconds);
+                        s.worker_imbalance, s.demand_imbalance, s.update.variance_before,
+                        s.update.variance_after, s.update.steps, 1e3 * s.total.total_seconds);
           if (f == 0) continue;  // no prediction yet; and warm-up
           w5.push_back(s.accuracy.within5);
           w10.push_back(s.accuracy.within10);
           w15.push_back(s.accuracy.within15);
           wimb.push_back(s.worker_imbalance);
+          dimb.push_back(s.demand_imbalance);
           timb.push_back(s.imbalance);
           ms.push_back(s.total.total_seconds);
           steps.push_back(s.update.steps);
         }
-        table.Row("{},{},{},{},{},{},{},{},{},{:.4f},{:.4f},{:.4f},{:.4f},{:.4f},{:.3f},{:.2f},{}",
-                  name, size, PbtCostName(run.cost), PbtAssignName(run.assign), k, speed,
-                  workers, o.threads, frames - 1, Mean(w5), Mean(w10), Mean(w15), Mean(wimb),
-                  Mean(timb), 1e3 * Median(ms), Mean(steps), LoadAverage());
+        table.Row(
+            "{},{},{},{},{},{},{},{},{},{:.4f},{:.4f},{:.4f},{:.4f},{:.4f},{:.4f},{:.3f},{:.2f},{}",
+            name, size, PbtCostName(run.cost), PbtAssignName(run.assign), k, speed, workers,
+            o.threads, frames - 1, Mean(w5), Mean(w10), Mean(w15), Mean(wimb), Mean(dimb),
+            Mean(timb), 1e3 * Median(ms), Mean(steps), LoadAverage());
         fmt::print(
-            "  {:4} {:6} k={} x{}: within 5/10/15 % = {:.1f} / {:.1f} / {:.1f} %, worker "
-            "imbalance {:.3f}\n",
+            "  {:4} {:6} k={} x{}: within 5/10/15 % = {:.1f} / {:.1f} / {:.1f} %, imbalance "
+            "worker {:.3f} demand {:.3f}\n",
             PbtCostName(run.cost), PbtAssignName(run.assign), k, speed, 100 * Mean(w5),
-            100 * Mean(w10), 100 * Mean(w15), Mean(wimb));
+            100 * Mean(w10), 100 * Mean(w15), Mean(wimb), Mean(dimb));
       }
     }
   }
+}
+
+// Calibration of the deterministic tile cost (sched/tile_plan.h TileWorkCost): every tile's CPU
+// time against its four counts (rays, cell steps, triangle tests, shading calls), one render
+// thread, a few frames of several procedural scenes; non-negative least squares without
+// intercept. Writes calibrate.csv (one row per tile) and calibrate.txt (coefficients, fit
+// quality, the line for tile_plan.cc). The first frame of each scene is a warm-up, not used.
+
+// Solves the normal equations A^T A x = A^T b (columns scaled to unit norm first) by Gaussian
+// elimination with partial pivoting.
+std::vector<double> LeastSquares(const std::vector<std::vector<double>>& a,
+                                 const std::vector<double>& b) {
+  const size_t n = a.empty() ? 0 : a[0].size();
+  std::vector<double> scale(n, 0.0);
+  for (const auto& row : a) {
+    for (size_t j = 0; j < n; ++j) scale[j] += row[j] * row[j];
+  }
+  for (double& x : scale) x = x > 0 ? 1.0 / std::sqrt(x) : 1.0;
+  std::vector<std::vector<double>> m(n, std::vector<double>(n + 1, 0.0));
+  for (size_t r = 0; r < a.size(); ++r) {
+    for (size_t i = 0; i < n; ++i) {
+      for (size_t j = 0; j < n; ++j) m[i][j] += a[r][i] * scale[i] * a[r][j] * scale[j];
+      m[i][n] += a[r][i] * scale[i] * b[r];
+    }
+  }
+  for (size_t c = 0; c < n; ++c) {
+    size_t pivot = c;
+    for (size_t r = c + 1; r < n; ++r) {
+      if (std::abs(m[r][c]) > std::abs(m[pivot][c])) pivot = r;
+    }
+    std::swap(m[c], m[pivot]);
+    if (m[c][c] == 0) continue;
+    for (size_t r = 0; r < n; ++r) {
+      if (r == c) continue;
+      const double f = m[r][c] / m[c][c];
+      for (size_t k = c; k <= n; ++k) m[r][k] -= f * m[c][k];
+    }
+  }
+  std::vector<double> x(n, 0.0);
+  for (size_t i = 0; i < n; ++i) x[i] = m[i][i] != 0 ? m[i][n] / m[i][i] * scale[i] : 0.0;
+  return x;
+}
+
+void Calibrate(const Args& a, const std::filesystem::path& dir) {
+  const std::vector<std::string> scenes =
+      a.quick ? std::vector<std::string>{"cornell"}
+              : std::vector<std::string>{"erw6", "cornell", "spherebox", "amphitheater:4"};
+  const int size = a.quick ? 48 : 256;
+  const int frames = a.quick ? 2 : 4;  // the first is a warm-up
+  Csv table(dir / "calibrate.csv",
+            "scene,frame,x0,y0,x1,y1,rays,cell_steps,triangle_tests,shading_calls,cpu_seconds,"
+            "seconds");
+  std::vector<std::vector<double>> rows;
+  std::vector<double> cpu;
+  fmt::print("calibration: {} at {}x{}, 16x16 tiles, 1 render thread (load {})\n",
+             fmt::format("{}", fmt::join(scenes, ", ")), size, size, LoadAverage());
+  for (const std::string& name : scenes) {
+    const Loaded l = Load(name);
+    BackendOptions o;
+    o.kind = BackendKind::kTiles;
+    o.threads = 1;
+    o.tile_width = o.tile_height = 16;
+    HostRenderer r(o);
+    Framebuffer fb(size, size);
+    for (int f = 0; f < frames; ++f) {
+      fb.Clear();
+      const Camera cam = l.scene.path.At(f, 1.0f, l.scene.camera);
+      const HostFrameStats& s =
+          r.RenderFrame(MakeFrameContext(l.scene, *l.accel, cam, Options(size, size)), fb);
+      if (f == 0) continue;
+      for (const TileRecord& t : s.tiles) {
+        const TileWork& w = t.counts;
+        table.Row("{},{},{},{},{},{},{},{},{},{},{:.9f},{:.9f}", name, f, t.tile.x0, t.tile.y0,
+                  t.tile.x1, t.tile.y1, w.rays, w.cell_steps, w.triangle_tests, w.shading_calls,
+                  t.cpu_seconds, t.seconds);
+        rows.push_back({static_cast<double>(w.rays), static_cast<double>(w.cell_steps),
+                        static_cast<double>(w.triangle_tests),
+                        static_cast<double>(w.shading_calls)});
+        cpu.push_back(t.cpu_seconds);
+      }
+    }
+  }
+  // Non-negative least squares by elimination: a count whose coefficient comes out negative
+  // (collinear with the others, e.g. shading calls with rays) is dropped and the rest refitted.
+  std::vector<bool> used(4, true);
+  std::vector<double> x(4, 0.0);
+  for (;;) {
+    std::vector<size_t> cols;
+    for (size_t j = 0; j < 4; ++j) {
+      if (used[j]) cols.push_back(j);
+    }
+    std::vector<std::vector<double>> sub;
+    for (const auto& row : rows) {
+      std::vector<double> r;
+      for (const size_t j : cols) r.push_back(row[j]);
+      sub.push_back(r);
+    }
+    const std::vector<double> y = LeastSquares(sub, cpu);
+    x.assign(4, 0.0);
+    size_t worst = 4;
+    for (size_t i = 0; i < cols.size(); ++i) {
+      x[cols[i]] = y[i];
+      if (y[i] < 0 && (worst == 4 || y[i] < x[worst])) worst = cols[i];
+    }
+    if (worst == 4) break;
+    used[worst] = false;
+  }
+  const TileWorkCoefficients fit{x[0], x[1], x[2], x[3]};
+  std::string dropped;
+  const char* names[4] = {"per_ray", "per_cell_step", "per_triangle_test", "per_shading_call"};
+  for (size_t j = 0; j < 4; ++j) {
+    if (!used[j]) dropped += std::string(" ") + names[j];
+  }
+  // Fit quality: R^2 of the fit, and the share of tiles whose fitted cost is within 10 % / 25 %
+  // of their CPU time (the calibration machine's noise included).
+  double mean = 0;
+  for (const double c : cpu) mean += c;
+  mean /= static_cast<double>(std::max<size_t>(cpu.size(), 1));
+  double ss_res = 0, ss_tot = 0;
+  size_t in10 = 0, in25 = 0;
+  for (size_t i = 0; i < rows.size(); ++i) {
+    const TileWork w{static_cast<uint64_t>(rows[i][0]), static_cast<uint64_t>(rows[i][1]),
+                     static_cast<uint64_t>(rows[i][2]), static_cast<uint64_t>(rows[i][3])};
+    const double e = TileWorkCost(w, fit);
+    ss_res += (cpu[i] - e) * (cpu[i] - e);
+    ss_tot += (cpu[i] - mean) * (cpu[i] - mean);
+    const double err = PredictionError(e, cpu[i]);
+    in10 += err <= 0.10;
+    in25 += err <= 0.25;
+  }
+  const double n = static_cast<double>(std::max<size_t>(rows.size(), 1));
+  std::ofstream txt(dir / "calibrate.txt");
+  const std::string text = fmt::format(
+      "tiles: {}\nload average: {}\nper_ray {:.4g} s\nper_cell_step {:.4g} s\n"
+      "per_triangle_test {:.4g} s\nper_shading_call {:.4g} s\n{}R^2 {:.4f}\n"
+      "fitted cost within 10 % of the tile's CPU time: {:.1f} % of tiles, within 25 %: {:.1f} %\n"
+      "tile_plan.cc: {{{:.3e}, {:.3e}, {:.3e}, {:.3e}}}\n"
+      "command: sched_bench --out DIR --only calibrate (bench/run_sched_bench.sh BUILD DIR --only "
+      "calibrate)\n",
+      rows.size(), LoadAverage(), fit.per_ray, fit.per_cell_step, fit.per_triangle_test,
+      fit.per_shading_call,
+      dropped.empty() ? "" : "dropped (negative fit, collinear with the others):" + dropped + "\n",
+      ss_tot > 0 ? 1.0 - ss_res / ss_tot : 0.0, 100.0 * in10 / n,
+      100.0 * in25 / n, fit.per_ray, fit.per_cell_step, fit.per_triangle_test,
+      fit.per_shading_call);
+  txt << text;
+  fmt::print("{}", text);
 }
 
 // PBT paper Fig. 4: locality-aware assignment on small and large scenes. Two real workers (the
@@ -461,6 +622,22 @@ int Main(int argc, char** argv) {
     const std::string arg = argv[i];
     if (arg == "--out" && i + 1 < argc) {
       a.out = argv[++i];
+    } else if (arg == "--pbt-costs" && i + 1 < argc) {
+      a.pbt_costs.clear();
+      std::string list = argv[++i];
+      for (size_t start = 0; start <= list.size();) {
+        const size_t comma = list.find(',', start);
+        const std::string item =
+            list.substr(start, comma == std::string::npos ? std::string::npos : comma - start);
+        PbtCost cost;
+        if (!ParsePbtCost(item, &cost)) {
+          fmt::print(stderr, "sched_bench: --pbt-costs {}: expected wall, cpu, work\n", item);
+          return 2;
+        }
+        a.pbt_costs.push_back(cost);
+        if (comma == std::string::npos) break;
+        start = comma + 1;
+      }
     } else if (arg == "--quick") {
       a.quick = true;
     } else if (arg == "--only" && i + 1 < argc) {
@@ -476,7 +653,8 @@ int Main(int argc, char** argv) {
     } else {
       fmt::print(
           stderr,
-          "usage: sched_bench [--out DIR] [--quick] [--only scaling,tiles,pbt,amphitheater]\n");
+          "usage: sched_bench [--out DIR] [--quick] [--only scaling,tiles,pbt,amphitheater,"
+          "calibrate] [--pbt-costs work,cpu,wall]\n");
       return 2;
     }
   }
@@ -497,6 +675,7 @@ int Main(int argc, char** argv) {
   if (Want(a, "tiles")) TileShapes(a, dir);
   if (Want(a, "pbt")) PbtAccuracy(a, dir);
   if (Want(a, "amphitheater")) Amphitheater(a, dir);
+  if (Want(a, "calibrate")) Calibrate(a, dir);
   {
     std::ofstream meta(dir / "meta.txt", std::ios::app);
     meta << "load average at end: " << LoadAverage() << "\n";

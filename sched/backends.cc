@@ -109,15 +109,8 @@ void ValidateBackendOptions(const BackendOptions& o) {
     fail(fmt::format("pbt_cost {} needs a PBT tiling (pbt_tiles_per_worker > 0)",
                      PbtCostName(o.pbt_cost)));
   }
-  if (o.pbt_tiles_per_worker > 0 && o.assign == PbtAssign::kCounter) {
-    if (o.pbt_steal) {
-      fail("pbt_steal needs per-worker lists; assign counter has one shared counter");
-    }
-    if (o.pbt_workers != 0 && o.pbt_workers != o.threads) {
-      fail(fmt::format("assign counter: the {} threads take the tiles from one counter, so "
-                       "pbt_workers must be 0 or {}, not {}",
-                       o.threads, o.threads, o.pbt_workers));
-    }
+  if (o.pbt_steal && o.assign == PbtAssign::kCounter) {
+    fail("pbt_steal needs per-worker lists; assign counter has one shared counter");
   }
 }
 
@@ -818,6 +811,8 @@ class TilesImpl final : public HostRenderer::Impl {
                                                        : r.seconds;
       ran_by[i] = r.thread;
     }
+    // Counter: the threads are the workers only when there are as many (else a model of n).
+    if (PbtWorkers() != options_.threads) ran_by.clear();
     const TilePlanReport report = plan_->End(costs, ran_by);
     frame_ = nullptr;
     if (!report.pbt) return;
@@ -825,6 +820,7 @@ class TilesImpl final : public HostRenderer::Impl {
     stats_.has_prediction = report.has_prediction;
     stats_.accuracy = report.accuracy;
     stats_.worker_imbalance = report.worker_imbalance;
+    stats_.demand_imbalance = report.demand_imbalance;
     stats_.predicted_makespan = report.predicted_makespan;
     stats_.update = report.update;
   }
@@ -895,14 +891,8 @@ const Pbt* HostRenderer::pbt() const { return impl_->pbt(); }
 
 namespace {
 
-void CheckFrame(const FrameContext& ctx, const Framebuffer& fb, bool in_frame, BackendKind kind) {
+void CheckFrame(const FrameContext& ctx, const Framebuffer& fb, bool in_frame) {
   if (in_frame) throw Error("renderer: BeginFrame while a frame is running (call EndFrame)");
-  if (fb.storage() == Framebuffer::Storage::kResolved && kind != BackendKind::kSerial &&
-      kind != BackendKind::kTiles) {
-    throw Error(fmt::format("renderer: the {} backend adds contributions from any thread to any "
-                            "pixel: it needs a kFixed framebuffer",
-                            BackendName(kind)));
-  }
   if (ctx.scene == nullptr || ctx.accel == nullptr) {
     throw Error("renderer: frame context without scene or acceleration structure");
   }
@@ -915,7 +905,7 @@ void CheckFrame(const FrameContext& ctx, const Framebuffer& fb, bool in_frame, B
 }  // namespace
 
 void HostRenderer::BeginFrame(const FrameContext& ctx, Framebuffer& fb) {
-  CheckFrame(ctx, fb, impl_->in_frame_, impl_->options_.kind);
+  CheckFrame(ctx, fb, impl_->in_frame_);
   impl_->begin_ = Clock::now();
   impl_->ctx_ = ctx;
   impl_->fb_ = &fb;
@@ -927,7 +917,7 @@ void HostRenderer::BeginFrame(const FrameContext& ctx, Framebuffer& fb) {
 
 void HostRenderer::BeginFrame(const FrameContext& ctx, Framebuffer& fb,
                               std::span<const Tile> tiles) {
-  CheckFrame(ctx, fb, impl_->in_frame_, impl_->options_.kind);
+  CheckFrame(ctx, fb, impl_->in_frame_);
   std::vector<Tile> list(tiles.begin(), tiles.end());
   for (size_t i = 0; i < list.size(); ++i) {
     const Tile& t = list[i];
@@ -1126,10 +1116,13 @@ Json FrameJson(const HostFrameStats& f, const StatsFields& frame_extra,
     j["tiles"] = tiles;
   }
   if (f.pbt) {
-    Json pbt{
-        {"has_prediction", f.has_prediction},          {"worker_imbalance", f.worker_imbalance},
-        {"predicted_makespan", f.predicted_makespan},  {"update_steps", f.update.steps},
-        {"variance_before", f.update.variance_before}, {"variance_after", f.update.variance_after}};
+    Json pbt{{"has_prediction", f.has_prediction},
+             {"worker_imbalance", f.worker_imbalance},
+             {"demand_imbalance", f.demand_imbalance},
+             {"predicted_makespan", f.predicted_makespan},
+             {"update_steps", f.update.steps},
+             {"variance_before", f.update.variance_before},
+             {"variance_after", f.update.variance_after}};
     if (f.has_prediction) {
       pbt["within5"] = f.accuracy.within5;
       pbt["within10"] = f.accuracy.within10;
@@ -1184,6 +1177,7 @@ enum CsvColumn : int {
   kCellSteps,
   kTriangleTests,
   kShadingCalls,
+  kDemandImbalance,
   kNumCsvColumns
 };
 constexpr const char* kCsvNames[kNumCsvColumns] = {"frame",
@@ -1218,7 +1212,8 @@ constexpr const char* kCsvNames[kNumCsvColumns] = {"frame",
                                                    "work",
                                                    "cell_steps",
                                                    "triangle_tests",
-                                                   "shading_calls"};
+                                                   "shading_calls",
+                                                   "demand_imbalance"};
 
 // The extra columns: every extra name in order of first occurrence (frame fields, then thread
 // fields). Throws rs::Error for a name that is a host column.
@@ -1310,7 +1305,7 @@ void WriteCsv(std::ostream& out, std::span<const HostFrameStats> frames, const S
     frame.Set(kCellSteps, s.trace.cell_steps).Set(kTriangleTests, s.trace.triangle_tests);
     frame.Set(kShadingCalls, s.shade.shading_calls);
     if (f.pbt) {
-      frame.Set(kWorkerImbalance, f.worker_imbalance);
+      frame.Set(kWorkerImbalance, f.worker_imbalance).Set(kDemandImbalance, f.demand_imbalance);
       if (f.has_prediction) {
         frame.Set(kWithin5, f.accuracy.within5).Set(kWithin10, f.accuracy.within10);
         frame.Set(kWithin15, f.accuracy.within15);

@@ -58,7 +58,8 @@ struct BackendOptions {
   // one 64-bit {head, tail} word; the owner CASes head forward, thieves CAS tail back.
   bool pbt_steal = false;
   // PBT assignment (tile_plan.h). kCounter: no lists, the threads take the tiles from the tile
-  // counter in order of decreasing prediction.
+  // counter in order of decreasing prediction (pbt_workers n > threads: m = k n tiles, and the
+  // statistics' worker imbalance is the demand-driven model of n workers).
   PbtAssign assign = PbtAssign::kRandom;
   uint64_t seed = 1;  // PBT-Random / static assignment
   // Which tile cost PBT-Update gets: wall-clock seconds (the paper's), the rendering thread's
@@ -121,7 +122,8 @@ struct HostFrameStats {
   bool pbt = false;
   bool has_prediction = false;    // tiles carry predictions (not the first PBT frame)
   PredictionAccuracy accuracy;    // predicted vs measured tile times (if has_prediction)
-  double worker_imbalance = 1.0;  // FrameImbalance(WorkerTimes(assignment, tile times))
+  double worker_imbalance = 1.0;  // FrameImbalance(WorkerTimes(assignment, tile costs))
+  double demand_imbalance = 1.0;  // TilePlanReport::demand_imbalance (the paper's master-worker)
   double predicted_makespan = 0;  // the assignment's predicted max worker load
   PbtUpdateStats update;          // the PBT-Update run after this frame (not for static)
 
@@ -158,10 +160,9 @@ class HostRenderer {
   const BackendOptions& options() const;
 
   // Starts a frame of the whole image: ctx is copied (its scene and accel must outlive
-  // EndFrame), fb (ctx.options.width x height, not cleared) must outlive EndFrame. serial and
-  // tiles take a kResolved fb (each pixel set once per frame; half the memory), the queue
-  // backends need kFixed. Throws rs::Error if fb's size or storage does not fit or a frame is
-  // already running; PBT tiles: rs::Error if the image has fewer pixels than tiles.
+  // EndFrame), fb (ctx.options.width x height, not cleared) must outlive EndFrame. Throws
+  // rs::Error if fb's size differs from ctx or a frame is already running; PBT tiles: rs::Error
+  // if the image has fewer pixels than tiles.
   void BeginFrame(const FrameContext& ctx, Framebuffer& fb);
   // The same for an explicit set of tiles (inside the image; may be empty: a frame with no
   // rays). Not with PBT (throws rs::Error). Queue backends cut each tile into primary tasks; the

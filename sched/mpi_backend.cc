@@ -750,6 +750,7 @@ class Master {
     f.has_prediction = report.has_prediction;
     f.accuracy = report.accuracy;
     f.worker_imbalance = report.worker_imbalance;
+    f.demand_imbalance = report.demand_imbalance;
     f.predicted_makespan = report.predicted_makespan;
     f.update = report.update;
   }

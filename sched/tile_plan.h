@@ -28,7 +28,8 @@ enum class PbtAssign : int {
                  // same seed every frame (the paper's "static random assignment")
   kCounter = 4,  // PBT updated, no per-worker lists: the tiles in order of decreasing prediction
                  // (ties: tile order) through one shared tile counter (demand driven, longest
-                 // first; what the cell backend's atomic tile counter does by default)
+                 // first; what the cell backend's atomic tile counter does by default). The n
+                 // workers size the PBT (m = k n) and the demand-driven model.
 };
 // "random" "greedy" "visit" "static" "counter". Parse returns false for anything else and leaves
 // *assign unchanged.
@@ -128,6 +129,11 @@ struct TilePlanReport {
   bool has_prediction = false;
   PredictionAccuracy accuracy;    // predicted vs measured costs (if has_prediction)
   double worker_imbalance = 1.0;  // FrameImbalance of the workers' measured costs
+  // The paper's master-worker (§2), demand driven with the §4 affinity (SimulateDemandDriven on
+  // the lists, the steal weights and the measured costs; kCounter: list scheduling in the
+  // counter's order): the slowest / mean worker finish time. What a cluster of n workers that
+  // asks the master for tiles would have had this frame.
+  double demand_imbalance = 1.0;
   double predicted_makespan = 0;  // the largest predicted worker load (if has_prediction)
   PbtUpdateStats update;          // the PBT-Update run after this frame (not for static)
 };
@@ -154,10 +160,12 @@ class TilePlan {
 
   // This frame's tiles, predictions and lists. Throws rs::Error if the frame has begun.
   const TilePlanFrame& Begin();
-  // The frame's measured costs per tile (size = tiles, finite, >= 0). ran_by: per tile the
-  // worker that rendered it, in [0, workers); needed for kCounter's worker imbalance (it has no
-  // lists), ignored otherwise (the list owner is charged, as SimulateDemandDriven models a
-  // steal). Computes the Table 1 accuracy, the worker imbalance and the predicted makespan,
+  // The frame's measured costs per tile (size = tiles, finite, >= 0). ran_by (kCounter only,
+  // optional): per tile the worker that took it from the counter, in [0, workers), when the
+  // workers are real (cell: the SPEs); without it kCounter's worker imbalance is its
+  // demand_imbalance (the workers a model: tiles backend threads != workers). With lists the
+  // list owner is charged (as SimulateDemandDriven models a steal) and ran_by is ignored.
+  // Computes the Table 1 accuracy, the worker imbalance and the predicted makespan,
   // then PBT-Update (not for static) and the next frame's assignment. Fixed tiles: the report
   // only says pbt = false. Throws rs::Error (no Begin, sizes, bad costs or workers).
   TilePlanReport End(std::span<const double> costs, std::span<const int32_t> ran_by = {});

@@ -44,12 +44,6 @@ CellRenderer::CellRenderer(const SimConfig& config, const CellPlanOptions& plan)
     throw Error("cell backend: pbt workers " + std::to_string(plan.pbt_workers) +
                 " must be in [0, 65536]");
   }
-  if (plan.assign == PbtAssign::kCounter && plan.pbt_workers != 0 &&
-      plan.pbt_workers != config.num_spes) {
-    throw Error("cell backend: assignment counter: the " + std::to_string(config.num_spes) +
-                " SPEs take the tiles from one counter, so pbt workers must be 0 or " +
-                std::to_string(config.num_spes) + ", not " + std::to_string(plan.pbt_workers));
-  }
 }
 CellRenderer::~CellRenderer() = default;
 
@@ -97,6 +91,8 @@ CellFrameStats CellRenderer::Render(const FrameContext& ctx, Framebuffer& fb) {
     cycles[i] = t.cycles;
     ran_by[i] = t.spe;
   }
+  // Counter: the SPEs are the workers only when there are as many (else a model of n).
+  if (plan_->options().workers != config_.num_spes) ran_by.clear();
   const TilePlanReport report = plan_->End(cycles, ran_by);
   stats.pbt = true;
   stats.has_prediction = report.has_prediction;

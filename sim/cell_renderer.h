@@ -80,13 +80,13 @@ struct CellPlanOptions {
   // SPE program reads no other SPE's counter.
   PbtAssign assign = PbtAssign::kCounter;
   uint64_t seed = 1;    // PBT-Random / static
-  int pbt_workers = 0;  // PBT workers n (0: config.num_spes); lists only (counter: 0 or spes)
+  int pbt_workers = 0;  // PBT workers n (0: config.num_spes); m = k n tiles
 };
 
 class CellRenderer {
  public:
   // Throws rs::Error if the config is invalid (ValidateConfig) or the plan options are
-  // (unknown assignment, pbt_workers outside [0, 65536], or not 0 / num_spes with kCounter).
+  // (unknown assignment, pbt_workers outside [0, 65536]).
   explicit CellRenderer(const SimConfig& config, const CellPlanOptions& plan = {});
   ~CellRenderer();
   CellRenderer(const CellRenderer&) = delete;

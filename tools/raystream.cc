@@ -328,12 +328,6 @@ BackendOptions MakeBackendOptions(const RenderArgs& args) {
     throw Error(fmt::format("--threads {}: the serial backend runs one thread (use lock, lfree, "
                             "local or tiles)", o.threads));
   }
-  if (o.pbt_tiles_per_worker > 0 && o.assign == PbtAssign::kCounter && o.pbt_workers != 0 &&
-      o.pbt_workers != o.threads) {
-    throw Error(fmt::format("--pbt-workers {}: with --assign counter the {} threads take the "
-                            "tiles from one counter (backend tiles)",
-                            o.pbt_workers, o.threads));
-  }
   ValidateBackendOptions(o);
   return o;
 }
@@ -357,12 +351,7 @@ int RunRenderCell(const RenderArgs& args) {
   plan.assign = PbtAssignFor(args);
   plan.seed = args.seed;
   plan.pbt_workers = args.pbt_workers;
-  if (args.pbt > 0 && plan.assign == PbtAssign::kCounter && plan.pbt_workers != 0 &&
-      plan.pbt_workers != config.num_spes) {
-    throw Error(fmt::format("--pbt-workers {}: with --assign counter the {} SPEs take the tiles "
-                            "from one counter (backend cell)",
-                            plan.pbt_workers, config.num_spes));
-  }
+
   if (args.threads != 1) {
     throw Error(fmt::format("--threads {}: the cell backend simulates --spes SPEs on one host "
                             "thread", args.threads));
@@ -526,11 +515,7 @@ int RunRender(RenderArgs args) {
   options.order = args.order == "block" ? RayOrder::kBlock4x2 : RayOrder::kScanline;
 
   HostRenderer renderer(backend);
-  // serial and tiles give each pixel its sums once: the float image alone (12 bytes per pixel).
-  const bool resolved = (backend.kind == BackendKind::kSerial || backend.kind == BackendKind::kTiles) &&
-                        args.dump_raw.empty();
-  Framebuffer fb(args.width, args.height,
-                 resolved ? Framebuffer::Storage::kResolved : Framebuffer::Storage::kFixed);
+  Framebuffer fb(args.width, args.height);
   std::vector<float> rgb;
   std::vector<HostFrameStats> frames;
   frames.reserve(static_cast<size_t>(args.frames));
@@ -546,12 +531,8 @@ int RunRender(RenderArgs args) {
     total_seconds += s.total.total_seconds;
     const bool write = frame + 1 == args.frames || out.find('#') != std::string::npos;
     if (write) {
-      if (resolved) {
-        WriteImage(FrameFileName(out, frame), args.width, args.height, fb.resolved());
-      } else {
-        fb.ToRgb(rgb);
-        WriteImage(FrameFileName(out, frame), args.width, args.height, rgb);
-      }
+      fb.ToRgb(rgb);
+      WriteImage(FrameFileName(out, frame), args.width, args.height, rgb);
       if (!args.dump_raw.empty()) WriteRawFramebuffer(FrameFileName(args.dump_raw, frame), fb);
     }
     if (args.frames > 1 && !args.quiet) {

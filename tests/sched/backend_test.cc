@@ -306,10 +306,18 @@ void CheckAllBackends(const std::string& scene_name, int size, const std::vector
     if (all_shapes) shapes = {{8, 8}, {16, 16}, {32, 32}, {40, 32}, {640, 2}, {size, 1}, {7, 3}};
     for (const auto& [tw, th] : shapes) CheckBackend(l, ro, refs, TilesBackend(n, tw, th), 1);
     // PBT re-tiling over a few frames of the walk-through (camera speed 2).
-    for (const PbtAssign a :
-         {PbtAssign::kRandom, PbtAssign::kGreedy, PbtAssign::kVisit, PbtAssign::kStatic}) {
+    for (const PbtAssign a : {PbtAssign::kRandom, PbtAssign::kGreedy, PbtAssign::kVisit,
+                              PbtAssign::kStatic, PbtAssign::kCounter}) {
       CheckBackend(l, ro, refs, PbtBackend(n, all_shapes ? 4 : 2, a), 3, 2.0f);
     }
+    // The deterministic work cost, and the counter with more (model) workers than threads.
+    BackendOptions work = PbtBackend(n, 2, PbtAssign::kGreedy);
+    work.pbt_cost = PbtCost::kWork;
+    CheckBackend(l, ro, refs, work, 3, 2.0f);
+    BackendOptions counter = PbtBackend(n, 2, PbtAssign::kCounter);
+    counter.pbt_workers = 3 * n;
+    counter.pbt_cost = PbtCost::kCpu;
+    CheckBackend(l, ro, refs, counter, 2, 2.0f);
     if (all_shapes) CheckBackend(l, ro, refs, PbtBackend(n, 1, PbtAssign::kGreedy), 3, 2.0f);
     // Demand-driven with affinity: 3 PBT workers' lists per thread, stealing at the end.
     BackendOptions steal = PbtBackend(n, 2, PbtAssign::kVisit);
@@ -626,6 +634,18 @@ TEST_CASE("renderer misuse and bad options are rs::Error") {
   BackendOptions steal_without_pbt = TilesBackend(2, 8, 8);
   steal_without_pbt.pbt_steal = true;
   bad(steal_without_pbt);
+  BackendOptions workers_without_pbt = TilesBackend(2, 8, 8);
+  workers_without_pbt.pbt_workers = 4;
+  bad(workers_without_pbt);
+  BackendOptions cost_without_pbt = TilesBackend(2, 8, 8);
+  cost_without_pbt.pbt_cost = PbtCost::kWork;
+  bad(cost_without_pbt);
+  BackendOptions steal_counter = PbtBackend(2, 2, PbtAssign::kCounter);
+  steal_counter.pbt_steal = true;
+  bad(steal_counter);
+  BackendOptions unknown_cost = PbtBackend(2, 2, PbtAssign::kVisit);
+  unknown_cost.pbt_cost = static_cast<PbtCost>(9);
+  bad(unknown_cost);
   BackendOptions weird = Backend(BackendKind::kLock, 2);
   weird.kind = static_cast<BackendKind>(42);
   bad(weird);
@@ -682,12 +702,24 @@ TEST_CASE("statistics export: JSON and CSV by extension") {
   CHECK(j["frames"][1]["pbt"]["has_prediction"] == true);
   CHECK(j["frames"][2]["rays"]["primary"] == 400);
   CHECK(j["options"]["assign"] == "greedy");
+  CHECK(j["options"]["pbt_cost"] == "wall");
+  CHECK(j["options"]["pbt_time"] == "wall");  // the older name, kept for readers
+  for (const auto& t : j["frames"][1]["tiles"]) {
+    CHECK(t["work"].get<double>() > 0);
+    CHECK(t["cell_steps"].get<uint64_t>() > 0);
+    CHECK(t["shading_calls"].get<uint64_t>() > 0);
+  }
+  CHECK(j["frames"][1]["pbt"]["demand_imbalance"].get<double>() >= 1.0);
   std::ifstream cf(csv_path);
   std::string line;
   size_t lines = 0, tile_rows = 0, thread_rows = 0, columns = 0;
+  std::string header;
   while (std::getline(cf, line)) {
     const size_t commas = static_cast<size_t>(std::count(line.begin(), line.end(), ','));
-    if (lines == 0) columns = commas;
+    if (lines == 0) {
+      columns = commas;
+      header = line;
+    }
     CHECK(commas == columns);  // every row has every column
     if (lines > 0) {           // the header names a "thread" column too
       tile_rows += line.find(",tile,") != std::string::npos;
@@ -697,6 +729,8 @@ TEST_CASE("statistics export: JSON and CSV by extension") {
   }
   CHECK(lines == 1 + 3 * (1 + 1 + 2 + 4));
   CHECK(tile_rows == 12);
+  CHECK(header.find(",work,cell_steps,triangle_tests,shading_calls,demand_imbalance") !=
+        std::string::npos);
   CHECK(thread_rows == 6);
   CHECK_THROWS_AS(WriteHostStats((dir / "s.txt").string(), "x", o, frames), Error);
   CHECK_FALSE(StatsFileFormatOk("a.png"));

@@ -3,7 +3,8 @@
 // shared mesh, under many simulator settings (SPE counts, micro-cache off, secondary rays at once
 // on and off, spills, chunked cells, tile shapes, PBT, explicit tile lists); the image comes out
 // of the SPEs' LS pixel buffers through main memory (clamp counts too, overlapping tiles
-// refused); the tile times PBT gets are the simulated cycles and it re-tiles; deterministic
+// refused); the tile times PBT gets are the simulated cycles and it re-tiles, with the shared
+// counter or per-SPE lists (the tile plan's assignments); deterministic
 // simulated cycles; refusal of grids whose occupancy bits do not fit the local store.
 #include <doctest/doctest.h>
 
@@ -21,6 +22,7 @@
 namespace rs {
 namespace {
 
+using sim::CellPlanOptions;
 using sim::CellFrameStats;
 using sim::CellRenderer;
 using sim::SimConfig;
@@ -366,6 +368,67 @@ TEST_CASE("explicit tile lists and PBT tiling") {
     CHECK(inside == 25 * 30);
     CHECK(outside == 25 * 30);
   }
+}
+
+// The PBT assignments of the tile plan (sched/tile_plan.h) on the SPEs: with per-worker lists
+// SPE s takes exactly the tiles of the lists s, s + spes, ... from its own counter (no
+// stealing), the default counter hands every tile to whichever SPE asks first; the image is the
+// serial one either way, and the same configuration gives the same cycles.
+TEST_CASE("PBT lists: each SPE runs its own workers' lists through a counter of its own") {
+  const Scene scene = LoadScene("cornell");
+  const Accel accel(scene.mesh());
+  const FrameContext ctx = Context(scene, accel, 48, 32, 3);
+  const Reference ref = RenderReference(ctx);
+  struct Case {
+    PbtAssign assign;
+    int workers;  // 0: one per SPE
+  };
+  const Case cases[] = {{PbtAssign::kRandom, 0},  {PbtAssign::kGreedy, 0},
+                        {PbtAssign::kVisit, 8},   {PbtAssign::kStatic, 0},
+                        {PbtAssign::kCounter, 0}, {PbtAssign::kCounter, 6}};
+  for (const Case& c : cases) {
+    INFO("assign ", std::string(PbtAssignName(c.assign)), " workers ", c.workers);
+    SimConfig config;
+    config.num_spes = 3;
+    config.pbt_tiles_per_spe = 2;
+    CellPlanOptions plan;
+    plan.assign = c.assign;
+    plan.pbt_workers = c.workers;
+    plan.seed = 5;
+    CellRenderer r(config, plan), twin(config, plan);
+    const int n = c.workers > 0 ? c.workers : config.num_spes;
+    for (int frame = 0; frame < 3; ++frame) {
+      INFO("frame ", frame);
+      Framebuffer fb(48, 32), fb2(48, 32);
+      const CellFrameStats s = r.Render(ctx, fb);
+      const CellFrameStats s2 = twin.Render(ctx, fb2);
+      CHECK(DifferingPixels(ref.fb, fb) == 0);
+      CHECK(s.pbt);
+      CHECK(s.has_prediction == (frame > 0));
+      REQUIRE(s.tiles.size() == size_t(n) * 2);
+      CHECK(s.cycles == s2.cycles);
+      for (size_t i = 0; i < s.tiles.size(); ++i) {
+        const sim::CellTileRecord& t = s.tiles[i];
+        CHECK(t.cycles == s2.tiles[i].cycles);
+        CHECK(t.spe >= 0);
+        CHECK(t.cycles > 0);
+        if (c.assign == PbtAssign::kCounter) {
+          CHECK(t.worker == -1);
+        } else {
+          REQUIRE(t.worker >= 0);
+          CHECK(t.worker < n);
+          CHECK(t.spe == t.worker % config.num_spes);  // its own lists only
+        }
+      }
+      CHECK(s.worker_imbalance >= 1.0);
+    }
+    REQUIRE(r.pbt() != nullptr);
+    CHECK(r.pbt()->Validate().empty());
+  }
+  CellPlanOptions bad_assign;
+  bad_assign.assign = static_cast<PbtAssign>(9);
+  CHECK_THROWS_AS(CellRenderer(SimConfig{}, bad_assign), Error);
+  CHECK_THROWS_AS(CellRenderer(SimConfig{}, CellPlanOptions{.pbt_workers = -1}), Error);
 }
 
 // What PBT is fed: CellTileRecord::cycles, each pipeline iteration's simulated cycles shared
