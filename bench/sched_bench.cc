@@ -36,8 +36,12 @@ struct Args {
   std::string out = "sched_results";
   bool quick = false;  // tiny sizes: checks the pipeline, numbers mean nothing
   std::set<std::string> only;
-  // --only pbt: the tile costs fed to PBT (--pbt-costs work,cpu,wall).
+  // --only pbt: the tile costs fed to PBT (--pbt-costs work,cpu,wall) and the rays per kernel
+  // call (--pbt-batches 1024,20: the default batch, whose coherent 64-ray packets make a tile's
+  // cost vary more from frame to frame, and the iRT paper's 20, per-ray traversal like the
+  // PBT paper's tracer).
   std::vector<PbtCost> pbt_costs = {PbtCost::kWork, PbtCost::kCpu, PbtCost::kWall};
+  std::vector<int> pbt_batches = {RenderOptions{}.batch, 20};
 };
 
 bool Want(const Args& a, const std::string& part) { return a.only.empty() || a.only.count(part); }
@@ -326,10 +330,11 @@ void PbtAccuracy(const Args& a, const std::filesystem::path& dir) {
   const int workers = a.quick ? 4 : 32;
   const Loaded l = Load(name);
   Csv table(dir / "pbt.csv",
-            "scene,size,clock,assign,k,speed,workers,threads,frames,within5,within10,within15,"
-            "worker_imbalance,demand_imbalance,thread_imbalance,median_ms,update_steps,load_avg");
+            "scene,size,batch,clock,assign,k,speed,workers,threads,frames,within5,within10,"
+            "within15,worker_imbalance,demand_imbalance,thread_imbalance,median_ms,update_steps,"
+            "load_avg");
   Csv per_frame(dir / "pbt_frames.csv",
-                "clock,assign,k,speed,frame,within5,within10,within15,worker_imbalance,"
+                "batch,clock,assign,k,speed,frame,within5,within10,within15,worker_imbalance,"
                 "demand_imbalance,variance_before,variance_after,steps,ms");
   fmt::print("PBT {} {}x{}, n = {} workers on 2 threads, {} frames (load {})\n", name, size, size,
              workers, frames, LoadAverage());
@@ -348,50 +353,56 @@ void PbtAccuracy(const Args& a, const std::filesystem::path& dir) {
       runs.push_back({cost, as});
     }
   }
-  for (const Run& run : runs) {
-    for (const int k : {1, 4}) {
-      for (const float speed : {1.0f, 2.0f}) {
-        BackendOptions o;
-        o.kind = BackendKind::kTiles;
-        o.threads = 2;
-        o.pbt_tiles_per_worker = k;
-        o.pbt_workers = workers;
-        o.assign = run.assign;
-        o.pbt_cost = run.cost;
-        o.seed = 12345;
-        HostRenderer r(o);
-        Framebuffer fb(size, size);
-        std::vector<double> w5, w10, w15, wimb, dimb, timb, ms, steps;
-        for (int f = 0; f < frames; ++f) {
-          const Camera cam = l.scene.path.At(f, speed, l.scene.camera);
-          fb.Clear();
-          const HostFrameStats& s =
-              r.RenderFrame(MakeFrameContext(l.scene, *l.accel, cam, Options(size, size)), fb);
-          per_frame.Row("{},{},{},{},{},{:.4f},{:.4f},{:.4f},{:.4f},{:.4f},{:.6g},{:.6g},{},{:.3f}",
-                        PbtCostName(run.cost), PbtAssignName(run.assign), k, speed, f,
-                        s.accuracy.within5, s.accuracy.within10, s.accuracy.within15,
-                        s.worker_imbalance, s.demand_imbalance, s.update.variance_before,
-                        s.update.variance_after, s.update.steps, 1e3 * s.total.total_seconds);
-          if (f == 0) continue;  // no prediction yet; and warm-up
-          w5.push_back(s.accuracy.within5);
-          w10.push_back(s.accuracy.within10);
-          w15.push_back(s.accuracy.within15);
-          wimb.push_back(s.worker_imbalance);
-          dimb.push_back(s.demand_imbalance);
-          timb.push_back(s.imbalance);
-          ms.push_back(s.total.total_seconds);
-          steps.push_back(s.update.steps);
+  for (const int batch : a.pbt_batches) {
+    for (const Run& run : runs) {
+      for (const int k : {1, 4}) {
+        for (const float speed : {1.0f, 2.0f}) {
+          BackendOptions o;
+          o.kind = BackendKind::kTiles;
+          o.threads = 2;
+          o.pbt_tiles_per_worker = k;
+          o.pbt_workers = workers;
+          o.assign = run.assign;
+          o.pbt_cost = run.cost;
+          o.seed = 12345;
+          HostRenderer r(o);
+          Framebuffer fb(size, size);
+          RenderOptions ro = Options(size, size);
+          ro.batch = batch;
+          std::vector<double> w5, w10, w15, wimb, dimb, timb, ms, steps;
+          for (int f = 0; f < frames; ++f) {
+            const Camera cam = l.scene.path.At(f, speed, l.scene.camera);
+            fb.Clear();
+            const HostFrameStats& s =
+                r.RenderFrame(MakeFrameContext(l.scene, *l.accel, cam, ro), fb);
+            per_frame.Row(
+                "{},{},{},{},{},{},{:.4f},{:.4f},{:.4f},{:.4f},{:.4f},{:.6g},{:.6g},{},{:.3f}",
+                batch, PbtCostName(run.cost), PbtAssignName(run.assign), k, speed, f,
+                s.accuracy.within5, s.accuracy.within10, s.accuracy.within15, s.worker_imbalance,
+                s.demand_imbalance, s.update.variance_before, s.update.variance_after,
+                s.update.steps, 1e3 * s.total.total_seconds);
+            if (f == 0) continue;  // no prediction yet; and warm-up
+            w5.push_back(s.accuracy.within5);
+            w10.push_back(s.accuracy.within10);
+            w15.push_back(s.accuracy.within15);
+            wimb.push_back(s.worker_imbalance);
+            dimb.push_back(s.demand_imbalance);
+            timb.push_back(s.imbalance);
+            ms.push_back(s.total.total_seconds);
+            steps.push_back(s.update.steps);
+          }
+          table.Row(
+              "{},{},{},{},{},{},{},{},{},{},{:.4f},{:.4f},{:.4f},{:.4f},{:.4f},{:.4f},{:.3f},{:."
+              "2f},{}",
+              name, size, batch, PbtCostName(run.cost), PbtAssignName(run.assign), k, speed,
+              workers, o.threads, frames - 1, Mean(w5), Mean(w10), Mean(w15), Mean(wimb),
+              Mean(dimb), Mean(timb), 1e3 * Median(ms), Mean(steps), LoadAverage());
+          fmt::print(
+              "  batch {:4} {:4} {:7} k={} x{}: within 5/10/15 % = {:.1f} / {:.1f} / {:.1f} %, "
+              "imbalance worker {:.3f} demand {:.3f}\n",
+              batch, PbtCostName(run.cost), PbtAssignName(run.assign), k, speed, 100 * Mean(w5),
+              100 * Mean(w10), 100 * Mean(w15), Mean(wimb), Mean(dimb));
         }
-        table.Row(
-            "{},{},{},{},{},{},{},{},{},{:.4f},{:.4f},{:.4f},{:.4f},{:.4f},{:.4f},{:.3f},{:.2f},{}",
-            name, size, PbtCostName(run.cost), PbtAssignName(run.assign), k, speed, workers,
-            o.threads, frames - 1, Mean(w5), Mean(w10), Mean(w15), Mean(wimb), Mean(dimb),
-            Mean(timb), 1e3 * Median(ms), Mean(steps), LoadAverage());
-        fmt::print(
-            "  {:4} {:6} k={} x{}: within 5/10/15 % = {:.1f} / {:.1f} / {:.1f} %, imbalance "
-            "worker {:.3f} demand {:.3f}\n",
-            PbtCostName(run.cost), PbtAssignName(run.assign), k, speed, 100 * Mean(w5),
-            100 * Mean(w10), 100 * Mean(w15), Mean(wimb), Mean(dimb));
       }
     }
   }
@@ -537,9 +548,8 @@ void Calibrate(const Args& a, const std::filesystem::path& dir) {
       rows.size(), LoadAverage(), fit.per_ray, fit.per_cell_step, fit.per_triangle_test,
       fit.per_shading_call,
       dropped.empty() ? "" : "dropped (negative fit, collinear with the others):" + dropped + "\n",
-      ss_tot > 0 ? 1.0 - ss_res / ss_tot : 0.0, 100.0 * in10 / n,
-      100.0 * in25 / n, fit.per_ray, fit.per_cell_step, fit.per_triangle_test,
-      fit.per_shading_call);
+      ss_tot > 0 ? 1.0 - ss_res / ss_tot : 0.0, 100.0 * in10 / n, 100.0 * in25 / n, fit.per_ray,
+      fit.per_cell_step, fit.per_triangle_test, fit.per_shading_call);
   txt << text;
   fmt::print("{}", text);
 }
@@ -638,6 +648,15 @@ int Main(int argc, char** argv) {
         if (comma == std::string::npos) break;
         start = comma + 1;
       }
+    } else if (arg == "--pbt-batches" && i + 1 < argc) {
+      a.pbt_batches.clear();
+      std::string list = argv[++i];
+      for (size_t start = 0; start <= list.size();) {
+        const size_t comma = list.find(',', start);
+        a.pbt_batches.push_back(std::atoi(list.substr(start, comma - start).c_str()));
+        if (comma == std::string::npos) break;
+        start = comma + 1;
+      }
     } else if (arg == "--quick") {
       a.quick = true;
     } else if (arg == "--only" && i + 1 < argc) {
@@ -651,23 +670,32 @@ int Main(int argc, char** argv) {
         start = comma + 1;
       }
     } else {
-      fmt::print(
-          stderr,
-          "usage: sched_bench [--out DIR] [--quick] [--only scaling,tiles,pbt,amphitheater,"
-          "calibrate] [--pbt-costs work,cpu,wall]\n");
+      fmt::print(stderr,
+                 "usage: sched_bench [--out DIR] [--quick] [--only scaling,tiles,pbt,amphitheater,"
+                 "calibrate] [--pbt-costs work,cpu,wall] [--pbt-batches 1024,20]\n");
       return 2;
     }
   }
   const std::filesystem::path dir(a.out);
   std::filesystem::create_directories(dir);
   const unsigned cores = std::thread::hardware_concurrency();
+  // A partial run (--only) keeps the full run's meta.txt: its own goes to meta_PARTS.txt.
+  std::string meta_name = "meta.txt";
+  if (!a.only.empty()) {
+    meta_name = "meta";
+    for (const std::string& part : a.only) meta_name += "_" + part;
+    meta_name += ".txt";
+  }
   {
-    std::ofstream meta(dir / "meta.txt");
+    std::ofstream meta(dir / meta_name);
+    std::string command = "sched_bench";
+    for (int i = 1; i < argc; ++i) command += std::string(" ") + argv[i];
     const std::string note = fmt::format(
         "hardware threads: {}. Runs with more than {} render threads OVERSUBSCRIBE this machine: "
         "their threads time-share the cores, so their speed-up cannot exceed ~{}.\n",
         cores, cores, cores);
-    meta << note << "load average at start: " << LoadAverage() << "\n"
+    meta << note << "command: " << command << "\n"
+         << "load average at start: " << LoadAverage() << "\n"
          << "mode: " << (a.quick ? "quick (tiny sizes, numbers meaningless)" : "full") << "\n";
     fmt::print("{}", note);
   }
@@ -677,7 +705,7 @@ int Main(int argc, char** argv) {
   if (Want(a, "amphitheater")) Amphitheater(a, dir);
   if (Want(a, "calibrate")) Calibrate(a, dir);
   {
-    std::ofstream meta(dir / "meta.txt", std::ios::app);
+    std::ofstream meta(dir / meta_name, std::ios::app);
     meta << "load average at end: " << LoadAverage() << "\n";
   }
   return 0;

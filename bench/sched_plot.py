@@ -197,52 +197,119 @@ def main():
     pbt = read(os.path.join(d, "pbt.csv"))
     if pbt:
         p0 = pbt[0]
+        meta_pbt = os.path.join(d, "meta_pbt.txt")
         md.append("\n## PBT prediction accuracy (PBT paper Table 1): %s %sx%s walk-through, n = %s PBT workers "
                   "on %s threads, %s predicted frames\n\n" % (p0["scene"], p0["size"], p0["size"], p0["workers"],
                                                             p0["threads"], p0["frames"]))
-        md.append("Share of tile estimates within 5 / 10 / 15 % of the measured tile time. clock = the tile "
-                  "time fed to PBT-Update (cpu: the rendering thread's CPU time, robust on a shared machine; "
-                  "wall: wall-clock, the paper's). static = the initial tiling kept, predicted by the same tile's "
-                  "previous time. Paper (512x512, 32 nodes): k=1 x1 93.2 %, k=1 x2 92 %, k=4 x1 86.2 %, "
-                  "k=4 x2 79.8 % within 10 %.\n\n")
+        if os.path.exists(meta_pbt):
+            md.append("```\n" + open(meta_pbt).read() + "```\n\n")
+        md.append("Share of tile predictions within 5 / 10 / 15 % of the tile's measured cost. cost = what "
+                  "PBT-Update is fed and predictions are checked against: work (the deterministic count of "
+                  "the tile's rays, cell steps, triangle tests and shading calls, sched/tile_plan.h: the same "
+                  "numbers in every run, whatever the load), cpu (the rendering thread's CPU time), wall "
+                  "(wall-clock, the paper's; these runs shared the machine with other processes). x1 / x2: "
+                  "the camera speed along the scene's walk-through (x2 covers the same path in half the "
+                  "frames). With the work cost the accuracy does not depend on the assignment; static = the "
+                  "initial tiling kept, predicted by the same tile's previous cost (no split or merge).\n\n")
+        paper = {("1", "1"): (96.2, 93.2, 92.6), ("1", "2"): (95.3, 92.0, 84.0),
+                 ("4", "1"): (92.1, 86.2, 68.0), ("4", "2"): (89.7, 79.8, 55.0)}
+
+        batches = list(dict.fromkeys(r.get("batch", "1024") for r in pbt))
+
+        def pick(cost, assign, k, speed, batch):
+            m = [r for r in pbt if r["clock"] == cost and r["assign"] == assign and r["k"] == k
+                 and r["speed"].rstrip("0").rstrip(".") == speed and r.get("batch", "1024") == batch]
+            return m[0] if m else None
+
+        md.append("batch = rays per kernel call (--batch): the default 1024 traces coherent 64-ray packets, "
+                  "which makes a tile's cost change more from frame to frame (a packet that an edge moves "
+                  "into is traced ray by ray instead); 20 (the iRT paper's) traces ray by ray, like the PBT "
+                  "paper's tracer.\n\n")
+        rows = []
+        for batch in batches:
+            for (k, speed), (p15, p10, p5) in paper.items():
+                row = [batch, "k=%s x%s" % (k, speed), "%.1f / %.1f / %.1f %%" % (p5, p10, p15)]
+                for cost in ("work", "cpu", "wall"):
+                    r = pick(cost, "random", k, speed, batch)
+                    row.append("%.1f / %.1f / %.1f %%" % (100 * num(r, "within5"), 100 * num(r, "within10"),
+                                                          100 * num(r, "within15")) if r else "-")
+                r = pick("work", "static", k, speed, batch)
+                row.append("%.1f %%" % (100 * num(r, "within10")) if r else "-")
+                rows.append(row)
+        md.append("Within 5 / 10 / 15 % (PBT-Random; the paper's rows 95th / 90th / 85th percentile):\n\n")
+        md.append(md_table(["batch", "config", "paper", "work", "cpu", "wall", "work, static tiling (10 %)"],
+                           rows))
+        imb = []
+        for batch in batches:
+            for assign in ("static", "random", "greedy", "visit", "counter"):
+                row = [batch, assign]
+                for speed in ("1", "2"):
+                    r = pick("work", assign, "4", speed, batch)
+                    row += ["%.3f" % num(r, "worker_imbalance") if r else "-",
+                            "%.3f" % num(r, "demand_imbalance") if r else "-"]
+                imb.append(row)
+        md.append("\nImbalance with k = 4, work cost (slowest / mean of the 32 workers' measured costs): lists = "
+                  "each worker renders its own list (no stealing); demand = the paper's demand-driven "
+                  "master-worker (§2, with the §4 affinity: a worker done with its list takes the last waiting "
+                  "tile of the most loaded one) on the same costs; counter (not in the paper) = no lists, "
+                  "the workers take the tiles costliest-predicted first.\n\n")
+        md.append(md_table(["batch", "assign", "x1 lists", "x1 demand", "x2 lists", "x2 demand"], imb))
         rows = []
         for r in pbt:
-            rows.append([r["clock"], r["assign"], r["k"], "x" + r["speed"].rstrip("0").rstrip("."),
+            rows.append([r.get("batch", ""), r["clock"], r["assign"], r["k"],
+                         "x" + r["speed"].rstrip("0").rstrip("."),
                          "%.1f %%" % (100 * num(r, "within5")), "%.1f %%" % (100 * num(r, "within10")),
                          "%.1f %%" % (100 * num(r, "within15")), "%.3f" % num(r, "worker_imbalance"),
-                         "%.1f" % num(r, "update_steps")])
-        md.append(md_table(["clock", "assign", "k", "speed", "within 5 %", "within 10 %", "within 15 %",
-                            "imbalance (slowest/mean worker)", "split-merge steps"], rows))
+                         "%.3f" % num(r, "demand_imbalance"), "%.1f" % num(r, "update_steps"),
+                         r.get("load_avg", "")])
+        md.append("\nAll runs:\n\n")
+        md.append(md_table(["batch", "cost", "assign", "k", "speed", "within 5 %", "within 10 %", "within 15 %",
+                            "imbalance lists", "imbalance demand", "split-merge steps", "load"], rows))
         if plt:
             fig, axes = plt.subplots(1, 2, figsize=(11, 4))
-            cpu_random = [r for r in pbt if r["clock"] == "cpu" and r["assign"] == "random"]
-            labels = ["k=%s x%s" % (r["k"], r["speed"].rstrip("0").rstrip(".")) for r in cpu_random]
-            for i, key in enumerate(["within5", "within10", "within15"]):
-                axes[0].bar([j + (i - 1) * 0.27 for j in range(len(cpu_random))],
-                            [100 * num(r, key) for r in cpu_random], width=0.27, label=key.replace("within", "<= ") + " %")
-            axes[0].set_xticks(range(len(cpu_random)))
-            axes[0].set_xticklabels(labels)
-            axes[0].set_ylabel("% of tile estimates")
-            axes[0].set_title("PBT prediction accuracy (cpu clock)")
+            configs = [("1", "1"), ("1", "2"), ("4", "1"), ("4", "2")]
+            series = [("paper", None, None)] + [("%s b%s" % (c, b), c, b) for b in batches
+                                                for c in ("work", "cpu", "wall")]
+            width = 0.8 / len(series)
+            for i, (label, cost, batch) in enumerate(series):
+                vals = []
+                for k, speed in configs:
+                    if cost is None:
+                        vals.append(paper[(k, speed)][1])
+                    else:
+                        r = pick(cost, "random", k, speed, batch)
+                        vals.append(100 * num(r, "within10") if r else 0)
+                axes[0].bar([j + (i - (len(series) - 1) / 2) * width for j in range(len(configs))], vals,
+                            width=width, label=label)
+            axes[0].set_xticks(range(len(configs)))
+            axes[0].set_xticklabels(["k=%s x%s" % c for c in configs])
+            axes[0].set_ylabel("% of tile predictions within 10 %")
+            axes[0].set_title("PBT prediction accuracy (Table 1, PBT-Random)")
             axes[0].legend(fontsize=8)
-            assigns = ["static", "random", "greedy", "visit"]
-            configs = list(dict.fromkeys((r["k"], r["speed"]) for r in pbt))
+            assigns = ["static", "random", "greedy", "visit", "counter"]
             for i, a in enumerate(assigns):
                 vals = []
-                for k, s in configs:
-                    m = [r for r in pbt if r["clock"] == "cpu" and r["assign"] == a and r["k"] == k and r["speed"] == s]
-                    vals.append(num(m[0], "worker_imbalance") if m else 0)
-                axes[1].bar([j + (i - 1.5) * 0.2 for j in range(len(configs))], vals, width=0.2, label=a)
+                for k, speed in configs:
+                    r = pick("work", a, k, speed, batches[0])
+                    vals.append(num(r, "demand_imbalance") if r else 0)
+                axes[1].bar([j + (i - 2) * 0.16 for j in range(len(configs))], vals, width=0.16, label=a)
+            axes[1].axhline(1.10, color="gray", lw=0.8, ls="--")
             axes[1].set_xticks(range(len(configs)))
-            axes[1].set_xticklabels(["k=%s x%s" % (k, s.rstrip("0").rstrip(".")) for k, s in configs])
-            axes[1].set_ylabel("slowest / mean worker")
+            axes[1].set_xticklabels(["k=%s x%s" % c for c in configs])
+            axes[1].set_ylabel("slowest / mean worker (demand driven)")
             axes[1].set_ylim(bottom=1.0)
-            axes[1].set_title("frame imbalance: static tiling vs PBT")
+            axes[1].set_title("frame imbalance, work cost, batch %s: static tiling vs PBT" % batches[0])
             axes[1].legend(fontsize=8)
             fig.tight_layout()
             fig.savefig(os.path.join(d, "pbt.png"), dpi=90)
             plt.close(fig)
             figures.append("pbt.png")
+
+    cal = os.path.join(d, "calibrate.txt")
+    if os.path.exists(cal):
+        md.append("\n## Calibration of the deterministic tile cost (sched/tile_plan.h kTileWorkCoefficients)\n\n")
+        md.append("Least squares (non-negative, no intercept) of each tile's CPU time against its counts; one "
+                  "row per tile in calibrate.csv.\n\n```\n" + open(cal).read() + "```\n")
 
     amph = read(os.path.join(d, "amphitheater.csv"))
     if amph:

@@ -78,15 +78,18 @@ TileWork TileWorkDelta(const FrameStats& after, const FrameStats& before) {
 // Calibration: `bench/sched_bench --only calibrate` (bench/results/sched/calibrate.txt, one row
 // per tile in calibrate.csv): one render thread of the tiles backend, 16x16 tiles, depth 4,
 // frames 1-3 of the walk-throughs of erw6, cornell, spherebox and amphitheater:4 at 256x256
-// (3072 tiles), release build, AVX2 target, on the 2-core development machine (shared: load
-// average 5.4 at the start); least squares without intercept of each tile's thread CPU time
-// against its four counts (R^2 0.98; three runs agreed within 4 %). The coefficients only have
-// to be fixed, not exact: PBT compares a tile's cost with the same tile's cost one frame later.
+// (3072 tiles), release build with the batched frame engine (57fe039), AVX2 target, on the
+// 2-core development machine, shared (load average 9.3: other builds and tests running);
+// non-negative least squares without intercept of each tile's thread CPU time against its four
+// counts: R^2 0.98, three runs within 7 % of each other (this is the median one). The shading
+// calls' own fit came out negative (they go with the rays: one per hit), so their cost is in
+// per_ray. The coefficients only have to be fixed, not exact: PBT compares a tile's cost with
+// the same tile's cost one frame later.
 const TileWorkCoefficients kTileWorkCoefficients = {
-    /*per_ray=*/8.93e-8,
+    /*per_ray=*/5.43e-8,
     /*per_cell_step=*/6.77e-9,
-    /*per_triangle_test=*/1.43e-9,
-    /*per_shading_call=*/3.46e-8,
+    /*per_triangle_test=*/1.82e-9,
+    /*per_shading_call=*/0.0,
 };
 
 double TileWorkCost(const TileWork& w, const TileWorkCoefficients& c) {

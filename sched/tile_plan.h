@@ -114,7 +114,7 @@ struct TilePlanFrame {
   // processing order, and their predicted loads (0 before the first prediction). Empty for
   // fixed tiles and kCounter.
   Assignment assignment;
-  std::vector<int32_t> owner;  // per tile: the worker whose list holds it (-1: no lists)
+  std::vector<int32_t> owner;  // per tile: the worker whose list holds it (empty: no lists)
   // Tiles without lists (fixed tiles, kCounter): the order a shared counter hands them out:
   // fixed tiles row-major; kCounter by decreasing prediction (ties: tile index). Empty otherwise.
   std::vector<int32_t> order;
