@@ -802,8 +802,10 @@ class TilesImpl final : public HostRenderer::Impl {
 
   // After the closing barrier: the measured costs to the plan (PBT-Update, next assignment).
   void FinishPlan() {
-    std::vector<double> costs(records_.size());
-    std::vector<int32_t> ran_by(records_.size());
+    std::vector<double>& costs = costs_;  // members: no allocation in the steady state
+    std::vector<int32_t>& ran_by = ran_by_;
+    costs.resize(records_.size());
+    ran_by.resize(records_.size());
     for (size_t i = 0; i < records_.size(); ++i) {
       const TileRecord& r = records_[i];
       costs[i] = options_.pbt_cost == PbtCost::kCpu    ? r.cpu_seconds
@@ -833,6 +835,8 @@ class TilesImpl final : public HostRenderer::Impl {
   const std::vector<int32_t>* order_ = nullptr;  // counter: tile indices in hand-out order
   std::vector<int32_t> explicit_order_;
   std::vector<TileRecord> records_;
+  std::vector<double> costs_;     // FinishPlan's scratch
+  std::vector<int32_t> ran_by_;
   alignas(kQueueFalseSharing) std::atomic<size_t> next_{0};
   struct alignas(kQueueFalseSharing) Range {
     std::atomic<uint64_t> word{0};

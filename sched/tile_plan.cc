@@ -108,16 +108,8 @@ std::vector<Tile> GridTiles(int width, int height, int tw, int th) {
     throw Error(fmt::format("tiles: image {}x{} in {}x{} tiles: sizes must be at least 1", width,
                             height, tw, th));
   }
-  tw = std::min(tw, width);
-  th = std::min(th, height);
   std::vector<Tile> tiles;
-  tiles.reserve(static_cast<size_t>((width + tw - 1) / tw) *
-                static_cast<size_t>((height + th - 1) / th));
-  for (int y = 0; y < height; y += th) {
-    for (int x = 0; x < width; x += tw) {
-      tiles.push_back(Tile{x, y, std::min(x + tw, width), std::min(y + th, height)});
-    }
-  }
+  ImageTiles(width, height, tw, th, tiles);  // a tile larger than the image is clamped to it
   return tiles;
 }
 
@@ -176,7 +168,8 @@ void TilePlan::Plan() {
   f.owner.clear();
   f.order.clear();
   if (!pbt_) {
-    f.tiles = GridTiles(width_, height_, options_.tile_width, options_.tile_height);
+    // The same tiles as GridTiles, into the frame's vector (its capacity reused every frame).
+    ImageTiles(width_, height_, options_.tile_width, options_.tile_height, f.tiles);
     f.has_prediction = false;
     f.predicted.assign(f.tiles.size(), -1.0);
     f.order.resize(f.tiles.size());

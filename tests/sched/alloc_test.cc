@@ -86,7 +86,7 @@ TEST_CASE("no heap allocation while a later frame renders, on every host backend
   o.width = 96;
   o.height = 80;
   o.max_depth = 4;
-  for (const char* name : {"serial", "lock", "lfree", "local"}) {
+  for (const char* name : {"serial", "lock", "lfree", "local", "tiles"}) {
     for (const int batch : {20, 1024}) {
       INFO("backend ", std::string(name), " batch ", batch);
       BackendOptions b;
