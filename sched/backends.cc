@@ -895,8 +895,14 @@ const Pbt* HostRenderer::pbt() const { return impl_->pbt(); }
 
 namespace {
 
-void CheckFrame(const FrameContext& ctx, const Framebuffer& fb, bool in_frame) {
+void CheckFrame(const FrameContext& ctx, const Framebuffer& fb, bool in_frame, BackendKind kind) {
   if (in_frame) throw Error("renderer: BeginFrame while a frame is running (call EndFrame)");
+  if (fb.storage() == Framebuffer::Storage::kResolved && kind != BackendKind::kSerial &&
+      kind != BackendKind::kTiles) {
+    throw Error(fmt::format("renderer: the {} backend adds contributions from any thread to any "
+                            "pixel: it needs a kFixed framebuffer",
+                            BackendName(kind)));
+  }
   if (ctx.scene == nullptr || ctx.accel == nullptr) {
     throw Error("renderer: frame context without scene or acceleration structure");
   }
@@ -909,7 +915,7 @@ void CheckFrame(const FrameContext& ctx, const Framebuffer& fb, bool in_frame) {
 }  // namespace
 
 void HostRenderer::BeginFrame(const FrameContext& ctx, Framebuffer& fb) {
-  CheckFrame(ctx, fb, impl_->in_frame_);
+  CheckFrame(ctx, fb, impl_->in_frame_, impl_->options_.kind);
   impl_->begin_ = Clock::now();
   impl_->ctx_ = ctx;
   impl_->fb_ = &fb;
@@ -921,7 +927,7 @@ void HostRenderer::BeginFrame(const FrameContext& ctx, Framebuffer& fb) {
 
 void HostRenderer::BeginFrame(const FrameContext& ctx, Framebuffer& fb,
                               std::span<const Tile> tiles) {
-  CheckFrame(ctx, fb, impl_->in_frame_);
+  CheckFrame(ctx, fb, impl_->in_frame_, impl_->options_.kind);
   std::vector<Tile> list(tiles.begin(), tiles.end());
   for (size_t i = 0; i < list.size(); ++i) {
     const Tile& t = list[i];

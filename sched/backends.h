@@ -160,9 +160,10 @@ class HostRenderer {
   const BackendOptions& options() const;
 
   // Starts a frame of the whole image: ctx is copied (its scene and accel must outlive
-  // EndFrame), fb (ctx.options.width x height, not cleared) must outlive EndFrame. Throws
-  // rs::Error if fb's size differs from ctx or a frame is already running; PBT tiles: rs::Error
-  // if the image has fewer pixels than tiles.
+  // EndFrame), fb (ctx.options.width x height, not cleared) must outlive EndFrame. serial and
+  // tiles take a kResolved fb (each pixel set once per frame; half the memory), the queue
+  // backends need kFixed. Throws rs::Error if fb's size or storage does not fit or a frame is
+  // already running; PBT tiles: rs::Error if the image has fewer pixels than tiles.
   void BeginFrame(const FrameContext& ctx, Framebuffer& fb);
   // The same for an explicit set of tiles (inside the image; may be empty: a frame with no
   // rays). Not with PBT (throws rs::Error). Queue backends cut each tile into primary tasks; the

@@ -515,7 +515,11 @@ int RunRender(RenderArgs args) {
   options.order = args.order == "block" ? RayOrder::kBlock4x2 : RayOrder::kScanline;
 
   HostRenderer renderer(backend);
-  Framebuffer fb(args.width, args.height);
+  // serial and tiles give each pixel its sums once: the float image alone (12 bytes per pixel).
+  const bool resolved = (backend.kind == BackendKind::kSerial || backend.kind == BackendKind::kTiles) &&
+                        args.dump_raw.empty();
+  Framebuffer fb(args.width, args.height,
+                 resolved ? Framebuffer::Storage::kResolved : Framebuffer::Storage::kFixed);
   std::vector<float> rgb;
   std::vector<HostFrameStats> frames;
   frames.reserve(static_cast<size_t>(args.frames));
@@ -531,8 +535,12 @@ int RunRender(RenderArgs args) {
     total_seconds += s.total.total_seconds;
     const bool write = frame + 1 == args.frames || out.find('#') != std::string::npos;
     if (write) {
-      fb.ToRgb(rgb);
-      WriteImage(FrameFileName(out, frame), args.width, args.height, rgb);
+      if (resolved) {
+        WriteImage(FrameFileName(out, frame), args.width, args.height, fb.resolved());
+      } else {
+        fb.ToRgb(rgb);
+        WriteImage(FrameFileName(out, frame), args.width, args.height, rgb);
+      }
       if (!args.dump_raw.empty()) WriteRawFramebuffer(FrameFileName(args.dump_raw, frame), fb);
     }
     if (args.frames > 1 && !args.quiet) {
