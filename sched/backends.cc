@@ -86,9 +86,12 @@ void ValidateBackendOptions(const BackendOptions& o) {
   if (o.pbt_workers < 0 || o.pbt_workers > 65536) {
     fail(fmt::format("pbt workers {} must be in [0, 65536]", o.pbt_workers));
   }
-  if (o.pbt_tiles_per_worker > 0 && o.kind != BackendKind::kTiles) {
-    fail(fmt::format("PBT tiling (k = {}) needs the tiles backend, not {}", o.pbt_tiles_per_worker,
-                     name));
+  const bool queues = o.kind == BackendKind::kLock || o.kind == BackendKind::kLockFree ||
+                      o.kind == BackendKind::kLocal;
+  if (o.pbt_tiles_per_worker > 0 && o.kind == BackendKind::kSerial) {
+    fail(fmt::format("PBT tiling (k = {}) needs a parallel backend (lock, lfree, local or "
+                     "tiles), not serial",
+                     o.pbt_tiles_per_worker));
   }
   if (o.pbt_steal && o.pbt_tiles_per_worker == 0) {
     fail("pbt_steal needs a PBT tiling (pbt_tiles_per_worker > 0)");
@@ -108,6 +111,12 @@ void ValidateBackendOptions(const BackendOptions& o) {
   if (o.pbt_cost != PbtCost::kWall && o.pbt_tiles_per_worker == 0) {
     fail(fmt::format("pbt_cost {} needs a PBT tiling (pbt_tiles_per_worker > 0)",
                      PbtCostName(o.pbt_cost)));
+  }
+  if (o.pbt_tiles_per_worker > 0 && queues && o.pbt_cost != PbtCost::kWork) {
+    fail(fmt::format("pbt_cost {} with backend {}: a queue backend traces a tile's rays on "
+                     "whichever thread pops them, mixed with other tiles' rays in one batch, so "
+                     "a tile has no wall or CPU time of its own; use pbt_cost work",
+                     PbtCostName(o.pbt_cost), name));
   }
   if (o.pbt_steal && o.assign == PbtAssign::kCounter) {
     fail("pbt_steal needs per-worker lists; assign counter has one shared counter");
@@ -242,6 +251,20 @@ class SerialImpl final : public HostRenderer::Impl {
 // not yet processed; a tile's primary tasks are counted before they are pushed, a batch's
 // children before its tasks are retired. A thread leaves when the queue is EMPTY, no tile is
 // left and the count is 0. LOCAL needs no counter: nobody else pushes into a thread's queue.
+//
+// PBT (pbt_tiles_per_worker > 0): the tiles and their order come from a TilePlan, as for the
+// tiles backend. A thread takes the tiles of its own lists first (workers w, w + threads, ...,
+// each in list order) and installs each in its feed slot, from which the primaries go out in
+// chunks of about tile_size^2 (whole tasks), so a large PBT tile never floods the queue. LOCAL
+// keeps a tile's chunks and all their descendants on the thread's own queue: with Greedy and
+// Visit the same thread traces the same tiles frame after frame. A thread whose lists are done
+// takes the back of the list with the most predicted work waiting (shared queues always, LOCAL
+// with pbt_steal); on a shared queue it also takes chunks of other threads' tiles. Counter:
+// the tiles from one shared counter over the plan's order. A tile's rays are traced by whoever
+// pops them, mixed with other tiles' rays, so a tile has no time of its own: its cost is its
+// deterministic work, every traced ray charged to the tile of its pixel (PbtTileLookup). Cell
+// steps, triangle tests and shading calls are counted per batch, not per ray, so only the ray
+// counts enter (TileWork::rays).
 
 // Rays in flight a queue backend allows: per thread, its engine's budget and at least 64
 // batches or tiles (a breadth-first generation of a tile is wider than the engine's depth-first
@@ -291,6 +314,135 @@ class TaskArena {
   std::vector<RayStream*> free_;
 };
 
+// PBT per-worker tile lists for a frame: list v's waiting tiles are [head, tail) of the plan's
+// list v, packed in one 64-bit word so the owner (front) and thieves (back) arbitrate the last
+// tile with one CAS. Relaxed: the CAS only decides who feeds a tile; the lists were published
+// by the opening barrier and the records are read after the closing one.
+class PbtListRanges {
+ public:
+  // Application thread, threads parked: one range per list (allocates when the count changes).
+  void Load(const Assignment& assignment) {
+    const size_t lists = assignment.tiles.size();
+    if (lists != size_) {
+      ranges_ = std::make_unique<Range[]>(lists);
+      size_ = lists;
+    }
+    for (size_t v = 0; v < lists; ++v) {
+      ranges_[v].word.store(Pack(0, static_cast<uint32_t>(assignment.tiles[v].size())),
+                            std::memory_order_relaxed);  // published by the opening barrier
+    }
+  }
+  // The front (owner) or back (thief) waiting position of list v; false if none waits.
+  bool Take(size_t v, bool front, uint32_t* pos) {
+    std::atomic<uint64_t>& range = ranges_[v].word;
+    uint64_t r = range.load(std::memory_order_relaxed);
+    for (;;) {
+      const uint32_t head = static_cast<uint32_t>(r);
+      const uint32_t tail = static_cast<uint32_t>(r >> 32);
+      if (head >= tail) return false;
+      const uint64_t next = front ? Pack(head + 1, tail) : Pack(head, tail - 1);
+      if (range.compare_exchange_weak(r, next, std::memory_order_relaxed,
+                                      std::memory_order_relaxed)) {
+        *pos = front ? head : tail - 1;
+        return true;
+      }
+    }
+  }
+  // The list with the most predicted work waiting (the plan's steal weights; ties: lowest
+  // index), or the number of lists if all are empty. Racy snapshot by design: a stale choice
+  // only costs one failed Take. Lists never refill within a frame, so "all empty" is final.
+  size_t Richest(const Assignment& assignment, const std::vector<double>& weight) const {
+    const auto& lists = assignment.tiles;
+    size_t best = lists.size();
+    double best_work = -1.0;
+    for (size_t v = 0; v < lists.size(); ++v) {
+      const uint64_t r = ranges_[v].word.load(std::memory_order_relaxed);
+      const uint32_t head = static_cast<uint32_t>(r);
+      const uint32_t tail = static_cast<uint32_t>(r >> 32);
+      if (head >= tail) continue;
+      double work = 0;
+      for (uint32_t p = head; p < tail; ++p) work += weight[static_cast<size_t>(lists[v][p])];
+      if (work > best_work) {
+        best_work = work;
+        best = v;
+      }
+    }
+    return best;
+  }
+
+ private:
+  static uint64_t Pack(uint32_t head, uint32_t tail) {
+    return static_cast<uint64_t>(head) | (static_cast<uint64_t>(tail) << 32);
+  }
+  struct alignas(kQueueFalseSharing) Range {
+    std::atomic<uint64_t> word{0};
+  };
+  std::unique_ptr<Range[]> ranges_;
+  size_t size_ = 0;
+};
+
+// Pixel -> tile index of a PBT frame: the tree's inner nodes flattened into one array (m - 1
+// cuts), descended per ray (depth ~ log2 m). No per-pixel map; rebuilt each frame in place, so
+// it allocates only in the first frame (m is fixed).
+class PbtTileLookup {
+ public:
+  // Application thread. Leaves are numbered in in-order, the PBT's tile indices; throws
+  // rs::Error if they do not match `tiles` (the plan's frame).
+  void Build(const Pbt& pbt, const std::vector<Tile>& tiles, int width) {
+    nodes_.clear();
+    width_ = static_cast<uint32_t>(width);
+    int32_t leaves = 0;
+    root_ = Flatten(pbt, pbt.Root(), tiles, leaves);
+    if (static_cast<size_t>(leaves) != tiles.size()) {
+      throw Error(fmt::format("PBT lookup: {} leaves for {} tiles", leaves, tiles.size()));
+    }
+  }
+  // The tile holding pixel y * width + x (inside the image).
+  size_t TileOf(uint32_t pixel) const {
+    const uint32_t y = pixel / width_;
+    const uint32_t x = pixel - y * width_;
+    int32_t e = root_;
+    while (e >= 0) {
+      const Node& n = nodes_[static_cast<size_t>(e)];
+      e = n.next[(n.along_y ? y : x) >= n.cut ? 1 : 0];
+    }
+    return static_cast<size_t>(~e);
+  }
+
+ private:
+  struct Node {
+    uint32_t cut;     // next[0] holds coordinates < cut, next[1] the others
+    bool along_y;     // the coordinate compared: y (kY cut) or x (kX cut)
+    int32_t next[2];  // >= 0: a node; < 0: ~tile index
+  };
+  // The entry for PBT node `id`, in-order, so leaves get their tile indices.
+  int32_t Flatten(const Pbt& pbt, int32_t id, const std::vector<Tile>& tiles, int32_t& leaves) {
+    const PbtNode& node = pbt.Node(id);
+    if (node.IsLeaf()) {
+      const size_t i = static_cast<size_t>(leaves);
+      const Tile& t = node.tile;
+      if (i >= tiles.size() || tiles[i].x0 != t.x0 || tiles[i].y0 != t.y0 || tiles[i].x1 != t.x1 ||
+          tiles[i].y1 != t.y1) {
+        throw Error(fmt::format("PBT lookup: leaf {} is not the frame's tile {}", id, i));
+      }
+      return ~leaves++;
+    }
+    const size_t slot = nodes_.size();
+    const Tile& first = pbt.Node(node.child[0]).tile;
+    const bool along_y = node.axis == PbtAxis::kY;
+    nodes_.push_back(Node{static_cast<uint32_t>(along_y ? first.y1 : first.x1), along_y, {0, 0}});
+    const int32_t a = Flatten(pbt, node.child[0], tiles, leaves);
+    const int32_t b = Flatten(pbt, node.child[1], tiles, leaves);
+    nodes_[slot].next[0] = a;
+    nodes_[slot].next[1] = b;
+    return static_cast<int32_t>(slot);
+  }
+
+  std::vector<Node> nodes_;
+  int32_t root_ = -1;
+  uint32_t width_ = 1;
+};
+
 template <class Q>
 class QueueImpl final : public HostRenderer::Impl {
   static constexpr bool kShared = Q::kKind != QueueKind::kLocal;
@@ -300,6 +452,7 @@ class QueueImpl final : public HostRenderer::Impl {
   explicit QueueImpl(const BackendOptions& options)
       : Impl(options), queue_(MakeQueue(options.threads)) {
     for (int w = 0; w < options.threads; ++w) workers_.push_back(std::make_unique<Worker>());
+    feeds_ = std::make_unique<Feed[]>(static_cast<size_t>(options.threads));
     loop_ = std::make_unique<FrameLoop>(options.threads, [this](int w) { Work(w); });
   }
 
@@ -307,45 +460,30 @@ class QueueImpl final : public HostRenderer::Impl {
     loop_.reset();  // END: stop the threads before the queue and the workers go away
   }
 
+  const Pbt* pbt() const override { return plan_ ? plan_->pbt() : nullptr; }
+
   void Begin(const std::vector<Tile>* tiles) override {
-    if constexpr (kTimed) queue_.stats().Reset();
-    abort_.store(false, std::memory_order_relaxed);
-    for (auto& w : workers_) {
-      w->stats = FrameStats();
-      w->empty_polls = 0;
-      w->primary = 0;
-      w->engine.Reserve(ctx_);
+    frame_ = nullptr;
+    if (options_.pbt_tiles_per_worker > 0) {
+      if (tiles != nullptr) {
+        throw Error(fmt::format("{} backend: explicit tiles cannot be combined with PBT tiling",
+                                BackendName(options_.kind)));
+      }
+      const int width = ctx_.options.width;
+      const int height = ctx_.options.height;
+      if (!plan_ || plan_->width() != width || plan_->height() != height) {
+        plan_.reset();
+        plan_ = std::make_unique<TilePlan>(width, height, PlanOptions());
+      }
+      frame_ = &plan_->Begin();  // published to the threads by the opening barrier
     }
-    size_t tile_pixels = 0;
-    if (tiles == nullptr) {
-      const int t = ctx_.options.tile_size;
-      ImageTiles(ctx_.options.width, ctx_.options.height, t, t, tiles_);
-    } else {
-      tiles_.assign(tiles->begin(), tiles->end());
+    try {
+      Load(tiles);
+    } catch (...) {
+      if (frame_ != nullptr) plan_->Cancel();
+      frame_ = nullptr;
+      throw;
     }
-    for (const Tile& t : tiles_) tile_pixels = std::max(tile_pixels, t.NumPixels());
-    const size_t lights = ctx_.scene->lights.size();
-    const size_t cap = QueueRayCap(ctx_.options, lights, tile_pixels, options_.threads);
-    cap_ = static_cast<int64_t>(cap);
-    // Streams for the tasks the cap allows (partial tasks: two per batch and thread on top),
-    // allocated in the first frame only.
-    const size_t ts = TaskSize();
-    const size_t tasks = cap / ts + static_cast<size_t>(options_.threads) * (2 * BatchTasks() + 8);
-    arena_.Reserve(tasks, ts);
-    queue_.Reserve(tasks);
-    // A batch of popped tasks and everything Shade can spawn from it (one per light, two
-    // bounces), so the threads' streams never grow in the steady state.
-    const size_t batch_rays = BatchTasks() * TaskSize() + kStreamPad;
-    for (auto& w : workers_) {
-      w->batch.Reserve(batch_rays);
-      w->spawned.Reserve(batch_rays * (ctx_.scene->lights.size() + 2) + kStreamPad);
-      w->popped.reserve(BatchTasks());
-      w->children.reserve(std::max(tile_pixels, w->spawned.capacity()) / TaskSize() + 2);
-    }
-    // Published to the threads by the opening barrier (Release), hence relaxed.
-    next_tile_.store(0, std::memory_order_relaxed);
-    in_flight_.store(0, std::memory_order_relaxed);
-    outstanding_.Reset(0);
     loop_->Release();  // listing 3 line 7
   }
 
@@ -368,6 +506,8 @@ class QueueImpl final : public HostRenderer::Impl {
       t.idle_seconds = loop_->times()[static_cast<size_t>(w)].idle_seconds;
       t.cpu_seconds = loop_->times()[static_cast<size_t>(w)].cpu_seconds;
       t.empty_polls = me.empty_polls;
+      t.tiles = me.tiles;
+      t.steals = me.steals;
       if constexpr (kTimed) {
         t.queue_seconds = queue_.stats().Seconds(w);
         t.queue_ops = queue_.stats().Ops(w);
@@ -379,9 +519,12 @@ class QueueImpl final : public HostRenderer::Impl {
     stats_.primary_tasks = primary;
     stats_.total = total;
     if (error) {
+      if (frame_ != nullptr) plan_->Cancel();  // the same tiles and lists again next frame
+      frame_ = nullptr;
       Drain();
       std::rethrow_exception(error);
     }
+    if (frame_ != nullptr) FinishPlan();
   }
 
  private:
@@ -394,6 +537,26 @@ class QueueImpl final : public HostRenderer::Impl {
     FrameStats stats;
     uint64_t empty_polls = 0;
     uint64_t primary = 0;
+    // PBT.
+    uint64_t tiles = 0;               // tiles this thread took (from a list or the counter)
+    uint64_t steals = 0;              // of those, from another thread's list
+    size_t own = 0;                   // the own list it takes from next (w, w + threads, ...)
+    bool no_tiles = false;            // every list (or the counter) found empty: final
+    std::vector<uint64_t> tile_rays;  // per tile: rays of it this thread traced
+  };
+
+  // PBT: the tile a thread took, handed out in chunks of primaries {tile + 1, next primary}
+  // (0: none). The owner installs a tile only when its slot is exhausted; shared queues let any
+  // thread take a chunk by CAS (relaxed: it only arbitrates primary ranges; the tiles were
+  // published by the opening barrier). Positions only grow within a tile and each tile is
+  // installed once, so a CAS on a stale word fails (no ABA).
+  struct alignas(kQueueFalseSharing) Feed {
+    std::atomic<uint64_t> word{0};
+  };
+  struct Chunk {
+    size_t tile;
+    size_t first;
+    size_t count;
   };
 
   static Q MakeQueue(int n) {
@@ -406,7 +569,97 @@ class QueueImpl final : public HostRenderer::Impl {
 
   size_t TaskSize() const { return static_cast<size_t>(ctx_.options.task_size); }
   size_t BatchTasks() const {
-    return std::max<size_t>(1, (static_cast<size_t>(ctx_.options.batch) + TaskSize() - 1) / TaskSize());
+    return std::max<size_t>(
+        1, (static_cast<size_t>(ctx_.options.batch) + TaskSize() - 1) / TaskSize());
+  }
+
+  int PbtWorkers() const {
+    return options_.pbt_workers > 0 ? options_.pbt_workers : options_.threads;
+  }
+
+  TilePlanOptions PlanOptions() const {
+    TilePlanOptions p;
+    p.tile_width = options_.tile_width;
+    p.tile_height = options_.tile_height;
+    p.pbt_tiles_per_worker = options_.pbt_tiles_per_worker;
+    p.workers = PbtWorkers();
+    p.assign = options_.assign;
+    p.seed = options_.seed;
+    p.steal = options_.pbt_steal;
+    p.cost = options_.pbt_cost;
+    return p;
+  }
+
+  // The frame's tiles, arenas and per-thread state (application thread, threads parked).
+  void Load(const std::vector<Tile>* tiles) {
+    if constexpr (kTimed) queue_.stats().Reset();
+    abort_.store(false, std::memory_order_relaxed);
+    for (size_t w = 0; w < workers_.size(); ++w) {
+      Worker& me = *workers_[w];
+      me.stats = FrameStats();
+      me.empty_polls = 0;
+      me.primary = 0;
+      me.tiles = 0;
+      me.steals = 0;
+      me.own = w;
+      me.no_tiles = false;
+      me.engine.Reserve(ctx_);
+    }
+    size_t tile_pixels = 0;
+    if (frame_ != nullptr) {
+      tiles_.assign(frame_->tiles.begin(), frame_->tiles.end());
+    } else if (tiles == nullptr) {
+      const int t = ctx_.options.tile_size;
+      ImageTiles(ctx_.options.width, ctx_.options.height, t, t, tiles_);
+    } else {
+      tiles_.assign(tiles->begin(), tiles->end());
+    }
+    for (const Tile& t : tiles_) tile_pixels = std::max(tile_pixels, t.NumPixels());
+    if (frame_ != nullptr) {
+      // PBT tiles are fed in chunks of about a tile_size^2 tile (whole tasks), so the rays in
+      // flight stay those of the default tiling, however large the PBT's tiles are.
+      const size_t ts = TaskSize();
+      const size_t t = static_cast<size_t>(ctx_.options.tile_size);
+      chunk_ = std::max<size_t>(1, (t * t + ts - 1) / ts) * ts;
+      chunk_ = std::min(chunk_, std::max<size_t>(tile_pixels, 1));
+      tile_pixels = chunk_;
+      LoadPbt();
+    }
+    const size_t lights = ctx_.scene->lights.size();
+    const size_t cap = QueueRayCap(ctx_.options, lights, tile_pixels, options_.threads);
+    cap_ = static_cast<int64_t>(cap);
+    // Streams for the tasks the cap allows (partial tasks: two per batch and thread on top),
+    // allocated in the first frame only.
+    const size_t ts = TaskSize();
+    const size_t tasks = cap / ts + static_cast<size_t>(options_.threads) * (2 * BatchTasks() + 8);
+    arena_.Reserve(tasks, ts);
+    queue_.Reserve(tasks);
+    // A batch of popped tasks and everything Shade can spawn from it (one per light, two
+    // bounces), so the threads' streams never grow in the steady state.
+    const size_t batch_rays = BatchTasks() * TaskSize() + kStreamPad;
+    for (auto& w : workers_) {
+      w->batch.Reserve(batch_rays);
+      w->spawned.Reserve(batch_rays * (ctx_.scene->lights.size() + 2) + kStreamPad);
+      w->popped.reserve(BatchTasks());
+      w->children.reserve(std::max(tile_pixels, w->spawned.capacity()) / TaskSize() + 2);
+    }
+    // Published to the threads by the opening barrier (Release), hence relaxed.
+    next_tile_.store(0, std::memory_order_relaxed);
+    in_flight_.store(0, std::memory_order_relaxed);
+    outstanding_.Reset(0);
+  }
+
+  // PBT: lists, feed slots, records, per-thread tile counters and the pixel -> tile lookup.
+  void LoadPbt() {
+    const size_t m = tiles_.size();
+    lists_ = options_.assign != PbtAssign::kCounter;
+    if (lists_) ranges_.Load(frame_->assignment);
+    for (size_t w = 0; w < workers_.size(); ++w) {
+      feeds_[w].word.store(0, std::memory_order_relaxed);
+      workers_[w]->tile_rays.assign(m, 0);
+    }
+    records_.assign(m, TileRecord{});
+    lookup_.Build(*plan_->pbt(), tiles_, ctx_.options.width);
   }
 
   // Appends rays [0, n) of `from` to `to` (capacity grown only while the arenas warm up).
@@ -444,25 +697,124 @@ class QueueImpl final : public HostRenderer::Impl {
     me.children.clear();
   }
 
-  // The next tile's primary tasks into the queue (LOCAL: this thread's own). False: none left.
-  bool FeedTile(Worker& me, int w) {
-    const size_t i = next_tile_.fetch_add(1, std::memory_order_relaxed);
-    if (i >= tiles_.size()) return false;
+  // Primary rays [first, first + count) of tile i as tasks into the queue (LOCAL: this
+  // thread's own). Tasks start at multiples of task_size within the tile.
+  void PushPrimaries(Worker& me, int w, size_t i, size_t first, size_t count) {
     const auto t0 = Clock::now();
     const Tile& tile = tiles_[i];
-    const size_t n = tile.NumPixels();
-    for (size_t first = 0; first < n; first += TaskSize()) {
-      const size_t count = std::min(TaskSize(), n - first);
+    const size_t end = first + count;
+    for (size_t f = first; f < end; f += TaskSize()) {
+      const size_t n = std::min(TaskSize(), end - f);
       RayStream* task = arena_.Get(TaskSize());
-      task->Resize(count);
-      GeneratePrimaryRays(ctx_.camera, tile, ctx_.options.order, first, count, task->view(), 0);
+      task->Resize(n);
+      GeneratePrimaryRays(ctx_.camera, tile, ctx_.options.order, f, n, task->view(), 0);
       task->FillPadding();
       me.children.push_back(task);
     }
     me.primary += me.children.size();
     me.stats.generate_seconds += Seconds(t0, Clock::now());
     PushChildren(me, w, /*retired=*/0);
+  }
+
+  // The next tile's primary tasks into the queue (LOCAL: this thread's own). False: none left.
+  bool FeedTile(Worker& me, int w) {
+    const size_t i = next_tile_.fetch_add(1, std::memory_order_relaxed);
+    if (i >= tiles_.size()) return false;
+    PushPrimaries(me, w, i, 0, tiles_[i].NumPixels());
     return true;
+  }
+
+  // PBT: a chunk of this thread's tile, else its next tile (own lists in order; then, shared
+  // queues or pbt_steal, the back of the list with most predicted work waiting; counter: the
+  // shared counter over the plan's order), else (shared queues) a chunk of another thread's
+  // tile. False: nothing left to feed.
+  bool FeedPbt(Worker& me, int w) {
+    Chunk c;
+    for (;;) {
+      if (TakeChunk(static_cast<size_t>(w), &c)) break;
+      size_t tile = 0;
+      int32_t worker = -1;
+      if (!NextTile(me, w, &tile, &worker)) {
+        if constexpr (kShared) {
+          const size_t n = workers_.size();
+          for (size_t s = 1; s < n; ++s) {
+            if (TakeChunk((static_cast<size_t>(w) + s) % n, &c)) {
+              PushPrimaries(me, w, c.tile, c.first, c.count);
+              return true;
+            }
+          }
+        }
+        return false;
+      }
+      TileRecord& r = records_[tile];  // this tile is ours alone (list CAS or counter RMW)
+      r.tile = tiles_[tile];
+      r.thread = w;
+      r.worker = worker;
+      r.predicted = frame_->predicted[tile];
+      ++me.tiles;
+      feeds_[static_cast<size_t>(w)].word.store(static_cast<uint64_t>(tile + 1) << 32,
+                                                std::memory_order_relaxed);
+    }
+    PushPrimaries(me, w, c.tile, c.first, c.count);
+    return true;
+  }
+
+  bool TakeChunk(size_t slot, Chunk* c) {
+    std::atomic<uint64_t>& word = feeds_[slot].word;
+    uint64_t f = word.load(std::memory_order_relaxed);
+    for (;;) {
+      const uint64_t tile1 = f >> 32;
+      if (tile1 == 0) return false;
+      const size_t pos = static_cast<uint32_t>(f);
+      const size_t n = tiles_[tile1 - 1].NumPixels();
+      if (pos >= n) return false;
+      const size_t count = std::min(chunk_, n - pos);
+      if (word.compare_exchange_weak(f, f + count, std::memory_order_relaxed,
+                                     std::memory_order_relaxed)) {
+        *c = Chunk{tile1 - 1, pos, count};
+        return true;
+      }
+    }
+  }
+
+  bool NextTile(Worker& me, int w, size_t* tile, int32_t* worker) {
+    if (me.no_tiles) return false;
+    if (!lists_) {
+      const std::vector<int32_t>& order = frame_->order;
+      const size_t i = next_tile_.fetch_add(1, std::memory_order_relaxed);
+      if (i >= order.size()) {
+        me.no_tiles = true;
+        return false;
+      }
+      *tile = static_cast<size_t>(order[i]);
+      *worker = w;
+      return true;
+    }
+    const Assignment& a = frame_->assignment;
+    uint32_t pos = 0;
+    for (; me.own < a.tiles.size(); me.own += workers_.size()) {
+      if (ranges_.Take(me.own, /*front=*/true, &pos)) {
+        *tile = static_cast<size_t>(a.tiles[me.own][pos]);
+        *worker = static_cast<int32_t>(me.own);
+        return true;
+      }
+    }
+    if (!kShared && !options_.pbt_steal) {
+      me.no_tiles = true;
+      return false;
+    }
+    for (;;) {
+      const size_t victim = ranges_.Richest(a, frame_->weight);
+      if (victim == a.tiles.size()) {
+        me.no_tiles = true;
+        return false;
+      }
+      if (!ranges_.Take(victim, /*front=*/false, &pos)) continue;  // raced; look again
+      ++me.steals;
+      *tile = static_cast<size_t>(a.tiles[victim][pos]);
+      *worker = static_cast<int32_t>(victim);
+      return true;
+    }
   }
 
   // Up to ceil(batch / task_size) tasks as one stream through the engine; children pushed.
@@ -476,6 +828,11 @@ class QueueImpl final : public HostRenderer::Impl {
     }
     me.batch.FillPadding();
     me.spawned.Clear();
+    if (frame_ != nullptr) {
+      // PBT's work cost: every ray traced is charged to the tile of its pixel.
+      const RayStreamView b = me.batch.view();
+      for (size_t i = 0; i < b.size; ++i) ++me.tile_rays[lookup_.TileOf(b.pixel[i])];
+    }
     me.stats.shade_seconds += Seconds(t0, Clock::now());
     const uint64_t tasks0 = me.stats.tasks;
     me.engine.TraceGeneration(ctx_, me.batch.view(), *fb_, me.spawned, me.stats);
@@ -503,6 +860,7 @@ class QueueImpl final : public HostRenderer::Impl {
   void Work(int w) {
     Worker& me = *workers_[static_cast<size_t>(w)];
     const size_t batch_tasks = BatchTasks();
+    const bool pbt = frame_ != nullptr;
     int spins = 0;
     for (;;) {
       RayStream* task = nullptr;
@@ -524,7 +882,7 @@ class QueueImpl final : public HostRenderer::Impl {
       }
       ++me.empty_polls;
       if (abort_.load(std::memory_order_relaxed)) return;
-      if (FeedTile(me, w)) continue;
+      if (pbt ? FeedPbt(me, w) : FeedTile(me, w)) continue;
       if constexpr (!kShared) return;  // LOCAL: nobody else feeds this queue
       if (outstanding_.Done()) return;
       // Others are still processing tasks that may spawn children. Pause, and give the core
@@ -536,6 +894,40 @@ class QueueImpl final : public HostRenderer::Impl {
         std::this_thread::yield();
       }
     }
+  }
+
+  // After the closing barrier: each tile's rays summed over the threads, its work cost to the
+  // plan (PBT-Update, next assignment) and the records.
+  void FinishPlan() {
+    const size_t m = records_.size();
+    costs_.resize(m);
+    ran_by_.resize(m);
+    for (size_t i = 0; i < m; ++i) {
+      uint64_t rays = 0;
+      for (const auto& w : workers_) rays += w->tile_rays[i];
+      TileRecord& r = records_[i];
+      r.rays = rays;
+      r.counts = TileWork{};
+      r.counts.rays = rays;
+      r.work = TileWorkCost(r.counts);
+      costs_[i] = r.work;
+      ran_by_[i] = r.thread;
+    }
+    stats_.tiles = records_;
+    // Counter: the thread that took a tile traced all of it only on LOCAL (its own queue) and
+    // only if the threads are the plan's workers; otherwise the plan models the workers.
+    const bool exact = !kShared && PbtWorkers() == options_.threads;
+    const TilePlanReport report =
+        plan_->End(costs_, exact ? std::span<const int32_t>(ran_by_) : std::span<const int32_t>());
+    frame_ = nullptr;
+    if (!report.pbt) return;
+    stats_.pbt = true;
+    stats_.has_prediction = report.has_prediction;
+    stats_.accuracy = report.accuracy;
+    stats_.worker_imbalance = report.worker_imbalance;
+    stats_.demand_imbalance = report.demand_imbalance;
+    stats_.predicted_makespan = report.predicted_makespan;
+    stats_.update = report.update;
   }
 
   // Application thread, threads parked: empties the queues after an aborted frame.
@@ -553,8 +945,19 @@ class QueueImpl final : public HostRenderer::Impl {
   std::vector<std::unique_ptr<Worker>> workers_;
   std::vector<Tile> tiles_;
   int64_t cap_ = 0;
+  // PBT (frame_ != nullptr): the plan, this frame's lists, feed slots, records and lookup.
+  std::unique_ptr<TilePlan> plan_;
+  const TilePlanFrame* frame_ = nullptr;
+  bool lists_ = false;  // per-worker lists (not the counter)
+  size_t chunk_ = 0;    // primaries per chunk
+  PbtListRanges ranges_;
+  std::unique_ptr<Feed[]> feeds_;  // per thread
+  PbtTileLookup lookup_;
+  std::vector<TileRecord> records_;
+  std::vector<double> costs_;
+  std::vector<int32_t> ran_by_;
   TaskCount outstanding_;  // shared queues: tasks pushed and not yet processed
-  alignas(kQueueFalseSharing) std::atomic<size_t> next_tile_{0};
+  alignas(kQueueFalseSharing) std::atomic<size_t> next_tile_{0};   // tiles_, or PBT's order
   alignas(kQueueFalseSharing) std::atomic<int64_t> in_flight_{0};  // rays in queued tasks
   alignas(kQueueFalseSharing) std::atomic<bool> abort_{false};
   std::unique_ptr<FrameLoop> loop_;  // last: its threads use everything above

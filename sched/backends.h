@@ -49,6 +49,10 @@ struct BackendOptions {
   // of workers t, t + threads, ... (each in list order). By default there is no stealing
   // between lists (the brief's reading of the paper: assigned lists; a thread that finishes
   // early idles at the barrier).
+  // Queue backends (lock, lfree, local) take the same plan's tiles to feed their queues: a
+  // thread feeds its own lists' tiles first; LOCAL keeps their rays on the thread's own queue;
+  // a thread done with its lists takes waiting tiles of others (shared queues always, LOCAL
+  // with pbt_steal). They need pbt_cost kWork (a tile has no time of its own there).
   int pbt_tiles_per_worker = 0;
   int pbt_workers = 0;
   // Demand-driven with affinity, the paper's master-worker of §2 with §4's affine tiles as the
@@ -73,8 +77,9 @@ struct BackendOptions {
 
 // Throws rs::Error naming the option: threads outside [1, FrameLoop::kMaxThreads], serial with
 // threads != 1, tile sizes < 1, pbt_tiles_per_worker < 0 or > 4096, pbt_workers < 0 or > 65536,
-// PBT options (k > 0, pbt_steal, pbt_workers, pbt_cost other than wall) on a backend other than
-// tiles or without k > 0, pbt_steal with assign counter, unknown enum values.
+// PBT options (k > 0, pbt_steal, pbt_workers, pbt_cost other than wall) on serial or without
+// k > 0, PBT on a queue backend with pbt_cost other than work, pbt_steal with assign counter,
+// unknown enum values.
 void ValidateBackendOptions(const BackendOptions& options);
 
 // Per render thread, one frame.
@@ -86,11 +91,14 @@ struct ThreadStats {
   double queue_seconds = 0;  // inside queue operations / tile-counter accesses (Fig. 7)
   uint64_t queue_ops = 0;
   uint64_t empty_polls = 0;  // TryPop calls that found EMPTY
-  uint64_t tiles = 0;        // tiles rendered (tiles backend)
+  uint64_t tiles = 0;        // tiles rendered (tiles backend) / taken to feed (queues + PBT)
   uint64_t steals = 0;       // PBT with pbt_steal: tiles taken from another worker's list
 };
 
-// One tile of the tiles backend, one frame.
+// One tile of the tiles backend, one frame. Queue backends with PBT: thread = the thread that
+// took the tile and fed its primaries (its rays are traced by whoever pops them), seconds and
+// cpu_seconds 0 (a tile has no time of its own there), counts only `rays` (every traced ray
+// charged to its pixel's tile; cell steps, triangle tests and shading calls are per batch).
 struct TileRecord {
   Tile tile;
   int32_t thread = -1;     // render thread that ran it
@@ -114,11 +122,11 @@ struct HostFrameStats {
   double app_cpu_seconds = 0;    // application thread's CPU time in BeginFrame (generation)
   uint64_t primary_tasks = 0;
   std::vector<ThreadStats> threads;  // one per render thread (serial: one)
-  std::vector<TileRecord> tiles;     // tiles backend: one per tile, in tile order
+  std::vector<TileRecord> tiles;     // tiles backend, PBT: one per tile, in tile order
   // max / mean of the threads' busy_seconds (>= 1; 1 when the mean is 0).
   double imbalance = 1.0;
 
-  // PBT (tiles backend with pbt_tiles_per_worker > 0).
+  // PBT (tiles or queue backend with pbt_tiles_per_worker > 0).
   bool pbt = false;
   bool has_prediction = false;    // tiles carry predictions (not the first PBT frame)
   PredictionAccuracy accuracy;    // predicted vs measured tile times (if has_prediction)

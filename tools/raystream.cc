@@ -201,9 +201,14 @@ PbtAssign PbtAssignFor(const RenderArgs& args) {
   return assign;
 }
 
-// --pbt-cost (alias --pbt-time): wall (the default), cpu or work.
+// --pbt-cost (alias --pbt-time): wall (the default), cpu or work (the default of the queue
+// backends with --pbt, whose tiles have no time of their own).
 PbtCost PbtCostFor(const RenderArgs& args) {
-  PbtCost cost = PbtCost::kWall;
+  BackendKind kind = BackendKind::kTiles;
+  const bool queues = args.pbt > 0 && ParseBackendKind(args.backend, &kind) &&
+                      (kind == BackendKind::kLock || kind == BackendKind::kLockFree ||
+                       kind == BackendKind::kLocal);
+  PbtCost cost = queues ? PbtCost::kWork : PbtCost::kWall;
   if (!args.pbt_cost.empty() && !ParsePbtCost(args.pbt_cost, &cost)) {
     throw Error(fmt::format("--pbt-cost {}: expected wall, cpu or work", args.pbt_cost));
   }
@@ -233,9 +238,13 @@ void CheckBackendOptions(const RenderArgs& args) {
   if (args.tile != "32x32" && pbt) {
     fail("--tile " + args.tile, fmt::format("with --pbt the PBT makes the tiles (backend {})", b));
   }
-  if (pbt && !tiled) {
+  const bool queues = !cell && !mpi && (kind == BackendKind::kLock ||
+                                         kind == BackendKind::kLockFree ||
+                                         kind == BackendKind::kLocal);
+  if (pbt && !tiled && !queues) {
     fail(fmt::format("--pbt {}", args.pbt),
-         fmt::format("PBT tiling needs --backend tiles, cell or mpi, not {}", b));
+         fmt::format("PBT tiling needs --backend lock, lfree, local, tiles, cell or mpi, not {}",
+                     b));
   }
   // The PBT's options need a PBT.
   const bool seed_given = args.seed != 1;
@@ -265,6 +274,13 @@ void CheckBackendOptions(const RenderArgs& args) {
       fail("--steal", fmt::format("--assign counter has no per-worker lists to steal from "
                                   "(backend {})",
                                   b));
+    }
+    if (queues && cost != PbtCost::kWork) {
+      fail("--pbt-cost " + args.pbt_cost,
+           fmt::format("the {} backend traces a tile's rays on whichever thread pops them, mixed "
+                       "with other tiles' rays in one batch, so a tile has no wall or CPU time "
+                       "of its own (--pbt-cost work, the default there, counts its rays)",
+                       b));
     }
     if (cell && pbt_cost_given && cost != PbtCost::kWork) {
       fail("--pbt-cost " + args.pbt_cost,
@@ -660,7 +676,8 @@ int Main(int argc, char** argv) {
   render->add_option("--tile", r.tile, "tiles backend: tile shape WxH (8x8, 32x32, 640x2, ...)")
       ->capture_default_str();
   render->add_option("--pbt", r.pbt,
-                     "tiles, cell, mpi: PBT tiling with k tiles per worker (0: off)")
+                     "PBT tiling with k tiles per worker (0: off; not serial; lock, lfree, "
+                     "local: the tiles feed the queues)")
       ->check(CLI::Range(0, 4096))
       ->capture_default_str();
   render->add_option("--pbt-workers", r.pbt_workers,
@@ -672,7 +689,7 @@ int Main(int argc, char** argv) {
                      "random; cell: counter)");
   render->add_option("--pbt-cost,--pbt-time", r.pbt_cost,
                      "tile cost fed to PBT-Update: wall (default), cpu, or work (deterministic "
-                     "counts; cell: its simulated cycles)")
+                     "counts; cell: its simulated cycles; lock, lfree, local: work only)")
       ->check(CLI::IsMember({"wall", "cpu", "work"}));
   render->add_option("--seed", r.seed, "seed of PBT-Random and static assignments")
       ->capture_default_str();

@@ -6,6 +6,7 @@
 #include <cstdlib>
 #include <new>
 #include <string>
+#include <thread>
 
 #include "sched/backends.h"
 #include "tests/sched/hand_scenes.h"
@@ -21,10 +22,13 @@ void __libc_free(void* p);
 namespace {
 
 std::atomic<bool> g_counting{false};
+std::atomic<bool> g_render_threads_only{false};  // skip the test's (application) thread
 std::atomic<uint64_t> g_allocations{0};
+thread_local bool t_application = false;  // initial-exec TLS: reading it never allocates
 
 void Count() {
-  if (g_counting.load(std::memory_order_relaxed)) {
+  if (g_counting.load(std::memory_order_relaxed) &&
+      !(t_application && g_render_threads_only.load(std::memory_order_relaxed))) {
     g_allocations.fetch_add(1, std::memory_order_relaxed);
   }
 }
@@ -109,6 +113,59 @@ TEST_CASE("no heap allocation while a later frame renders, on every host backend
       CHECK(allocations == 0);
     }
   }
+}
+
+// PBT tiles feeding the queues: the render threads allocate nothing in a later frame (their
+// tile counters, feed slots and pixel -> tile lookup are sized on the application thread). The
+// application thread is not counted: TilePlan re-plans between frames (PBT-Update and the next
+// assignment build new vectors there, once per frame, outside the render threads).
+TEST_CASE("no heap allocation on the render threads in a later PBT frame, queue backends") {
+  const Scene s = test::HandScene();
+  const Accel accel(test::MeshOf(s));
+  RenderOptions o;
+  o.width = 96;
+  o.height = 80;
+  o.max_depth = 4;
+  t_application = true;
+  g_render_threads_only.store(true);
+  {  // another thread's allocations are counted, this thread's are not
+    g_allocations.store(0);
+    g_counting.store(true);
+    delete new std::string(100, 'x');
+    const uint64_t own = g_allocations.load();
+    std::thread([] { delete new std::string(100, 'y'); }).join();
+    g_counting.store(false);
+    CHECK(own == 0);
+    CHECK(g_allocations.load() >= 1);
+  }
+  for (const char* name : {"lock", "lfree", "local"}) {
+    for (const PbtAssign assign : {PbtAssign::kGreedy, PbtAssign::kCounter}) {
+      INFO("backend ", std::string(name), " assign ", std::string(PbtAssignName(assign)));
+      BackendOptions b;
+      REQUIRE(ParseBackendKind(name, &b.kind));
+      b.threads = 2;
+      b.pbt_tiles_per_worker = 4;
+      b.assign = assign;
+      b.pbt_cost = PbtCost::kWork;
+      b.pbt_steal = assign != PbtAssign::kCounter;
+      HostRenderer r(b);
+      const FrameContext ctx = MakeFrameContext(s, accel, s.camera, o);
+      Framebuffer fb(o.width, o.height);
+      uint64_t allocations = 0;
+      for (int frame = 0; frame < 4; ++frame) {  // counted: the second to the fourth
+        fb.Clear();
+        g_allocations.store(0);
+        g_counting.store(frame >= 1);
+        r.BeginFrame(ctx, fb);
+        r.EndFrame();
+        g_counting.store(false);
+        allocations += g_allocations.load();
+      }
+      CHECK(allocations == 0);
+    }
+  }
+  g_render_threads_only.store(false);
+  t_application = false;
 }
 
 }  // namespace

@@ -99,6 +99,56 @@ Reference RenderReference(const FrameContext& ctx) {
   return r;
 }
 
+// A queue backend with PBT: one record per tile, taken by one thread, every traced ray charged
+// to one tile (work = TileWorkCost of its rays). LOCAL keeps a tile on the thread that took it
+// (without stealing: the thread owning its list): that thread traces the tile's primaries and
+// its whole ray tree.
+void CheckQueuePbtStats(const HostFrameStats& s, const BackendOptions& o, const FrameStats& want,
+                        size_t expected_tiles) {
+  REQUIRE(s.tiles.size() == expected_tiles);
+  const size_t threads = static_cast<size_t>(o.threads);
+  std::vector<uint64_t> pixels(threads, 0), rays(threads, 0);
+  uint64_t tile_rays = 0, tiles = 0, steals = 0, foreign = 0;
+  size_t all_pixels = 0;
+  for (const TileRecord& r : s.tiles) {
+    REQUIRE(r.thread >= 0);
+    REQUIRE(r.thread < o.threads);
+    CHECK(r.worker >= 0);
+    CHECK(r.rays >= r.tile.NumPixels());  // at least its primary rays
+    CHECK(r.counts.rays == r.rays);
+    CHECK(r.counts.cell_steps == 0);  // per batch, not per ray: not attributed
+    CHECK(r.work == TileWorkCost(r.counts));
+    CHECK(r.seconds == 0.0);  // a tile has no time of its own on a queue backend
+    tile_rays += r.rays;
+    all_pixels += r.tile.NumPixels();
+    pixels[static_cast<size_t>(r.thread)] += r.tile.NumPixels();
+    rays[static_cast<size_t>(r.thread)] += r.rays;
+    if (o.assign == PbtAssign::kCounter) {
+      CHECK(r.worker == r.thread);
+    } else {
+      foreign += r.worker % o.threads != r.thread;
+    }
+  }
+  CHECK(tile_rays == want.TotalRays());
+  CHECK(all_pixels == static_cast<size_t>(want.rays[0]));
+  for (const ThreadStats& t : s.threads) {
+    tiles += t.tiles;
+    steals += t.steals;
+  }
+  CHECK(tiles == expected_tiles);
+  CHECK(foreign == steals);
+  if (o.kind == BackendKind::kLocal) {
+    if (!o.pbt_steal) CHECK(steals == 0);  // so every tile ran on its list's thread
+    for (size_t t = 0; t < threads; ++t) {
+      CHECK(s.threads[t].work.rays[0] == pixels[t]);
+      CHECK(s.threads[t].work.TotalRays() == rays[t]);
+    }
+  }
+  if (o.kind != BackendKind::kLocal && o.assign != PbtAssign::kCounter) {
+    CHECK(steals <= expected_tiles);  // shared queues take other lists' tiles when theirs are done
+  }
+}
+
 // Rays, tasks and per-thread bookkeeping must add up to the serial frame's counts.
 void CheckStats(const HostFrameStats& s, const BackendOptions& o, const FrameStats& want,
                 size_t expected_tiles) {
@@ -144,6 +194,7 @@ void CheckStats(const HostFrameStats& s, const BackendOptions& o, const FrameSta
       CHECK(s.primary_tasks * 20 >= want.rays[0]);  // tiles cut into tasks of <= 20 rays
       CHECK(s.primary_tasks <= want.rays[0]);
       CHECK(s.total.budget_dropped == 0);
+      if (o.pbt_tiles_per_worker > 0) CheckQueuePbtStats(s, o, want, expected_tiles);
       break;
     }
     case BackendKind::kTiles: {
@@ -218,10 +269,9 @@ void CheckBackend(const Loaded& l, const RenderOptions& ro, References& refs,
     const FrameContext ctx = MakeFrameContext(l.scene, *l.accel, camera, ro);
     const Reference& ref = refs.Get(f, speed);
     fb.Clear();
-    const std::vector<Tile> expected =
-        o.kind == BackendKind::kTiles && o.pbt_tiles_per_worker > 0 && renderer.pbt() != nullptr
-            ? renderer.pbt()->Tiles()
-            : std::vector<Tile>{};
+    const std::vector<Tile> expected = o.pbt_tiles_per_worker > 0 && renderer.pbt() != nullptr
+                                           ? renderer.pbt()->Tiles()
+                                           : std::vector<Tile>{};
     const HostFrameStats& s = renderer.RenderFrame(ctx, fb);
     INFO("scene ", l.scene.name, " backend ", std::string(BackendName(o.kind)), " threads ",
          o.threads, " tile ", o.tile_width, "x", o.tile_height, " pbt k ", o.pbt_tiles_per_worker,
@@ -230,7 +280,7 @@ void CheckBackend(const Loaded& l, const RenderOptions& ro, References& refs,
     CHECK(fb.dropped_nan() == ref.fb.dropped_nan());
     CHECK(fb.clamped() == ref.fb.clamped());
     size_t tiles = 0;
-    if (o.kind == BackendKind::kTiles) {
+    if (o.kind == BackendKind::kTiles || o.pbt_tiles_per_worker > 0) {
       if (o.pbt_tiles_per_worker > 0) {
         const int n = o.pbt_workers > 0 ? o.pbt_workers : o.threads;
         tiles = static_cast<size_t>(n) * static_cast<size_t>(o.pbt_tiles_per_worker);
@@ -289,6 +339,14 @@ BackendOptions PbtBackend(int threads, int k, PbtAssign assign) {
   return o;
 }
 
+// PBT tiles feeding a queue backend (its tiles' costs are their deterministic work).
+BackendOptions QueuePbt(BackendKind kind, int threads, int k, PbtAssign assign) {
+  BackendOptions o = PbtBackend(threads, k, assign);
+  o.kind = kind;
+  o.pbt_cost = PbtCost::kWork;
+  return o;
+}
+
 void CheckAllBackends(const std::string& scene_name, int size, const std::vector<int>& threads,
                       bool all_shapes) {
   const Loaded l = Load(scene_name);
@@ -299,6 +357,18 @@ void CheckAllBackends(const std::string& scene_name, int size, const std::vector
     for (const BackendKind kind :
          {BackendKind::kLock, BackendKind::kLockFree, BackendKind::kLocal}) {
       CheckBackend(l, ro, refs, Backend(kind, n), 2);
+      // PBT tiles feeding the queues, every assignment, re-tiled over the walk-through.
+      for (const int k : all_shapes ? std::vector<int>{2, 4} : std::vector<int>{2}) {
+        for (const PbtAssign a : {PbtAssign::kRandom, PbtAssign::kGreedy, PbtAssign::kVisit,
+                                  PbtAssign::kStatic, PbtAssign::kCounter}) {
+          CheckBackend(l, ro, refs, QueuePbt(kind, n, k, a), 3, 2.0f);
+        }
+      }
+      // More lists than threads, stealing at the end (LOCAL: into the thief's own queue).
+      BackendOptions steal = QueuePbt(kind, n, 2, PbtAssign::kGreedy);
+      steal.pbt_workers = 3 * n;
+      steal.pbt_steal = true;
+      CheckBackend(l, ro, refs, steal, 3, 2.0f);
     }
     // The Cell paper's shapes (Fig. 3): squares, 40x32, 640x2 (clamped to the width), rows,
     // plus an odd shape that leaves partial tiles at both edges.
@@ -371,6 +441,170 @@ TEST_CASE("shared scenes: every backend bit-identical at 1, 2 and 4 threads") {
   }
 }
 
+// Per frame: the tiles' records; the image checked against serial on the way.
+struct PbtRun {
+  std::vector<std::vector<TileRecord>> frames;
+  std::vector<int> update_steps;
+  std::vector<Tile> next_tiles;  // the PBT after the last frame
+};
+
+PbtRun RunPbt(const Loaded& l, const RenderOptions& ro, References& refs, const BackendOptions& o,
+              int frames, float speed) {
+  PbtRun run;
+  HostRenderer renderer(o);
+  Framebuffer fb(ro.width, ro.height);
+  for (int f = 0; f < frames; ++f) {
+    const Camera camera = l.scene.path.At(f, speed, l.scene.camera);
+    const FrameContext ctx = MakeFrameContext(l.scene, *l.accel, camera, ro);
+    fb.Clear();
+    const HostFrameStats& s = renderer.RenderFrame(ctx, fb);
+    INFO("backend ", std::string(BackendName(o.kind)), " threads ", o.threads, " assign ",
+         std::string(PbtAssignName(o.assign)), " frame ", f);
+    CHECK(DiffSums(fb, refs.Get(f, speed).fb) == "");
+    CHECK(s.pbt);
+    CHECK(s.has_prediction == (f > 0));
+    run.frames.push_back(s.tiles);
+    run.update_steps.push_back(s.update.steps);
+  }
+  REQUIRE(renderer.pbt() != nullptr);
+  run.next_tiles = renderer.pbt()->Tiles();
+  return run;
+}
+
+bool SameTile(const Tile& a, const Tile& b) {
+  return a.x0 == b.x0 && a.y0 == b.y0 && a.x1 == b.x1 && a.y1 == b.y1;
+}
+
+// The deterministic part of two runs: tilings, per-tile rays and costs, predictions.
+void CheckSameCosts(const PbtRun& a, const PbtRun& b) {
+  REQUIRE(a.frames.size() == b.frames.size());
+  for (size_t f = 0; f < a.frames.size(); ++f) {
+    INFO("frame ", f);
+    REQUIRE(a.frames[f].size() == b.frames[f].size());
+    for (size_t i = 0; i < a.frames[f].size(); ++i) {
+      const TileRecord& x = a.frames[f][i];
+      const TileRecord& y = b.frames[f][i];
+      CHECK(SameTile(x.tile, y.tile));
+      CHECK(x.rays == y.rays);
+      CHECK(x.work == y.work);  // bit-identical: same counts, same evaluation order
+      CHECK(x.predicted == y.predicted);
+    }
+  }
+  REQUIRE(a.next_tiles.size() == b.next_tiles.size());
+  for (size_t i = 0; i < a.next_tiles.size(); ++i) {
+    CHECK(SameTile(a.next_tiles[i], b.next_tiles[i]));
+  }
+}
+
+TEST_CASE("queue backends with PBT: re-tiling, affinity, deterministic work costs") {
+  const Loaded l = Load("erw6");
+  const int size = Quick() ? 32 : 64;
+  const int frames = 4;
+  const float speed = 2.0f;
+  const RenderOptions ro = Options(size, size, 4);
+  References refs(l, ro);
+
+  // PBT-Update re-tiles the queue backends from their tiles' ray counts: from the second frame
+  // the tiles carry predictions, and split-merge steps change the tiling.
+  for (const BackendKind kind : {BackendKind::kLock, BackendKind::kLockFree, BackendKind::kLocal}) {
+    BackendOptions o = QueuePbt(kind, 2, 4, PbtAssign::kGreedy);
+    o.pbt_workers = 4;  // 16 tiles
+    const PbtRun run = RunPbt(l, ro, refs, o, frames, speed);
+    INFO("backend ", std::string(BackendName(kind)));
+    int steps = 0;
+    bool changed = false;
+    for (int f = 0; f < frames; ++f) {
+      steps += run.update_steps[static_cast<size_t>(f)];
+      const std::vector<TileRecord>& tiles = run.frames[static_cast<size_t>(f)];
+      REQUIRE(tiles.size() == 16);
+      for (size_t i = 0; i < tiles.size(); ++i) {
+        if (f > 0) CHECK(tiles[i].predicted > 0.0);
+        if (!SameTile(tiles[i].tile, run.frames[0][i].tile)) changed = true;
+      }
+    }
+    CHECK(steps > 0);
+    CHECK(changed);
+  }
+
+  // LOCAL with Greedy or Visit and no stealing: each tile on its list's thread, which traces
+  // its primaries and whole ray tree (CheckQueuePbtStats), frame after frame.
+  for (const PbtAssign a : {PbtAssign::kGreedy, PbtAssign::kVisit}) {
+    for (const int threads : {2, 3}) {
+      BackendOptions o = QueuePbt(BackendKind::kLocal, threads, 2, a);
+      o.pbt_workers = 6;  // two or three lists per thread
+      CheckBackend(l, ro, refs, o, frames, speed);
+    }
+  }
+
+  // The work costs do not depend on the threads, the queue or the order the rays were traced
+  // in: the same tilings, rays and costs in every run (PBT workers fixed at 4).
+  for (const PbtAssign a : {PbtAssign::kVisit, PbtAssign::kGreedy, PbtAssign::kCounter}) {
+    INFO("assign ", std::string(PbtAssignName(a)));
+    const int workers = a == PbtAssign::kCounter ? 0 : 4;
+    auto options = [&](BackendKind kind, int threads) {
+      BackendOptions o = QueuePbt(kind, threads, 2, a);
+      o.pbt_workers = workers;
+      if (a == PbtAssign::kCounter) o.pbt_tiles_per_worker = 8 / threads;  // 8 tiles
+      return o;
+    };
+    const PbtRun first = RunPbt(l, ro, refs, options(BackendKind::kLockFree, 1), frames, speed);
+    CheckSameCosts(first, RunPbt(l, ro, refs, options(BackendKind::kLockFree, 4), frames, speed));
+    CheckSameCosts(first, RunPbt(l, ro, refs, options(BackendKind::kLocal, 2), frames, speed));
+    CheckSameCosts(first, RunPbt(l, ro, refs, options(BackendKind::kLock, 2), frames, speed));
+    if (a != PbtAssign::kVisit) continue;
+    // The first frame's tiling is the initial PBT's on every backend: the tiles backend traces
+    // the same rays per tile.
+    BackendOptions tiles = PbtBackend(2, 2, a);
+    tiles.pbt_workers = workers;
+    tiles.pbt_cost = PbtCost::kWork;
+    const PbtRun t = RunPbt(l, ro, refs, tiles, 1, speed);
+    REQUIRE(t.frames[0].size() == first.frames[0].size());
+    for (size_t i = 0; i < t.frames[0].size(); ++i) {
+      CHECK(SameTile(t.frames[0][i].tile, first.frames[0][i].tile));
+      CHECK(t.frames[0][i].rays == first.frames[0][i].rays);
+    }
+  }
+}
+
+TEST_CASE("queue backends with PBT: options") {
+  auto message = [](const BackendOptions& o) {
+    try {
+      ValidateBackendOptions(o);
+    } catch (const Error& e) {
+      return std::string(e.what());
+    }
+    return std::string();
+  };
+  for (const BackendKind kind : {BackendKind::kLock, BackendKind::kLockFree, BackendKind::kLocal}) {
+    const std::string name = BackendName(kind);
+    BackendOptions o = QueuePbt(kind, 2, 2, PbtAssign::kGreedy);
+    CHECK(message(o) == "");
+    o.pbt_steal = true;
+    CHECK(message(o) == "");
+    for (const PbtCost cost : {PbtCost::kWall, PbtCost::kCpu}) {
+      o.pbt_cost = cost;
+      const std::string m = message(o);
+      INFO(m);
+      CHECK(m.find(std::string("pbt_cost ") + PbtCostName(cost)) != std::string::npos);
+      CHECK(m.find("backend " + name) != std::string::npos);
+      CHECK(m.find("no wall or CPU time of its own") != std::string::npos);
+    }
+  }
+  BackendOptions serial = QueuePbt(BackendKind::kSerial, 1, 2, PbtAssign::kGreedy);
+  CHECK(message(serial).find("not serial") != std::string::npos);
+  // Explicit tiles cannot be combined with PBT.
+  const Loaded l = Load("cornell");
+  const RenderOptions ro = Options(16, 16, 1);
+  const FrameContext ctx = MakeFrameContext(l.scene, *l.accel, l.scene.camera, ro);
+  Framebuffer fb(16, 16);
+  HostRenderer r(QueuePbt(BackendKind::kLockFree, 2, 2, PbtAssign::kVisit));
+  const Tile some[] = {Tile{0, 0, 8, 8}};
+  CHECK_THROWS_AS(r.BeginFrame(ctx, fb, some), Error);
+  CHECK_FALSE(r.in_frame());
+  r.RenderFrame(ctx, fb);
+  CHECK(r.pbt() != nullptr);
+}
+
 TEST_CASE("a scene that hits nothing, and frames with no rays at all, terminate") {
   Scene empty;
   empty.name = "empty";
@@ -389,7 +623,9 @@ TEST_CASE("a scene that hits nothing, and frames with no rays at all, terminate"
                                 Backend(BackendKind::kLockFree, 3),
                                 Backend(BackendKind::kLocal, 3),
                                 TilesBackend(3, 5, 4),
-                                PbtBackend(3, 2, PbtAssign::kGreedy)};
+                                PbtBackend(3, 2, PbtAssign::kGreedy),
+                                QueuePbt(BackendKind::kLocal, 3, 2, PbtAssign::kGreedy),
+                                QueuePbt(BackendKind::kLock, 3, 2, PbtAssign::kCounter)};
   for (const BackendOptions& o : all) {
     INFO("backend ", std::string(BackendName(o.kind)), " pbt ", o.pbt_tiles_per_worker);
     HostRenderer renderer(o);
@@ -435,9 +671,12 @@ TEST_CASE("many frames in a row, then END: every backend, one renderer") {
   const RenderOptions ro = Options(size, size, 3);
   const FrameContext ctx = MakeFrameContext(l.scene, *l.accel, l.scene.camera, ro);
   const Reference ref = RenderReference(ctx);
-  const BackendOptions all[] = {Backend(BackendKind::kLock, 4), Backend(BackendKind::kLockFree, 4),
-                                Backend(BackendKind::kLocal, 4), TilesBackend(4, 4, 4),
-                                PbtBackend(4, 2, PbtAssign::kRandom)};
+  const BackendOptions all[] = {Backend(BackendKind::kLock, 4),
+                                Backend(BackendKind::kLockFree, 4),
+                                Backend(BackendKind::kLocal, 4),
+                                TilesBackend(4, 4, 4),
+                                PbtBackend(4, 2, PbtAssign::kRandom),
+                                QueuePbt(BackendKind::kLockFree, 4, 2, PbtAssign::kRandom)};
   for (const BackendOptions& o : all) {
     INFO("backend ", std::string(BackendName(o.kind)));
     HostRenderer renderer(o);

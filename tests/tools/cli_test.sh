@@ -69,6 +69,20 @@ for b in "lock --threads 2" "lfree --threads 3" "local --threads 2" "tiles --thr
      && cmp -s "$want" "$tmp/b-$name.png"; then ok "backend $b: same image as serial"
   else bad "backend $b: image differs from serial or render failed"; fi
 done
+# PBT tiles feeding the queue backends: the serial image after 3 re-tiled frames; the tiles'
+# costs are their ray counts (--pbt-cost work, the only cost a queue backend has).
+"$rs" render --scene cornell --width 32 --height 24 --depth 3 --frames 3 --out "$tmp/b-serial3.png" -q
+if "$rs" render --scene cornell --width 32 --height 24 --depth 3 --backend local --threads 2 --pbt 2 --assign greedy \
+     --frames 3 --out "$tmp/q-local.png" --stats "$tmp/q-local.json" -q && cmp -s "$tmp/b-serial3.png" "$tmp/q-local.png" \
+   && python3 -c "
+import json, sys
+f = json.load(open('$tmp/q-local.json'))['frames']
+ok = len(f) == 3 and all(len(x['tiles']) == 4 and x['pbt']['has_prediction'] == (i > 0) for i, x in enumerate(f))
+ok = ok and all(sum(t['rays'] for t in x['tiles']) == sum(x['rays'].values()) for x in f)
+ok = ok and all(t['predicted_seconds'] > 0 and t['work'] > 0 for t in f[2]['tiles'])
+sys.exit(0 if ok else 1)"; then ok "local --pbt 2 --assign greedy, 3 frames: serial image, per-tile work stats"
+else bad "local --pbt 2 --assign greedy: image differs from serial, render failed or bad stats"; fi
+expect_error "queue backend: --pbt-cost wall" 'pbt-cost wall.*lock backend.*no wall or CPU time' "$rs" render --scene cornell --backend lock --pbt 2 --pbt-cost wall --width 8 --height 8 --out "$tmp/y.png"
 if "$rs" render --scene erw6 --width 24 --height 24 --backend lfree --threads 2 --frames 2 --out "$tmp/l.png" \
      --stats "$tmp/l.json" >"$tmp/out" 2>&1 \
    && grep -q 'idle at the barrier' "$tmp/out" && grep -q 'Mrays/s' "$tmp/out" \
@@ -87,7 +101,7 @@ else bad "local 4 threads"; fi
 expect_error "unknown backend lists the choices" 'nosuch.*(lock|lfree|local|tiles)' "$rs" render --scene cornell --backend nosuch --width 8 --height 8 --out "$tmp/y.png"
 expect_error "bad tile shape" 'tile.*WIDTHxHEIGHT|--tile' "$rs" render --scene cornell --backend tiles --tile 32 --width 8 --height 8 --out "$tmp/y.png"
 expect_error "zero tile size" '\-\-tile 0x4' "$rs" render --scene cornell --backend tiles --tile 0x4 --width 8 --height 8 --out "$tmp/y.png"
-expect_error "PBT needs the tiles backend" 'pbt.*tiles' "$rs" render --scene cornell --backend lock --pbt 2 --width 8 --height 8 --out "$tmp/y.png"
+expect_error "PBT needs a parallel backend" 'pbt.*serial' "$rs" render --scene cornell --backend serial --pbt 2 --width 8 --height 8 --out "$tmp/y.png"
 expect_error "--steal needs PBT" 'steal' "$rs" render --scene cornell --backend tiles --steal --width 8 --height 8 --out "$tmp/y.png"
 expect_error "unknown PBT assignment" 'assign' "$rs" render --scene cornell --backend tiles --pbt 1 --assign lpt --width 8 --height 8 --out "$tmp/y.png"
 expect_error "serial with threads" 'threads' "$rs" render --scene cornell --backend serial --threads 2 --width 8 --height 8 --out "$tmp/y.png"
