@@ -1045,30 +1045,6 @@ void BuildDdaGrid(const Grid& grid, const TwoLevelGrid* two_level, const Triangl
   }
 }
 
-RayStreamView SubView(const RayStreamView& rays, size_t first, size_t n) {
-  RayStreamView v;
-  v.ox = rays.ox + first;
-  v.oy = rays.oy + first;
-  v.oz = rays.oz + first;
-  v.dx = rays.dx + first;
-  v.dy = rays.dy + first;
-  v.dz = rays.dz + first;
-  v.tmin = rays.tmin + first;
-  v.tmax = rays.tmax + first;
-  v.size = n;
-  return v;
-}
-
-HitStreamView SubView(const HitStreamView& hits, size_t first, size_t n) {
-  HitStreamView v = hits;
-  v.t += first;
-  v.u += first;
-  v.v += first;
-  v.prim += first;
-  v.size = n;
-  return v;
-}
-
 namespace {
 
 // Streams are traced in chunks of this many rays (the lanes' ray indices are int32); a multiple

@@ -10,6 +10,7 @@
 #include <cstdint>
 
 #include "include/raystream/raystream.h"
+#include "streams/ray_stream.h"  // SubView
 #include "kernels/dda.h"
 #include "kernels/grid.h"
 #include "kernels/tri_packets.h"
@@ -95,10 +96,6 @@ bool IntersectSingleDda(const DdaGrid& g, float ox, float oy, float oz, float dx
 bool OccludedSingleDda(const DdaGrid& g, float ox, float oy, float oz, float dx, float dy,
                        float dz, float tmin, float tmax, TraceStats* stats);
 
-// Rays [first, first + n) of `rays`: the arrays the trace kernels read (o, d, tmin, tmax), offset.
-RayStreamView SubView(const RayStreamView& rays, size_t first, size_t n);
-// Hits [first, first + n) of `hits` (t, u, v, prim offset; size n).
-HitStreamView SubView(const HitStreamView& hits, size_t first, size_t n);
 
 // Name of the target dynamic dispatch runs the kernels above on (e.g. "AVX3").
 const char* DdaTargetName();

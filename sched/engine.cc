@@ -45,31 +45,6 @@ void SealLanes(const RayStreamView& v, size_t from) {
   }
 }
 
-// rays[first, first + n) as a view of its own (pointers offset; not 64-B aligned in general).
-RayStreamView SubView(const RayStreamView& r, size_t first, size_t n) {
-  RayStreamView v = r;
-  v.ox += first;
-  v.oy += first;
-  v.oz += first;
-  v.dx += first;
-  v.dy += first;
-  v.dz += first;
-  v.tmin += first;
-  v.tmax += first;
-  v.pixel += first;
-  v.wr += first;
-  v.wg += first;
-  v.wb += first;
-  v.depth += first;
-  v.kind += first;
-  v.size = n;
-  return v;
-}
-
-HitStreamView SubView(const HitStreamView& h, size_t first, size_t n) {
-  return HitStreamView{h.t + first, h.u + first, h.v + first, h.prim + first, n};
-}
-
 // Appends the rays of `from` that are shadow rays (shadow = true) or not (false) to `to`, whose
 // capacity must hold them (arena: no growth in the steady state), and seals the lanes after it.
 void AppendClass(const RayStreamView& from, bool shadow, RayStream& to) {
@@ -81,43 +56,14 @@ void AppendClass(const RayStreamView& from, bool shadow, RayStream& to) {
   size_t j = n0;
   for (size_t i = 0; i < from.size; ++i) {
     if ((from.kind[i] == kShadowKind) != shadow) continue;
-    t.ox[j] = from.ox[i];
-    t.oy[j] = from.oy[i];
-    t.oz[j] = from.oz[i];
-    t.dx[j] = from.dx[i];
-    t.dy[j] = from.dy[i];
-    t.dz[j] = from.dz[i];
-    t.tmin[j] = from.tmin[i];
-    t.tmax[j] = from.tmax[i];
-    t.pixel[j] = from.pixel[i];
-    t.wr[j] = from.wr[i];
-    t.wg[j] = from.wg[i];
-    t.wb[j] = from.wb[i];
-    t.depth[j] = from.depth[i];
-    t.kind[j] = from.kind[i];
-    ++j;
+    CopyRay(from, i, t, j++);
   }
   to.Resize(j);
 }
 
 // Moves rays [from, end) of v to [to, to + end - from), to <= from (memmove order).
 void MoveRays(const RayStreamView& v, size_t from, size_t end, size_t to) {
-  for (size_t i = from; i < end; ++i, ++to) {
-    v.ox[to] = v.ox[i];
-    v.oy[to] = v.oy[i];
-    v.oz[to] = v.oz[i];
-    v.dx[to] = v.dx[i];
-    v.dy[to] = v.dy[i];
-    v.dz[to] = v.dz[i];
-    v.tmin[to] = v.tmin[i];
-    v.tmax[to] = v.tmax[i];
-    v.pixel[to] = v.pixel[i];
-    v.wr[to] = v.wr[i];
-    v.wg[to] = v.wg[i];
-    v.wb[to] = v.wb[i];
-    v.depth[to] = v.depth[i];
-    v.kind[to] = v.kind[i];
-  }
+  for (size_t i = from; i < end; ++i, ++to) CopyRay(v, i, v, to);
 }
 
 // The light a shadow ray runs to: it goes from o to o + d = the light's position (up to
@@ -178,21 +124,7 @@ void AppendShadowByLight(const RayStreamView& from, std::span<const PointLight> 
   const RayStreamView t = to.view();
   for (size_t i = 0; i < from.size; ++i) {
     if (from.kind[i] != kShadowKind) continue;
-    const size_t j = n0 + start[light_of[i]]++;
-    t.ox[j] = from.ox[i];
-    t.oy[j] = from.oy[i];
-    t.oz[j] = from.oz[i];
-    t.dx[j] = from.dx[i];
-    t.dy[j] = from.dy[i];
-    t.dz[j] = from.dz[i];
-    t.tmin[j] = from.tmin[i];
-    t.tmax[j] = from.tmax[i];
-    t.pixel[j] = from.pixel[i];
-    t.wr[j] = from.wr[i];
-    t.wg[j] = from.wg[i];
-    t.wb[j] = from.wb[i];
-    t.depth[j] = from.depth[i];
-    t.kind[j] = from.kind[i];
+    CopyRay(from, i, t, n0 + start[light_of[i]]++);
   }
 }
 

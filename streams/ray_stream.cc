@@ -54,10 +54,61 @@ size_t RayStream::Push(float ox, float oy, float oz, float dx, float dy, float d
 }
 
 size_t RayStream::PushFrom(const RayStreamView& f, size_t i) {
-  return Push(f.ox[i], f.oy[i], f.oz[i], f.dx[i], f.dy[i], f.dz[i], f.tmin[i], f.tmax[i],
-              f.pixel ? f.pixel[i] : 0u, f.wr ? f.wr[i] : 1.0f, f.wg ? f.wg[i] : 1.0f,
-              f.wb ? f.wb[i] : 1.0f, f.depth ? f.depth[i] : 0,
-              f.kind ? static_cast<RayKind>(f.kind[i]) : RayKind::kPrimary);
+  const size_t j = size_;
+  Resize(size_ + 1);
+  CopyRay(f, i, view(), j);
+  return j;
+}
+
+namespace {
+template <typename T>
+T* Offset(T* p, size_t first) {
+  return p != nullptr ? p + first : nullptr;
+}
+}  // namespace
+
+RayStreamView SubView(const RayStreamView& r, size_t first, size_t n) {
+  RayStreamView v;
+  v.ox = Offset(r.ox, first);
+  v.oy = Offset(r.oy, first);
+  v.oz = Offset(r.oz, first);
+  v.dx = Offset(r.dx, first);
+  v.dy = Offset(r.dy, first);
+  v.dz = Offset(r.dz, first);
+  v.tmin = Offset(r.tmin, first);
+  v.tmax = Offset(r.tmax, first);
+  v.pixel = Offset(r.pixel, first);
+  v.wr = Offset(r.wr, first);
+  v.wg = Offset(r.wg, first);
+  v.wb = Offset(r.wb, first);
+  v.depth = Offset(r.depth, first);
+  v.kind = Offset(r.kind, first);
+  v.size = n;
+  return v;
+}
+
+HitStreamView SubView(const HitStreamView& h, size_t first, size_t n) {
+  return HitStreamView{Offset(h.t, first), Offset(h.u, first), Offset(h.v, first),
+                       Offset(h.prim, first), n};
+}
+
+void CopyRay(const RayStreamView& f, size_t i, const RayStreamView& t, size_t j) {
+  t.ox[j] = f.ox[i];
+  t.oy[j] = f.oy[i];
+  t.oz[j] = f.oz[i];
+  t.dx[j] = f.dx[i];
+  t.dy[j] = f.dy[i];
+  t.dz[j] = f.dz[i];
+  t.tmin[j] = f.tmin[i];
+  t.tmax[j] = f.tmax[i];
+  if (t.pixel != nullptr) t.pixel[j] = f.pixel != nullptr ? f.pixel[i] : 0u;
+  if (t.wr != nullptr) t.wr[j] = f.wr != nullptr ? f.wr[i] : 1.0f;
+  if (t.wg != nullptr) t.wg[j] = f.wg != nullptr ? f.wg[i] : 1.0f;
+  if (t.wb != nullptr) t.wb[j] = f.wb != nullptr ? f.wb[i] : 1.0f;
+  if (t.depth != nullptr) t.depth[j] = f.depth != nullptr ? f.depth[i] : 0;
+  if (t.kind != nullptr) {
+    t.kind[j] = f.kind != nullptr ? f.kind[i] : static_cast<int32_t>(RayKind::kPrimary);
+  }
 }
 
 void RayStream::FillPadding() {

@@ -44,6 +44,18 @@ void AlignedArray<T>::Reserve(size_t capacity) {
   capacity_ = padded;
 }
 
+// Rays [first, first + n) of `rays` as a view of their own: every non-null array offset (the
+// base is 64-B aligned only when first is a multiple of kStreamPad). The lanes after the view
+// are the stream's next rays (or its padding), so whole-vector loads stay inside the arrays.
+RayStreamView SubView(const RayStreamView& rays, size_t first, size_t n);
+// Hits [first, first + n) of `hits` (t, u, v, prim offset; size n).
+HitStreamView SubView(const HitStreamView& hits, size_t first, size_t n);
+
+// Ray i of `from` copied to slot j of `to` (every array both views have; pixel, weights, depth
+// and kind only where `from` has them, else their defaults: pixel 0, weight 1, depth 0,
+// primary).
+void CopyRay(const RayStreamView& from, size_t i, const RayStreamView& to, size_t j);
+
 // A stream of rays that owns its arrays. view() hands out the SoA view for kernels.
 class RayStream {
  public:
