@@ -1057,18 +1057,7 @@ class TilesImpl final : public HostRenderer::Impl {
   // The frame's tiles, steal ranges, records and worker counters (application thread).
   void Load() {
     if (frame_ != nullptr) tiles_ = frame_->tiles;
-    if (lists_ && options_.pbt_steal) {
-      const size_t lists = frame_->assignment.tiles.size();
-      if (lists != num_ranges_) {
-        ranges_ = std::make_unique<Range[]>(lists);
-        num_ranges_ = lists;
-      }
-      for (size_t v = 0; v < lists; ++v) {
-        ranges_[v].word.store(
-            PackRange(0, static_cast<uint32_t>(frame_->assignment.tiles[v].size())),
-            std::memory_order_relaxed);  // published by the opening barrier
-      }
-    }
+    if (lists_ && options_.pbt_steal) ranges_.Load(frame_->assignment);
     records_.assign(tiles_.size(), TileRecord{});
     for (auto& w : workers_) {
       w->stats = FrameStats();
@@ -1128,17 +1117,17 @@ class TilesImpl final : public HostRenderer::Impl {
           continue;
         }
         uint32_t pos = 0;
-        while (Take(v, /*front=*/true, &pos)) {
+        while (ranges_.Take(v, /*front=*/true, &pos)) {
           RenderTile(me, w, static_cast<int>(v), static_cast<size_t>(list[pos]));
         }
       }
       if (!options_.pbt_steal) return;
       // Demand-driven: steal from the list with the most predicted work still waiting.
       for (;;) {
-        const size_t victim = RichestList();
+        const size_t victim = ranges_.Richest(frame_->assignment, frame_->weight);
         if (victim == lists.size()) return;
         uint32_t pos = 0;
-        if (!Take(victim, /*front=*/false, &pos)) continue;  // raced with its owner; look again
+        if (!ranges_.Take(victim, /*front=*/false, &pos)) continue;  // raced with its owner
         ++me.steals;
         RenderTile(me, w, static_cast<int>(victim), static_cast<size_t>(lists[victim][pos]));
       }
@@ -1156,51 +1145,6 @@ class TilesImpl final : public HostRenderer::Impl {
       if (i >= count) return;
       RenderTile(me, w, w, static_cast<size_t>(order[i]));
     }
-  }
-
-  // List v's waiting tiles are [head, tail) of the assignment's list v, packed in one word so
-  // the owner (front) and thieves (back) arbitrate the last tile with one CAS. Relaxed: the CAS
-  // only decides who renders a tile; the lists were published by the opening barrier and the
-  // records are read after the closing one.
-  static uint64_t PackRange(uint32_t head, uint32_t tail) {
-    return static_cast<uint64_t>(head) | (static_cast<uint64_t>(tail) << 32);
-  }
-  bool Take(size_t v, bool front, uint32_t* pos) {
-    std::atomic<uint64_t>& range = ranges_[v].word;
-    uint64_t r = range.load(std::memory_order_relaxed);
-    for (;;) {
-      const uint32_t head = static_cast<uint32_t>(r);
-      const uint32_t tail = static_cast<uint32_t>(r >> 32);
-      if (head >= tail) return false;
-      const uint64_t next = front ? PackRange(head + 1, tail) : PackRange(head, tail - 1);
-      if (range.compare_exchange_weak(r, next, std::memory_order_relaxed,
-                                      std::memory_order_relaxed)) {
-        *pos = front ? head : tail - 1;
-        return true;
-      }
-    }
-  }
-  // The list with the most predicted work waiting (the plan's steal weights; ties: lowest
-  // index), or the number of lists if all are empty. Racy snapshot by design: a stale choice
-  // only costs one failed Take.
-  size_t RichestList() const {
-    const auto& lists = frame_->assignment.tiles;
-    const std::vector<double>& weight = frame_->weight;
-    size_t best = lists.size();
-    double best_work = -1.0;
-    for (size_t v = 0; v < lists.size(); ++v) {
-      const uint64_t r = ranges_[v].word.load(std::memory_order_relaxed);
-      const uint32_t head = static_cast<uint32_t>(r);
-      const uint32_t tail = static_cast<uint32_t>(r >> 32);
-      if (head >= tail) continue;
-      double work = 0;
-      for (uint32_t p = head; p < tail; ++p) work += weight[static_cast<size_t>(lists[v][p])];
-      if (work > best_work) {
-        best_work = work;
-        best = v;
-      }
-    }
-    return best;
   }
 
   // After the closing barrier: the measured costs to the plan (PBT-Update, next assignment).
@@ -1241,11 +1185,7 @@ class TilesImpl final : public HostRenderer::Impl {
   std::vector<double> costs_;     // FinishPlan's scratch
   std::vector<int32_t> ran_by_;
   alignas(kQueueFalseSharing) std::atomic<size_t> next_{0};
-  struct alignas(kQueueFalseSharing) Range {
-    std::atomic<uint64_t> word{0};
-  };
-  std::unique_ptr<Range[]> ranges_;  // pbt_steal: per list {head, tail}
-  size_t num_ranges_ = 0;
+  PbtListRanges ranges_;  // pbt_steal: per list {head, tail}
   std::unique_ptr<FrameLoop> loop_;  // last: its threads use everything above
 };
 
