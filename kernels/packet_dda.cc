@@ -259,30 +259,38 @@ struct PacketTracer {
     const size_t i = w * Lanes();
     const M live = hn::RebindMask(d, hn::Ne(hn::Load(di, r.live + i), hn::Zero(di)));
     if (kAny && hn::AllFalse(d, live)) return;  // every ray of the vector is occluded
+    // the triangle's components in each lane's (kx, ky, kz) order; a function, so that the
+    // test's rare near-origin path can recompute them instead of keeping them live
+    const auto load = [this, p, w](V* c) {
+      const D d;
+      const DI di;
+      const size_t i = w * Lanes();
+      if (r.perm[w] >= 0) {
+        const int k[3] = {r.perm[w] & 3, (r.perm[w] >> 2) & 3, (r.perm[w] >> 4) & 3};
+        for (int vtx = 0; vtx < 3; ++vtx) {
+          for (int a = 0; a < 3; ++a) c[3 * vtx + a] = hn::Set(d, p[3 * vtx + k[a]]);
+        }
+      } else {
+        const VI kx = hn::Load(di, r.k[0] + i), ky = hn::Load(di, r.k[1] + i);
+        const VI kz = hn::Load(di, r.k[2] + i);
+        const VI one = hn::Set(di, 1);
+        const M kx0 = hn::RebindMask(d, hn::Eq(kx, hn::Zero(di)));
+        const M kx1 = hn::RebindMask(d, hn::Eq(kx, one));
+        const M ky0 = hn::RebindMask(d, hn::Eq(ky, hn::Zero(di)));
+        const M ky1 = hn::RebindMask(d, hn::Eq(ky, one));
+        const M kz0 = hn::RebindMask(d, hn::Eq(kz, hn::Zero(di)));
+        const M kz1 = hn::RebindMask(d, hn::Eq(kz, one));
+        for (int vtx = 0; vtx < 3; ++vtx) {
+          const V x = hn::Set(d, p[3 * vtx]), y = hn::Set(d, p[3 * vtx + 1]);
+          const V z = hn::Set(d, p[3 * vtx + 2]);
+          c[3 * vtx + 0] = PickAxis(kx0, kx1, x, y, z);
+          c[3 * vtx + 1] = PickAxis(ky0, ky1, x, y, z);
+          c[3 * vtx + 2] = PickAxis(kz0, kz1, x, y, z);
+        }
+      }
+    };
     V c[9];
-    if (r.perm[w] >= 0) {
-      const int k[3] = {r.perm[w] & 3, (r.perm[w] >> 2) & 3, (r.perm[w] >> 4) & 3};
-      for (int vtx = 0; vtx < 3; ++vtx) {
-        for (int a = 0; a < 3; ++a) c[3 * vtx + a] = hn::Set(d, p[3 * vtx + k[a]]);
-      }
-    } else {
-      const VI kx = hn::Load(di, r.k[0] + i), ky = hn::Load(di, r.k[1] + i);
-      const VI kz = hn::Load(di, r.k[2] + i);
-      const VI one = hn::Set(di, 1);
-      const M kx0 = hn::RebindMask(d, hn::Eq(kx, hn::Zero(di)));
-      const M kx1 = hn::RebindMask(d, hn::Eq(kx, one));
-      const M ky0 = hn::RebindMask(d, hn::Eq(ky, hn::Zero(di)));
-      const M ky1 = hn::RebindMask(d, hn::Eq(ky, one));
-      const M kz0 = hn::RebindMask(d, hn::Eq(kz, hn::Zero(di)));
-      const M kz1 = hn::RebindMask(d, hn::Eq(kz, one));
-      for (int vtx = 0; vtx < 3; ++vtx) {
-        const V x = hn::Set(d, p[3 * vtx]), y = hn::Set(d, p[3 * vtx + 1]);
-        const V z = hn::Set(d, p[3 * vtx + 2]);
-        c[3 * vtx + 0] = PickAxis(kx0, kx1, x, y, z);
-        c[3 * vtx + 1] = PickAxis(ky0, ky1, x, y, z);
-        c[3 * vtx + 2] = PickAxis(kz0, kz1, x, y, z);
-      }
-    }
+    load(c);
     const V best = hn::Load(d, r.best + i);
     tests += hn::CountTrue(d, live);
     WatertightLanes<D> wt;
@@ -290,7 +298,7 @@ struct PacketTracer {
                                 hn::Load(d, r.wo[0] + i), hn::Load(d, r.wo[1] + i),
                                 hn::Load(d, r.wo[2] + i), hn::Load(d, r.shear[0] + i),
                                 hn::Load(d, r.shear[1] + i), hn::Load(d, r.shear[2] + i),
-                                hn::Load(d, r.tmin + i), best, &wt);
+                                hn::Load(d, r.tmin + i), best, load, &wt);
     m = hn::And(m, live);
     if (hn::AllFalse(d, m)) return;
     if constexpr (kAny) {

@@ -56,6 +56,71 @@ HWY_NOINLINE void WatertightEdgesInDouble(D d, V ax, V ay, V bx, V by, V cx, V c
   *w = hn::Load(d, x[8]);
 }
 
+// max(|a|, |b|, |c|) per lane, as rs::Max3Abs (kernels/triangle.h); inputs are never NaN on
+// the lanes that use it.
+template <class V>
+HWY_INLINE V Max3Abs(V a, V b, V c) {
+  return hn::Max(hn::Max(hn::Abs(a), hn::Abs(b)), hn::Abs(c));
+}
+
+// The scalar test's decision for hits near the origin (kernels/triangle.h, pbrt-v4 6.8.7), for
+// the lanes of `straddles` (hits with tmin >= 0 on triangles not strictly ahead): returns the
+// lanes it rejects, those with |T| <= DeltaT (WatertightDeltaT, op for op) that are not ahead
+// in double (rs::WatertightAheadInDouble, verbatim per lane). The raw vertices come from
+// `reload` (fills V[9] in the ray's (kx, ky, kz) order), and the translated and sheared ones
+// are recomputed with the test's own operations (same values): keeping them live across the
+// test cost 12 spills per vector in the common path (and `reload` is taken by value: by
+// reference, its captures were stored on every call). Out of line: only vectors with a hit
+// near the origin's plane get here (rays spawned on a triangle, big triangles near the origin).
+template <bool kFma, class D, class Reload, class V = hn::Vec<D>>
+HWY_NOINLINE hn::Mask<D> WatertightRejectNearOrigin(D d, hn::Mask<D> straddles, Reload reload, V o0,
+                                                    V o1, V o2, V sx, V sy, V sz, V det, V tz) {
+  V p[9];
+  reload(p);
+  const V az = hn::Sub(p[2], o2), bz = hn::Sub(p[5], o2), cz = hn::Sub(p[8], o2);
+  V ax, ay, bx, by, cx, cy;
+  if constexpr (kFma) {
+    ax = hn::NegMulAdd(sx, az, hn::Sub(p[0], o0));
+    ay = hn::NegMulAdd(sy, az, hn::Sub(p[1], o1));
+    bx = hn::NegMulAdd(sx, bz, hn::Sub(p[3], o0));
+    by = hn::NegMulAdd(sy, bz, hn::Sub(p[4], o1));
+    cx = hn::NegMulAdd(sx, cz, hn::Sub(p[6], o0));
+    cy = hn::NegMulAdd(sy, cz, hn::Sub(p[7], o1));
+  } else {
+    ax = hn::Sub(hn::Sub(p[0], o0), hn::Mul(sx, az));
+    ay = hn::Sub(hn::Sub(p[1], o1), hn::Mul(sy, az));
+    bx = hn::Sub(hn::Sub(p[3], o0), hn::Mul(sx, bz));
+    by = hn::Sub(hn::Sub(p[4], o1), hn::Mul(sy, bz));
+    cx = hn::Sub(hn::Sub(p[6], o0), hn::Mul(sx, cz));
+    cy = hn::Sub(hn::Sub(p[7], o1), hn::Mul(sy, cz));
+  }
+  // DeltaT = max_zs (kE |det| + kM m^2); t > tmin >= 0, so t |det| <= DeltaT is |T| <= DeltaT
+  const V max_z = Max3Abs(az, bz, cz);
+  const V max_xyz = hn::Max(hn::Max(Max3Abs(ax, bx, cx), Max3Abs(ay, by, cy)), max_z);
+  const V max_zs = hn::Mul(hn::Abs(sz), max_z);
+  const V delta_t = hn::Mul(
+      max_zs, hn::Add(hn::Mul(hn::Set(d, kWatertightBoundE<float>), hn::Abs(det)),
+                      hn::Mul(hn::Set(d, kWatertightBoundM<float>), hn::Mul(max_xyz, max_xyz))));
+  const auto unsure = hn::And(straddles, hn::Le(hn::Abs(tz), delta_t));
+  if (hn::AllFalse(d, unsure)) return unsure;
+  // the undecided lanes in double, as the scalar code
+  const hn::RebindToSigned<D> di;
+  HWY_ALIGN float x[15][kTriMaxLanes];
+  for (int k = 0; k < 9; ++k) hn::Store(p[k], d, x[k]);
+  const V ray[6] = {o0, o1, o2, sx, sy, sz};
+  for (int k = 0; k < 6; ++k) hn::Store(ray[k], d, x[9 + k]);
+  HWY_ALIGN int32_t lanes[kTriMaxLanes];
+  hn::Store(hn::VecFromMask(di, hn::RebindMask(di, unsure)), di, lanes);  // -1: undecided
+  for (size_t i = 0; i < hn::Lanes(d); ++i) {
+    if (lanes[i] == 0) continue;
+    const bool ahead = WatertightAheadInDouble(x[0][i], x[1][i], x[2][i], x[3][i], x[4][i], x[5][i],
+                                               x[6][i], x[7][i], x[8][i], x[9][i], x[10][i],
+                                               x[11][i], x[12][i], x[13][i], x[14][i]);
+    lanes[i] = ahead ? 0 : -1;  // -1: behind (or at) the origin
+  }
+  return hn::RebindMask(d, hn::Ne(hn::Load(di, lanes), hn::Zero(di)));
+}
+
 // What the closest-hit code needs from a vector of watertight tests: t, and det, V, W for the
 // barycentrics u = V / det, v = W / det of the winning lane only (deferred division).
 template <class D>
@@ -66,16 +131,20 @@ struct WatertightLanes {
 // The watertight test (kernels/triangle.h, IntersectWatertightPermuted) on Lanes(d) pairs of
 // ray and triangle, operation for operation, so each lane rounds exactly like the scalar code.
 // a*, b*, c*: vertex components in the ray's (kx, ky, kz) order; o*: ray origin in that order;
-// sx, sy, sz: shear. Returns the hit mask for t in (tmin, tmax]; *out is valid only if the mask
-// has a lane set. kFma fuses the shear and the t products (never the edge functions: U(b, c)
+// sx, sy, sz: shear; reload(V out[9]) gives a0..c2 again (only called for hits near the
+// origin: recomputing beats keeping them live). Returns the hit mask for t in (tmin, tmax],
+// without the hits the scalar test rejects as not certainly ahead of the origin (tmin >= 0,
+// triangle not strictly ahead, t within the float bound WatertightDeltaT and not ahead in
+// double); *out is valid only if the mask has a lane set.
+// kFma fuses the shear and the t products (never the edge functions: U(b, c)
 // must be the exact negation of U(c, b) for the triangle on the other side of an edge).
 // The exported kernels use kFma = false: fusing saved only 4-8% per ray/triangle test on AVX2
 // and AVX3 (bunny cells, 2 packets per vector) and would make t, u, v differ from the scalar
 // oracle in the last bits; without it every target is bit-identical to the scalar code.
-template <bool kFma, class D, class V = hn::Vec<D>>
+template <bool kFma, class D, class Reload, class V = hn::Vec<D>>
 HWY_INLINE hn::Mask<D> WatertightTest(D d, V a0, V a1, V a2, V b0, V b1, V b2, V c0, V c1, V c2,
                                       V o0, V o1, V o2, V sx, V sy, V sz, V tmin, V tmax,
-                                      WatertightLanes<D>* out) {
+                                      Reload reload, WatertightLanes<D>* out) {
   // vertices relative to the ray origin
   const V az = hn::Sub(a2, o2), bz = hn::Sub(b2, o2), cz = hn::Sub(c2, o2);
   // shear and scale: the ray becomes the +z axis through the origin
@@ -112,16 +181,26 @@ HWY_INLINE hn::Mask<D> WatertightTest(D d, V a0, V a1, V a2, V b0, V b1, V b2, V
   auto hit = hn::AndNot(hn::And(neg, pos), hn::Ne(det, zero));
   if (hn::AllFalse(d, hit)) return hit;  // most pairs miss: skip the division
   // scaled z of the vertices -> T = U Az + V Bz + W Cz; t = T / det (NaN fails both bounds)
+  const V saz = hn::Mul(sz, az), sbz = hn::Mul(sz, bz), scz = hn::Mul(sz, cz);
   V tz;
   if constexpr (kFma) {
-    tz =
-        hn::MulAdd(w, hn::Mul(sz, cz), hn::MulAdd(v, hn::Mul(sz, bz), hn::Mul(u, hn::Mul(sz, az))));
+    tz = hn::MulAdd(w, scz, hn::MulAdd(v, sbz, hn::Mul(u, saz)));
   } else {
-    tz = hn::Add(hn::Add(hn::Mul(u, hn::Mul(sz, az)), hn::Mul(v, hn::Mul(sz, bz))),
-                 hn::Mul(w, hn::Mul(sz, cz)));
+    tz = hn::Add(hn::Add(hn::Mul(u, saz), hn::Mul(v, sbz)), hn::Mul(w, scz));
   }
   const V t = hn::Div(tz, det);
   hit = hn::And(hit, hn::And(hn::Gt(t, tmin), hn::Le(t, tmax)));
+  // conservative at the origin (pbrt-v4 6.8.7), as the scalar test: where tmin >= 0 and the
+  // triangle is not strictly ahead (some Sz z <= 0; these signs are exact), a hit within the
+  // bound may lie behind the origin and is decided out of line. Most hits have every vertex
+  // ahead: 4 ops and a branch here.
+  const auto straddles =
+      hn::And(hit, hn::And(hn::Ge(tmin, zero), hn::Le(hn::Min(hn::Min(saz, sbz), scz), zero)));
+  if (HWY_UNLIKELY(!hn::AllFalse(d, straddles))) {
+    hit = hn::AndNot(
+        WatertightRejectNearOrigin<kFma>(d, straddles, reload, o0, o1, o2, sx, sy, sz, det, tz),
+        hit);
+  }
   out->t = t;
   out->det = det;
   out->v = v;
@@ -209,12 +288,23 @@ HWY_INLINE bool PacketGroup(D d, const PacketRay& ray, PacketCall* call, size_t 
   WatertightLanes<D> wt;
   MollerLanes<D> mt;
   if constexpr (kTest == TriTest::kWatertight) {
+    // two captures, passed in registers: more (the four pointers) were stored to the stack on
+    // every call
+    const auto reload = [call, i](V* v) {
+      const D dr;
+      const size_t stride = call->vertex_stride;
+      for (size_t k = 0; k < 3; ++k) {
+        v[3 * k + 0] = hn::LoadU(dr, call->axis0 + i + k * stride);
+        v[3 * k + 1] = hn::LoadU(dr, call->axis1 + i + k * stride);
+        v[3 * k + 2] = hn::LoadU(dr, call->axis2 + i + k * stride);
+      }
+    };
     m = WatertightTest<kFma>(
         d, hn::LoadU(d, p0), hn::LoadU(d, p1), hn::LoadU(d, p2), hn::LoadU(d, p0 + vs),
         hn::LoadU(d, p1 + vs), hn::LoadU(d, p2 + vs), hn::LoadU(d, p0 + 2 * vs),
         hn::LoadU(d, p1 + 2 * vs), hn::LoadU(d, p2 + 2 * vs), hn::Set(d, ray.wt.o[0]),
         hn::Set(d, ray.wt.o[1]), hn::Set(d, ray.wt.o[2]), hn::Set(d, ray.wt.sx),
-        hn::Set(d, ray.wt.sy), hn::Set(d, ray.wt.sz), tmin, tmax, &wt);
+        hn::Set(d, ray.wt.sy), hn::Set(d, ray.wt.sz), tmin, tmax, reload, &wt);
   } else {
     const V p0x = hn::LoadU(d, p0), p0y = hn::LoadU(d, p1), p0z = hn::LoadU(d, p2);
     m = MollerTest(d, p0x, p0y, p0z, hn::Sub(hn::LoadU(d, p0 + vs), p0x),
@@ -400,24 +490,28 @@ HWY_INLINE void StreamWatertight(D d, const StreamRays<D>& r, hn::Mask<D> valid,
   for (size_t j = 0; j < lanes; ++j) {
     const int32_t id = tris.ids[j];
     if (id < 0) continue;  // padding lane
-    V p[9];
-    if constexpr (kUniform) {
-      for (int c = 0; c < 9; ++c) p[c] = hn::Set(d, perm[c][j]);
-    } else {
-      for (int vtx = 0; vtx < 3; ++vtx) {
-        const V x = hn::Set(d, tris.Component(vtx, 0)[j]);
-        const V y = hn::Set(d, tris.Component(vtx, 1)[j]);
-        const V z = hn::Set(d, tris.Component(vtx, 2)[j]);
-        p[3 * vtx + 0] = PickAxis(r.kx0, r.kx1, x, y, z);
-        p[3 * vtx + 1] = PickAxis(r.ky0, r.ky1, x, y, z);
-        p[3 * vtx + 2] = PickAxis(r.kz0, r.kz1, x, y, z);
+    const auto load = [&r, &tris, perm, j](V* p) {
+      const D d;
+      if constexpr (kUniform) {
+        for (int c = 0; c < 9; ++c) p[c] = hn::Set(d, perm[c][j]);
+      } else {
+        for (int vtx = 0; vtx < 3; ++vtx) {
+          const V x = hn::Set(d, tris.Component(vtx, 0)[j]);
+          const V y = hn::Set(d, tris.Component(vtx, 1)[j]);
+          const V z = hn::Set(d, tris.Component(vtx, 2)[j]);
+          p[3 * vtx + 0] = PickAxis(r.kx0, r.kx1, x, y, z);
+          p[3 * vtx + 1] = PickAxis(r.ky0, r.ky1, x, y, z);
+          p[3 * vtx + 2] = PickAxis(r.kz0, r.kz1, x, y, z);
+        }
       }
-    }
+    };
+    V p[9];
+    load(p);
     // upper bound: min(tmax, best t); ties are settled by StreamUpdate
     const V upper = hn::IfThenElse(hn::Lt(best->t, tmax), best->t, tmax);
     WatertightLanes<D> wt;
     auto m = WatertightTest<kFma>(d, p[0], p[1], p[2], p[3], p[4], p[5], p[6], p[7], p[8], r.o0,
-                                  r.o1, r.o2, r.sx, r.sy, r.sz, tmin, upper, &wt);
+                                  r.o1, r.o2, r.sx, r.sy, r.sz, tmin, upper, load, &wt);
     m = hn::And(m, valid);
     if (hn::AllFalse(d, m)) continue;
     StreamUpdate<TriTest::kWatertight>(d, m, id, wt, unused, best);

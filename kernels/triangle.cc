@@ -2,6 +2,7 @@
 // non-inline scalar ray/triangle tests (see triangle.h).
 #include "kernels/triangle.h"
 
+#include <algorithm>
 #include <cfloat>
 #include <cmath>
 
@@ -50,6 +51,59 @@ void BuildTriangleSoA(const MeshView& mesh, TriangleSoA* out) {
     }
   }
   SimdDegenerateFlags(out);
+}
+
+bool WatertightAheadInDouble(float a0, float a1, float a2, float b0, float b1, float b2, float c0,
+                             float c1, float c2, float o0, float o1, float o2, float sx, float sy,
+                             float sz) {
+  const double az = double(a2) - o2, bz = double(b2) - o2, cz = double(c2) - o2;
+  const double ax = (double(a0) - o0) - double(sx) * az;
+  const double ay = (double(a1) - o1) - double(sy) * az;
+  const double bx = (double(b0) - o0) - double(sx) * bz;
+  const double by = (double(b1) - o1) - double(sy) * bz;
+  const double cx = (double(c0) - o0) - double(sx) * cz;
+  const double cy = (double(c1) - o1) - double(sy) * cz;
+  const double u = cx * by - cy * bx;
+  const double v = ax * cy - ay * cx;
+  const double w = bx * ay - by * ax;
+  const double det = u + v + w;
+  if (!(det != 0.0)) return false;  // parallel in double (or NaN): not certainly ahead
+  const double saz = double(sz) * az, sbz = double(sz) * bz, scz = double(sz) * cz;
+  const double tz = u * saz + v * sbz + w * scz;
+  // the signs of U, V, W may differ in double (near an edge): max |U|, |V|, |W|, not |det|
+  const double max_z = Max3Abs(az, bz, cz);
+  const double max_xyz = std::fmax(std::fmax(Max3Abs(ax, bx, cx), Max3Abs(ay, by, cy)), max_z);
+  const double delta_t = WatertightDeltaT(max_xyz, std::fabs(double(sz)) * max_z, Max3Abs(u, v, w));
+  return (det < 0.0 ? -tz : tz) > delta_t;  // t may be < 0 here: the sign counts
+}
+
+bool WatertightHitNearOrigin(const WatertightRay& r, float a0, float a1, float a2, float b0,
+                             float b1, float b2, float c0, float c1, float c2, float det, float tz,
+                             float t, float v, float w, TriHit* hit) {
+  // the test's own operations (same values), then DeltaT in its SIMD operation order
+  const float az = a2 - r.o[2], bz = b2 - r.o[2], cz = c2 - r.o[2];
+  const float ax = (a0 - r.o[0]) - r.sx * az;
+  const float ay = (a1 - r.o[1]) - r.sy * az;
+  const float bx = (b0 - r.o[0]) - r.sx * bz;
+  const float by = (b1 - r.o[1]) - r.sy * bz;
+  const float cx = (c0 - r.o[0]) - r.sx * cz;
+  const float cy = (c1 - r.o[1]) - r.sy * cz;
+  const float max_z = Max3Abs(az, bz, cz);
+  const float max_xy = std::max(Max3Abs(ax, bx, cx), Max3Abs(ay, by, cy));
+  const float max_xyz = std::max(max_xy, max_z);
+  // t > tmin >= 0: T and det share their sign, so t |det| <= DeltaT is |T| <= DeltaT
+  const float delta_t = WatertightDeltaT(max_xyz, std::fabs(r.sz) * max_z, std::fabs(det));
+  if (std::fabs(tz) <= delta_t &&
+      !WatertightAheadInDouble(a0, a1, a2, b0, b1, b2, c0, c1, c2, r.o[0], r.o[1], r.o[2], r.sx,
+                               r.sy, r.sz)) {
+    return false;  // may be behind the origin
+  }
+  // the hit, as IntersectWatertightPermuted writes it
+  const float inv_det = 1.0f / det;
+  hit->t = t;
+  hit->u = v * inv_det;
+  hit->v = w * inv_det;
+  return true;
 }
 
 bool IntersectTriangle(const float p0[3], const float p1[3], const float p2[3], float ox,

@@ -99,11 +99,82 @@ inline WatertightRay PrepareWatertightRay(float ox, float oy, float oz, float dx
   return r;
 }
 
+// max(|a|, |b|, |c|) as the SIMD kernels compute it (Max(Max(|a|, |b|), |c|)); inputs are
+// never NaN where it is used (a NaN there makes t NaN, which fails the bounds first).
+template <typename T>
+inline T Max3Abs(T a, T b, T c) {
+  const T ab = std::fabs(a) > std::fabs(b) ? std::fabs(a) : std::fabs(b);
+  return ab > std::fabs(c) ? ab : std::fabs(c);
+}
+
+// gamma(n) = n u / (1 - n u), u = the unit roundoff of T (2^-24 for float, 2^-53 for double):
+// the relative error of n roundings is at most gamma(n) (pbrt-v4 section 6.8.1). Constants, so
+// every target compares against the same values.
+template <typename T>
+inline constexpr T WatertightGamma(int n) {
+  constexpr T kUnitRoundoff = T(0.5) * std::numeric_limits<T>::epsilon();
+  return (T(n) * kUnitRoundoff) / (T(1) - T(n) * kUnitRoundoff);
+}
+
+// Rounding bound of the watertight test's t numerator T = U Az' + V Bz' + W Cz' (pbrt-v4,
+// section 6.8.7 "Robust triangle intersections"; Pharr, Jakob, Humphreys): to first order the
+// computed t = T / det is within DeltaT / |det| of the exact t of the ray and the triangle.
+// pbrt's terms with its three coordinate maxima replaced by one, m = max |x|, |y| (sheared) and
+// |z| (translated, unscaled), so deltaX, deltaY = gamma(5) 2m, deltaE = (2 gamma(2) + 8
+// gamma(5)) m^2, and DeltaT = 3 max_zs (2 gamma(3) max_e + deltaE) with max_zs = max |Sz z| and
+// max_e >= max |U|, |V|, |W| (the float test passes |det|: inside, U, V, W share a sign, so
+// |det| >= each). One m costs fewer operations than pbrt's maxXt, maxYt, maxZt (the bound only
+// needs to be safe: the hits it cannot decide go to double) and is also safe where pbrt's code
+// is not: it bounds the shear's error Sx z with the scaled z, too small when |d[kz]| > 1, as
+// for shadow rays d = light - p. In T's precision, this exact operation order, no FMA: the
+// SIMD kernels (tri_intersect-inl.h) repeat the float version op for op.
+template <typename T>
+inline constexpr T kWatertightBoundE = T(6) * WatertightGamma<T>(3);
+template <typename T>
+inline constexpr T kWatertightBoundM = T(3) * (T(2) * WatertightGamma<T>(2) +
+                                               T(8) * WatertightGamma<T>(5));
+template <typename T>
+inline T WatertightDeltaT(T max_xyz, T max_zs, T max_e) {
+  return max_zs * (kWatertightBoundE<T> * max_e + kWatertightBoundM<T> * (max_xyz * max_xyz));
+}
+
+// The float bound is loose for big triangles: ~100..1000 eps times the triangle's extent along
+// the ray (0.03 in t for a ray 0.01 above the 2600-wide conference floor, whose true hit is at
+// t = 0.016), too wide to drop every hit it cannot decide. This function redoes such hits in
+// double from the same float inputs (vertices in the ray's (kx, ky, kz) order, origin, shear),
+// with the same bound in double: true iff the hit is certainly in front of the origin (t >
+// DeltaT / |det| in double, ~1e-9 of the float bound), false for hits behind it, at it, or
+// parallel in double. Rare: only hits within the float bound of the
+// origin get here (the paper's section 3.3 fallback, for t). Scalar on purpose: the SIMD
+// kernels call it per lane, so every target decides alike.
+bool WatertightAheadInDouble(float a0, float a1, float a2, float b0, float b1, float b2, float c0,
+                             float c1, float c2, float o0, float o1, float o2, float sx, float sy,
+                             float sz);
+
+// The near-origin decision of IntersectWatertightPermuted for a hit (t > tmin >= 0) on a
+// triangle that is not strictly ahead: recomputes the translated, sheared vertices with the
+// test's operations; rejects (returns false) iff |T| <= DeltaT (WatertightDeltaT, with max_e =
+// |det|) and the hit is not ahead in double; else writes *hit as the test does and returns
+// true. Out of line and called in tail position, so that nothing is live across the call: the
+// test keeps its size and register use in the scalar traversal loops.
+bool WatertightHitNearOrigin(const WatertightRay& r, float a0, float a1, float a2, float b0,
+                             float b1, float b2, float c0, float c1, float c2, float det, float tz,
+                             float t, float v, float w, TriHit* hit);
+
 // The watertight test on vertices already permuted into the ray's (kx, ky, kz) order.
 // Accepts t in (tmin, tmax]; tmax must be finite (callers clamp +inf to FLT_MAX) so a
 // float overflow never reports a hit at infinity. Backfaces are not culled. Exact in the
 // paper's sense: a ray through a shared edge or vertex hits at least one of the triangles.
-// NaN anywhere (ray, tmin, tmax) gives false.
+// Conservative at the origin (pbrt-v4 6.8.7): if tmin >= 0, a hit that rounding cannot tell
+// from one behind the origin is rejected, so a ray spawned on a large triangle (vertices ~1e3
+// away from an origin offset by ~1e-5, kernels/shade.h OffsetRayOrigin) and pointing away
+// never re-hits it. Hits on triangles with every vertex strictly ahead of the origin along
+// the ray's dominant axis kz, and hits with t > DeltaT / |det| (WatertightDeltaT in float;
+// compared as |T| <= DeltaT, no division), are certain and kept as before; the others are
+// decided in double (WatertightAheadInDouble), so only hits within ~1e-11 of the triangle's
+// extent from the origin are lost, never a hit away from the origin: no holes (rays through
+// shared edges and vertices are unaffected). With tmin < 0 (hits behind the origin wanted)
+// nothing is rejected. NaN anywhere (ray, tmin, tmax) gives false.
 inline bool IntersectWatertightPermuted(const WatertightRay& r, float a0, float a1, float a2,
                                         float b0, float b1, float b2, float c0, float c1,
                                         float c2, float tmin, float tmax, TriHit* hit) {
@@ -132,9 +203,17 @@ inline bool IntersectWatertightPermuted(const WatertightRay& r, float a0, float 
   const float det = u + v + w;
   if (det == 0.0f) return false;  // ray parallel to the plane, or a degenerate projection
   // scaled z of the vertices -> hit distance T / det
-  const float tz = u * (r.sz * az) + v * (r.sz * bz) + w * (r.sz * cz);
+  const float saz = r.sz * az, sbz = r.sz * bz, scz = r.sz * cz;
+  const float tz = u * saz + v * sbz + w * scz;
   const float t = tz / det;
   if (!(t > tmin && t <= tmax)) return false;  // NaN-safe: NaN fails both
+  // t <= DeltaT / |det| may be a hit behind the origin (pbrt-v4 6.8.7): decided out of line.
+  // Not needed if every vertex is strictly ahead along kz (Sz z > 0; exact signs: a float
+  // difference is 0 only for equal inputs): then so is every point of the triangle, and only
+  // t > 0 can meet it.
+  if (tmin >= 0.0f && !(saz > 0.0f && sbz > 0.0f && scz > 0.0f)) [[unlikely]] {
+    return WatertightHitNearOrigin(r, a0, a1, a2, b0, b1, b2, c0, c1, c2, det, tz, t, v, w, hit);
+  }
   const float inv_det = 1.0f / det;
   hit->t = t;
   hit->u = v * inv_det;  // barycentric of vertex 1 (b)

@@ -3,7 +3,8 @@
 // on camera rays in scanline and tile order, shadow rays to a point light, parallel bundles on
 // cell boundaries with +-0 components, rays at the vertices and edges of a closed sphere, NaN
 // and Inf rays inside coherent packets, 1e5 offsets and 1e-4 scales, flat and two-level grids;
-// incoherent packets fall back to the stream DDA; rs::Accel with packets on equals packets off.
+// incoherent packets fall back to the stream DDA; rs::Accel with packets on equals packets off;
+// shadow packets leaving a large floor (conference) never hit it.
 #include <doctest/doctest.h>
 
 #include <algorithm>
@@ -29,6 +30,7 @@
 #include "streams/ray_stream.h"
 #include "tests/kernels/dda_util.h"
 #include "tests/kernels/geometry_util.h"
+#include "tests/kernels/spawn_util.h"
 #include "tests/test_util.h"
 
 namespace rs {
@@ -380,6 +382,90 @@ TEST_CASE("incoherent rays are refused per packet and traced by the stream DDA")
   const PacketStats pm = CheckCoherent(b, mixed, "mixed");
   CHECK(pm.packets > 0);
   CHECK(pm.refused >= 6);
+}
+
+// Regression (conference): coherent shadow packets leaving the big floor quad from 3.05e-5 above
+// it (OffsetRayOrigin) towards a light: per literal ray of tests/kernels/spawn_util.h, the ray
+// itself and 63 neighbours from an 8x8 patch of floor points around its origin, with unit
+// directions too (reflection rays). On every target the packets (N rays x 1 triangle) equal the
+// scalar DDA bit for bit, and neither they, the per-ray stream DDA nor the single-ray DDA
+// report a hit (nothing but the floor and a small tetrahedron away from the rays).
+TEST_CASE("regression: conference floor, coherent shadow packets from 3.05e-5 above it") {
+  Soup soup;
+  soup.AddTriangle(test::kFloorA, test::kFloorB, test::kFloorC);
+  soup.AddTriangle(test::kFloorB, test::kFloorD, test::kFloorC);
+  const float t0[3] = {-900, 500, 600}, t1[3] = {-850, 500, 600}, t2[3] = {-900, 550, 600};
+  const float t3[3] = {-900, 500, 650};
+  soup.AddTriangle(t0, t1, t2);
+  soup.AddTriangle(t0, t1, t3);
+  soup.AddTriangle(t0, t2, t3);
+  soup.AddTriangle(t1, t2, t3);
+  std::vector<Ray> rays;
+  for (const bool unit : {false, true}) {
+    for (const test::FloorRay& fr : test::kFloorRays) {
+      const double light[3] = {double(fr.o[0]) + fr.d[0], double(fr.o[1]) + fr.d[1],
+                               double(fr.o[2]) + fr.d[2]};
+      for (int k = 0; k < 64; ++k) {
+        Ray r;
+        if (k == 0) {
+          std::copy(fr.o, fr.o + 3, r.o);
+          std::copy(fr.d, fr.d + 3, r.d);
+        } else {
+          const glm::vec3 p(F(fr.o[0] + 0.37 * (k % 8 - 4)), test::kFloorA[1],
+                            F(fr.o[2] + 0.29 * (k / 8 - 4)));
+          const glm::vec3 o = OffsetRayOrigin(p, glm::vec3(0.0f, 1.0f, 0.0f));
+          for (int a = 0; a < 3; ++a) {
+            r.o[a] = o[a];
+            r.d[a] = F(light[a] - o[a]);
+          }
+        }
+        r.tmin = 0.0f;
+        r.tmax = test::kFloorRayTmax;
+        if (unit) {
+          const double len = std::sqrt(double(r.d[0]) * r.d[0] + double(r.d[1]) * r.d[1] +
+                                       double(r.d[2]) * r.d[2]);
+          for (float& c : r.d) c = F(c / len);
+          r.tmax = kInf;
+        }
+        rays.push_back(r);
+      }
+    }
+  }
+  for (const auto& [lambda, threshold] : {std::pair{4.0f, -1}, std::pair{1.0f, 0}}) {
+    const Built b(soup.view(), lambda, threshold);
+    const std::string what =
+        std::string("conference floor shadow packets, ") + (threshold < 0 ? "flat" : "two-level");
+    const Oracle o = RunOracle(b, rays);
+    CHECK(o.hits == 0);
+    CHECK(o.occluded == 0);
+    const PacketStats ps = CheckCoherent(b, rays, what);
+    CHECK(ps.packets > 0);
+    RayStream stream = MakeStream(rays);
+    const size_t n = rays.size();
+    test::ForEachTarget([&](const char* target) {
+      INFO(what, ": target ", std::string(target));
+      HitStream hits(n);
+      hits.Resize(n);
+      hits.Reset();
+      IntersectStreamDda(b.dda, stream.view(), hits.view(), DdaOptions{}, nullptr);
+      std::vector<int32_t> occluded(n, 77);
+      OccludedStreamDda(b.dda, stream.view(), occluded.data(), DdaOptions{}, nullptr);
+      size_t stream_hits = 0, stream_occluded = 0, single_hits = 0;
+      for (size_t i = 0; i < n; ++i) {
+        stream_hits += hits.view().prim[i] >= 0;
+        stream_occluded += occluded[i] != 0;
+        const Ray& r = rays[i];
+        RayHit h;
+        single_hits += IntersectSingleDda(b.dda, r.o[0], r.o[1], r.o[2], r.d[0], r.d[1], r.d[2],
+                                          r.tmin, r.tmax, &h, nullptr);
+        single_hits += OccludedSingleDda(b.dda, r.o[0], r.o[1], r.o[2], r.d[0], r.d[1], r.d[2],
+                                         r.tmin, r.tmax, nullptr);
+      }
+      CHECK(stream_hits == 0);
+      CHECK(stream_occluded == 0);
+      CHECK(single_hits == 0);
+    });
+  }
 }
 
 TEST_CASE("rs::Accel: packets on equal packets off on a procedural scene") {

@@ -1,7 +1,8 @@
 // Triangle packets and the SIMD ray/triangle kernels (kernels/tri_intersect.h) on every compiled
 // target vs their scalar oracles, bit for bit: random rays at unit, huge-offset and tiny scales,
 // shared edges and vertices, degenerate and padding lanes, NaN/Inf rays, (tmin, tmax] bounds,
-// stream padding sentinels, and a watertightness stress on a closed icosphere at 1e5.
+// stream padding sentinels, a watertightness stress on a closed icosphere at 1e5, and no
+// self-hit of rays spawned from large triangles (the conference floor, pbrt's Reintersect).
 #include <doctest/doctest.h>
 
 #include <algorithm>
@@ -25,6 +26,7 @@
 #include "kernels/triangle.h"
 #include "streams/ray_stream.h"
 #include "tests/kernels/geometry_util.h"
+#include "tests/kernels/spawn_util.h"
 #include "tests/test_util.h"
 
 namespace rs {
@@ -673,6 +675,157 @@ TEST_CASE("N rays x triangles: sizes 1, N-1, N+1, coherent and mixed rays, paddi
         }
       }
     }
+  }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Self-hits: the watertight test's t bound (pbrt-v4 6.8.7) on every target and path
+
+// Regression (conference): the literal floor rays (tests/kernels/spawn_util.h) never hit the
+// floor quad on any target: 1 ray x packets at every width (closest and any hit), N rays x 1
+// triangle (the stream and its broadcast triangle), and the scalar oracle; bit for bit equal
+// to the oracle with tmin < 0 too, where the bound is off and the old false hit shows.
+TEST_CASE("regression: conference floor, rays 3.05e-5 above it pointing away, every target") {
+  Scene s;
+  s.soup.AddTriangle(test::kFloorA, test::kFloorB, test::kFloorC);  // 59
+  s.soup.AddTriangle(test::kFloorB, test::kFloorD, test::kFloorC);  // 60
+  s.Finish();
+  const uint32_t ids[] = {0, 1};
+  TriPackets packets;
+  BuildTriPacketList(s.tris, ids, 2, &packets);
+  const TriPacketSpan span = packets.Cell(0);
+  // the literal shadow rays, and the same with unit directions (reflection rays)
+  std::vector<std::array<float, 6>> rays;
+  for (const test::FloorRay& r : test::kFloorRays) {
+    rays.push_back({r.o[0], r.o[1], r.o[2], r.d[0], r.d[1], r.d[2]});
+    const double len = std::sqrt(double(r.d[0]) * r.d[0] + double(r.d[1]) * r.d[1] +
+                                 double(r.d[2]) * r.d[2]);
+    rays.push_back({r.o[0], r.o[1], r.o[2], F(r.d[0] / len), F(r.d[1] / len), F(r.d[2] / len)});
+  }
+  RayStream stream(rays.size());
+  for (const auto& r : rays) {
+    stream.Push(r[0], r[1], r[2], r[3], r[4], r[5], 0.0f, test::kFloorRayTmax, 0, 1, 1, 1, 1,
+                RayKind::kShadow);
+  }
+  stream.FillPadding();
+  HitStream hits(rays.size());
+  hits.Resize(rays.size());
+  size_t unbounded = 0;
+  for (const auto& r : rays) {
+    const PacketRay ray = MakePacketRay(r[0], r[1], r[2], r[3], r[4], r[5]);
+    PacketHit h;
+    CHECK_FALSE(ref::IntersectPackets(ray, span, 0.0f, kInf, TriTest::kWatertight, &h));
+    CHECK_FALSE(ref::OccludedPackets(ray, span, 0.0f, test::kFloorRayTmax, TriTest::kWatertight));
+    PacketHit hb;
+    unbounded += ref::IntersectPackets(ray, span, -1e-30f, kInf, TriTest::kWatertight, &hb);
+  }
+  CHECK(unbounded >= std::size(test::kFloorRays));  // the literal rays: the old false hits
+  test::ForEachTarget([&](const char* target_name) {
+    const std::string target = target_name;
+    INFO("target: ", target);
+    Mismatches mm;
+    for (const auto& r : rays) {
+      const PacketRay ray = MakePacketRay(r[0], r[1], r[2], r[3], r[4], r[5]);
+      for (const PacketWidth width : kWidths) {
+        PacketHit h;
+        CHECK_FALSE(IntersectPackets(ray, span, 0.0f, kInf, TriTest::kWatertight, width, &h));
+        CHECK(h.prim == -1);
+        CHECK_FALSE(OccludedPackets(ray, span, 0.0f, test::kFloorRayTmax, TriTest::kWatertight,
+                                    width));
+      }
+      ComparePackets(span, ray, 0.0f, test::kFloorRayTmax, PacketHit{}, &mm);
+      ComparePackets(span, ray, -1e-30f, kInf, PacketHit{}, &mm);
+    }
+    INFO("first mismatch: ", mm.first);
+    CHECK(mm.count == 0);
+    hits.Reset();
+    IntersectStream(stream.view(), span, TriTest::kWatertight, hits.view());
+    for (size_t i = 0; i < rays.size(); ++i) CHECK(hits.view().prim[i] == -1);
+  });
+}
+
+// pbrt's Reintersect on every target: per triangle (large: edges 1e3..1e4, centres up to 1e5
+// from the origin; and unit ones), rays spawned from its points with OffsetRayOrigin, pointing
+// away, never hit it: 1 ray x packets (every width, closest and any), N rays x 1 triangle (the
+// triangle's rays as one stream), all bit for bit equal to the scalar oracle.
+TEST_CASE("no self-hit: spawned rays never hit their large triangle, every target and path") {
+  struct Config {
+    double size, offset;
+  };
+  const Config configs[] = {{1e3, 0.0}, {1e3, 1e4}, {1e4, 3e4}, {2e3, 1e5}, {1.0, 1e2}};
+  const size_t num_tris = test::kSlowBuild ? 20 : 100;
+  constexpr size_t kRaysPerTri = 37;  // a stream of 37: full vectors and a tail on every width
+  Rng rng(4242);
+  for (const Config& c : configs) {
+    INFO("size ", c.size, " offset ", c.offset);
+    Scene s;
+    std::vector<std::vector<test::SpawnedRay>> rays(num_tris);
+    size_t skipped = 0;
+    for (size_t k = 0; k < num_tris; ++k) {
+      const test::SpawnTriangle t = test::MakeSpawnTriangle(rng, c.size, c.offset);
+      s.soup.AddTriangle(t.p[0], t.p[1], t.p[2]);
+      while (rays[k].size() < kRaysPerTri) {
+        const test::SpawnedRay r = test::SpawnRay(rng, t, c.size);
+        if (r.above) {
+          rays[k].push_back(r);
+        } else {
+          ++skipped;
+        }
+      }
+    }
+    s.Finish();
+    CHECK(skipped <= num_tris * kRaysPerTri / 1000);
+    std::vector<TriPackets> spans(num_tris);
+    std::vector<RayStream> streams(num_tris);
+    size_t unbounded = 0;
+    for (size_t k = 0; k < num_tris; ++k) {
+      const uint32_t id = uint32_t(k);
+      BuildTriPacketList(s.tris, &id, 1, &spans[k]);
+      streams[k] = RayStream(kRaysPerTri);
+      for (const test::SpawnedRay& r : rays[k]) {
+        streams[k].Push(r.o[0], r.o[1], r.o[2], r.d[0], r.d[1], r.d[2], 0.0f, kInf, 0, 1, 1, 1, 1,
+                        RayKind::kShadow);
+        PacketHit hb;
+        unbounded += ref::IntersectPackets(MakePacketRay(r.o[0], r.o[1], r.o[2], r.d[0], r.d[1],
+                                                         r.d[2]),
+                                           spans[k].Cell(0), -1e-30f, kInf, TriTest::kWatertight,
+                                           &hb) &&
+                     hb.t > 0.0f;
+      }
+      streams[k].FillPadding();
+    }
+    MESSAGE("size ", c.size, " offset ", c.offset, ": ", num_tris * kRaysPerTri,
+            " spawned rays; without the t bound ", unbounded, " would hit their own triangle; ",
+            skipped, " origins not above the plane (skipped)");
+    if (c.size >= 1e3) CHECK(unbounded > 0);  // not vacuous
+    HitStream hits(kRaysPerTri);
+    hits.Resize(kRaysPerTri);
+    test::ForEachTarget([&](const char* target_name) {
+      const std::string target = target_name;
+      INFO("target: ", target);
+      Mismatches mm;
+      size_t rehits = 0, stream_rehits = 0;
+      for (size_t k = 0; k < num_tris; ++k) {
+        const TriPacketSpan span = spans[k].Cell(0);
+        for (const test::SpawnedRay& r : rays[k]) {
+          const PacketRay ray = MakePacketRay(r.o[0], r.o[1], r.o[2], r.d[0], r.d[1], r.d[2]);
+          for (const PacketWidth width : kWidths) {
+            PacketHit h;
+            rehits += IntersectPackets(ray, span, 0.0f, kInf, TriTest::kWatertight, width, &h);
+            rehits += OccludedPackets(ray, span, 0.0f, kInf, TriTest::kWatertight, width);
+          }
+          ComparePackets(span, ray, 0.0f, kInf, PacketHit{}, &mm);
+          ComparePackets(span, ray, -1e-30f, kInf, PacketHit{}, &mm);  // the bound off
+        }
+        hits.Reset();
+        IntersectStream(streams[k].view(), span, TriTest::kWatertight, hits.view());
+        for (size_t i = 0; i < kRaysPerTri; ++i) stream_rehits += hits.view().prim[i] >= 0;
+      }
+      INFO("first mismatch: ", mm.first);
+      CHECK(mm.count == 0);
+      CHECK(rehits == 0);
+      CHECK(stream_rehits == 0);
+    });
   }
 }
 
