@@ -123,6 +123,36 @@ void ValidateBackendOptions(const BackendOptions& o) {
   }
 }
 
+int PbtWorkers(const BackendOptions& o) { return o.pbt_workers > 0 ? o.pbt_workers : o.threads; }
+
+TilePlanOptions TilePlanOptionsFor(const BackendOptions& o) {
+  TilePlanOptions p;
+  p.tile_width = o.tile_width;
+  p.tile_height = o.tile_height;
+  p.pbt_tiles_per_worker = o.pbt_tiles_per_worker;
+  p.workers = PbtWorkers(o);
+  p.assign = o.assign;
+  p.seed = o.seed;
+  p.steal = o.pbt_steal;
+  p.cost = o.pbt_cost;
+  return p;
+}
+
+double TileCost(const TileRecord& r, PbtCost cost) {
+  return cost == PbtCost::kCpu ? r.cpu_seconds : cost == PbtCost::kWork ? r.work : r.seconds;
+}
+
+void ApplyPlanReport(const TilePlanReport& report, HostFrameStats& s) {
+  if (!report.pbt) return;
+  s.pbt = true;
+  s.has_prediction = report.has_prediction;
+  s.accuracy = report.accuracy;
+  s.worker_imbalance = report.worker_imbalance;
+  s.demand_imbalance = report.demand_imbalance;
+  s.predicted_makespan = report.predicted_makespan;
+  s.update = report.update;
+}
+
 double HostFrameStats::IdleSeconds() const {
   double s = 0;
   for (const ThreadStats& t : threads) s += t.idle_seconds;
@@ -573,22 +603,8 @@ class QueueImpl final : public HostRenderer::Impl {
         1, (static_cast<size_t>(ctx_.options.batch) + TaskSize() - 1) / TaskSize());
   }
 
-  int PbtWorkers() const {
-    return options_.pbt_workers > 0 ? options_.pbt_workers : options_.threads;
-  }
-
-  TilePlanOptions PlanOptions() const {
-    TilePlanOptions p;
-    p.tile_width = options_.tile_width;
-    p.tile_height = options_.tile_height;
-    p.pbt_tiles_per_worker = options_.pbt_tiles_per_worker;
-    p.workers = PbtWorkers();
-    p.assign = options_.assign;
-    p.seed = options_.seed;
-    p.steal = options_.pbt_steal;
-    p.cost = options_.pbt_cost;
-    return p;
-  }
+  int PbtWorkers() const { return rs::PbtWorkers(options_); }
+  TilePlanOptions PlanOptions() const { return TilePlanOptionsFor(options_); }
 
   // The frame's tiles, arenas and per-thread state (application thread, threads parked).
   void Load(const std::vector<Tile>* tiles) {
@@ -921,13 +937,7 @@ class QueueImpl final : public HostRenderer::Impl {
         plan_->End(costs_, exact ? std::span<const int32_t>(ran_by_) : std::span<const int32_t>());
     frame_ = nullptr;
     if (!report.pbt) return;
-    stats_.pbt = true;
-    stats_.has_prediction = report.has_prediction;
-    stats_.accuracy = report.accuracy;
-    stats_.worker_imbalance = report.worker_imbalance;
-    stats_.demand_imbalance = report.demand_imbalance;
-    stats_.predicted_makespan = report.predicted_makespan;
-    stats_.update = report.update;
+    ApplyPlanReport(report, stats_);
   }
 
   // Application thread, threads parked: empties the queues after an aborted frame.
@@ -1069,22 +1079,8 @@ class TilesImpl final : public HostRenderer::Impl {
     next_.store(0, std::memory_order_relaxed);  // published by the opening barrier
   }
 
-  int PbtWorkers() const {
-    return options_.pbt_workers > 0 ? options_.pbt_workers : options_.threads;
-  }
-
-  TilePlanOptions PlanOptions() const {
-    TilePlanOptions p;
-    p.tile_width = options_.tile_width;
-    p.tile_height = options_.tile_height;
-    p.pbt_tiles_per_worker = options_.pbt_tiles_per_worker;
-    p.workers = PbtWorkers();
-    p.assign = options_.assign;
-    p.seed = options_.seed;
-    p.steal = options_.pbt_steal;
-    p.cost = options_.pbt_cost;
-    return p;
-  }
+  int PbtWorkers() const { return rs::PbtWorkers(options_); }
+  TilePlanOptions PlanOptions() const { return TilePlanOptionsFor(options_); }
 
   void RenderTile(Worker& me, int thread, int worker, size_t i) {
     const Clock::time_point wall0 = Clock::now();
@@ -1155,9 +1151,7 @@ class TilesImpl final : public HostRenderer::Impl {
     ran_by.resize(records_.size());
     for (size_t i = 0; i < records_.size(); ++i) {
       const TileRecord& r = records_[i];
-      costs[i] = options_.pbt_cost == PbtCost::kCpu    ? r.cpu_seconds
-                 : options_.pbt_cost == PbtCost::kWork ? r.work
-                                                       : r.seconds;
+      costs[i] = TileCost(r, options_.pbt_cost);
       ran_by[i] = r.thread;
     }
     // Counter: the threads are the workers only when there are as many (else a model of n).
@@ -1165,13 +1159,7 @@ class TilesImpl final : public HostRenderer::Impl {
     const TilePlanReport report = plan_->End(costs, ran_by);
     frame_ = nullptr;
     if (!report.pbt) return;
-    stats_.pbt = true;
-    stats_.has_prediction = report.has_prediction;
-    stats_.accuracy = report.accuracy;
-    stats_.worker_imbalance = report.worker_imbalance;
-    stats_.demand_imbalance = report.demand_imbalance;
-    stats_.predicted_makespan = report.predicted_makespan;
-    stats_.update = report.update;
+    ApplyPlanReport(report, stats_);
   }
 
   std::vector<std::unique_ptr<Worker>> workers_;

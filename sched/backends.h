@@ -199,6 +199,15 @@ class HostRenderer {
   std::unique_ptr<Impl> impl_;
 };
 
+// The PBT workers n of `o` (pbt_workers, or threads when 0), the tile plan its options ask for,
+// and a plan's frame report copied into the frame's statistics (the PBT fields; nothing
+// without PBT). Shared by the host backends and the MPI master.
+int PbtWorkers(const BackendOptions& o);
+TilePlanOptions TilePlanOptionsFor(const BackendOptions& o);
+void ApplyPlanReport(const TilePlanReport& report, HostFrameStats& stats);
+// The cost PBT-Update gets for a tile: its wall seconds, CPU seconds or work (PbtCost).
+double TileCost(const TileRecord& record, PbtCost cost);
+
 // A named value a caller adds on top of the host statistics (StatsExtra).
 using StatsValue = std::variant<int64_t, uint64_t, double, bool, std::string>;
 struct StatsField {

@@ -738,21 +738,13 @@ class Master {
     std::vector<int32_t> ran_by(f.tiles.size());
     for (size_t i = 0; i < f.tiles.size(); ++i) {
       const TileRecord& r = f.tiles[i];
-      costs[i] = c_.pbt_cost == PbtCost::kCpu    ? r.cpu_seconds
-                 : c_.pbt_cost == PbtCost::kWork ? r.work
-                                                 : r.seconds;
+      costs[i] = TileCost(r, c_.pbt_cost);
       ran_by[i] = r.thread;
     }
     const TilePlanReport report = plan_->End(costs, ran_by);  // PBT-Update between frames
     frame_ = nullptr;
     if (!report.pbt) return;
-    f.pbt = true;
-    f.has_prediction = report.has_prediction;
-    f.accuracy = report.accuracy;
-    f.worker_imbalance = report.worker_imbalance;
-    f.demand_imbalance = report.demand_imbalance;
-    f.predicted_makespan = report.predicted_makespan;
-    f.update = report.update;
+    ApplyPlanReport(report, f);
   }
 
   const MpiRenderConfig& c_;
