@@ -92,24 +92,6 @@ HitStreamView SubView(const HitStreamView& h, size_t first, size_t n) {
                        Offset(h.prim, first), n};
 }
 
-void CopyRay(const RayStreamView& f, size_t i, const RayStreamView& t, size_t j) {
-  t.ox[j] = f.ox[i];
-  t.oy[j] = f.oy[i];
-  t.oz[j] = f.oz[i];
-  t.dx[j] = f.dx[i];
-  t.dy[j] = f.dy[i];
-  t.dz[j] = f.dz[i];
-  t.tmin[j] = f.tmin[i];
-  t.tmax[j] = f.tmax[i];
-  if (t.pixel != nullptr) t.pixel[j] = f.pixel != nullptr ? f.pixel[i] : 0u;
-  if (t.wr != nullptr) t.wr[j] = f.wr != nullptr ? f.wr[i] : 1.0f;
-  if (t.wg != nullptr) t.wg[j] = f.wg != nullptr ? f.wg[i] : 1.0f;
-  if (t.wb != nullptr) t.wb[j] = f.wb != nullptr ? f.wb[i] : 1.0f;
-  if (t.depth != nullptr) t.depth[j] = f.depth != nullptr ? f.depth[i] : 0;
-  if (t.kind != nullptr) {
-    t.kind[j] = f.kind != nullptr ? f.kind[i] : static_cast<int32_t>(RayKind::kPrimary);
-  }
-}
 
 void RayStream::FillPadding() {
   const float nan = std::numeric_limits<float>::quiet_NaN();
