@@ -12,6 +12,7 @@
 #include <algorithm>
 #include <atomic>
 #include <chrono>
+#include <cstdio>
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
@@ -20,6 +21,7 @@
 #include <sstream>
 #include <stdexcept>
 #include <string>
+#include <system_error>
 #include <thread>
 #include <utility>
 #include <vector>
@@ -86,6 +88,50 @@ std::string DiffSums(const Framebuffer& got, const Framebuffer& want) {
   s << differing << " channel sums differ; first: pixel " << first / 3 << " channel " << first % 3
     << " got " << got.sums()[first] << " want " << want.sums()[first];
   return s.str();
+}
+
+// Threads of this process (Linux: the entries of /proc/self/task; 0 if unreadable).
+size_t ThreadCount() {
+  std::error_code ec;
+  size_t n = 0;
+  for (std::filesystem::directory_iterator it("/proc/self/task", ec), end; !ec && it != end;
+       it.increment(ec)) {
+    ++n;
+  }
+  return n;
+}
+
+// The thread count once it has dropped to `want` (a joined thread can linger in /proc for a
+// moment), or the count after 5 s of waiting.
+size_t ThreadCountSettlesAt(size_t want) {
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(5);
+  size_t n = ThreadCount();
+  while (n != want && std::chrono::steady_clock::now() < deadline) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(5));
+    n = ThreadCount();
+  }
+  return n;
+}
+
+// Runs f on a helper thread and waits up to 60 s for it. A hang cannot be unwound (f's thread
+// still uses the caller's objects), so it aborts with `what` instead of waiting for the test
+// timeout. doctest assertions inside f are reported as usual.
+template <class F>
+void FinishesWithin(const char* what, F&& f) {
+  std::atomic<bool> done{false};
+  std::thread t([&] {
+    f();
+    done.store(true, std::memory_order_release);
+  });
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(60);
+  while (!done.load(std::memory_order_acquire) && std::chrono::steady_clock::now() < deadline) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(1));
+  }
+  if (!done.load(std::memory_order_acquire)) {
+    std::fprintf(stderr, "backend_test: hang: %s did not finish within 60 s\n", what);
+    std::abort();
+  }
+  t.join();
 }
 
 struct Reference {
@@ -693,18 +739,31 @@ TEST_CASE("many frames in a row, then END: every backend, one renderer") {
     }
     CHECK(app_logic_runs == frames);
     CHECK(renderer.frames() == static_cast<uint64_t>(frames));
-  }  // destructors: END flag, threads joined (a hang here is caught by the test timeout)
-  // A renderer destroyed in the middle of a frame waits for it and stops its threads.
+  }  // destructors: END flag, threads joined
+  // Every renderer above has joined its render threads.
+  const size_t threads_before = ThreadCount();
+  REQUIRE(threads_before >= 1);
+  // A renderer destroyed in the middle of a frame waits for it (the image is the complete
+  // frame) and stops its 3 threads, within a deadline.
   {
     Framebuffer fb(size, size);  // declared first: it must outlive the running frame
-    HostRenderer renderer(Backend(BackendKind::kLockFree, 3));
-    renderer.BeginFrame(ctx, fb);
+    FinishesWithin("destroying a LFREE renderer in the middle of a frame", [&] {
+      HostRenderer renderer(Backend(BackendKind::kLockFree, 3));
+      CHECK(ThreadCount() >= threads_before + 3);
+      renderer.BeginFrame(ctx, fb);
+      CHECK(renderer.in_frame());
+    });
+    CHECK(DiffSums(fb, ref.fb) == "");
+    CHECK(ThreadCountSettlesAt(threads_before) == threads_before);
   }
-  CHECK(true);
-  {
-    HostRenderer renderer(Backend(BackendKind::kLocal, 2));  // never ran a frame
-  }
-  CHECK(true);
+  // A renderer that never ran a frame starts and stops its 2 threads.
+  FinishesWithin("destroying a LOCAL renderer that never ran a frame", [&] {
+    HostRenderer renderer(Backend(BackendKind::kLocal, 2));
+    CHECK(ThreadCount() >= threads_before + 2);
+    CHECK_FALSE(renderer.in_frame());
+    CHECK(renderer.frames() == 0);
+  });
+  CHECK(ThreadCountSettlesAt(threads_before) == threads_before);
 }
 
 TEST_CASE("FrameLoop: barriers, idle times, exceptions, END") {
