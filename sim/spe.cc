@@ -11,6 +11,7 @@
 
 #include <algorithm>
 #include <cstring>
+#include <iterator>
 #include <limits>
 #include <span>
 #include <string>
@@ -35,6 +36,7 @@ constexpr uint32_t kChunkTag = 18;
 constexpr uint32_t kTileTag = 19;
 constexpr uint32_t kPixelTagBase = 20;  // + pixel buffer (< 8)
 constexpr int kMaxInFlight = 8;
+static_assert(std::size(SpeCounters{}.iterations_by_rays) == kMaxInFlight + 1);
 constexpr int32_t kShadowKind = static_cast<int32_t>(RayKind::kShadow);
 constexpr uint32_t kPacketBytes = sizeof(TrianglePacket);
 
@@ -128,6 +130,7 @@ void SpeCounters::Merge(const SpeCounters& o) {
   subgrid_loads += o.subgrid_loads;
   iterations += o.iterations;
   rays_in_flight += o.rays_in_flight;
+  for (int k = 0; k <= kMaxInFlight; ++k) iterations_by_rays[k] += o.iterations_by_rays[k];
   tiles += o.tiles;
   subtiles += o.subtiles;
   tile_counter_retries += o.tile_counter_retries;
@@ -1280,6 +1283,7 @@ void Spe::Impl::Shade() {
   }
   ++counters.iterations;
   counters.rays_in_flight += uint64_t(n);
+  ++counters.iterations_by_rays[n];
   in_iteration = false;
   phase = Phase::kRefill;
 }

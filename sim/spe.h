@@ -38,6 +38,9 @@ struct SpeCounters {
   uint64_t subgrid_loads = 0;         // sub-grid records loaded (two-level grid, paper 3.8)
   uint64_t iterations = 0;            // pipeline iterations
   uint64_t rays_in_flight = 0;        // sum over iterations of the rays taken (<= 8 each)
+  // Pipeline iterations by the number of rays they took, 0..8: rays_per_iteration while the
+  // ring holds that many, fewer only for the last rays (1 each with drain_individually).
+  uint64_t iterations_by_rays[9] = {};
   uint64_t tiles = 0;                 // tiles taken from the tile counter
   uint64_t subtiles = 0;              // pixel-buffer sub-tiles rendered
   uint64_t tile_counter_retries = 0;  // failed putllc on the tile counter (contention)

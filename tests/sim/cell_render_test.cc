@@ -661,5 +661,55 @@ TEST_CASE("the local-store budget shrinks as buffers grow") {
                        doctest::Contains("local store overflow"), Error);
 }
 
+// Paper 3.2: "the procedure continues until less than eight rays are left and no more primary
+// rays can be generated ... these last rays are processed individually, without any interleaving
+// of the memory accesses" (SimConfig::drain_individually). With one pixel buffer the ring runs
+// low at the end of every sub-tile (32x4 pixels here). On, an iteration takes rays_per_iteration rays, or 1 when
+// fewer are left, never a number in between; off, the tails are interleaved (the scene must have
+// some, or the test would prove nothing). Either way every ray finishes and the image is the
+// serial one; draining costs cycles (no latency hidden).
+TEST_CASE("drain_individually: the last rays one at a time, same rays and image") {
+  const Scene scene = LoadScene("cornell");
+  const Accel accel(scene.mesh());
+  const FrameContext ctx = Context(scene, accel, 48, 40, 3);
+  const Reference ref = RenderReference(ctx);
+  for (const int per_iteration : {8, 4}) {
+    INFO("rays per iteration ", per_iteration);
+    SimConfig off;
+    off.pixel_buffers = 1;
+    off.pixel_buffer_pixels = 128;  // sub-tiles of 32x4: many tails
+    off.rays_per_iteration = per_iteration;
+    SimConfig on = off;
+    on.drain_individually = true;
+    const CellFrameStats a = CheckCell(ctx, ref, off, "tails interleaved");
+    const CellFrameStats b = CheckCell(ctx, ref, on, "tails drained one ray at a time");
+    const auto by = [](const CellFrameStats& s, int k) { return s.totals.iterations_by_rays[k]; };
+    uint64_t tails_off = 0, iterations_on = 0, rays_on = 0;
+    for (int k = 0; k <= 8; ++k) {
+      INFO("iterations of ", k, " rays: off ", by(a, k), ", on ", by(b, k));
+      if (k > per_iteration) CHECK(by(a, k) + by(b, k) == 0);  // never more than asked for
+      if (k >= 2 && k < per_iteration) {
+        tails_off += by(a, k);
+        CHECK(by(b, k) == 0);  // drained: 1 ray, never a partial interleaved batch
+      }
+      iterations_on += by(b, k);
+      rays_on += uint64_t(k) * by(b, k);
+    }
+    CHECK(by(a, 0) == 0);
+    CHECK(by(b, 0) == 0);
+    CHECK(iterations_on == b.totals.iterations);
+    CHECK(rays_on == b.totals.rays_in_flight);
+    CHECK(tails_off > 0);                        // the scene has interleaved tails to drain
+    CHECK(by(b, 1) > by(a, 1));                  // and they were drained one ray at a time
+    CHECK(by(b, per_iteration) > 0);             // full batches still run while rays are there
+    CHECK(b.totals.iterations > a.totals.iterations);
+    CHECK(b.totals.TotalRays() == a.totals.TotalRays());  // every ray finished (CheckCell: = serial)
+    CHECK(b.totals.subtiles == a.totals.subtiles);
+    MESSAGE("rays per iteration ", per_iteration, ": ", tails_off, " interleaved tail iterations; ",
+            "drained: ", by(b, 1), " single-ray iterations, cycles ", a.cycles, " -> ", b.cycles);
+    CHECK(b.cycles > a.cycles);  // the drained rays hide no memory latency
+  }
+}
+
 }  // namespace
 }  // namespace rs
