@@ -18,17 +18,26 @@
 #include "sched/queue_lock.h"
 #include "sched/queue_lockfree.h"
 
+// The peers meson found (bench/meson.build passes both macros; a build without them guesses).
+#ifndef RS_BENCH_HAVE_BOOST
 #if __has_include(<boost/lockfree/queue.hpp>)
-#include <boost/lockfree/queue.hpp>
 #define RS_BENCH_HAVE_BOOST 1
 #else
 #define RS_BENCH_HAVE_BOOST 0
 #endif
+#endif
+#ifndef RS_BENCH_HAVE_MOODYCAMEL
 #if __has_include(<concurrentqueue/concurrentqueue.h>)
-#include <concurrentqueue/concurrentqueue.h>
 #define RS_BENCH_HAVE_MOODYCAMEL 1
 #else
 #define RS_BENCH_HAVE_MOODYCAMEL 0
+#endif
+#endif
+#if RS_BENCH_HAVE_BOOST
+#include <boost/lockfree/queue.hpp>
+#endif
+#if RS_BENCH_HAVE_MOODYCAMEL
+#include <concurrentqueue/concurrentqueue.h>
 #endif
 
 namespace rs {
