@@ -42,8 +42,6 @@
 #include <vector>
 
 #include "include/raystream/raystream.h"
-#include "scenes/image_io.h"
-#include "scenes/load.h"
 #include "sched/engine.h"      // SerialRenderer
 #include "sched/frame_loop.h"  // ThreadCpuSeconds
 #include "sched/pbt.h"
@@ -136,12 +134,6 @@ std::string RankList(const std::vector<int>& ranks) {
   return out;
 }
 
-std::string FramePath(const std::string& pattern, int frame) {
-  const size_t hash = pattern.find('#');
-  if (hash == std::string::npos) return pattern;
-  return pattern.substr(0, hash) + fmt::format("{:04d}", frame) + pattern.substr(hash + 1);
-}
-
 int EnvRank(const char* name) {
   const char* v = std::getenv(name);
   if (v == nullptr || *v == '\0') return -1;
@@ -178,57 +170,49 @@ void MasterSend(const int* msg, int count, int rank, int tag, double timeout,
   }
 }
 
-// What every rank builds before rendering. Workers own an Accel; the master only the scene.
-struct Setup {
-  Scene scene;
-  std::unique_ptr<Accel> accel;
-};
-
-void ValidateConfig(const MpiRenderConfig& c, int ranks) {
+void ValidateConfig(const BackendConfig& c, int ranks) {
   if (ranks < 2) {
     throw Error(
         fmt::format("--backend mpi needs at least 2 ranks (a master and a worker), got {}; "
                     "run it as `mpirun -np N raystream render --backend mpi ...`",
                     ranks));
   }
-  ValidateRenderOptions(c.options);
-  if (c.frames < 1) throw Error(fmt::format("--frames {}: must be at least 1", c.frames));
-  if (c.tile_width < 1 || c.tile_height < 1) {
-    throw Error(fmt::format("--tile {}x{}: must be at least 1x1", c.tile_width, c.tile_height));
+  ValidateRenderOptions(c.render);
+  const BackendOptions& h = c.host;
+  if (h.tile_width < 1 || h.tile_height < 1) {
+    throw Error(fmt::format("--tile {}x{}: must be at least 1x1", h.tile_width, h.tile_height));
   }
-  if (c.pbt_tiles_per_worker < 0 || c.pbt_tiles_per_worker > 4096) {
-    throw Error(fmt::format("--pbt {}: must be in [0, 4096]", c.pbt_tiles_per_worker));
+  if (h.pbt_tiles_per_worker < 0 || h.pbt_tiles_per_worker > 4096) {
+    throw Error(fmt::format("--pbt {}: must be in [0, 4096]", h.pbt_tiles_per_worker));
   }
-  if (c.threads < 1 || c.threads > 256) {
+  if (h.threads < 1 || h.threads > 256) {
     throw Error(fmt::format("--threads {}: render threads per worker must be in [1, 256]",
-                            c.threads));
+                            h.threads));
   }
-  if (c.prefetch < 1 || c.prefetch > 64) {
-    throw Error(fmt::format("mpi prefetch {}: must be in [1, 64]", c.prefetch));
+  if (c.mpi_prefetch < 1 || c.mpi_prefetch > 64) {
+    throw Error(fmt::format("mpi prefetch {}: must be in [1, 64]", c.mpi_prefetch));
   }
-  if (!(c.timeout_seconds > 0) || c.timeout_seconds > 1e6) {
-    throw Error(fmt::format("--mpi-timeout {}: must be in (0, 1e6] seconds", c.timeout_seconds));
+  if (!(c.mpi_timeout_seconds > 0) || c.mpi_timeout_seconds > 1e6) {
+    throw Error(
+        fmt::format("--mpi-timeout {}: must be in (0, 1e6] seconds", c.mpi_timeout_seconds));
   }
-  if (!c.stats.empty() && !StatsFileFormatOk(c.stats)) {
-    throw Error(fmt::format("--stats {}: statistics file must end in .json or .csv", c.stats));
-  }
-  if (c.pbt_tiles_per_worker > 0) {
-    const double m = double(c.pbt_tiles_per_worker) * (ranks - 1);
-    if (m > double(c.options.width) * c.options.height) {
+  if (h.pbt_tiles_per_worker > 0) {
+    const double m = double(h.pbt_tiles_per_worker) * (ranks - 1);
+    if (m > double(c.render.width) * c.render.height) {
       throw Error(fmt::format("--pbt {}: {} tiles for {} workers exceed the {}x{} pixels",
-                              c.pbt_tiles_per_worker, m, ranks - 1, c.options.width,
-                              c.options.height));
+                              h.pbt_tiles_per_worker, m, ranks - 1, c.render.width,
+                              c.render.height));
     }
   }
-  const int cost = static_cast<int>(c.pbt_cost);
+  const int cost = static_cast<int>(h.pbt_cost);
   if (cost < 0 || cost > static_cast<int>(PbtCost::kWork)) {
     throw Error(fmt::format("--pbt-cost {}: unknown", cost));
   }
-  if (c.pbt_cost != PbtCost::kWall && c.pbt_tiles_per_worker == 0) {
+  if (h.pbt_cost != PbtCost::kWall && h.pbt_tiles_per_worker == 0) {
     throw Error(
-        fmt::format("--pbt-cost {}: needs a PBT tiling (--pbt k)", PbtCostName(c.pbt_cost)));
+        fmt::format("--pbt-cost {}: needs a PBT tiling (--pbt k)", PbtCostName(h.pbt_cost)));
   }
-  const int assign = static_cast<int>(c.assign);
+  const int assign = static_cast<int>(h.assign);
   if (assign < 0 || assign > static_cast<int>(PbtAssign::kCounter)) {
     throw Error(fmt::format("--assign {}: unknown", assign));
   }
@@ -289,43 +273,68 @@ class TileRenderer {
   std::vector<SerialRenderer> renderers_;  // one per render thread
 };
 
-void RunWorker(const MpiRenderConfig& c, const Setup& s, int rank) {
-  const int kill_rank = EnvRank("RAYSTREAM_MPI_TEST_KILL_RANK");
-  const int hang_rank = EnvRank("RAYSTREAM_MPI_TEST_HANG_RANK");
-  const int hang_end_rank = EnvRank("RAYSTREAM_MPI_TEST_HANG_END_RANK");
-  const int stall_rank = EnvRank("RAYSTREAM_MPI_TEST_STALL_RANK");
-  Framebuffer fb(c.options.width, c.options.height);
-  TileRenderer renderer(c.threads);  // one tile's whole ray tree on this rank
-  std::vector<int64_t> result;
-  int ctx_frame = -1;
-  FrameContext ctx;
-  uint64_t tiles_done = 0;
-  for (;;) {
+// A worker rank: serves the master's tiles one frame at a time. A frame ends when the next
+// message is not one of its tiles (a tile of the next frame, kept for it, or the stop message,
+// kept for Finish): the master sends frame f + 1 only after every result of frame f.
+class Worker {
+ public:
+  Worker(const BackendConfig& c, int rank)
+      : c_(c),
+        rank_(rank),
+        kill_rank_(EnvRank("RAYSTREAM_MPI_TEST_KILL_RANK")),
+        hang_rank_(EnvRank("RAYSTREAM_MPI_TEST_HANG_RANK")),
+        hang_end_rank_(EnvRank("RAYSTREAM_MPI_TEST_HANG_END_RANK")),
+        stall_rank_(EnvRank("RAYSTREAM_MPI_TEST_STALL_RANK")),
+        renderer_(c.host.threads) {}
+
+  void ServeFrame(const FrameContext& ctx, int frame) {
+    const int w = ctx.options.width, h = ctx.options.height;
+    if (!fb_ || fb_->width() != w || fb_->height() != h) fb_ = std::make_unique<Framebuffer>(w, h);
+    for (;;) {
+      Receive();
+      if (tag_ == kTagStop) return;  // for Finish
+      if (tag_ != kTagTile) Abort(rank_, fmt::format("unexpected tag {}", tag_));
+      if (msg_[0] == frame + 1) return;  // the next frame's first tile
+      const Tile tile{msg_[2], msg_[3], msg_[4], msg_[5]};
+      if (msg_[0] != frame || msg_[1] < 0 || tile.x0 < 0 || tile.y0 < 0 || tile.x1 > w ||
+          tile.y1 > h || tile.NumPixels() == 0) {
+        Abort(rank_, fmt::format("malformed tile message (frame {} in frame {}, tile {})",
+                                 msg_[0], frame, msg_[1]));
+      }
+      pending_ = false;
+      RenderTile(ctx, frame, msg_[1], tile);
+    }
+  }
+
+  // After the last frame: the stop message, then the goodbye (the master writes the last image
+  // once every worker has said it).
+  void Finish() {
+    Receive();
+    if (tag_ != kTagStop) {
+      Abort(rank_, fmt::format("expected the end of the run, got tag {} (frame {})", tag_,
+                               msg_[0]));
+    }
+    if (rank_ == hang_end_rank_) HangForever(rank_, "after its last tile (never says goodbye)");
+    const int bye = 0;
+    MPI_Send(&bye, 1, MPI_INT, 0, kTagBye, MPI_COMM_WORLD);
+  }
+
+ private:
+  // The next message from the master into msg_ / tag_, unless one is kept already.
+  void Receive() {
+    if (pending_) return;
     MPI_Status status;
-    int msg[kTileWords] = {};
-    MPI_Recv(msg, kTileWords, MPI_INT, 0, MPI_ANY_TAG, MPI_COMM_WORLD, &status);
-    if (status.MPI_TAG == kTagStop) {
-      // The master writes the last image once every worker has said goodbye.
-      if (rank == hang_end_rank) HangForever(rank, "after its last tile (never says goodbye)");
-      const int bye = 0;
-      MPI_Send(&bye, 1, MPI_INT, 0, kTagBye, MPI_COMM_WORLD);
-      return;
-    }
-    if (status.MPI_TAG != kTagTile) Abort(rank, fmt::format("unexpected tag {}", status.MPI_TAG));
-    const int frame = msg[0];
-    const Tile tile{msg[2], msg[3], msg[4], msg[5]};
-    if (frame < 0 || frame >= c.frames || msg[1] < 0 || tile.x0 < 0 || tile.y0 < 0 ||
-        tile.x1 > c.options.width || tile.y1 > c.options.height || tile.NumPixels() == 0) {
-      Abort(rank, fmt::format("malformed tile message (frame {}, tile {})", frame, msg[1]));
-    }
-    if (frame != ctx_frame) {
-      const Camera camera = s.scene.path.At(frame, c.speed, s.scene.camera);
-      ctx = MakeFrameContext(s.scene, *s.accel, camera, c.options);
-      ctx_frame = frame;
-    }
-    // Zero the tile's pixels, render (a ray's contributions stay on its own pixel, so the whole
-    // tree of the tile lands inside it), then ship the tile's sums.
-    const size_t w = static_cast<size_t>(c.options.width);
+    std::fill(std::begin(msg_), std::end(msg_), 0);
+    MPI_Recv(msg_, kTileWords, MPI_INT, 0, MPI_ANY_TAG, MPI_COMM_WORLD, &status);
+    tag_ = status.MPI_TAG;
+    pending_ = true;
+  }
+
+  // Zero the tile's pixels, render (a ray's contributions stay on its own pixel, so the whole
+  // tree of the tile lands inside it), then ship the tile's sums.
+  void RenderTile(const FrameContext& ctx, int frame, int index, const Tile& tile) {
+    Framebuffer& fb = *fb_;
+    const size_t w = static_cast<size_t>(ctx.options.width);
     int64_t* sums = fb.sums();
     for (int y = tile.y0; y < tile.y1; ++y) {
       std::fill(sums + 3 * (y * w + tile.x0), sums + 3 * (y * w + tile.x1), int64_t{0});
@@ -333,40 +342,51 @@ void RunWorker(const MpiRenderConfig& c, const Setup& s, int rank) {
     const uint64_t nan0 = fb.dropped_nan(), clamped0 = fb.clamped();
     FrameStats stats;
     const auto t0 = Clock::now();
-    const double cpu = renderer.Render(ctx, tile, fb, stats);
+    const double cpu = renderer_.Render(ctx, tile, fb, stats);
     const double seconds = Seconds(Clock::now() - t0);
     const size_t tw = static_cast<size_t>(tile.Width());
-    result.resize(kHeader + 3 * tile.NumPixels());
-    result[kResFrameTile] = (int64_t{frame} << 32) | static_cast<int64_t>(msg[1]);
-    result[kResSeconds] = std::bit_cast<int64_t>(seconds);
-    result[kResCpuSeconds] = std::bit_cast<int64_t>(cpu);
-    result[kResDroppedNan] = static_cast<int64_t>(fb.dropped_nan() - nan0);
-    result[kResClamped] = static_cast<int64_t>(fb.clamped() - clamped0);
-    PackTileStats(stats, result.data());
-    int64_t* dst = result.data() + kHeader;
+    result_.resize(kHeader + 3 * tile.NumPixels());
+    result_[kResFrameTile] = (int64_t{frame} << 32) | static_cast<int64_t>(index);
+    result_[kResSeconds] = std::bit_cast<int64_t>(seconds);
+    result_[kResCpuSeconds] = std::bit_cast<int64_t>(cpu);
+    result_[kResDroppedNan] = static_cast<int64_t>(fb.dropped_nan() - nan0);
+    result_[kResClamped] = static_cast<int64_t>(fb.clamped() - clamped0);
+    PackTileStats(stats, result_.data());
+    int64_t* dst = result_.data() + kHeader;
     for (int y = tile.y0; y < tile.y1; ++y) {
       std::memcpy(dst, sums + 3 * (y * w + tile.x0), 3 * tw * sizeof(int64_t));
       dst += 3 * tw;
     }
-    if (tiles_done == 0 && rank == stall_rank) {
+    if (tiles_done_ == 0 && rank_ == stall_rank_) {
       // Test hook: start sending the first result, then never make MPI progress again. The
       // result is larger than the eager limit, so the master matches it but cannot receive it.
       MPI_Request request;
-      MPI_Isend(result.data(), static_cast<int>(result.size()), MPI_INT64_T, 0, kTagResult,
+      MPI_Isend(result_.data(), static_cast<int>(result_.size()), MPI_INT64_T, 0, kTagResult,
                 MPI_COMM_WORLD, &request);
-      HangForever(rank, "in the middle of sending its first result");
+      HangForever(rank_, "in the middle of sending its first result");
     }
-    MPI_Send(result.data(), static_cast<int>(result.size()), MPI_INT64_T, 0, kTagResult,
+    MPI_Send(result_.data(), static_cast<int>(result_.size()), MPI_INT64_T, 0, kTagResult,
              MPI_COMM_WORLD);
-    ++tiles_done;
-    if (tiles_done == 1 && rank == kill_rank) {
-      fmt::print(stderr, "raystream: test hook: rank {} exits after its first tile\n", rank);
+    ++tiles_done_;
+    if (tiles_done_ == 1 && rank_ == kill_rank_) {
+      fmt::print(stderr, "raystream: test hook: rank {} exits after its first tile\n", rank_);
       std::fflush(stderr);
       _exit(1);
     }
-    if (tiles_done == 1 && rank == hang_rank) HangForever(rank, "after its first tile");
+    if (tiles_done_ == 1 && rank_ == hang_rank_) HangForever(rank_, "after its first tile");
   }
-}
+
+  const BackendConfig& c_;
+  int rank_;
+  int kill_rank_, hang_rank_, hang_end_rank_, stall_rank_;
+  TileRenderer renderer_;  // one tile's whole ray tree on this rank
+  std::unique_ptr<Framebuffer> fb_;
+  std::vector<int64_t> result_;
+  uint64_t tiles_done_ = 0;
+  bool pending_ = false;  // msg_ / tag_ hold a message not acted on yet
+  int msg_[kTileWords] = {};
+  int tag_ = 0;
+};
 
 // ------------------------------------------------------------------------------------------------
 // Master.
@@ -380,90 +400,23 @@ struct WorkerTraffic {
 
 class Master {
  public:
-  Master(const MpiRenderConfig& c, const Setup& s, int ranks)
-      : c_(c), s_(s), workers_(ranks - 1), fb_(c.options.width, c.options.height) {
+  Master(const BackendConfig& c, int ranks)
+      : c_(c), workers_(ranks - 1), fb_(c.render.width, c.render.height) {
     TilePlanOptions p;
-    p.tile_width = c.tile_width;
-    p.tile_height = c.tile_height;
-    p.pbt_tiles_per_worker = c.pbt_tiles_per_worker;
+    p.tile_width = c.host.tile_width;
+    p.tile_height = c.host.tile_height;
+    p.pbt_tiles_per_worker = c.host.pbt_tiles_per_worker;
     p.workers = workers_;
-    p.assign = c.assign;
-    p.seed = c.seed;
-    p.steal = c.pbt_tiles_per_worker > 0 && c.assign != PbtAssign::kCounter;  // always, lists
-    p.cost = c.pbt_cost;
-    plan_ = std::make_unique<TilePlan>(c.options.width, c.options.height, p);
+    p.assign = c.host.assign;
+    p.seed = c.host.seed;
+    p.steal = c.host.pbt_tiles_per_worker > 0 && c.host.assign != PbtAssign::kCounter;  // lists
+    p.cost = c.host.pbt_cost;
+    plan_ = std::make_unique<TilePlan>(c.render.width, c.render.height, p);
   }
 
-  void Run() {
-    const std::string out = c_.out.empty() ? s_.scene.name + ".png" : c_.out;
-    frames_.reserve(static_cast<size_t>(c_.frames));
-    double total = 0;
-    uint64_t rays = 0;
-    const auto write = [&](int frame) {
-      fb_.ToRgb(rgb_);
-      WriteImage(FramePath(out, frame), c_.options.width, c_.options.height, rgb_);
-      if (!c_.dump_raw.empty()) WriteRawFramebuffer(FramePath(c_.dump_raw, frame), fb_);
-    };
-    const int last = c_.frames - 1;
-    for (int frame = 0; frame <= last; ++frame) {
-      RenderFrame(frame);
-      const HostFrameStats& f = frames_.back();
-      total += f.total.total_seconds;
-      rays += f.total.TotalRays();
-      // Only complete frames reach this point (a failure aborts inside RenderFrame); the last
-      // one waits for the end of the run.
-      if (frame < last && out.find('#') != std::string::npos) write(frame);
-      if (c_.frames > 1 && !c_.quiet) {
-        fmt::print(stderr, "frame {}/{}  {:.1f} ms  imbalance {:.3f}\n", frame + 1, c_.frames,
-                   1e3 * f.total.total_seconds, f.imbalance);
-      }
-    }
-    EndRun();
-    write(last);
-    if (!c_.stats.empty()) WriteStats();
-    if (!c_.quiet) {
-      fmt::print("scene      {}: {} triangles, {} lights\n", s_.scene.name,
-                 s_.scene.mesh().num_triangles, s_.scene.lights.size());
-      fmt::print("image      {}x{}, depth {}, {} frame(s), backend mpi, {} workers, {}\n",
-                 c_.options.width, c_.options.height, c_.options.max_depth, c_.frames, workers_,
-                 plan_->uses_pbt()
-                     ? fmt::format("PBT k={} assign {} cost {}", c_.pbt_tiles_per_worker,
-                                   PbtAssignName(c_.assign), PbtCostName(c_.pbt_cost))
-                     : fmt::format("tiles {}x{}", c_.tile_width, c_.tile_height));
-      fmt::print("trace      {:.1f} ms, {} rays, {:.2f} Mrays/s\n", 1e3 * total, rays,
-                 total > 0 ? rays / total * 1e-6 : 0.0);
-      fmt::print("wrote      {}\n", FramePath(out, c_.frames - 1));
-    }
-  }
-
- private:
-  // The host backends' format (WriteHostStats) with the options of the tiles backend that runs
-  // the same tiling (one "thread" per worker; PBT lists with stealing, as the master hands out
-  // tiles), backend "mpi", then the cluster's own fields.
-  void WriteStats() const {
-    BackendOptions o;
-    o.kind = BackendKind::kTiles;
-    o.threads = workers_;
-    o.tile_width = c_.tile_width;
-    o.tile_height = c_.tile_height;
-    o.pbt_tiles_per_worker = c_.pbt_tiles_per_worker;
-    o.pbt_workers = workers_;
-    o.pbt_steal = plan_->options().steal;
-    o.assign = c_.assign;
-    o.seed = c_.seed;
-    o.pbt_cost = c_.pbt_cost;
-    o.queue_stats = false;
-    StatsExtra extra;
-    extra.backend = "mpi";
-    extra.options = {{"ranks", int64_t{workers_} + 1},
-                     {"workers", int64_t{workers_}},
-                     {"worker_threads", int64_t{c_.threads}},
-                     {"prefetch", int64_t{c_.prefetch}},
-                     {"timeout_seconds", c_.timeout_seconds}};
-    extra.frames = frame_extra_;
-    extra.threads = worker_extra_;
-    WriteHostStats(c_.stats, s_.scene.name, o, frames_, extra);
-  }
+  const Framebuffer& image() const { return fb_; }
+  const FrameReport& report() const { return report_; }
+  bool uses_lists() const { return plan_->options().steal; }
 
   // After the last frame: stop every worker and wait (bounded) for each one's goodbye, so that
   // MPI_Finalize cannot hang on a worker that stopped after its last tile, and a run that fails
@@ -472,7 +425,8 @@ class Master {
     const std::string unwritten = "the last frame's image and the statistics are not written";
     const int stop = 0;
     for (int r = 1; r <= workers_; ++r) {
-      MasterSend(&stop, 1, r, kTagStop, c_.timeout_seconds, "the end-of-run message", unwritten);
+      MasterSend(&stop, 1, r, kTagStop, c_.mpi_timeout_seconds, "the end-of-run message",
+                 unwritten);
     }
     std::vector<int> bye(static_cast<size_t>(workers_), 0);
     std::vector<MPI_Request> requests(static_cast<size_t>(workers_));
@@ -480,7 +434,7 @@ class Master {
       MPI_Irecv(&bye[static_cast<size_t>(w)], 1, MPI_INT, w + 1, kTagBye, MPI_COMM_WORLD,
                 &requests[static_cast<size_t>(w)]);
     }
-    const auto deadline = Deadline(c_.timeout_seconds);
+    const auto deadline = Deadline(c_.mpi_timeout_seconds);
     for (int polls = 0;; ++polls) {
       std::vector<int> silent;
       for (int w = 0; w < workers_; ++w) {
@@ -493,12 +447,17 @@ class Master {
       if (Clock::now() > deadline) {
         Abort(0, fmt::format("worker {} did not answer the end of the run within {:g} s (hung "
                              "after its last tile); aborting the run, {}",
-                             RankList(silent), c_.timeout_seconds, unwritten));
+                             RankList(silent), c_.mpi_timeout_seconds, unwritten));
       }
       PollSleep(polls);
     }
   }
 
+  // Renders one frame into fb_ (cleared first); report() then holds its statistics and the
+  // cluster's fields. Aborts the run on a silent worker or a malformed result.
+  void RenderFrame(int frame) { RenderFrameBody(frame); }
+
+ private:
   // Tiles, per-worker preference lists (PBT) or the shared hand-out order, and predictions for
   // this frame: the tile plan's (sched/tile_plan.h), as the tiles backend runs it.
   void PlanFrame() {
@@ -555,7 +514,7 @@ class Master {
   void SendTile(int w, int frame, int t) {
     const Tile& tile = tiles_[static_cast<size_t>(t)];
     const int msg[kTileWords] = {frame, t, tile.x0, tile.y0, tile.x1, tile.y1};
-    MasterSend(msg, kTileWords, w + 1, kTagTile, c_.timeout_seconds,
+    MasterSend(msg, kTileWords, w + 1, kTagTile, c_.mpi_timeout_seconds,
                fmt::format("tile {} of frame {}", t, frame),
                fmt::format("no image written for frame {}", frame));
     WorkerTraffic& traffic = traffic_[static_cast<size_t>(w)];
@@ -568,12 +527,12 @@ class Master {
     }
   }
 
-  // Tops up w's tiles in flight to c_.prefetch. PBT: prefetching takes only w's own tiles; a
+  // Tops up w's tiles in flight to c_.mpi_prefetch. PBT: prefetching takes only w's own tiles; a
   // tile of another worker's list is taken only when w has nothing left to render (so the
   // first round never strips a worker of its own tiles).
   void FeedWorker(int w, int frame, HostFrameStats& f) {
     auto& flight = in_flight_[static_cast<size_t>(w)];
-    while (flight.size() < static_cast<size_t>(c_.prefetch)) {
+    while (flight.size() < static_cast<size_t>(c_.mpi_prefetch)) {
       if (lists_mode_ && !flight.empty() && lists_[static_cast<size_t>(w)].empty()) return;
       bool stolen = false;
       const int t = NextTile(w, &stolen);
@@ -583,15 +542,14 @@ class Master {
     }
   }
 
-  // Renders one frame into fb_ and appends its statistics to frames_ (and the cluster's fields
-  // to frame_extra_, worker_extra_). Aborts the run on a silent worker or a malformed result.
-  void RenderFrame(int frame) {
+  void RenderFrameBody(int frame) {
     const auto begin = Clock::now();
     const double cpu0 = ThreadCpuSeconds();
     PlanFrame();
     fb_.Clear();
     const size_t m = tiles_.size();
-    HostFrameStats& f = frames_.emplace_back();
+    report_ = FrameReport{};
+    HostFrameStats& f = report_.stats;
     f.frame = static_cast<uint64_t>(frame);
     f.backend = BackendKind::kTiles;
     f.threads.assign(static_cast<size_t>(workers_), ThreadStats{});
@@ -610,7 +568,7 @@ class Master {
     for (int w = 0; w < workers_; ++w) FeedWorker(w, frame, f);
     size_t received = 0;
     std::vector<int64_t> buf;
-    const size_t width = static_cast<size_t>(c_.options.width);
+    const size_t width = static_cast<size_t>(c_.render.width);
     int polls_idle = 0;
     while (received < m) {
       // Deadlines on every pass, not only when nothing arrives: results from the other workers
@@ -619,12 +577,12 @@ class Master {
       for (int w = 0; w < workers_; ++w) {
         if (in_flight_[static_cast<size_t>(w)].empty()) continue;
         const double silent = Seconds(now - last_heard_[static_cast<size_t>(w)]);
-        if (silent > c_.timeout_seconds) {
+        if (silent > c_.mpi_timeout_seconds) {
           Abort(0, fmt::format("worker rank {} did not return tile {} of frame {} within {:g} s "
                                "(dead or hung); aborting the run, no image written for "
                                "frame {}",
                                w + 1, in_flight_[static_cast<size_t>(w)].front(), frame,
-                               c_.timeout_seconds, frame));
+                               c_.mpi_timeout_seconds, frame));
         }
       }
       int flag = 0;
@@ -648,11 +606,11 @@ class Master {
       buf.resize(static_cast<size_t>(count));
       MPI_Request request;
       MPI_Imrecv(buf.data(), count, MPI_INT64_T, &message, &request);
-      if (!TestUntil(request, Deadline(c_.timeout_seconds))) {
+      if (!TestUntil(request, Deadline(c_.mpi_timeout_seconds))) {
         Abort(0, fmt::format("worker rank {} stopped while sending a result of frame {} ({} "
                              "bytes, not received within {:g} s: hung or stalled); aborting the "
                              "run, no image written for frame {}",
-                             src, frame, int64_t{count} * 8, c_.timeout_seconds, frame));
+                             src, frame, int64_t{count} * 8, c_.mpi_timeout_seconds, frame));
       }
       const int64_t rf = buf[kResFrameTile] >> 32, t = buf[kResFrameTile] & 0xFFFFFFFF;
       auto& flight = in_flight_[static_cast<size_t>(w)];
@@ -717,9 +675,9 @@ class Master {
                          {"messages_received", traffic.msgs_recv},
                          {"bytes_received", traffic.bytes_recv}});
     }
-    frame_extra_.push_back(
-        {{"messages", msgs}, {"bytes", bytes}, {"dropped_nan", nan}, {"clamped", clamped}});
-    worker_extra_.push_back(std::move(workers));
+    report_.extra = {
+        {"messages", msgs}, {"bytes", bytes}, {"dropped_nan", nan}, {"clamped", clamped}};
+    report_.worker_extra = std::move(workers);
   }
 
   // After the last result: totals, idle times and imbalance as the host backends define them
@@ -738,7 +696,7 @@ class Master {
     std::vector<int32_t> ran_by(f.tiles.size());
     for (size_t i = 0; i < f.tiles.size(); ++i) {
       const TileRecord& r = f.tiles[i];
-      costs[i] = TileCost(r, c_.pbt_cost);
+      costs[i] = TileCost(r, c_.host.pbt_cost);
       ran_by[i] = r.thread;
     }
     const TilePlanReport report = plan_->End(costs, ran_by);  // PBT-Update between frames
@@ -747,11 +705,9 @@ class Master {
     ApplyPlanReport(report, f);
   }
 
-  const MpiRenderConfig& c_;
-  const Setup& s_;
+  const BackendConfig& c_;
   int workers_;
   Framebuffer fb_;
-  std::vector<float> rgb_;
   std::unique_ptr<TilePlan> plan_;
   const TilePlanFrame* frame_ = nullptr;  // the plan's frame being rendered
   std::vector<Tile> tiles_;
@@ -761,10 +717,7 @@ class Master {
   std::vector<WorkerTraffic> traffic_;
   std::vector<std::deque<int32_t>> in_flight_;
   std::vector<Clock::time_point> last_heard_;
-  // Per frame: the statistics and the cluster's fields (WriteStats).
-  std::vector<HostFrameStats> frames_;
-  std::vector<StatsFields> frame_extra_;
-  std::vector<std::vector<StatsFields>> worker_extra_;
+  FrameReport report_;  // the last frame's
 };
 
 // The master's bounded wait for every worker's setup (scene loaded, grid built): returns the
@@ -772,9 +725,10 @@ class Master {
 // it to every worker. A worker that reports nothing within the timeout (hung while loading or
 // building) ends the run with an error naming it; an invalid timeout, which every rank rejects
 // at once, waits the default 120 s at most.
-int GatherSetup(const MpiRenderConfig& c, int ranks, int first) {
-  const double timeout =
-      c.timeout_seconds > 0 && c.timeout_seconds <= 1e6 ? c.timeout_seconds : 120.0;
+int GatherSetup(const BackendConfig& c, int ranks, int first) {
+  const double timeout = c.mpi_timeout_seconds > 0 && c.mpi_timeout_seconds <= 1e6
+                             ? c.mpi_timeout_seconds
+                             : 120.0;
   const size_t workers = static_cast<size_t>(ranks - 1);
   std::vector<int> failed(workers, 0);
   std::vector<MPI_Request> requests(workers);
@@ -808,66 +762,153 @@ int GatherSetup(const MpiRenderConfig& c, int ranks, int first) {
   return first;
 }
 
-}  // namespace
+// The backend on one rank: the master (rank 0) or a worker.
+class MpiBackend final : public Backend {
+ public:
+  explicit MpiBackend(const BackendConfig& c) : c_(c) {
+    int initialized = 0;
+    MPI_Initialized(&initialized);
+    if (!initialized) MPI_Init(nullptr, nullptr);
+    MPI_Comm_rank(MPI_COMM_WORLD, &rank_);
+    MPI_Comm_size(MPI_COMM_WORLD, &ranks_);
+    workers_ = std::max(ranks_ - 1, 0);
+    options_.kind = BackendKind::kTiles;  // the same tiling, run by worker ranks
+    options_.threads = workers_;
+    options_.tile_width = c.host.tile_width;
+    options_.tile_height = c.host.tile_height;
+    options_.pbt_tiles_per_worker = c.host.pbt_tiles_per_worker;
+    options_.pbt_workers = workers_;
+    options_.pbt_steal = c.host.pbt_tiles_per_worker > 0 && c.host.assign != PbtAssign::kCounter;
+    options_.assign = c.host.assign;
+    options_.seed = c.host.seed;
+    options_.pbt_cost = c.host.pbt_cost;
+    options_.queue_stats = false;
+  }
 
-int RunMpiRender(const MpiRenderConfig& config) {
-  int initialized = 0;
-  MPI_Initialized(&initialized);
-  if (!initialized) MPI_Init(nullptr, nullptr);
-  int rank = 0, ranks = 1;
-  MPI_Comm_rank(MPI_COMM_WORLD, &rank);
-  MPI_Comm_size(MPI_COMM_WORLD, &ranks);
+  // A run that ends before Finish (an exception in the command) cannot leave the other ranks
+  // waiting: abort the job. Otherwise every rank agreed to stop (setup failed, or Finish done).
+  ~MpiBackend() override {
+    if (state_ == State::kRunning) {
+      std::fflush(stderr);
+      MPI_Abort(MPI_COMM_WORLD, 1);
+    }
+    int finalized = 0;
+    MPI_Finalized(&finalized);
+    if (!finalized) MPI_Finalize();
+  }
+
+  std::string_view name() const override { return "mpi"; }
+
+  std::string Describe() const override {
+    const BackendOptions& h = c_.host;
+    return fmt::format("mpi, {} workers ({} thread(s) each), {}", workers_, h.threads,
+                       h.pbt_tiles_per_worker > 0
+                           ? fmt::format("PBT k={} assign {} cost {}", h.pbt_tiles_per_worker,
+                                         PbtAssignName(h.assign), PbtCostName(h.pbt_cost))
+                           : fmt::format("tiles {}x{}", h.tile_width, h.tile_height));
+  }
+
+  const BackendOptions& options() const override { return options_; }
+
+  StatsFields StatsOptions() const override {
+    return {{"ranks", int64_t{ranks_}},
+            {"workers", int64_t{workers_}},
+            {"worker_threads", int64_t{c_.host.threads}},
+            {"prefetch", int64_t{c_.mpi_prefetch}},
+            {"timeout_seconds", c_.mpi_timeout_seconds}};
+  }
 
   // Setup on every rank; errors are gathered so that one line is printed (by rank 0, or by the
   // lowest failing rank when rank 0 succeeded) and every rank leaves cleanly with status 1.
-  Setup setup;
-  std::string error;
-  try {
-    if (rank > 0 && rank == EnvRank("RAYSTREAM_MPI_TEST_HANG_SETUP_RANK")) {
-      HangForever(rank, "while loading the scene");
+  bool Setup(const std::function<void()>& setup) override {
+    std::exception_ptr error;
+    try {
+      if (rank_ > 0 && rank_ == EnvRank("RAYSTREAM_MPI_TEST_HANG_SETUP_RANK")) {
+        HangForever(rank_, "while loading the scene");
+      }
+      ValidateConfig(c_, ranks_);
+      setup();
+    } catch (...) {
+      error = std::current_exception();
     }
-    ValidateConfig(config, ranks);
-    setup.scene = LoadScene(config.scene);
-    if (rank > 0) {
-      BuildOptions build;
-      if (config.lambda > 0) build.lambda = config.lambda;
-      setup.accel = std::make_unique<Accel>(setup.scene.mesh(), build);
+    int first_failed = ranks_;  // the lowest failing rank, `ranks` if none
+    if (rank_ == 0) {
+      first_failed = GatherSetup(c_, ranks_, error ? 0 : ranks_);
+    } else {
+      const int failed = error ? 1 : 0;
+      MPI_Send(&failed, 1, MPI_INT, 0, kTagSetup, MPI_COMM_WORLD);
+      MPI_Recv(&first_failed, 1, MPI_INT, 0, kTagSetupDone, MPI_COMM_WORLD, MPI_STATUS_IGNORE);
     }
-  } catch (const std::exception& e) {
-    error = e.what();
-  }
-  int first_failed = ranks;  // the lowest failing rank, `ranks` if none
-  if (rank == 0) {
-    first_failed = GatherSetup(config, ranks, error.empty() ? ranks : 0);
-  } else {
-    const int failed = error.empty() ? 0 : 1;
-    MPI_Send(&failed, 1, MPI_INT, 0, kTagSetup, MPI_COMM_WORLD);
-    MPI_Recv(&first_failed, 1, MPI_INT, 0, kTagSetupDone, MPI_COMM_WORLD, MPI_STATUS_IGNORE);
-  }
-  if (first_failed < ranks) {
-    if (rank == first_failed) {
-      if (rank == 0) {
-        fmt::print(stderr, "raystream: error: {}\n", error);
-      } else {
-        fmt::print(stderr, "raystream: error: mpi rank {}: {}\n", rank, error);
+    if (first_failed < ranks_) {
+      state_ = State::kStopped;
+      if (rank_ != first_failed) return false;
+      if (rank_ == 0) std::rethrow_exception(error);
+      try {
+        std::rethrow_exception(error);
+      } catch (const std::exception& e) {
+        throw Error(fmt::format("mpi rank {}: {}", rank_, e.what()));
       }
     }
-    MPI_Finalize();
-    return 1;
+    state_ = State::kRunning;
+    if (rank_ == 0) {
+      master_ = std::make_unique<Master>(c_, ranks_);
+    } else {
+      worker_ = std::make_unique<Worker>(c_, rank_);
+    }
+    return true;
   }
 
-  try {
-    if (rank == 0) {
-      Master master(config, setup, ranks);
-      master.Run();
-    } else {
-      RunWorker(config, setup, rank);
+  // A failure inside a frame ends the job naming this rank (the others are waiting on it).
+  void BeginFrame(const FrameContext& ctx) override {
+    if (state_ != State::kRunning) throw Error("mpi backend: BeginFrame before a successful Setup");
+    try {
+      if (master_) {
+        master_->RenderFrame(frame_);
+      } else {
+        worker_->ServeFrame(ctx, frame_);
+      }
+    } catch (const std::exception& e) {
+      Abort(rank_, e.what());
     }
-  } catch (const std::exception& e) {
-    Abort(rank, e.what());
+    ++frame_;
   }
-  MPI_Finalize();
-  return 0;
+
+  const FrameReport& EndFrame() override { return master_ ? master_->report() : empty_; }
+  const Framebuffer* image() const override { return master_ ? &master_->image() : nullptr; }
+  bool owns_image() const override { return rank_ == 0; }
+
+  void Finish() override {
+    if (state_ != State::kRunning) return;
+    try {
+      if (master_) {
+        master_->EndRun();
+      } else {
+        worker_->Finish();
+      }
+    } catch (const std::exception& e) {
+      Abort(rank_, e.what());
+    }
+    state_ = State::kStopped;
+  }
+
+ private:
+  enum class State { kSetup, kRunning, kStopped };
+
+  BackendConfig c_;
+  int rank_ = 0, ranks_ = 1, workers_ = 0;
+  BackendOptions options_;
+  State state_ = State::kSetup;
+  int frame_ = 0;
+  std::unique_ptr<Master> master_;  // rank 0
+  std::unique_ptr<Worker> worker_;  // ranks 1..N-1
+  FrameReport empty_;               // a worker's report
+};
+
+}  // namespace
+
+void RegisterMpiBackend(BackendRegistry& registry) {
+  registry.Add("mpi", "master-worker over MPI ranks (under mpirun)",
+               [](const BackendConfig& c) { return std::make_unique<MpiBackend>(c); });
 }
 
 }  // namespace rs

@@ -10,6 +10,7 @@
 #include <string>
 #include <vector>
 
+#include "sched/backend.h"
 #include "sched/framebuffer.h"
 #include "sched/pbt.h"
 #include "sched/render.h"
@@ -134,6 +135,12 @@ class CellRenderer {
 // sentence saying what was changed, or cleared. Throws rs::Error if no lambda fits.
 Accel BuildCellAccel(const Scene& scene, BuildOptions options, const SimConfig& config,
                      int image_width, std::string* note = nullptr);
+
+// Registers "cell" (sim/cell_backend.cc): the CellRenderer behind the command's backend interface
+// (sched/backend.h), with BuildCellAccel as its Build and FormatCellReport as its summary. Its
+// BackendConfig: spes, host.tile_width x tile_height, host.pbt_tiles_per_worker (k per SPE),
+// host.assign, host.seed, host.pbt_workers.
+void RegisterCellBackend(BackendRegistry& registry);
 
 // A multi-line human-readable report: simulated time, rays/s, per-SPE breakdown table, loads,
 // caches, tile counter contention.

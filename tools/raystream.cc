@@ -8,6 +8,7 @@
 #include <chrono>
 #include <cstdio>
 #include <exception>
+#include <optional>
 #include <fstream>
 #include <string>
 #include <thread>
@@ -16,6 +17,7 @@
 #include "include/raystream/raystream.h"
 #include "scenes/image_io.h"
 #include "scenes/load.h"
+#include "sched/backend.h"
 #include "sched/backends.h"
 #include "sched/render.h"
 #include "sched/mpi_backend.h"     // --backend mpi
@@ -221,7 +223,7 @@ void CheckBackendOptions(const RenderArgs& args) {
   const std::string& b = args.backend;
   const bool cell = b == "cell", mpi = b == "mpi";
   BackendKind kind = BackendKind::kSerial;
-  if (!cell && !mpi && !ParseBackendKind(b, &kind)) return;  // MakeBackendOptions names it
+  if (!cell && !mpi && !ParseBackendKind(b, &kind)) return;  // the registry names it
   const bool tiles = !cell && !mpi && kind == BackendKind::kTiles;
   const bool serial = !cell && !mpi && kind == BackendKind::kSerial;
   const bool tiled = tiles || cell || mpi;
@@ -326,10 +328,7 @@ void CheckBackendOptions(const RenderArgs& args) {
 BackendOptions MakeBackendOptions(const RenderArgs& args) {
   BackendOptions o;
   if (!ParseBackendKind(args.backend, &o.kind)) {
-    std::string names;
-    for (const auto& n : BackendNames()) names += (names.empty() ? "" : ", ") + n;
-    names += ", cell, mpi";  // dispatched before this point (RunRenderCell, RunRenderMpi)
-    throw Error(fmt::format("--backend {}: unknown backend (available: {})", args.backend, names));
+    throw Error(fmt::format("--backend {}: not a host backend", args.backend));
   }
   o.threads = args.threads;
   ParseTileShape(args.tile, o.tile_width, o.tile_height);
@@ -355,152 +354,59 @@ std::string FrameFileName(const std::string& pattern, int frame) {
   return pattern.substr(0, hash) + fmt::format("{:04d}", frame) + pattern.substr(hash + 1);
 }
 
-// --- Cell simulator backend (sim/cell_renderer.h): the paper's SPE ray pipeline on --spes
-// simulated SPEs, one host thread; the image equals the serial backend's bit for bit. ---------
-int RunRenderCell(const RenderArgs& args) {
-  sim::SimConfig config;
-  config.num_spes = args.spes;
-  ParseTileShape(args.tile, config.tile_width, config.tile_height);
-  config.pbt_tiles_per_spe = args.pbt;
-  sim::ValidateConfig(config);
-  sim::CellPlanOptions plan;
-  plan.assign = PbtAssignFor(args);
-  plan.seed = args.seed;
-  plan.pbt_workers = args.pbt_workers;
+// Every backend the command links, by name (sched/backend.h).
+BackendRegistry Backends() {
+  BackendRegistry registry;
+  RegisterHostBackends(registry);
+  sim::RegisterCellBackend(registry);
+  RegisterMpiBackend(registry);
+  return registry;
+}
 
-  if (args.threads != 1) {
+bool IsHostBackend(const std::string& name) {
+  BackendKind kind;
+  return ParseBackendKind(name, &kind);
+}
+
+// What the backend's factory gets: the host options (validated for the host backends; for cell
+// and mpi the tiling, PBT and threads fields they read), the frames' options, the rest.
+BackendConfig MakeBackendConfig(const RenderArgs& args, const RenderOptions& options) {
+  BackendConfig c;
+  if (IsHostBackend(args.backend)) {
+    c.host = MakeBackendOptions(args);
+  } else {
+    c.host.threads = args.threads;
+    ParseTileShape(args.tile, c.host.tile_width, c.host.tile_height);
+    c.host.pbt_tiles_per_worker = args.pbt;
+    c.host.pbt_workers = args.pbt_workers;
+    c.host.assign = PbtAssignFor(args);
+    c.host.pbt_cost = PbtCostFor(args);
+    c.host.seed = args.seed;
+    c.host.pbt_steal = args.steal;
+    c.host.queue_stats = args.queue_stats;
+  }
+  if (args.backend == "cell" && args.threads != 1) {
     throw Error(fmt::format("--threads {}: the cell backend simulates --spes SPEs on one host "
                             "thread", args.threads));
   }
-  const std::string& st = args.stats;
-  if (!st.empty() && (st.size() < 5 || st.compare(st.size() - 5, 5, ".json") != 0)) {
-    throw Error(fmt::format("--stats {}: the cell backend writes .json statistics", st));
-  }
-  if (args.width <= 0 || args.height <= 0 || args.width > 16384 || args.height > 16384) {
-    throw Error(fmt::format("--width/--height must be within 1..16384 (got {}x{})", args.width,
-                            args.height));
-  }
-  const std::string out = args.out.empty() ? args.scene + ".png" : args.out;
-  const auto t_load = std::chrono::steady_clock::now();
-  const Scene scene = LoadScene(args.scene);
-  const double load_seconds = Seconds(std::chrono::steady_clock::now() - t_load);
-  BuildOptions build;
-  SetLambda(args.lambda, &build);
-  std::string note;
-  const Accel accel = sim::BuildCellAccel(scene, build, config, args.width, &note);
-  if (!note.empty() && !args.quiet) fmt::print(stderr, "raystream: note: {}\n", note);
-  const AccelInfo info = accel.Info();
-  RenderOptions options;
-  options.width = args.width;
-  options.height = args.height;
-  options.max_depth = args.depth;
-  options.weight_cutoff = args.cutoff;
-  sim::CellRenderer renderer(config, plan);
-  Framebuffer fb(args.width, args.height);
-  std::vector<float> rgb;
-  Json frames = Json::array();
-  sim::CellFrameStats last;
-  double image_seconds = 0;  // the PPE layout is built in the first frame only
-  for (int frame = 0; frame < args.frames; ++frame) {
-    const Camera camera = scene.path.At(frame, args.speed, scene.camera);
-    const FrameContext ctx = MakeFrameContext(scene, accel, camera, options);
-    fb.Clear();
-    last = renderer.Render(ctx, fb);
-    image_seconds += last.image_seconds;
-    if (frame + 1 == args.frames || out.find('#') != std::string::npos) {
-      fb.ToRgb(rgb);
-      WriteImage(FrameFileName(out, frame), args.width, args.height, rgb);
-    }
-    Json spes = Json::array();
-    for (const sim::SpeReport& r : last.spes) {
-      Json cycles;
-      for (int c = 0; c < sim::kNumCosts; ++c) cycles[sim::CostName(sim::Cost(c))] = r.cycles.cycles[c];
-      spes.push_back(Json{{"spe", r.id}, {"finish", r.finish}, {"cycles", cycles},
-                          {"rays", r.counters.TotalRays()}, {"visits", r.counters.visits},
-                          {"micro_cache_hits", r.counters.micro_cache_hits},
-                          {"dma_commands", r.mfc.commands}, {"dma_bytes", r.mfc.bytes},
-                          {"atomic_loads", r.atomic.getllar}, {"ls_bytes", r.ls_used}});
-    }
-    Json tiles = Json::array();
-    for (const sim::CellTileRecord& t : last.tiles) {
-      tiles.push_back(Json{{"x0", t.tile.x0}, {"y0", t.tile.y0}, {"x1", t.tile.x1},
-                           {"y1", t.tile.y1}, {"spe", t.spe}, {"cycles", t.cycles},
-                           {"predicted", t.predicted}});
-    }
-    frames.push_back(Json{{"frame", frame}, {"cycles", last.cycles},
-                          {"simulated_seconds", last.seconds}, {"host_seconds", last.host_seconds},
-                          {"rays", last.totals.TotalRays()}, {"mic_lines", last.mic_lines},
-                          {"mic_queue_cycles", last.mic_queue_cycles}, {"spes", spes},
-                          {"tiles", tiles}});
-    if (args.frames > 1 && !args.quiet) {
-      fmt::print(stderr, "frame {}/{}  {:.2f} ms simulated, {:.1f} ms host\n", frame + 1,
-                 args.frames, 1e3 * last.seconds, 1e3 * last.host_seconds);
-    }
-  }
-  if (!st.empty()) {
-    std::ofstream f(st);
-    f << Json{{"scene", scene.name}, {"backend", "cell"}, {"config", sim::DescribeConfig(config)},
-              {"frames", frames}}.dump(2)
-      << "\n";
-    if (!f) throw Error(fmt::format("--stats {}: cannot write the file", st));
-  }
-  if (!args.quiet) {
-    fmt::print("scene      {}: {} triangles, {} lights, grid {} {}x{}x{}\n", scene.name,
-               info.triangles, scene.lights.size(), info.kind, info.resolution[0],
-               info.resolution[1], info.resolution[2]);
-    fmt::print("load       {:.1f} ms, grid build {:.1f} ms, cell image {:.1f} ms ({:.1f} MiB)\n",
-               1e3 * load_seconds, 1e3 * info.build_seconds, 1e3 * image_seconds,
-               double(last.image_bytes) / 1048576.0);
-    fmt::print("image      {}x{}, depth {}, {} frame(s), backend cell, {} SPEs, {}\n", args.width,
-               args.height, args.depth, args.frames, config.num_spes,
-               config.pbt_tiles_per_spe > 0
-                   ? fmt::format("PBT k={} assign {}", config.pbt_tiles_per_spe,
-                                 PbtAssignName(plan.assign))
-                   : fmt::format("tiles {}x{}", config.tile_width, config.tile_height));
-    fmt::print("{}", sim::FormatCellReport(last, config));
-    fmt::print("wrote      {}\n", FrameFileName(out, args.frames - 1));
-  }
-  return 0;
-}
-
-// --- Cluster backend (sched/mpi_backend.h): run under `mpirun -np N`; rank 0 is the master. ----
-int RunRenderMpi(const RenderArgs& args) {
-  MpiRenderConfig c;
+  c.render = options;
   c.scene = args.scene;
-  c.options.width = args.width;
-  c.options.height = args.height;
-  c.options.max_depth = args.depth;
-  c.options.task_size = args.task_size;
-  c.options.batch = args.batch;
-  c.options.ray_budget = args.ray_budget;
-  c.options.weight_cutoff = args.cutoff;
-  c.options.order = args.order == "block" ? RayOrder::kBlock4x2 : RayOrder::kScanline;
-  c.lambda = args.lambda;
-  c.frames = args.frames;
-  c.speed = args.speed;
-  c.out = args.out;
-  c.stats = args.stats;
-  c.dump_raw = args.dump_raw;
-  ParseTileShape(args.tile, c.tile_width, c.tile_height);
-  c.pbt_tiles_per_worker = args.pbt;
-  c.assign = PbtAssignFor(args);
-  c.seed = args.seed;
-  c.pbt_cost = PbtCostFor(args);
-  c.timeout_seconds = args.mpi_timeout;
-  c.threads = args.threads;  // render threads inside each worker
-  c.quiet = args.quiet;
-  return RunMpiRender(c);
+  c.spes = args.spes;
+  c.mpi_timeout_seconds = args.mpi_timeout;
+  c.fixed_sums = !args.dump_raw.empty();
+  return c;
 }
 
+// The one frame loop of every backend: set up (load, build), render the camera path's frames,
+// write the images ('#': every frame as it completes; otherwise the last after Finish), the
+// statistics (one writer, JSON or CSV) and the summary.
 int RunRender(RenderArgs args) {
   if (args.threads == 0) {
-    const bool threaded = args.backend != "serial" && args.backend != "cell" && args.backend != "mpi";
-    args.threads = threaded ? std::max(1, static_cast<int>(std::thread::hardware_concurrency())) : 1;
+    args.threads = IsHostBackend(args.backend) && args.backend != "serial"
+                       ? std::max(1, static_cast<int>(std::thread::hardware_concurrency()))
+                       : 1;
   }
   CheckBackendOptions(args);
-  if (args.backend == "cell") return RunRenderCell(args);
-  if (args.backend == "mpi") return RunRenderMpi(args);
-  const BackendOptions backend = MakeBackendOptions(args);
   if (!args.stats.empty() && !StatsFileFormatOk(args.stats)) {
     throw Error(fmt::format("--stats {}: statistics file must end in .json or .csv", args.stats));
   }
@@ -508,18 +414,6 @@ int RunRender(RenderArgs args) {
     throw Error(fmt::format("--width/--height must be within 1..16384 (got {}x{})", args.width,
                             args.height));
   }
-  const std::string out = args.out.empty() ? args.scene + ".png" : args.out;
-  const bool tty = isatty(fileno(stderr)) != 0;
-
-  const auto t_load = std::chrono::steady_clock::now();
-  const Scene scene = LoadScene(args.scene);
-  const double load_seconds = Seconds(std::chrono::steady_clock::now() - t_load);
-
-  BuildOptions build;
-  SetLambda(args.lambda, &build);
-  const Accel accel(scene.mesh(), build);
-  const AccelInfo info = accel.Info();
-
   RenderOptions options;
   options.width = args.width;
   options.height = args.height;
@@ -529,44 +423,71 @@ int RunRender(RenderArgs args) {
   options.ray_budget = args.ray_budget;
   options.weight_cutoff = args.cutoff;
   options.order = args.order == "block" ? RayOrder::kBlock4x2 : RayOrder::kScanline;
+  const std::string out = args.out.empty() ? args.scene + ".png" : args.out;
+  const bool tty = isatty(fileno(stderr)) != 0;
 
-  HostRenderer renderer(backend);
-  // serial and tiles give each pixel its sums once: the float image alone (12 bytes per pixel).
-  const bool resolved = (backend.kind == BackendKind::kSerial || backend.kind == BackendKind::kTiles) &&
-                        args.dump_raw.empty();
-  Framebuffer fb(args.width, args.height,
-                 resolved ? Framebuffer::Storage::kResolved : Framebuffer::Storage::kFixed);
+  const BackendRegistry registry = Backends();
+  const std::unique_ptr<Backend> backend =
+      registry.Make(args.backend, MakeBackendConfig(args, options));
+  std::optional<Scene> scene;
+  std::optional<Accel> accel;
+  double load_seconds = 0;
+  std::string note;
+  if (!backend->Setup([&] {
+        const auto t_load = std::chrono::steady_clock::now();
+        scene.emplace(LoadScene(args.scene));
+        load_seconds = Seconds(std::chrono::steady_clock::now() - t_load);
+        BuildOptions build;
+        SetLambda(args.lambda, &build);
+        accel.emplace(backend->Build(*scene, build, args.width, &note));
+      })) {
+    return 1;  // another MPI rank printed the error
+  }
+  const bool owner = backend->owns_image();
+  if (owner && !note.empty() && !args.quiet) fmt::print(stderr, "raystream: note: {}\n", note);
+  const AccelInfo info = accel->Info();
+
+  std::vector<FrameReport> reports;
+  reports.reserve(owner ? static_cast<size_t>(args.frames) : 0);
   std::vector<float> rgb;
-  std::vector<HostFrameStats> frames;
-  frames.reserve(static_cast<size_t>(args.frames));
-  FrameStats total;  // counters summed over frames
-  double total_seconds = 0;
-  for (int frame = 0; frame < args.frames; ++frame) {
-    const Camera camera = scene.path.At(frame, args.speed, scene.camera);
-    const FrameContext ctx = MakeFrameContext(scene, accel, camera, options);
-    fb.Clear();
-    frames.push_back(renderer.RenderFrame(ctx, fb));
-    const HostFrameStats& s = frames.back();
-    total.Merge(s.total);
-    total_seconds += s.total.total_seconds;
-    const bool write = frame + 1 == args.frames || out.find('#') != std::string::npos;
-    if (write) {
-      if (resolved) {
-        WriteImage(FrameFileName(out, frame), args.width, args.height, fb.resolved());
-      } else {
-        fb.ToRgb(rgb);
-        WriteImage(FrameFileName(out, frame), args.width, args.height, rgb);
-      }
-      if (!args.dump_raw.empty()) WriteRawFramebuffer(FrameFileName(args.dump_raw, frame), fb);
+  const auto write = [&](int frame) {
+    const Framebuffer& fb = *backend->image();
+    if (fb.storage() == Framebuffer::Storage::kResolved) {
+      WriteImage(FrameFileName(out, frame), args.width, args.height, fb.resolved());
+    } else {
+      fb.ToRgb(rgb);
+      WriteImage(FrameFileName(out, frame), args.width, args.height, rgb);
     }
+    if (!args.dump_raw.empty()) WriteRawFramebuffer(FrameFileName(args.dump_raw, frame), fb);
+  };
+  const int last = args.frames - 1;
+  for (int frame = 0; frame <= last; ++frame) {
+    const Camera camera = scene->path.At(frame, args.speed, scene->camera);
+    const FrameContext ctx = MakeFrameContext(*scene, *accel, camera, options);
+    backend->BeginFrame(ctx);
+    const FrameReport& report = backend->EndFrame();
+    if (!owner) continue;
+    reports.push_back(report);
+    if (frame < last && out.find('#') != std::string::npos) write(frame);
     if (args.frames > 1 && !args.quiet) {
-      fmt::print(stderr, "{}frame {}/{}  {:.1f} ms  {:.2f} Mrays/s{}", tty ? "\r" : "",
-                 frame + 1, args.frames, 1e3 * s.total.total_seconds, s.total.MraysPerSecond(),
-                 tty ? "" : "\n");
+      const FrameStats& s = report.stats.total;
+      const std::string extra = backend->ProgressNote(report);
+      fmt::print(stderr, "{}frame {}/{}  {:.1f} ms  {:.2f} Mrays/s{}{}", tty ? "\r" : "",
+                 frame + 1, args.frames, 1e3 * s.total_seconds, s.MraysPerSecond(),
+                 extra.empty() ? "" : "  " + extra, tty ? "" : "\n");
     }
   }
-  if (args.frames > 1 && !args.quiet && tty) fmt::print(stderr, "\n");
+  if (owner && args.frames > 1 && !args.quiet && tty) fmt::print(stderr, "\n");
+  backend->Finish();  // mpi: every worker has said goodbye; only complete frames are written
+  if (!owner) return 0;
+  write(last);
 
+  FrameStats total;  // counters summed over frames
+  double total_seconds = 0;
+  for (const FrameReport& r : reports) {
+    total.Merge(r.stats.total);
+    total_seconds += r.stats.total.total_seconds;
+  }
   if (total.budget_dropped > 0) {
     fmt::print(stderr,
                "raystream: warning: {} bounce rays dropped: the ray tree passed --ray-budget {} "
@@ -574,62 +495,38 @@ int RunRender(RenderArgs args) {
                "incomplete\n",
                total.budget_dropped, args.ray_budget);
   }
-  if (!args.stats.empty()) WriteHostStats(args.stats, scene.name, backend, frames);
-  if (!args.quiet) {
-    fmt::print("scene      {}: {} triangles, {} lights, grid {}x{}x{}\n", scene.name,
-               info.triangles, scene.lights.size(), info.resolution[0], info.resolution[1],
-               info.resolution[2]);
-    fmt::print("load       {:.1f} ms, grid build {:.1f} ms ({:.1f} Mtris/s)\n",
-               1e3 * load_seconds, 1e3 * info.build_seconds,
-               info.build_seconds > 0 ? info.triangles / info.build_seconds * 1e-6 : 0.0);
-    std::string how = BackendName(backend.kind);
-    if (backend.kind != BackendKind::kSerial) how += fmt::format(", {} thread(s)", backend.threads);
-    if (backend.kind == BackendKind::kTiles) {
-      how += backend.pbt_tiles_per_worker > 0
-                 ? fmt::format(", PBT k={} assign {}{}", backend.pbt_tiles_per_worker,
-                               PbtAssignName(backend.assign), backend.pbt_steal ? " + steal" : "")
-                 : fmt::format(", tiles {}x{}", backend.tile_width, backend.tile_height);
-    }
-    fmt::print("image      {}x{}, depth {}, {} frame(s), backend {}\n", args.width, args.height,
-               args.depth, args.frames, how);
-    std::string by_kind;
-    uint64_t rays = 0;
-    for (int k = 0; k < kNumRayKinds; ++k) {
-      by_kind += fmt::format("{}{} {}", k ? ", " : "", total.rays[k], RayKindName(RayKind(k)));
-      rays += total.rays[k];
-    }
-    fmt::print("rays       {} ({})\n", rays, by_kind);
-    const auto per_call = [&](RayKind k) {
-      const uint64_t calls = total.trace_calls[static_cast<int>(k)];
-      return calls > 0 ? static_cast<double>(total.rays[static_cast<int>(k)]) / calls : 0.0;
-    };
+  if (!args.stats.empty()) WriteFrameReports(args.stats, scene->name, *backend, reports);
+  if (args.quiet) return 0;
+  fmt::print("scene      {}: {} triangles, {} lights, grid {} {}x{}x{}\n", scene->name,
+             info.triangles, scene->lights.size(), info.kind, info.resolution[0],
+             info.resolution[1], info.resolution[2]);
+  fmt::print("load       {:.1f} ms, grid build {:.1f} ms ({:.1f} Mtris/s)\n", 1e3 * load_seconds,
+             1e3 * info.build_seconds,
+             info.build_seconds > 0 ? info.triangles / info.build_seconds * 1e-6 : 0.0);
+  fmt::print("image      {}x{}, depth {}, {} frame(s), backend {}\n", args.width, args.height,
+             args.depth, args.frames, backend->Describe());
+  std::string by_kind;
+  const uint64_t rays = total.TotalRays();
+  for (int k = 0; k < kNumRayKinds; ++k) {
+    by_kind += fmt::format("{}{} {}", k ? ", " : "", total.rays[k], RayKindName(RayKind(k)));
+  }
+  fmt::print("rays       {} ({})\n", rays, by_kind);
+  const auto per_call = [&](RayKind k) {
+    const uint64_t calls = total.trace_calls[static_cast<int>(k)];
+    return calls > 0 ? static_cast<double>(total.rays[static_cast<int>(k)]) / calls : 0.0;
+  };
+  if (total.trace_calls[static_cast<int>(RayKind::kPrimary)] > 0) {
     fmt::print("kernels    {:.0f} primary, {:.0f} shadow rays per call (batch {}), "
                "{:.1f} % of rays in coherent packets\n",
                per_call(RayKind::kPrimary), per_call(RayKind::kShadow), args.batch,
                total.trace.rays > 0 ? 100.0 * total.trace.packet_rays / total.trace.rays : 0.0);
-    fmt::print("trace      {:.1f} ms in {} tasks ({:.1f} ms tracing, {:.1f} ms shading), "
-               "{:.2f} Mrays/s\n",
-               1e3 * total_seconds, total.tasks, 1e3 * total.trace_seconds,
-               1e3 * total.shade_seconds, total_seconds > 0 ? rays / total_seconds * 1e-6 : 0.0);
-    if (backend.kind != BackendKind::kSerial) {
-      double idle = 0, queue = 0, imbalance = 0;
-      for (const HostFrameStats& f : frames) {
-        idle += f.IdleSeconds();
-        queue += f.QueueSeconds();
-        imbalance += f.imbalance;
-      }
-      const double n = static_cast<double>(frames.size());
-      fmt::print("threads    {:.2f} fps, per frame: {:.2f} ms idle at the barrier (all threads), "
-                 "{:.2f} ms in queue operations, imbalance {:.3f}\n",
-                 total_seconds > 0 ? n / total_seconds : 0.0, 1e3 * idle / n, 1e3 * queue / n,
-                 imbalance / n);
-      if (backend.threads > static_cast<int>(std::thread::hardware_concurrency())) {
-        fmt::print("note       {} threads oversubscribe the {} hardware threads of this machine\n",
-                   backend.threads, std::thread::hardware_concurrency());
-      }
-    }
-    fmt::print("wrote      {}\n", FrameFileName(out, args.frames - 1));
   }
+  fmt::print("trace      {:.1f} ms in {} tasks ({:.1f} ms tracing, {:.1f} ms shading), "
+             "{:.2f} Mrays/s\n",
+             1e3 * total_seconds, total.tasks, 1e3 * total.trace_seconds,
+             1e3 * total.shade_seconds, total_seconds > 0 ? rays / total_seconds * 1e-6 : 0.0);
+  fmt::print("{}", backend->Summary(reports));
+  fmt::print("wrote      {}\n", FrameFileName(out, last));
   return 0;
 }
 

@@ -161,8 +161,8 @@ if python3 -c "
 import json, sys
 f = json.load(open('$tmp/bc--spes_3_--pbt_2_--frames_2.json'))['frames']
 t = f[1]['tiles']
-sys.exit(0 if len(f) == 2 and len(t) == 6 and all(x['predicted'] > 0 for x in t)
-         and abs(sum(x['predicted'] for x in t) - sum(x['cycles'] for x in f[0]['tiles'])) < 1e-6 * sum(x['predicted'] for x in t) else 1)"; then
+sys.exit(0 if len(f) == 2 and len(t) == 6 and all(x['predicted_seconds'] > 0 for x in t)
+         and abs(sum(x['predicted_seconds'] for x in t) - sum(x['work'] for x in f[0]['tiles'])) < 1e-6 * sum(x['predicted_seconds'] for x in t) else 1)"; then
   ok "backend cell + PBT: frame 2 predicted from frame 1's simulated tile cycles"
 else bad "backend cell + PBT stats"; fi
 # A textured scene: the software cache reads materials and texels. A texture larger than the
@@ -189,7 +189,7 @@ det_ok=1
 for i in 1 2 3 4 5 6; do
   GLIBC_TUNABLES=glibc.malloc.mmap_threshold=65536 "$rs" render --scene "$tmp/textured.json" --width 64 --height 48 \
     --depth 2 --backend cell --out "$tmp/det$i.png" --stats "$tmp/det$i.json" >"$tmp/det$i.txt" 2>&1 || det_ok=0
-  sed -e 's/; host .*//' "$tmp/det$i.txt" | grep -vE '^(load|wrote) ' >"$tmp/det$i.report"
+  sed -e 's/; host .*//' "$tmp/det$i.txt" | grep -vE '^(load|wrote|cell image) ' >"$tmp/det$i.report"
   cmp -s "$tmp/det1.report" "$tmp/det$i.report" || det_ok=0
 done
 if [ $det_ok = 1 ] && grep -q 'SW cache' "$tmp/det1.report" && python3 -c "
@@ -205,7 +205,17 @@ else bad "backend cell: simulated cycles differ between processes"; diff "$tmp/d
 expect_error "cell: --spes 9" '\-\-spes.*9' "$rs" render --scene cornell --backend cell --spes 9 --width 8 --height 8 --out "$tmp/y.png"
 expect_error "cell: --spes 0" '\-\-spes.*0' "$rs" render --scene cornell --backend cell --spes 0 --width 8 --height 8 --out "$tmp/y.png"
 expect_error "cell: --threads" 'threads.*cell backend' "$rs" render --scene cornell --backend cell --threads 2 --width 8 --height 8 --out "$tmp/y.png"
-expect_error "cell: CSV stats" 'stats.*\.json' "$rs" render --scene cornell --backend cell --stats "$tmp/c.csv" --width 8 --height 8 --out "$tmp/y.png"
+# One statistics writer for every backend: the cell backend's CSV has the host columns, one thread
+# row per SPE and its own columns after them.
+if "$rs" render --scene cornell --backend cell --spes 3 --stats "$tmp/c.csv" --width 16 --height 16 --out "$tmp/c.png" -q \
+   && python3 -c "
+import csv, sys
+rows = list(csv.DictReader(open('$tmp/c.csv')))
+spes = [r for r in rows if r['scope'] == 'thread']
+frame = [r for r in rows if r['scope'] == 'frame'][0]
+sys.exit(0 if len(spes) == 3 and all(int(r['compute_cycles']) > 0 for r in spes)
+         and int(frame['cycles']) > 0 and int(frame['rays']) > 0 else 1)"; then ok "cell: CSV statistics (host columns, one row per SPE, cycles)"
+else bad "cell: CSV statistics"; fi
 expect_error "cell: zero tile size" '\-\-tile 0x4' "$rs" render --scene cornell --backend cell --tile 0x4 --width 8 --height 8 --out "$tmp/y.png"
 expect_error "cell: more PBT tiles than pixels" '(tile|pixel)' "$rs" render --scene cornell --backend cell --pbt 64 --width 8 --height 8 --out "$tmp/y.png"
 [ -e "$tmp/y.png" ] && bad "cell: image written despite bad options" || ok "cell: bad options checked before rendering"
