@@ -1,12 +1,14 @@
-// Reproductions of the Cell paper's measurements on the simulated Cell (sim/): Table 1 load
-// costs, speed-up over 1..8 SPEs (Fig. 2), tile size and shape (Fig. 3), micro-cache on
+// Reproductions of the Cell paper's measurements on the simulated Cell (sim/): speed-up over
+// 1..8 SPEs (Fig. 2), tile size and shape (Fig. 3), micro-cache on
 // coherent and incoherent rays (3.5), secondary rays intersected at once (3.7), recursion depth
 // 0-9 on spherebox for the uniform and the two-level grid (Fig. 8), build vs render time
 // (Fig. 6), and the host cost of the simulation against the serial backend. Writes CSV tables and
 // summary.md into --out (plots: bench/plot_cell.py). Every image is checked bit for bit against
 // the serial backend.
 //
-//   cell_bench [--out DIR] [--quick | --full] [--only loads,speedup,tiles,microcache,atonce,...]
+//   cell_bench [--out DIR] [--quick | --full] [--only speedup,tiles,microcache,atonce,...]
+//
+// Table 1 (load costs) is bench/load_cost_bench.cc.
 //
 // The default sizes take a few minutes on 2 cores; --quick is a smoke pass (meson benchmark);
 // --full (or RS_BENCH_FULL=1) uses the paper's 1280x1024 for the tile sweep and larger images
@@ -27,7 +29,6 @@
 #include "scenes/load.h"
 #include "sched/render.h"
 #include "sim/cell_renderer.h"
-#include "sim/load_bench.h"
 
 namespace rs {
 namespace {
@@ -128,34 +129,6 @@ Framebuffer RenderSerialFb(const FrameContext& ctx, double* seconds = nullptr) {
 
 double Pct(uint64_t part, uint64_t total) {
   return total ? 100.0 * double(part) / double(total) : 0.0;
-}
-
-void Loads(const Options& o, std::string& md) {
-  std::printf("== Table 1: load costs\n");
-  const sim::LoadCosts c = sim::MeasureLoadCosts(SimConfig{});
-  SimConfig piped;
-  piped.memory.mfc_bus_slots = 16;
-  const sim::LoadCosts p = sim::MeasureLoadCosts(piped);
-  Csv csv(o.out + "/loads.csv",
-          "method,paper_cycles,simulated_cycles,deviation_pct,pipelined_dma_cycles");
-  md +=
-      "## Table 1: cycles to load 8 bytes\n\n| method | paper | simulated | deviation | "
-      "with 16 DMAs in flight per SPE |\n|---|---:|---:|---:|---:|\n";
-  for (int i = 0; i < 5; ++i) {
-    const double dev = 100.0 * (c.cycles[i] - sim::kPaperLoadCosts[i]) / sim::kPaperLoadCosts[i];
-    csv.Row("%s,%.0f,%.1f,%.1f,%.1f", sim::kLoadCostNames[i], sim::kPaperLoadCosts[i], c.cycles[i],
-            dev, p.cycles[i]);
-    md += std::string("| ") + sim::kLoadCostNames[i] +
-          Fmt(" | %.0f | %.0f | %+.1f %% | %.0f |\n", sim::kPaperLoadCosts[i], c.cycles[i], dev,
-              p.cycles[i]);
-    std::printf("  %-14s paper %4.0f  simulated %6.1f  (%+.1f %%)\n", sim::kLoadCostNames[i],
-                sim::kPaperLoadCosts[i], c.cycles[i], dev);
-  }
-  md +=
-      Fmt("\nSW-cache hit rate of the dataset: %.1f %%. One free parameter (the %.0f cycles of "
-          "traversal work between an atomic load's issue and use, SimConfig::load_bench) is set by "
-          "the atomic pair; the DMA async figure then follows from the model.\n\n",
-          100.0 * c.sw_cache_hit_rate, double(SimConfig{}.load_bench.work_cycles));
 }
 
 void Speedup(const Options& o, std::string& md) {
@@ -605,7 +578,7 @@ int Main(int argc, char** argv) {
   std::string md = "# Cell simulator reproductions (bench/cell_bench.cc)\n\n";
   md += "Config: " + sim::DescribeConfig(SimConfig{}) + ".\n\n";
   const std::pair<const char*, std::function<void(const Options&, std::string&)>> sections[] = {
-      {"loads", Loads},          {"speedup", Speedup}, {"tiles", Tiles}, {"microcache", MicroCache},
+      {"speedup", Speedup}, {"tiles", Tiles}, {"microcache", MicroCache},
       {"atonce", AtOnceSection}, {"depth", Depth},     {"build", Build}, {"host", Host}};
   const auto t0 = Clock::now();
   for (const auto& [name, run] : sections) {

@@ -3,11 +3,11 @@
 beside what the paper (Bingel & Hinkenjann, "Streamed Ray Tracing of Single Rays on the Cell
 Processor", shared/papers/streamed-single-ray-tracing-cell.md) reports for it.
 
-The paper gives numbers only in Table 1. For the figures our copy has the captions and the text,
+The paper gives numbers only in Table 1 (bench/load_cost_bench.cc compares it). For the figures our copy has the captions and the text,
 not the plots, so nothing here is read off a figure: every paper value drawn below is a statement
 of the text, quoted in the legend or the note under the plot (PAPER holds them, with the section).
 
-usage: plot_cell.py RESULTS_DIR   (reads loads/speedup/tiles/microcache/atonce/depth/build.csv)
+usage: plot_cell.py RESULTS_DIR   (reads speedup/tiles/microcache/atonce/depth/build.csv)
 """
 import csv
 import os
@@ -50,22 +50,6 @@ def save(fig, out, name, bottom=0.0):
     fig.savefig(os.path.join(out, name), dpi=90)
     plt.close(fig)
     print("wrote", os.path.join(out, name))
-
-
-def loads(out):
-    rows = read(os.path.join(out, "loads.csv"))
-    names = [r["method"] for r in rows]
-    x = range(len(rows))
-    fig, ax = plt.subplots(figsize=(6, 3.4))
-    ax.bar([i - 0.2 for i in x], [float(r["paper_cycles"]) for r in rows], 0.4,
-           label="paper (Table 1, printed values)")
-    ax.bar([i + 0.2 for i in x], [float(r["simulated_cycles"]) for r in rows], 0.4,
-           label="simulated")
-    ax.set_xticks(list(x), names)
-    ax.set_ylabel("cycles to load 8 bytes")
-    ax.set_title("Table 1: load costs")
-    ax.legend()
-    save(fig, out, "loads.png")
 
 
 def speedup(out):
@@ -206,7 +190,7 @@ def build(out):
 
 def main():
     out = sys.argv[1] if len(sys.argv) > 1 else "bench/results/cell"
-    for f in (loads, speedup, tiles, microcache, atonce, depth, build):
+    for f in (speedup, tiles, microcache, atonce, depth, build):
         name = f.__name__ + ".csv"
         if os.path.exists(os.path.join(out, name)):
             f(out)

@@ -1698,8 +1698,11 @@ void WriteHostStats(const std::string& path, const std::string& scene,
   } else {
     const std::string name = extra.backend.empty() ? BackendName(options.kind) : extra.backend;
     Json backend{{"name", name}, {"threads", options.threads}};
-    if (options.kind == BackendKind::kTiles) {
-      backend["tile"] = fmt::format("{}x{}", options.tile_width, options.tile_height);
+    // The PBT's keys wherever a PBT tiles the image (the queue backends' tiles feed queues).
+    if (options.kind == BackendKind::kTiles || options.pbt_tiles_per_worker > 0) {
+      if (options.kind == BackendKind::kTiles) {
+        backend["tile"] = fmt::format("{}x{}", options.tile_width, options.tile_height);
+      }
       backend["pbt_tiles_per_worker"] = options.pbt_tiles_per_worker;
       if (options.pbt_tiles_per_worker > 0) {
         backend["pbt_workers"] = options.pbt_workers > 0 ? options.pbt_workers : options.threads;

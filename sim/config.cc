@@ -39,7 +39,6 @@ void ValidateConfig(const SimConfig& c) {
       PowerOfTwo(s.sets) && PowerOfTwo(s.line_bytes) && s.line_bytes >= 16 && s.line_bytes <= 16384,
       "sw_cache sets and line_bytes must be powers of two (line 16..16384 B)");
   Require(s.tag < 32, "sw_cache.tag must be 0..31");
-  Require(c.load_bench.work_cycles >= 1, "load_bench.work_cycles must be >= 1");
   Require(c.rays_per_iteration >= 1 && c.rays_per_iteration <= 8,
           "rays_per_iteration " + std::to_string(c.rays_per_iteration) + " must be 1..8");
   Require(c.ring_rays >= 16 && c.ring_rays <= 4096,

@@ -9,55 +9,71 @@
 
 namespace rs::sim {
 
-// Timing of the MFC, the memory interface controller (MIC) and the atomic unit. Calibrated so the
-// Table 1 micro-benchmarks of the paper (sim/load_bench.h) come out at 315 / 986 / 609 / 470 /
-// 269 cycles; see each field for the derivation.
+// Timing of the MFC, the memory interface controller (MIC) and the atomic unit, from the hardware
+// facts of shared/CELL-FACTS.md section 1 (cited per field) at 3.2 GHz (1 cycle = 0.3125 ns,
+// 25.6 GB/s = 8 B/cycle). Nothing here is fitted to the paper's Table 1: bench/load_cost_bench.cc
+// reports how far the Table 1 micro-benchmarks (sim/load_bench.h) land from it. The one latency
+// figure is Kistler, Perrone, Petrini (IEEE Micro 26(3), 2006): one 128-B line in < 100 ns, about
+// 320 cycles, issue to data in LS as the SPU sees it; kLineRoundTripCycles below.
 struct MemoryTiming {
-  // SPU cycles to issue one MFC command (channel writes of LSA, EAH, EAL, size, tag, command:
-  // about 6 channel instructions; CELL-FACTS "issue < 4 ns, about 13 cycles").
-  uint32_t dma_issue_cycles = 15;
-  // SPU cycles of a tag-group wait that finds the data already there (write the tag mask, read
-  // the tag status channel: two channel instructions of 6 cycles, SDK-PT latency table).
+  // Kistler et al.: a 128-B DMA completes in < 100 ns = 320 cycles at 3.2 GHz (CELL-FACTS
+  // section 1, "DMA latency"; section 4 rule 6: "calibrate L0 so that one line takes about
+  // 320 cycles"). The latencies below are what is left of it after the other terms.
+  static constexpr uint32_t kLineRoundTripCycles = 320;
+
+  // SPU cycles to issue one MFC command: Kistler et al. "issue < 4 ns" = 12.8 cycles -> 13.
+  uint32_t dma_issue_cycles = 13;
+  // SPU cycles of a tag-group wait that finds the data already there: write the tag mask, read
+  // the tag status channel, two channel instructions of 6 cycles (SDK-PT cbet_3pipedr, odd pipe
+  // "CH channel 6").
   uint32_t dma_wait_cycles = 12;
-  // Cycles from a command's start in the MFC to the completion of its data after its last
-  // 128-B line has been served by the MIC. Table 1 "DMA sync." = 986 cycles for one 8-byte load
-  // = issue 15 + 16 (one MIC line) + latency + wait 12 + LS load 6 => 937, minus ~7 cycles of
-  // average wait for the MIC's 16-cycle slot grid => 930. (Kistler et al. measured < 100 ns =
-  // 320 cycles for one line on a quiet machine; the paper's 800-900+ on its ray tracer is the
-  // bar here, CELL-FACTS section 1.)
-  uint32_t dma_latency_cycles = 930;
-  // Commands one SPE's MFC keeps in flight to memory at once. 1 = a get occupies the SPE's path
-  // to memory for its whole latency (lines of one command still stream back to back). This is
-  // what makes the paper's "DMA async." 609 cycles reproducible: with 8 loads per pipeline
-  // iteration overlapped with ~200 cycles of work each, pipelined commands would cost < 100
-  // cycles per load. Set higher to model Kistler-style pipelined DMA.
-  int mfc_bus_slots = 1;
+  // Cycles from the serving of a command's last 128-B line by the MIC to its completion. A one-
+  // line get on an idle machine: issue 13 + MIC line 16 + latency + wait 12 = 320 (Kistler et al.)
+  // => 279. (The paper's "at least 800 - 900 cycles" for a DMA, section 3.4, is not used.)
+  uint32_t dma_latency_cycles =
+      kLineRoundTripCycles - /*issue*/ 13 - /*MIC line*/ 16 - /*wait*/ 12;
+  // Commands one SPE's MFC has in flight to memory at once: the 16 entries of its command queue
+  // (MFC_SPU_MAX_QUEUE_SPACE, cbe_mfc.h). Kistler et al.: one SPE reaches 25.6 GB/s "with
+  // messages of a few KB in batches of non-blocking DMAs", which needs commands to overlap
+  // (320 cycles x 8 B/cycle = 2.5 KiB in flight); the port limit of 8 B/cycle stays (one line per
+  // mic_line_cycles per SPE). 1 = one command at a time (a slower MFC than the facts describe).
+  int mfc_bus_slots = 16;
   // MFC command queue entries per SPE (MFC_SPU_MAX_QUEUE_SPACE = 16, cbe_mfc.h). Issuing into
   // a full queue stalls the SPU until the oldest command completes.
   int mfc_queue_depth = 16;
-  // MIC service time of one 128-B line: 128 B at 25.6 GB/s = 8 B/cycle = 16 cycles (XDR, two
-  // 12.8 GB/s channels). One MIC for all SPEs: lines are served in time order; queueing behind
-  // the other SPEs' lines is the contention of Fig. 2. Also the SPE port limit (8 B/cycle).
+  // MIC service time of one 128-B line: 128 B at 25.6 GB/s (XDR, two 12.8 GB/s channels,
+  // CELL-FACTS "Memory (MIC/XDR)") = 8 B/cycle = 16 cycles. One MIC for all SPEs: lines are
+  // served in time order; queueing behind the other SPEs' lines is the contention of Fig. 2.
+  // Also the SPE port limit (16-B port at half clock = 8 B/cycle, CELL-FACTS "EIB").
   uint32_t mic_line_cycles = 16;
-  // Extra MFC cycles per DMA-list element (list element fetch from LS).
+  // Extra MFC cycles per DMA-list element (list element fetch from LS; an estimate: no
+  // published figure, CELL-FACTS lists none).
   uint32_t dma_list_element_cycles = 4;
 
   // Atomic unit (getllar / putllc / putlluc on 128-B lines, one command at a time per SPE).
-  // SPU cycles to issue (LSA, EAH, EAL, command channel writes).
-  uint32_t atomic_issue_cycles = 12;
-  // Latency of a getllar that misses the SPE's atomic cache, excluding the MIC line. Table 1
-  // "Atomic sync." = 470 = issue 12 + 16 (line) + latency + status read 6 + LS load 6 => 430,
-  // less the average wait for the MIC's 16-cycle slot grid => 422 (the paper: "a high priority,
-  // 128 Byte load in about 200 - 300 processor cycles" plus the channel round trips).
-  uint32_t atomic_latency_cycles = 422;
+  // SPU cycles to issue: an MFC command like a DMA (Kistler et al. "issue < 4 ns" -> 13).
+  uint32_t atomic_issue_cycles = 13;
+  // Latency of a getllar that misses the SPE's atomic cache, after its MIC line. CELL-FACTS
+  // section 4 rule 7: an atomic command that misses the atomic cache "pays a line fetch", the
+  // same 320-cycle line as a DMA: issue 13 + MIC line 16 + latency + status read 6 = 320 => 285.
+  // (The paper's "about 200 - 300 processor cycles", section 3.4, is not used.)
+  uint32_t atomic_latency_cycles =
+      kLineRoundTripCycles - /*issue*/ 13 - /*MIC line*/ 16 - /*status*/ 6;
   // getllar / putllc served by the 4-line atomic cache (line present, not invalidated by
-  // another SPE's store): the atomic unit's pipeline only (estimate).
+  // another SPE's store): the atomic unit's pipeline only (an estimate: CELL-FACTS has no figure).
   uint32_t atomic_hit_cycles = 40;
-  // SPU cycles to read the atomic status channel once the command completed (SDK-PT: channel
-  // instructions 6 cycles).
+  // SPU cycles to read the atomic status channel once the command completed (SDK-PT
+  // cbet_3pipedr: channel instructions 6 cycles).
   uint32_t atomic_status_cycles = 6;
-  int atomic_cache_lines = 4;  // 4 x 128 B per SPE (CELL-FACTS: Dean Calver)
+  int atomic_cache_lines = 4;  // 4 x 128 B per SPE (CELL-FACTS "Atomic unit": Dean Calver)
 };
+// The defaults add up to Kistler et al.'s one-line round trip, for a DMA and for an atomic load.
+static_assert(MemoryTiming{}.dma_issue_cycles + MemoryTiming{}.mic_line_cycles +
+                  MemoryTiming{}.dma_latency_cycles + MemoryTiming{}.dma_wait_cycles ==
+              MemoryTiming::kLineRoundTripCycles);
+static_assert(MemoryTiming{}.atomic_issue_cycles + MemoryTiming{}.mic_line_cycles +
+                  MemoryTiming{}.atomic_latency_cycles + MemoryTiming{}.atomic_status_cycles ==
+              MemoryTiming::kLineRoundTripCycles);
 
 // IBM software cache (cache-api.h defaults): 2^7 = 128-B lines, 64 sets, 4-way => 32 KiB of data.
 // Used read-only here (materials, textures), so no write-back. A miss fetches the line with a
@@ -136,16 +152,6 @@ struct ComputeCosts {
   uint32_t ls_load = 6;
 };
 
-// The Table 1 micro-benchmarks of the paper (sim/load_bench.h), which calibrate MemoryTiming.
-struct LoadBenchCosts {
-  // SPU work per ray between issuing its 8-byte load and using it (its traversal; its visit
-  // costs the same again): the benchmark's one free parameter. Fitted so the asynchronous
-  // atomic load comes out at the paper's 269 cycles once the synchronous pair fixes the
-  // latencies (the DMA async figure, 609, is then a prediction); 201 = about 8 DDA steps of 21
-  // cycles (paper 3.3) plus a ray setup.
-  uint32_t work_cycles = 201;
-};
-
 struct SimConfig {
   // --- machine ---
   int num_spes = 6;  // a PS3 exposes 6 SPEs (CELL-FACTS); 1..8
@@ -160,7 +166,6 @@ struct SimConfig {
   MemoryTiming memory;
   SoftwareCacheConfig sw_cache;
   ComputeCosts costs;
-  LoadBenchCosts load_bench;
 
   // --- ray pipeline (paper 3.2) ---
   int rays_per_iteration = 8;  // rays in flight; 1..8 (tags and micro-cache have 8 entries)

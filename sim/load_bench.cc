@@ -1,6 +1,7 @@
 // Table 1 micro-benchmarks on the simulated MFC, atomic unit and software cache (load_bench.h).
 #include "sim/load_bench.h"
 
+#include <cmath>
 #include <cstring>
 #include <random>
 #include <string>
@@ -52,18 +53,39 @@ struct Bench {
 
 }  // namespace
 
+LoadWork LoadWorkOf(const ComputeCosts& costs, double steps_per_visit, double packets_per_visit) {
+  if (!(steps_per_visit >= 0) || !(packets_per_visit >= 0)) {
+    throw Error("load benchmark: counts per visit must be >= 0");
+  }
+  LoadWork w;
+  w.traverse_cycles = static_cast<uint32_t>(
+      std::lround(costs.ray_resume + steps_per_visit * costs.dda_step + costs.dda_exit));
+  w.visit_cycles = static_cast<uint32_t>(
+      std::lround(costs.visit_setup + packets_per_visit * costs.triangle_packet));
+  return w;
+}
+
 LoadCosts MeasureLoadCosts(const SimConfig& config, const LoadBenchOptions& options) {
   ValidateConfig(config);
-  if (options.iterations < 1 || options.table_bytes < 4096 || options.cache_working_set < 128 ||
-      options.cache_working_set > options.table_bytes) {
-    throw Error("load benchmark: bad options");
+  const uint32_t working_set =
+      options.cache_working_set != 0
+          ? options.cache_working_set
+          : config.sw_cache.sets * config.sw_cache.ways * config.sw_cache.line_bytes;
+  if (options.iterations < 1 || options.table_bytes < 4096 || working_set < 128 ||
+      working_set > options.table_bytes) {
+    throw Error("load benchmark: bad options (iterations >= 1, table >= 4 KiB, working set in "
+                "[128 B, table])");
+  }
+  if (options.traverse_cycles < 1 || options.visit_cycles < 1) {
+    throw Error("load benchmark: traverse_cycles and visit_cycles must be >= 1 (LoadWorkOf)");
   }
   const uint32_t records = options.table_bytes / 8;
-  const uint32_t cache_records = options.cache_working_set / 8;
+  const uint32_t cache_records = working_set / 8;
   const uint64_t loads = uint64_t(options.iterations) * kRays;
-  const uint32_t w = config.load_bench.work_cycles;
+  const uint32_t w = options.traverse_cycles;
+  const uint32_t v = options.visit_cycles;
   const uint32_t use = config.costs.ls_load;  // reading the loaded record
-  const uint64_t work = 2 * loads * w;        // traversal + visit per ray
+  const uint64_t work = loads * (uint64_t{w} + v);  // traversal + visit per ray
   LoadCosts out;
   out.loads = loads;
 
@@ -80,17 +102,17 @@ LoadCosts MeasureLoadCosts(const SimConfig& config, const LoadBenchOptions& opti
     SoftwareCache cache(config.sw_cache, b.ls, b.mfc, b.clock);
     // Warm up on the same dataset so the figure is the steady state.
     for (uint64_t i = 0; i < loads; ++i) {
-      uint64_t v;
-      cache.Read(b.RecordEa(cached_index[(i * 7919) % loads]), 8, &v);
+      uint64_t value;
+      cache.Read(b.RecordEa(cached_index[(i * 7919) % loads]), 8, &value);
     }
     const SoftwareCacheStats before = cache.stats();
     const uint64_t t0 = b.clock.now();
     for (uint64_t i = 0; i < loads; ++i) {
       b.clock.Charge(Cost::kCompute, w);
-      uint64_t v = 0;
-      cache.Read(b.RecordEa(cached_index[i]), 8, &v);
-      b.Check(v, cached_index[i], "SW cache");
-      b.clock.Charge(Cost::kCompute, w);
+      uint64_t value = 0;
+      cache.Read(b.RecordEa(cached_index[i]), 8, &value);
+      b.Check(value, cached_index[i], "SW cache");
+      b.clock.Charge(Cost::kCompute, v);
     }
     out.cycles[0] = double(b.clock.now() - t0 - work) / double(loads);
     out.sw_cache_hit_rate =
@@ -106,7 +128,7 @@ LoadCosts MeasureLoadCosts(const SimConfig& config, const LoadBenchOptions& opti
       b.mfc.WaitTagsAll(1u << r);
       b.clock.Charge(Cost::kDma, use);
       b.Check(*b.ls.As<uint64_t>(ls), index[i], "DMA sync");
-      b.clock.Charge(Cost::kCompute, w);
+      b.clock.Charge(Cost::kCompute, v);
     }
     out.cycles[1] = double(b.clock.now() - work) / double(loads);
   }
@@ -124,7 +146,7 @@ LoadCosts MeasureLoadCosts(const SimConfig& config, const LoadBenchOptions& opti
         b.clock.Charge(Cost::kDma, use);
         b.Check(*b.ls.As<uint64_t>(b.slots + r * 128 + uint32_t(ea & 15)), index[it + r],
                 "DMA async");
-        b.clock.Charge(Cost::kCompute, w);
+        b.clock.Charge(Cost::kCompute, v);
       }
     }
     out.cycles[2] = double(b.clock.now() - work) / double(loads);
@@ -139,7 +161,7 @@ LoadCosts MeasureLoadCosts(const SimConfig& config, const LoadBenchOptions& opti
       b.atomic.ReadStatus();
       b.clock.Charge(Cost::kAtomic, use);
       b.Check(*b.ls.As<uint64_t>(b.slots + r * 128 + uint32_t(ea & 127)), index[i], "atomic sync");
-      b.clock.Charge(Cost::kCompute, w);
+      b.clock.Charge(Cost::kCompute, v);
     }
     out.cycles[3] = double(b.clock.now() - work) / double(loads);
   }
@@ -158,9 +180,9 @@ LoadCosts MeasureLoadCosts(const SimConfig& config, const LoadBenchOptions& opti
         if (r > 0) complete(r - 1);         // ray r-1's line arrived while ray r traversed
         b.atomic.Getllar(b.slots + r * 128, b.RecordEa(index[it + r]) & ~Ea{127});
       }
-      b.clock.Charge(Cost::kCompute, w);  // visit of ray 0 hides the last ray's load
+      b.clock.Charge(Cost::kCompute, v);  // visit of ray 0 hides the last ray's load
       complete(kRays - 1);
-      for (uint32_t r = 1; r < kRays; ++r) b.clock.Charge(Cost::kCompute, w);  // other visits
+      for (uint32_t r = 1; r < kRays; ++r) b.clock.Charge(Cost::kCompute, v);  // other visits
     }
     out.cycles[4] = double(b.clock.now() - work) / double(loads);
   }
