@@ -264,6 +264,10 @@ void Convert(const aiScene& s, const std::string& origin, const std::string& fil
         fmt::format("{}: {} point or line primitives ignored (not triangles)", origin, skipped));
   }
   if (part.triangles.empty()) Fail("{}: scene has no triangles", origin);
+  if (!AnyPositiveArea(part)) {
+    Fail("{}: every face has zero area ({} triangles); nothing to render", origin,
+         part.triangles.size());
+  }
   for (const glm::vec3& n : part.normals) {
     if (!std::isfinite(n.x) || !std::isfinite(n.y) || !std::isfinite(n.z)) {
       part.warnings.push_back(fmt::format("{}: degenerate vertex normal; flat shading", origin));
@@ -331,7 +335,7 @@ void LoadAssimpFile(const std::string& path, const MeshLoadOptions& options, Sce
   const std::string ext = LowerExtension(path);
   if (ext == "ply") {
     const size_t before = scene.triangles.size();
-    ReadPly(ReadFileText(path), path, scene);
+    ReadPly(ReadFileText(path, "mesh"), path, scene);
     if (groups) {  // PLY has no groups: one unnamed group
       groups->of_triangle.insert(groups->of_triangle.end(), scene.triangles.size() - before,
                                  static_cast<uint32_t>(groups->names.size()));
@@ -339,7 +343,7 @@ void LoadAssimpFile(const std::string& path, const MeshLoadOptions& options, Sce
     }
     return;
   }
-  if (!IsRegularFile(path)) Fail("{}: cannot open file", path);
+  RegularFileSize(path, "mesh");  // missing, a directory, a FIFO or a device: say which
   std::string dir = DirectoryOf(path);
   if (dir.empty()) dir.push_back('.');  // not = ".": GCC 12 -Wrestrict false positive
   Import([&](Assimp::Importer& importer) { return importer.ReadFile(path, 0); }, path, dir, true,

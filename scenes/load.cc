@@ -2,14 +2,19 @@
 // files, then user files by extension. Also the small file and mesh helpers the loaders share.
 #include "scenes/load.h"
 
+#include <fcntl.h>
 #include <fmt/format.h>
 #include <fmt/ranges.h>
+#include <sys/stat.h>
+#include <unistd.h>
 
 #include <algorithm>
 #include <cctype>
+#include <cerrno>
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
+#include <cstring>
 #include <filesystem>
 #include <fstream>
 #include <iterator>
@@ -42,13 +47,67 @@ TextPosition PositionOfByte(std::string_view text, size_t byte) {
   return pos;
 }
 
-std::string ReadFileText(const std::string& path) {
-  std::error_code ec;
-  if (fs::is_directory(path, ec)) Fail("{}: is a directory, not a file", path);
-  std::ifstream in(path, std::ios::binary);
-  if (!in) Fail("{}: cannot open file", path);
-  std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
-  if (in.bad()) Fail("{}: read error", path);
+const char* FileTypeName(unsigned mode) {
+  switch (mode & S_IFMT) {
+    case S_IFREG:
+      return "a regular file";
+    case S_IFDIR:
+      return "a directory";
+    case S_IFIFO:
+      return "a named pipe (FIFO)";
+    case S_IFCHR:
+      return "a character device";
+    case S_IFBLK:
+      return "a block device";
+    case S_IFSOCK:
+      return "a socket";
+    default:
+      return "not a regular file";
+  }
+}
+
+uint64_t RegularFileSize(const std::string& path, std::string_view what) {
+  struct stat st;
+  if (::stat(path.c_str(), &st) != 0) {
+    const int err = errno;
+    if (err == ENOENT) Fail("{}: no such file", path);
+    Fail("{}: cannot open {} file: {}", path, what, std::strerror(err));
+  }
+  if (!S_ISREG(st.st_mode)) {
+    Fail("{}: is {}, not a {} file", path, FileTypeName(st.st_mode), what);
+  }
+  return static_cast<uint64_t>(st.st_size);
+}
+
+std::string ReadFileText(const std::string& path, std::string_view what) {
+  RegularFileSize(path, what);  // a FIFO would block open(), /dev/zero never end
+  const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC | O_NONBLOCK);
+  if (fd < 0) Fail("{}: cannot open {} file: {}", path, what, std::strerror(errno));
+  struct stat st;
+  if (::fstat(fd, &st) != 0 || !S_ISREG(st.st_mode)) {  // replaced since the check
+    ::close(fd);
+    Fail("{}: is not a regular file", path);
+  }
+  std::string text;
+  try {
+    text.reserve(static_cast<size_t>(st.st_size));
+    char buf[1 << 16];
+    for (;;) {
+      const ssize_t n = ::read(fd, buf, sizeof(buf));
+      if (n == 0) break;
+      if (n < 0) {
+        if (errno == EINTR) continue;
+        const int err = errno;
+        ::close(fd);
+        Fail("{}: read error: {}", path, std::strerror(err));
+      }
+      text.append(buf, static_cast<size_t>(n));
+    }
+  } catch (const std::bad_alloc&) {
+    ::close(fd);
+    Fail("{}: out of memory reading {} bytes", path, static_cast<uint64_t>(st.st_size));
+  }
+  ::close(fd);
   return text;
 }
 
@@ -74,6 +133,15 @@ bool IsRegularFile(const std::string& path) {
 
 namespace {
 
+// True if `path` is a regular file, false if nothing is there; anything else that exists (a
+// directory, FIFO, device) is an error saying what it is, not a misleading "not found".
+bool ExistingRegularFile(const std::string& path) {
+  struct stat st;
+  if (::stat(path.c_str(), &st) != 0) return false;
+  if (!S_ISREG(st.st_mode)) Fail("{}: is {}, not a regular file", path, FileTypeName(st.st_mode));
+  return true;
+}
+
 bool UsedAsGiven(const fs::path& p) {
   if (p.is_absolute()) return true;
   const std::string s = p.generic_string();
@@ -85,14 +153,14 @@ std::string FindIn(std::string_view file, const std::vector<std::string>& first_
   if (file.empty()) Fail("empty scene file name");
   const fs::path p(file);
   if (p.is_absolute()) {
-    if (IsRegularFile(p.string())) return p.string();
+    if (ExistingRegularFile(p.string())) return p.string();
     Fail("scene file '{}' not found", file);
   }
   std::vector<std::string> tried;
   auto attempt = [&](const std::string& dir) -> bool {
     const std::string candidate = JoinPath(dir, file);
     tried.push_back(candidate);
-    return IsRegularFile(candidate);
+    return ExistingRegularFile(candidate);
   };
   for (const std::string& dir : first_dirs) {
     if (!dir.empty() && attempt(dir)) return tried.back();
@@ -161,6 +229,20 @@ void AppendScene(Scene& scene, Scene&& part) {
   for (Texture& t : part.textures) scene.textures.push_back(std::move(t));
   scene.lights.insert(scene.lights.end(), part.lights.begin(), part.lights.end());
   scene.warnings.insert(scene.warnings.end(), part.warnings.begin(), part.warnings.end());
+}
+
+bool AnyPositiveArea(const Scene& scene) {
+  const size_t nv = scene.positions.size();
+  for (const glm::uvec3& t : scene.triangles) {
+    if (t.x >= nv || t.y >= nv || t.z >= nv) continue;  // validated elsewhere
+    const glm::vec3 n = glm::cross(scene.positions[t.y] - scene.positions[t.x],
+                                   scene.positions[t.z] - scene.positions[t.x]);
+    // Components, not the squared length: that underflows for tiny (but valid) triangles.
+    if ((n.x != 0.0f || n.y != 0.0f || n.z != 0.0f) && std::isfinite(n.x + n.y + n.z)) {
+      return true;
+    }
+  }
+  return false;
 }
 
 size_t RepairNormals(Scene& scene) {
@@ -235,8 +317,11 @@ void SetDefaultView(Scene& scene, const glm::vec3& up_in) {
 }
 
 void FinishScene(Scene& scene) {
-  if (scene.triangles.empty()) {
-    Fail("{}: scene has no triangles", scene.source.empty() ? scene.name : scene.source);
+  const std::string& label = scene.source.empty() ? scene.name : scene.source;
+  if (scene.triangles.empty()) Fail("{}: scene has no triangles", label);
+  if (!AnyPositiveArea(scene)) {
+    Fail("{}: every triangle has zero area ({} triangles); nothing to render", label,
+         scene.triangles.size());
   }
   scene.features = ComputeFeatures(scene);
   ValidateScene(scene);
@@ -285,6 +370,12 @@ void ParseObjText(std::string_view obj_text, const std::string& origin, Scene& s
   detail::ParseObj(obj_text, origin, "", {}, scene, nullptr);
 }
 
+std::vector<Material> ParseMtlText(std::string_view mtl_text, const std::string& origin) {
+  std::vector<Material> materials;
+  detail::ParseMtl(mtl_text, origin, materials);
+  return materials;
+}
+
 void ParsePlyText(std::string_view ply_text, const std::string& origin, Scene& scene) {
   detail::LoadAssimpMemory(ply_text, origin, "ply", {}, scene, nullptr);
 }
@@ -306,6 +397,10 @@ Scene LoadScene(std::string_view name_or_path) {
     scene.name = name;
   } else {
     const std::string ext = detail::LowerExtension(name);
+    struct stat st;
+    if (ext.empty() && ::stat(name.c_str(), &st) == 0 && !S_ISREG(st.st_mode)) {
+      Fail("{}: is {}, not a scene file", name, detail::FileTypeName(st.st_mode));
+    }
     if (ext.empty()) {
       Fail(
           "unknown scene '{}': not a procedural scene ({}), not a built-in scene file ({}), and "

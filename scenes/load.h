@@ -51,6 +51,9 @@ Scene LoadSceneJson(std::string_view json_text, const std::string& origin,
 // Parsing from memory, for the fuzz targets (same checks, no file system).
 void ParseObjText(std::string_view obj_text, const std::string& origin, Scene& scene);
 void ParsePlyText(std::string_view ply_text, const std::string& origin, Scene& scene);
+// An MTL material library from memory, converted as for an OBJ (one Material per "newmtl");
+// values parsed strictly, errors "<origin>:<line>: ...".
+std::vector<Material> ParseMtlText(std::string_view mtl_text, const std::string& origin);
 // A scene file from memory with no file access: mesh entries naming a "file" are an error,
 // built-in primitives ("box", "quad", "sphere") are fine. Validated, features computed.
 Scene ParseSceneJsonText(std::string_view json_text, const std::string& origin);

@@ -18,7 +18,9 @@
 #include <charconv>
 #include <cmath>
 #include <cstdlib>
+#include <filesystem>
 #include <map>
+#include <optional>
 #include <sstream>
 #include <unordered_map>
 
@@ -70,6 +72,12 @@ struct ObjScan {
   std::vector<glm::vec2> texcoords;
   std::vector<glm::vec3> normals;
   size_t expected_triangles = 0;
+  size_t first_face_line = 0;
+  // Faces naming one vertex at two corners ("f 1 2 3 1 2 3"): triangulation drops or mangles
+  // them, so they are reported with the first line.
+  size_t repeated_corner_faces = 0;
+  size_t first_repeated_line = 0;
+  size_t first_repeated_vertex = 0;
 };
 
 // Statements we accept and leave to tinyobjloader or ignore (free-form geometry, display
@@ -166,8 +174,13 @@ class ObjScanner {
       if (corners < need) {
         LineFail("'{}' statement has {} vertices (need at least {})", key, corners, need);
       }
+      face_vertices_.clear();
       for (size_t k = 1; k < tokens.size(); ++k) Corner(tokens[k]);
-      if (key == "f") scan_.expected_triangles += corners - 2;
+      if (key == "f") {
+        scan_.expected_triangles += corners - 2;
+        if (scan_.first_face_line == 0) scan_.first_face_line = line_;
+        CheckRepeatedCorners();
+      }
     } else if (!IsKnownStatement(key)) {
       LineFail("unknown statement '{}'", key.substr(0, 40));
     }
@@ -198,15 +211,30 @@ class ObjScanner {
     if (parts[0].empty() || (n == 2 && parts[1].empty()) || (n == 3 && parts[2].empty())) {
       LineFail("bad face vertex '{}' (expected v, v/vt, v//vn or v/vt/vn)", token.substr(0, 40));
     }
-    Index(parts[0], scan_.positions.size(), "vertex", max_v_, max_v_line_);
+    face_vertices_.push_back(
+        Index(parts[0], scan_.positions.size(), "vertex", max_v_, max_v_line_));
     if (n >= 2 && !parts[1].empty()) {
       Index(parts[1], scan_.texcoords.size(), "texture coordinate", max_vt_, max_vt_line_);
     }
     if (n == 3) Index(parts[2], scan_.normals.size(), "normal", max_vn_, max_vn_line_);
   }
 
-  void Index(std::string_view token, size_t count, const char* what, int64_t& max_index,
-             size_t& max_line) {
+  // Positions are resolved (relative ones against the count so far): a repeated corner is the
+  // same vertex named twice, whichever way it is written.
+  void CheckRepeatedCorners() {
+    sorted_.assign(face_vertices_.begin(), face_vertices_.end());
+    std::sort(sorted_.begin(), sorted_.end());
+    const auto dup = std::adjacent_find(sorted_.begin(), sorted_.end());
+    if (dup == sorted_.end()) return;
+    if (scan_.repeated_corner_faces++ == 0) {
+      scan_.first_repeated_line = line_;
+      scan_.first_repeated_vertex = static_cast<size_t>(*dup);
+    }
+  }
+
+  // Returns the 1-based absolute index.
+  int64_t Index(std::string_view token, size_t count, const char* what, int64_t& max_index,
+                size_t& max_line) {
     int64_t i = 0;
     if (!ParseInt(token, i)) LineFail("bad {} index '{}'", what, token.substr(0, 40));
     if (i == 0) LineFail("{} index 0 is invalid (OBJ indices start at 1)", what);
@@ -218,10 +246,13 @@ class ObjScanner {
       if (-i > static_cast<int64_t>(count)) {
         LineFail("relative {} index {} out of range ({} defined so far)", what, i, count);
       }
-    } else if (i > max_index) {
+      return static_cast<int64_t>(count) + i + 1;
+    }
+    if (i > max_index) {
       max_index = i;
       max_line = line_;
     }
+    return i;
   }
 
   std::string_view text_;
@@ -230,44 +261,181 @@ class ObjScanner {
   ObjScan scan_;
   int64_t max_v_ = 0, max_vt_ = 0, max_vn_ = 0;
   size_t max_v_line_ = 0, max_vt_line_ = 0, max_vn_line_ = 0;
+  std::vector<int64_t> face_vertices_, sorted_;
 };
 
-// Which materials of an MTL set Ns / Ni explicitly (tinyobj fills defaults), indexed like
-// tinyobj's material vector: one entry per "newmtl" with a non-empty name, in order.
-struct MtlPresence {
-  std::vector<char> has_ns;
-  std::vector<char> has_ni;
+// What the strict MTL scan read for one material ("newmtl" with a non-empty name, indexed like
+// tinyobj's material vector). Applied over tinyobjloader's parse, which turns NaN and garbage
+// into 0, overflows to inf, reads "Kd 0.5" as (0.5, 0, 0) and knows no line numbers.
+struct MtlValues {
+  std::optional<glm::vec3> ka, kd, ks, ke, tf;
+  std::optional<float> ns, ni, d, tr, rs_reflectivity, rs_transmission;
+  std::optional<int> illum;
 };
 
-MtlPresence ScanMtlPresence(std::string_view text) {
-  MtlPresence presence;
-  int current = -1;
-  size_t pos = 0;
-  while (pos < text.size()) {
-    size_t end = pos;
-    while (end < text.size() && text[end] != '\n' && text[end] != '\r') ++end;
-    std::string_view line = text.substr(pos, end - pos);
-    pos = end + 1;
+// Line-by-line check of an MTL file (same line ends as tinyobjloader: "\n", "\r\n", lone "\r").
+// Every value raystream uses is parsed strictly and range-checked; errors name the MTL file and
+// the line. Statements raystream does not use (maps, PBR extensions) are left to tinyobjloader.
+class MtlScanner {
+ public:
+  MtlScanner(std::string_view text, const std::string& path) : text_(text), path_(path) {}
+
+  std::vector<MtlValues> Run() {
+    if (text_.size() >= 3 && text_.substr(0, 3) == "\xEF\xBB\xBF") text_.remove_prefix(3);
+    size_t pos = 0;
+    std::vector<std::string_view> tokens;
+    while (pos < text_.size()) {
+      size_t end = pos;
+      while (end < text_.size() && text_[end] != '\n' && text_[end] != '\r') ++end;
+      ++line_;
+      ScanLine(text_.substr(pos, end - pos), tokens);
+      pos = end + 1;
+      if (end + 1 < text_.size() && text_[end] == '\r' && text_[end + 1] == '\n') ++pos;
+    }
+    return std::move(values_);
+  }
+
+ private:
+  template <typename... Args>
+  [[noreturn]] void LineFail(fmt::format_string<Args...> format, Args&&... args) {
+    Fail("{}:{}: {}", path_, line_, fmt::format(format, std::forward<Args>(args)...));
+  }
+
+  void ScanLine(std::string_view line, std::vector<std::string_view>& tokens) {
+    for (const char c : line) {
+      const auto u = static_cast<unsigned char>(c);
+      if ((u < 0x20 && c != '\t') || u == 0x7f) {
+        LineFail("unexpected control character 0x{:02x} (binary data, not a material library?)",
+                 static_cast<int>(u));
+      }
+    }
     while (!line.empty() && IsBlank(line.back())) line.remove_suffix(1);
     while (!line.empty() && IsBlank(line.front())) line.remove_prefix(1);
-    if (line.size() > 7 && line.substr(0, 6) == "newmtl" && IsBlank(line[6])) {
+    if (line.empty() || line[0] == '#') return;
+    if (line.size() > 6 && line.substr(0, 6) == "newmtl" && IsBlank(line[6])) {
       // tinyobj keeps everything after "newmtl " as the name; an empty name starts no material.
       if (line.size() > 7) {
-        presence.has_ns.push_back(0);
-        presence.has_ni.push_back(0);
-        current = static_cast<int>(presence.has_ns.size()) - 1;
+        values_.emplace_back();
+        current_ = &values_.back();
       } else {
-        current = -1;
+        current_ = &orphan_;
       }
-    } else if (current >= 0 && line.size() > 2 && line[0] == 'N' && IsBlank(line[2])) {
-      if (line[1] == 's') presence.has_ns[static_cast<size_t>(current)] = 1;
-      if (line[1] == 'i') presence.has_ni[static_cast<size_t>(current)] = 1;
+      return;
+    }
+    Tokenize(line, tokens);
+    const std::string_view key = tokens[0];
+    MtlValues& m = current_ ? *current_ : orphan_;  // values before any newmtl: checked, unused
+    if (key == "Ka") {
+      m.ka = Colour(tokens, 1e6f);
+    } else if (key == "Kd") {
+      m.kd = Colour(tokens, 1e6f);
+    } else if (key == "Ks") {
+      m.ks = Colour(tokens, 1e6f);
+    } else if (key == "Ke") {
+      m.ke = Colour(tokens, 1e12f);
+    } else if (key == "Tf" || key == "Kt") {
+      m.tf = Colour(tokens, 1e6f);
+    } else if (key == "Ns") {
+      m.ns = Scalar(tokens, 0.0f, 1e5f);
+    } else if (key == "Ni") {
+      m.ni = Scalar(tokens, 0.0f, 100.0f);
+    } else if (key == "d") {
+      m.d = Scalar(tokens, 0.0f, 1.0f);
+    } else if (key == "Tr") {
+      m.tr = Scalar(tokens, 0.0f, 1.0f);
+    } else if (key == "rs_reflectivity") {
+      m.rs_reflectivity = Scalar(tokens, 0.0f, 1.0f);
+    } else if (key == "rs_transmission") {
+      m.rs_transmission = Scalar(tokens, 0.0f, 1.0f);
+    } else if (key == "illum") {
+      if (tokens.size() != 2)
+        LineFail("illum needs one whole number, got {} values", Count(tokens));
+      int64_t v = 0;
+      if (!ParseInt(tokens[1], v)) LineFail("illum: bad number '{}'", tokens[1].substr(0, 40));
+      if (v < 0 || v > 10) LineFail("illum {} outside [0, 10]", v);
+      m.illum = static_cast<int>(v);
+    } else if (key == "Pr" || key == "Pm" || key == "Ps" || key == "Pc" || key == "Pcr" ||
+               key == "aniso" || key == "anisor") {
+      Scalar(tokens, -1e30f, 1e30f);  // unused, but a number
     }
   }
-  return presence;
+
+  // Values after the key, not counting a trailing comment.
+  size_t Count(const std::vector<std::string_view>& tokens) const {
+    size_t n = 0;
+    while (n + 1 < tokens.size() && tokens[n + 1][0] != '#') ++n;
+    return n;
+  }
+
+  float Value(std::string_view key, std::string_view token, float lo, float hi) {
+    float x = 0.0f;
+    if (!ParseFloat(token, x)) LineFail("{}: bad number '{}'", key, token.substr(0, 40));
+    if (!std::isfinite(x)) {
+      LineFail("{} value '{}' is not a finite number", key, token.substr(0, 40));
+    }
+    if (!(x >= lo && x <= hi)) LineFail("{} value {} outside [{}, {}]", key, x, lo, hi);
+    return x;
+  }
+
+  float Scalar(const std::vector<std::string_view>& tokens, float lo, float hi) {
+    if (Count(tokens) != 1)
+      LineFail("{} needs one number, got {} values", tokens[0], Count(tokens));
+    return Value(tokens[0], tokens[1], lo, hi);
+  }
+
+  // "K r g b" or "K grey" (the MTL spec: g and b default to r); spectral and CIE XYZ colours
+  // are not supported (tinyobjloader would read them as black).
+  glm::vec3 Colour(const std::vector<std::string_view>& tokens, float hi) {
+    const std::string_view key = tokens[0];
+    const size_t n = Count(tokens);
+    if (n >= 1 && (tokens[1] == "spectral" || tokens[1] == "xyz")) {
+      LineFail("{} {} colours are not supported (give r g b)", key, tokens[1]);
+    }
+    if (n != 1 && n != 3) LineFail("{} needs 3 numbers (r g b) or 1 (grey), got {}", key, n);
+    glm::vec3 c;
+    for (size_t k = 0; k < 3; ++k) {
+      c[static_cast<int>(k)] = Value(key, tokens[n == 1 ? 1 : k + 1], 0.0f, hi);
+    }
+    return c;
+  }
+
+  std::string_view text_;
+  const std::string& path_;
+  size_t line_ = 0;
+  std::vector<MtlValues> values_;
+  MtlValues* current_ = nullptr;
+  MtlValues orphan_;
+};
+
+// Applies the strict scan's values over tinyobjloader's (same material order).
+void ApplyMtlValues(const MtlValues& v, tinyobj::material_t& m) {
+  auto set3 = [](const std::optional<glm::vec3>& c, tinyobj::real_t out[3]) {
+    if (c) {
+      for (int k = 0; k < 3; ++k) out[k] = (*c)[k];
+    }
+  };
+  set3(v.ka, m.ambient);
+  set3(v.kd, m.diffuse);
+  set3(v.ks, m.specular);
+  set3(v.ke, m.emission);
+  set3(v.tf, m.transmittance);
+  if (v.ns) m.shininess = *v.ns;
+  if (v.ni) m.ior = *v.ni;
+  // tinyobjloader's rule (its issue 43): d wins over Tr, Tr is 1 - d.
+  if (v.d) {
+    m.dissolve = *v.d;
+  } else if (v.tr) {
+    m.dissolve = 1.0f - *v.tr;
+  }
+  if (v.illum) m.illum = *v.illum;
 }
 
-// Reads mtllib files relative to the OBJ's directory; a missing one is a warning.
+void ReadMtlText(std::string_view text, const std::string& path,
+                 std::vector<tinyobj::material_t>& materials, std::map<std::string, int>& mat_map,
+                 std::vector<MtlValues>& values, std::string& warn);
+
+// Reads mtllib files relative to the OBJ's directory; a missing one is a warning, a broken one
+// (bad values, binary data, a directory or device in its place) an error naming it.
 class MtlReader : public tinyobj::MaterialReader {
  public:
   MtlReader(std::string dir, const std::string& origin, std::vector<std::string>& warnings)
@@ -285,30 +453,18 @@ class MtlReader : public tinyobj::MaterialReader {
       return false;
     }
     const std::string path = JoinPath(dir_, mat_id);
-    if (!IsRegularFile(path)) {
+    std::error_code ec;
+    if (!std::filesystem::exists(path, ec)) {
       warnings_.push_back(fmt::format(
           "{}: material library '{}' not found; using the default material", origin_, path));
       return false;
     }
-    const std::string text = ReadFileText(path);
-    const MtlPresence presence = ScanMtlPresence(text);
-    const size_t first = materials->size();
-    std::istringstream in(text);
-    std::string mtl_warn, mtl_err;
-    tinyobj::LoadMtl(mat_map, materials, &in, &mtl_warn, &mtl_err);
-    if (!mtl_warn.empty()) *warn += mtl_warn;
-    if (!mtl_err.empty()) Fail("{}: {}", path, mtl_err);
-    for (size_t i = 0; i < presence.has_ns.size() && first + i < materials->size(); ++i) {
-      has_ns.resize(first + i + 1, 0);
-      has_ni.resize(first + i + 1, 0);
-      has_ns[first + i] = presence.has_ns[i];
-      has_ni[first + i] = presence.has_ni[i];
-    }
+    ReadMtlText(ReadFileText(path, "material library"), path, *materials, *mat_map, values, *warn);
     mtl_path = path;
     return true;
   }
 
-  std::vector<char> has_ns, has_ni;
+  std::vector<MtlValues> values;  // per material, as tinyobj numbers them
   std::string mtl_path;
 
  private:
@@ -321,13 +477,14 @@ float Max3(const tinyobj::real_t v[3]) { return std::max({v[0], v[1], v[2]}); }
 
 float Clamp01(float x) { return std::isfinite(x) ? std::clamp(x, 0.0f, 1.0f) : x; }
 
-Material ConvertMaterial(const tinyobj::material_t& m, bool has_ns, bool has_ni,
-                         const MeshLoadOptions& options, const std::string& where) {
+// `v`: what the file set explicitly (tinyobj fills defaults, e.g. Ns 1 and Ni 1).
+Material ConvertMaterial(const tinyobj::material_t& m, const MtlValues& v,
+                         const MeshLoadOptions& options) {
   Material out;
   out.name = m.name;
   out.diffuse = glm::vec3(Clamp01(m.diffuse[0]), Clamp01(m.diffuse[1]), Clamp01(m.diffuse[2]));
   out.specular = glm::vec3(Clamp01(m.specular[0]), Clamp01(m.specular[1]), Clamp01(m.specular[2]));
-  out.shininess = has_ns ? std::max(m.shininess, 0.0f) : 0.0f;
+  out.shininess = v.ns ? std::max(m.shininess, 0.0f) : 0.0f;
   const float emission = Max3(m.emission);
   if (emission > 0.0f && Max3(m.diffuse) <= 0.0f) {
     out.diffuse = glm::vec3(m.emission[0], m.emission[1], m.emission[2]) / emission;
@@ -339,21 +496,33 @@ Material ConvertMaterial(const tinyobj::material_t& m, bool has_ns, bool has_ni,
   if (out.transmission == 0.0f && (m.illum == 4 || m.illum == 6 || m.illum == 7 || m.illum == 9)) {
     out.transmission = Clamp01(Max3(m.transmittance));
   }
-  if (has_ni && m.ior > 0.0f) out.ior = m.ior;
-  auto extension = [&](const char* key, float& field) {
-    const auto it = m.unknown_parameter.find(key);
-    if (it == m.unknown_parameter.end()) return;
-    float x = 0.0f;
-    std::string_view s = it->second;
-    while (!s.empty() && IsBlank(s.back())) s.remove_suffix(1);
-    if (!ParseFloat(s, x) || !(x >= 0.0f && x <= 1.0f)) {
-      Fail("{}: material '{}': {} '{}' is not a number in [0, 1]", where, m.name, key, it->second);
-    }
-    field = x;
-  };
-  extension("rs_reflectivity", out.reflectivity);
-  extension("rs_transmission", out.transmission);
+  if (v.ni && m.ior > 0.0f) out.ior = m.ior;
+  if (v.rs_reflectivity) out.reflectivity = *v.rs_reflectivity;
+  if (v.rs_transmission) out.transmission = *v.rs_transmission;
   return out;
+}
+
+// One material library from memory: the strict scan, tinyobjloader, our values over its.
+// `path` names it in messages. Appends to `materials` / `mat_map` and `values`.
+void ReadMtlText(std::string_view text, const std::string& path,
+                 std::vector<tinyobj::material_t>& materials, std::map<std::string, int>& mat_map,
+                 std::vector<MtlValues>& values, std::string& warn) {
+  std::vector<MtlValues> scanned = MtlScanner(text, path).Run();
+  const size_t first = materials.size();
+  std::istringstream in{std::string(text)};
+  std::string mtl_warn, mtl_err;
+  tinyobj::LoadMtl(&mat_map, &materials, &in, &mtl_warn, &mtl_err);
+  warn += mtl_warn;
+  if (!mtl_err.empty()) Fail("{}: {}", path, mtl_err);
+  if (materials.size() - first != scanned.size()) {
+    Fail("{}: internal error: tinyobjloader read {} materials, the pre-scan {}", path,
+         materials.size() - first, scanned.size());
+  }
+  values.resize(first);
+  for (size_t i = 0; i < scanned.size(); ++i) {
+    ApplyMtlValues(scanned[i], materials[first + i]);
+    values.push_back(scanned[i]);
+  }
 }
 
 struct CornerKey {
@@ -409,9 +578,9 @@ void ParseObj(std::string_view text, const std::string& origin, const std::strin
   // Materials: every MTL material in order, then the default for faces without one.
   const std::string mtl_where = reader.mtl_path.empty() ? origin : reader.mtl_path;
   for (size_t i = 0; i < tmaterials.size(); ++i) {
-    const bool has_ns = i < reader.has_ns.size() && reader.has_ns[i];
-    const bool has_ni = i < reader.has_ni.size() && reader.has_ni[i];
-    part.materials.push_back(ConvertMaterial(tmaterials[i], has_ns, has_ni, options, mtl_where));
+    const MtlValues none;
+    const MtlValues& v = i < reader.values.size() ? reader.values[i] : none;
+    part.materials.push_back(ConvertMaterial(tmaterials[i], v, options));
   }
   uint32_t default_material = UINT32_MAX;
 
@@ -485,11 +654,28 @@ void ParseObj(std::string_view text, const std::string& origin, const std::strin
       if (groups) groups->of_triangle.push_back(group);
     }
   }
-  if (part.triangles.empty()) Fail("{}: scene has no triangles", origin);
-  if (part.triangles.size() != scan.expected_triangles) {
+  if (part.triangles.empty()) {
+    if (scan.repeated_corner_faces > 0) {
+      Fail(
+          "{}:{}: scene has no triangles: every face is degenerate (this face names vertex {} "
+          "twice; {} faces repeat a corner)",
+          origin, scan.first_repeated_line, scan.first_repeated_vertex, scan.repeated_corner_faces);
+    }
+    Fail("{}: scene has no triangles", origin);
+  }
+  if (scan.repeated_corner_faces > 0) {
+    part.warnings.push_back(fmt::format(
+        "{}:{}: face names vertex {} twice ({} such faces in the file); degenerate corners "
+        "dropped by triangulation",
+        origin, scan.first_repeated_line, scan.first_repeated_vertex, scan.repeated_corner_faces));
+  } else if (part.triangles.size() != scan.expected_triangles) {
     part.warnings.push_back(fmt::format(
         "{}: {} triangles from polygon triangulation, expected {} (degenerate polygons?)", origin,
         part.triangles.size(), scan.expected_triangles));
+  }
+  if (!AnyPositiveArea(part)) {
+    Fail("{}:{}: every triangle has zero area ({} triangles from line {} on); nothing to render",
+         origin, scan.first_face_line, part.triangles.size(), scan.first_face_line);
   }
 
   // Normals: normalised; a zero one is replaced by the face normal of a triangle using it.
@@ -529,10 +715,21 @@ void ParseObj(std::string_view text, const std::string& origin, const std::strin
 
 void LoadObjFile(const std::string& path, const MeshLoadOptions& options, Scene& scene,
                  MeshGroups* groups) {
-  const std::string text = ReadFileText(path);
+  const std::string text = ReadFileText(path, "mesh");
   std::string dir = DirectoryOf(path);
   if (dir.empty()) dir.push_back('.');  // not = ".": GCC 12 -Wrestrict false positive
   ParseObj(text, path, dir, options, scene, groups);
+}
+
+void ParseMtl(std::string_view text, const std::string& origin, std::vector<Material>& out) {
+  std::vector<tinyobj::material_t> materials;
+  std::map<std::string, int> mat_map;
+  std::vector<MtlValues> values;
+  std::string warn;
+  ReadMtlText(text, origin, materials, mat_map, values, warn);
+  for (size_t i = 0; i < materials.size(); ++i) {
+    out.push_back(ConvertMaterial(materials[i], values[i], {}));
+  }
 }
 
 }  // namespace rs::detail

@@ -503,6 +503,10 @@ void ReadPly(std::string_view data, const std::string& origin, Scene& scene) {
   fallback.name = "default";
   part.materials.push_back(fallback);
   part.material_ids.assign(part.triangles.size(), 0);
+  if (!AnyPositiveArea(part)) {
+    Fail("{}: every face has zero area ({} triangles); nothing to render", origin,
+         part.triangles.size());
+  }
   const size_t repaired = RepairNormals(part);
   if (repaired > 0) {
     part.warnings.push_back(fmt::format(

@@ -33,8 +33,14 @@ struct TextPosition {
 };
 TextPosition PositionOfByte(std::string_view text, size_t byte);
 
-// Reads a whole file; throws rs::Error naming `path` if it cannot be opened or read.
-std::string ReadFileText(const std::string& path);
+// "a directory", "a named pipe (FIFO)", "a character device", ... for a stat() st_mode.
+const char* FileTypeName(unsigned mode);
+// Size of the regular file `path`. Throws rs::Error "<path>: <reason>" when it does not exist,
+// cannot be accessed, or is not a regular file ("<path>: is a directory, not a <what> file").
+uint64_t RegularFileSize(const std::string& path, std::string_view what);
+// Reads a whole regular file; throws rs::Error naming `path` (and saying why: missing, a
+// directory, a FIFO or device, unreadable) if it cannot be read.
+std::string ReadFileText(const std::string& path, std::string_view what = "scene");
 // Lower-case extension without the dot ("ply"), or "".
 std::string LowerExtension(std::string_view path);
 // Directory part of a path ("a/b.obj" -> "a", "b.obj" -> "").
@@ -67,6 +73,9 @@ void ParseObj(std::string_view text, const std::string& origin, const std::strin
               const MeshLoadOptions& options, Scene& scene, MeshGroups* groups);
 void LoadObjFile(const std::string& path, const MeshLoadOptions& options, Scene& scene,
                  MeshGroups* groups);
+// One MTL material library from memory (`origin` names it in "<origin>:<line>: ..." errors):
+// strict values, converted as for an OBJ; appends one Material per "newmtl".
+void ParseMtl(std::string_view text, const std::string& origin, std::vector<Material>& out);
 // Strict PLY reader (ASCII and binary): header, counts, numbers, finite coordinates and index
 // ranges are checked, naming the line (ASCII) or element (binary). Used for PLY instead of
 // assimp, which silently accepts truncated files, NaN vertices and out-of-range indices,
@@ -82,6 +91,10 @@ void LoadAssimpFile(const std::string& path, const MeshLoadOptions& options, Sce
 // are kept if either side has them (missing ones become (0, 0)); normals only if both have them
 // (or `scene` is empty). Warnings are appended.
 void AppendScene(Scene& scene, Scene&& part);
+
+// True if some triangle of `scene` has a non-zero area (|cross| > 0 in float). A mesh without
+// one draws nothing: the loaders report it instead of rendering an empty image.
+bool AnyPositiveArea(const Scene& scene);
 
 // Normalises scene.normals; zero-length or non-finite ones are replaced by the face normal of
 // a triangle using the vertex (or +y for vertices on zero-area triangles only). Returns how many

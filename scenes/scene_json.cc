@@ -29,12 +29,16 @@
 #include <fmt/format.h>
 
 #include <algorithm>
+#include <cerrno>
+#include <charconv>
 #include <cmath>
+#include <cstdlib>
 #include <glm/gtc/matrix_transform.hpp>
 #include <initializer_list>
 #include <map>
 #include <nlohmann/json.hpp>
 #include <optional>
+#include <set>
 
 #include "scenes/image_io.h"
 #include "scenes/load.h"
@@ -47,12 +51,139 @@ namespace {
 using detail::Fail;
 using Json = nlohmann::ordered_json;
 
+// What nlohmann does not check with a position: duplicate keys (it silently keeps one), numbers
+// beyond a double's range (an exception without line:column) and integer literals beyond 64
+// bits (silently a double). A lenient scan over the text reports them as
+// "<origin>:<line>:<column>: ..."; anything it does not understand ends the scan, and the
+// parser proper reports the syntax error.
+class JsonPreScan {
+ public:
+  JsonPreScan(std::string_view text, const std::string& origin) : text_(text), origin_(origin) {}
+
+  void Run() {
+    while (pos_ < text_.size()) {
+      const char c = text_[pos_];
+      if (c == ' ' || c == '\t' || c == '\n' || c == '\r') {
+        ++pos_;
+      } else if (c == '/' && pos_ + 1 < text_.size() && text_[pos_ + 1] == '/') {
+        const size_t end = text_.find('\n', pos_);
+        pos_ = end == std::string_view::npos ? text_.size() : end;
+      } else if (c == '/' && pos_ + 1 < text_.size() && text_[pos_ + 1] == '*') {
+        const size_t end = text_.find("*/", pos_ + 2);
+        if (end == std::string_view::npos) return;
+        pos_ = end + 2;
+      } else if (c == '{' || c == '[') {
+        frames_.push_back(Frame{c == '{', true, {}});
+        ++pos_;
+      } else if (c == '}' || c == ']') {
+        if (frames_.empty()) return;
+        frames_.pop_back();
+        ++pos_;
+      } else if (c == ',') {
+        if (!frames_.empty()) frames_.back().expect_key = frames_.back().object;
+        ++pos_;
+      } else if (c == ':') {
+        ++pos_;
+      } else if (c == '"') {
+        if (!String()) return;
+      } else if (c == '-' || (c >= '0' && c <= '9')) {
+        Number();
+      } else if (c >= 'a' && c <= 'z') {
+        while (pos_ < text_.size() && text_[pos_] >= 'a' && text_[pos_] <= 'z') ++pos_;
+      } else {
+        return;
+      }
+    }
+  }
+
+ private:
+  struct Frame {
+    bool object;
+    bool expect_key;
+    std::set<std::string> keys;
+  };
+
+  template <typename... Args>
+  [[noreturn]] void FailAt(size_t byte, fmt::format_string<Args...> format, Args&&... args) {
+    const detail::TextPosition at = detail::PositionOfByte(text_, byte);
+    Fail("{}:{}:{}: {}", origin_, at.line, at.column,
+         fmt::format(format, std::forward<Args>(args)...));
+  }
+
+  bool String() {
+    const size_t start = pos_++;
+    bool escaped = false;
+    while (pos_ < text_.size() && text_[pos_] != '"') {
+      if (text_[pos_] == '\\') {
+        escaped = true;
+        ++pos_;
+      }
+      ++pos_;
+    }
+    if (pos_ >= text_.size()) return false;
+    ++pos_;
+    if (frames_.empty() || !frames_.back().object || !frames_.back().expect_key) return true;
+    frames_.back().expect_key = false;
+    const std::string_view raw = text_.substr(start, pos_ - start);
+    std::string key(raw.substr(1, raw.size() - 2));
+    if (escaped) {  // compare keys as the parser will see them
+      try {
+        key = Json::parse(raw).get<std::string>();
+      } catch (const Json::exception&) {
+        return false;  // the parser proper reports it
+      }
+    }
+    if (!frames_.back().keys.insert(key).second) {
+      FailAt(start, "duplicate key \"{}\" in this object (each key may appear once)",
+             key.substr(0, 60));
+    }
+    return true;
+  }
+
+  void Number() {
+    const size_t start = pos_;
+    bool integer = true;
+    while (pos_ < text_.size()) {
+      const char c = text_[pos_];
+      if (c == '.' || c == 'e' || c == 'E') {
+        integer = false;
+      } else if (!(c == '-' || c == '+' || (c >= '0' && c <= '9'))) {
+        break;
+      }
+      ++pos_;
+    }
+    const std::string token(text_.substr(start, pos_ - start));
+    if (integer) {
+      const bool negative = token[0] == '-';
+      const std::string_view digits = std::string_view(token).substr(negative ? 1 : 0);
+      uint64_t v = 0;
+      const auto r = std::from_chars(digits.data(), digits.data() + digits.size(), v);
+      if (r.ec == std::errc::result_out_of_range ||
+          (negative && r.ec == std::errc() && v > uint64_t{1} << 63)) {
+        FailAt(start, "integer {} out of range (64 bits)", token.substr(0, 40));
+      }
+      return;
+    }
+    errno = 0;
+    const double d = std::strtod(token.c_str(), nullptr);
+    if (errno == ERANGE && std::isinf(d)) {
+      FailAt(start, "number {} out of range (largest: 1.8e308)", token.substr(0, 40));
+    }
+  }
+
+  std::string_view text_;
+  const std::string& origin_;
+  size_t pos_ = 0;
+  std::vector<Frame> frames_;
+};
+
 class SceneFileParser {
  public:
   SceneFileParser(const std::string& origin, const std::string& base_dir, bool allow_files)
       : origin_(origin), base_dir_(base_dir), allow_files_(allow_files) {}
 
   Scene Parse(std::string_view text) {
+    JsonPreScan(text, origin_).Run();
     Json root;
     try {
       root = Json::parse(text.begin(), text.end(), nullptr, /*allow_exceptions=*/true,
@@ -67,7 +198,11 @@ class SceneFileParser {
       }
       Fail("{}:{}:{}: JSON syntax error: {}", origin_, pos.line, pos.column, what);
     } catch (const Json::exception& e) {
-      Fail("{}: JSON error: {}", origin_, e.what());
+      std::string what = e.what();  // without nlohmann's "[json.exception.<kind>.<id>] "
+      if (what.rfind("[json.exception.", 0) == 0) {
+        if (const size_t end = what.find("] "); end != std::string::npos) what.erase(0, end + 2);
+      }
+      Fail("{}: JSON error: {}", origin_, what);
     }
     return Build(root);
   }
@@ -104,9 +239,14 @@ class SceneFileParser {
 
   int Integer(const Json& j, const std::string& ptr, int lo, int hi) {
     if (!j.is_number_integer()) At(ptr, "expected a whole number");
-    const int64_t v = j.is_number_unsigned()
-                          ? static_cast<int64_t>(std::min<uint64_t>(j.get<uint64_t>(), INT64_MAX))
-                          : j.get<int64_t>();
+    if (j.is_number_unsigned()) {  // may be above INT64_MAX: compare and print it as it is
+      const uint64_t u = j.get<uint64_t>();
+      if (u > static_cast<uint64_t>(hi) || static_cast<int64_t>(u) < lo) {
+        At(ptr, "{} outside [{}, {}]", u, lo, hi);
+      }
+      return static_cast<int>(u);
+    }
+    const int64_t v = j.get<int64_t>();
     if (v < lo || v > hi) At(ptr, "{} outside [{}, {}]", v, lo, hi);
     return static_cast<int>(v);
   }
@@ -153,6 +293,10 @@ class SceneFileParser {
       Mesh((*meshes)[i], fmt::format("/meshes/{}", i));
     }
     if (scene_.triangles.empty()) Fail("{}: scene has no triangles", origin_);
+    if (!detail::AnyPositiveArea(scene_)) {
+      Fail("{}: every triangle has zero area ({} triangles); nothing to render", origin_,
+           scene_.triangles.size());
+    }
     if (const Json* j = Find(root, "background")) scene_.background = Colour(*j, "/background");
     if (const Json* j = Find(root, "ambient")) scene_.ambient = Range(*j, "/ambient", 0.0f, 1e6f);
     CameraAndLights(root);
@@ -310,6 +454,7 @@ class SceneFileParser {
         glm::vec3 c[4];
         for (size_t k = 0; k < 4; ++k) c[k] = Vec3((*q)[k], fmt::format("{}/{}", p, k));
         builder.Quad(c[0], c[1], c[2], c[3], 0);
+        if (!detail::AnyPositiveArea(part)) At(p, "the 4 corners span no area");
       } else if (const Json* s = Find(m, "sphere")) {
         const std::string p = ptr + "/sphere";
         Keys(*s, p, {"center", "radius", "slices", "stacks"});
