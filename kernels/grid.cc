@@ -1,6 +1,7 @@
 // Uniform grid build: bounds, resolution heuristic, conservative triangle binning
 // (kernels/grid_binning.h: float cell ranges, exact 2D/3D separating-axis tests only where the
-// box spans several cells), counts taken while binning, CSR lists filled in one more pass.
+// box spans several cells), counts taken while binning, CSR lists filled in one more pass; the
+// resolution coarsened to the reference budget and the coordinates' precision (grid.h).
 #include "kernels/grid.h"
 
 #include <algorithm>
@@ -10,17 +11,12 @@
 #include <string>
 #include <vector>
 
+#include <unistd.h>  // sysconf: physical memory
+
 #include "kernels/grid_binning.h"
 
 namespace rs {
 namespace {
-
-template <typename T>
-hwy::AlignedFreeUniquePtr<T[]> Allocate(size_t n) {
-  auto p = hwy::AllocateAligned<T>(n == 0 ? 1 : n);
-  HWY_ASSERT(p);
-  return p;
-}
 
 // double -> float through a volatile: GCC 12.2's SLP vectorizer can drop the rounding in
 // (double)(float)x at -O2/-O3 (TOOLCHAIN.md), which changed the binning between -O0 and -O3.
@@ -30,18 +26,175 @@ inline float RoundToFloat(double x) {
   return f;
 }
 
-// Grows the reference array to hold at least `used + more` entries (doubling), keeping `used`.
-// The references are counted in uint32 (CSR offsets): more than that is a user error.
+// Grows the reference array to hold at least `used + more` entries (doubling, but not past
+// `limit` unless `used + more` needs it), keeping `used`.
 void Grow(hwy::AlignedFreeUniquePtr<uint32_t[]>* refs, size_t used, size_t* capacity,
-          size_t more) {
-  if (used + more >= size_t{UINT32_MAX}) {
-    throw Error("grid build: more than 2^32 - 1 cell references; lower BuildOptions::lambda");
-  }
-  const size_t grown = std::max(2 * *capacity, used + more);
-  auto bigger = Allocate<uint32_t>(grown);
+          size_t more, size_t limit) {
+  const size_t grown = std::max(std::min(2 * *capacity, limit), used + more);
+  auto bigger = AllocateBuildArray<uint32_t>(grown, "cell references");
   std::copy(refs->get(), refs->get() + used, bigger.get());
   *refs = std::move(bigger);
   *capacity = grown;
+}
+
+// Physical memory in bytes (0 if unknown): a grid whose cell arrays alone exceed it is refused
+// up front instead of being killed by the system halfway through the build.
+double PhysicalMemoryBytes() {
+#if defined(_SC_PHYS_PAGES) && defined(_SC_PAGE_SIZE)
+  const long pages = sysconf(_SC_PHYS_PAGES), page = sysconf(_SC_PAGE_SIZE);
+  if (pages > 0 && page > 0) return double(pages) * double(page);
+#endif
+  return 0.0;
+}
+
+// Bytes per cell of the arrays sized by the cell count: the grid's offsets (4) and occupancy
+// bits, the traversal's bits and empty-space rings (dda_simd.h: 1), the second level's leaf
+// offsets (4), rounded up.
+constexpr double kBytesPerCell = 10.0;
+
+// The geometry of a grid of (at most) res cells per axis over `bounds`: axes whose cells would be
+// shorter than kMinCellMargins x the margin's ulp term get fewer cells (grid.h); throws
+// rs::Error if the cells cannot be held. Precondition: bounds.num_valid > 0, res >= 1.
+void SetResolution(const GridBounds& bounds, const int res[3], Grid* grid) {
+  *grid = Grid();
+  double extent[3], max_abs = 0.0;
+  for (int a = 0; a < 3; ++a) {
+    grid->lo[a] = bounds.lo[a];
+    grid->hi[a] = bounds.hi[a];
+    extent[a] = double(bounds.hi[a]) - double(bounds.lo[a]);
+    max_abs = std::max({max_abs, std::fabs(double(bounds.lo[a])), std::fabs(double(bounds.hi[a]))});
+  }
+  const double ulp_margin = 4.0 * FLT_EPSILON * max_abs;
+  const double min_cell = kMinCellMargins * ulp_margin;
+  for (int a = 0; a < 3; ++a) {
+    grid->res[a] = res[a];
+    if (res[a] > 1 && extent[a] / res[a] < min_cell) {
+      grid->res[a] = std::max(1, int(std::floor(extent[a] / min_cell)));
+    }
+  }
+  const double cells = double(grid->res[0]) * double(grid->res[1]) * double(grid->res[2]);
+  const double memory = PhysicalMemoryBytes();
+  if (cells > double(kMaxGridCells) || (memory > 0.0 && cells * kBytesPerCell > memory)) {
+    throw Error("grid build: a " + std::to_string(grid->res[0]) + "x" +
+                std::to_string(grid->res[1]) + "x" + std::to_string(grid->res[2]) + " grid (" +
+                std::to_string(size_t(cells)) + " cells, about " +
+                BytesText(cells * kBytesPerCell) + " of cell arrays) " +
+                (cells > double(kMaxGridCells)
+                     ? std::string("exceeds the limit of 2^32 - 2 cells")
+                     : "does not fit in the physical memory (" + BytesText(memory) + ")") +
+                "; lower BuildOptions::lambda or max_resolution");
+  }
+  for (int a = 0; a < 3; ++a) {
+    grid->cell_size[a] = RoundToFloat(extent[a] / grid->res[a]);
+    grid->inv_cell_size[a] = RoundToFloat(grid->res[a] / extent[a]);
+    grid->margin[a] = 1e-3 * double(grid->cell_size[a]) + ulp_margin;
+  }
+  grid->num_cells = size_t(cells);
+}
+
+// SetGridGeometry for a cell budget of lambda * num_valid (lambda in double: BuildGrid's
+// coarsening steps go below float's useful range for large scenes).
+void SetGeometry(const GridBounds& bounds, double lambda, int max_resolution, Grid* grid) {
+  if (bounds.num_valid == 0) {
+    *grid = Grid();  // empty grid: never hit
+    return;
+  }
+  double extent[3];
+  for (int a = 0; a < 3; ++a) extent[a] = double(bounds.hi[a]) - double(bounds.lo[a]);
+  int res[3];
+  ComputeGridResolution(extent, bounds.num_valid, lambda, max_resolution, res);
+  SetResolution(bounds, res, grid);
+}
+
+// Pass 1 of BuildGrid: the cells of each triangle appended to one flat array (ref_begin[i] ..
+// [i+1]), counted per cell on the way (begin[c] = the count of cell c). Returns false, leaving
+// the arrays unusable, as soon as more than `limit` references are listed; *num_refs then holds
+// a count > limit.
+bool BinReferences(const TriangleSoA& tris, const Grid& grid, const BinGeometry& geo,
+                   size_t limit, uint32_t* begin, hwy::AlignedFreeUniquePtr<uint32_t[]>* ref_cells,
+                   size_t* capacity, uint32_t* ref_begin, size_t* num_refs_out) {
+  const size_t n = tris.size;
+  size_t num_refs = 0;
+  BinScratch scratch;
+  const size_t stride_y = size_t(grid.res[0]), stride_z = stride_y * size_t(grid.res[1]);
+  const size_t strides[3] = {1, stride_y, stride_z};
+  const float* p[3][3];
+  for (int k = 0; k < 3; ++k) {
+    for (int a = 0; a < 3; ++a) p[k][a] = tris.p[k][a].data();
+  }
+  RangeBlock block;
+  for (size_t first = 0; first < n; first += kRangeBlock) {
+    const size_t count = std::min(kRangeBlock, n - first);
+    SimdTriangleCellRanges(tris, geo, first, count, &block);
+    // room for the block's one-cell and line triangles (all their box cells are emitted) at
+    // once; each triangle tested by BinTriangleCells makes room for its box plus that reserve
+    // below (the line triangles after it in the block still need theirs)
+    size_t lines = 0;
+    for (size_t j = 0; j < count; ++j) {
+      const int spans_mask = block.flags[j] & 7;
+      lines += (spans_mask & (spans_mask - 1)) == 0 ? size_t(block.box[j]) : 0;
+    }
+    if (num_refs + lines > limit) {
+      *num_refs_out = num_refs + lines;
+      return false;
+    }
+    if (num_refs + lines > *capacity) Grow(ref_cells, num_refs, capacity, lines, limit);
+    uint32_t* cells_out = ref_cells->get();
+    for (size_t j = 0; j < count; ++j) {
+      const uint32_t i = uint32_t(first + j);
+      ref_begin[i] = uint32_t(num_refs);
+      const int32_t flags = block.flags[j];
+      // degenerate, or outside (cannot happen: the bounds contain every triangle)
+      if (flags & (kRangeDegenerate | kRangeOutside)) continue;
+      const int c0[3] = {block.c0[0][j], block.c0[1][j], block.c0[2][j]};
+      size_t c = size_t(c0[0]) + stride_y * size_t(c0[1]) + stride_z * size_t(c0[2]);
+      const int spans_mask = flags & 7;
+      if ((spans_mask & (spans_mask - 1)) == 0) {
+        // one cell (the common case at low lambda), or a line of cells along one axis: the
+        // triangle crosses them all (BinTriangleCells)
+        const int a = spans_mask == 4 ? 2 : spans_mask >> 1;  // 0 -> axis 0, a 1-cell range
+        const size_t stride = strides[a];
+        const int cells = block.c1[a][j] - c0[a] + 1;
+        for (int k = 0; k < cells; ++k, c += stride) {
+          cells_out[num_refs++] = uint32_t(c);
+          ++begin[c];
+        }
+        lines -= size_t(cells);
+        continue;
+      }
+      const int c1[3] = {block.c1[0][j], block.c1[1][j], block.c1[2][j]};
+      const bool span[3] = {(flags & 1) != 0, (flags & 2) != 0, (flags & 4) != 0};
+      const int spans = int(span[0]) + int(span[1]) + int(span[2]);
+      const float v[3][3] = {{p[0][0][i], p[0][1][i], p[0][2][i]},
+                             {p[1][0][i], p[1][1][i], p[1][2][i]},
+                             {p[2][0][i], p[2][1][i], p[2][2][i]}};
+      // its box, and what the block's line triangles after it still need; a box larger than
+      // the budget left (a huge or long thin triangle) is counted first, so the array never
+      // grows far past the budget
+      size_t room = size_t(block.box[j]);
+      if (num_refs + room + lines > limit) {
+        size_t exact = 0;
+        BinTriangleCells(geo, v, c0, c1, span, spans, &scratch, [&](int, int, int) { ++exact; });
+        if (num_refs + exact + lines > limit) {
+          *num_refs_out = num_refs + exact + lines;
+          return false;
+        }
+        room = exact;
+      }
+      if (num_refs + room + lines > *capacity) {
+        Grow(ref_cells, num_refs, capacity, room + lines, limit);
+        cells_out = ref_cells->get();
+      }
+      BinTriangleCells(geo, v, c0, c1, span, spans, &scratch, [&](int x, int y, int z) {
+        const size_t cell = size_t(x) + stride_y * size_t(y) + stride_z * size_t(z);
+        cells_out[num_refs++] = uint32_t(cell);
+        ++begin[cell];
+      });
+    }
+  }
+  ref_begin[n] = uint32_t(num_refs);
+  *num_refs_out = num_refs;
+  return true;
 }
 
 }  // namespace
@@ -110,22 +263,7 @@ GridBounds ComputeGridBounds(const TriangleSoA& tris) {
 }
 
 void SetGridGeometry(const GridBounds& bounds, float lambda, int max_resolution, Grid* grid) {
-  *grid = Grid();
-  if (bounds.num_valid == 0) return;  // empty grid: never hit
-  double extent[3], max_abs = 0.0;
-  for (int a = 0; a < 3; ++a) {
-    grid->lo[a] = bounds.lo[a];
-    grid->hi[a] = bounds.hi[a];
-    extent[a] = double(bounds.hi[a]) - double(bounds.lo[a]);
-    max_abs = std::max({max_abs, std::fabs(double(bounds.lo[a])), std::fabs(double(bounds.hi[a]))});
-  }
-  ComputeGridResolution(extent, bounds.num_valid, lambda, max_resolution, grid->res);
-  for (int a = 0; a < 3; ++a) {
-    grid->cell_size[a] = RoundToFloat(extent[a] / grid->res[a]);
-    grid->inv_cell_size[a] = RoundToFloat(grid->res[a] / extent[a]);
-    grid->margin[a] = 1e-3 * double(grid->cell_size[a]) + 4.0 * FLT_EPSILON * max_abs;
-  }
-  grid->num_cells = size_t(grid->res[0]) * size_t(grid->res[1]) * size_t(grid->res[2]);
+  SetGeometry(bounds, double(lambda), max_resolution, grid);
 }
 
 BinGeometry GridBinGeometry(const Grid& grid) {
@@ -147,12 +285,18 @@ GridBoxCounts CountGridBoxes(const TriangleSoA& tris, const Grid& geometry) {
   const BinGeometry geo = GridBinGeometry(geometry);
   // one byte per cell: boxes of at most 2 cells per axis (nearly all at the lambdas tried) mark
   // their corners with 8 unconditional stores (repeats on 1-cell axes), no loop to mispredict;
-  // flagged triangles (box 0, range [0, 0]) mark the spare byte at num_cells instead
+  // flagged triangles (box 0, range [0, 0]) mark the spare byte at num_cells instead. Boxes of
+  // more than kBigBox cells go into a 3D difference array instead (8 corner updates, one prefix
+  // sum per axis at the end), so the count stays O(triangles + cells) when many triangles span
+  // much of the grid (identical or overlapping triangles: the fill was O(triangles x cells)).
+  constexpr size_t kBigBox = 64;
   const size_t num_cells = geometry.num_cells;
   std::vector<uint8_t> marked(num_cells + 1, 0);
+  std::vector<int32_t> diff;  // allocated at the first big box
   uint8_t* mark = marked.data();
-  const size_t stride_y = size_t(geometry.res[0]);
-  const size_t stride_z = stride_y * size_t(geometry.res[1]);
+  const int res[3] = {geometry.res[0], geometry.res[1], geometry.res[2]};
+  const size_t stride_y = size_t(res[0]);
+  const size_t stride_z = stride_y * size_t(res[1]);
   RangeBlock block;
   for (size_t first = 0; first < tris.size; first += kRangeBlock) {
     const size_t count = std::min(kRangeBlock, tris.size - first);
@@ -175,6 +319,26 @@ GridBoxCounts CountGridBoxes(const TriangleSoA& tris, const Grid& geometry) {
         mark[cell + dz + dx + dy] = 1;
         continue;
       }
+      if (size_t(block.box[j]) > kBigBox) {
+        if (diff.empty()) diff.assign(num_cells, 0);
+        // +1 at the low corner, alternating signs at the corners one past the high end (those
+        // outside the grid are dropped: the prefix sums never reach them)
+        const int lo[3] = {x0, y0, z0};
+        const int hi[3] = {x0 + ex + 1, y0 + ey + 1, z0 + ez + 1};
+        for (int corner = 0; corner < 8; ++corner) {
+          int q[3];
+          int sign = 1;
+          bool inside = true;
+          for (int a = 0; a < 3; ++a) {
+            const bool high = (corner >> a) & 1;
+            q[a] = high ? hi[a] : lo[a];
+            sign = high ? -sign : sign;
+            inside &= q[a] < res[a];
+          }
+          if (inside) diff[size_t(q[0]) + stride_y * size_t(q[1]) + stride_z * size_t(q[2])] += sign;
+        }
+        continue;
+      }
       for (int z = 0; z <= ez; ++z) {
         for (int y = 0; y <= ey; ++y) {
           uint8_t* row = mark + cell + stride_y * size_t(y) + stride_z * size_t(z);
@@ -183,101 +347,102 @@ GridBoxCounts CountGridBoxes(const TriangleSoA& tris, const Grid& geometry) {
       }
     }
   }
+  if (!diff.empty()) {
+    // prefix sums along x, y, z turn the corner updates into the number of big boxes per cell
+    int32_t* d = diff.data();
+    for (size_t row = 0; row < num_cells; row += stride_y) {
+      for (int x = 1; x < res[0]; ++x) d[row + x] += d[row + x - 1];
+    }
+    for (int z = 0; z < res[2]; ++z) {
+      for (int y = 1; y < res[1]; ++y) {
+        int32_t* row = d + stride_z * size_t(z) + stride_y * size_t(y);
+        const int32_t* below = row - stride_y;
+        for (int x = 0; x < res[0]; ++x) row[x] += below[x];
+      }
+    }
+    for (size_t k = stride_z; k < num_cells; ++k) d[k] += d[k - stride_z];
+    for (size_t k = 0; k < num_cells; ++k) mark[k] |= uint8_t(d[k] != 0);
+  }
   size_t occupied = 0;
   for (size_t k = 0; k < num_cells; ++k) occupied += mark[k];
   c.occupied = occupied;
   return c;
 }
 
-void BuildGrid(const TriangleSoA& tris, float lambda, int max_resolution, Grid* grid) {
-  BuildGrid(tris, ComputeGridBounds(tris), lambda, max_resolution, grid);
-}
-
-void BuildGrid(const TriangleSoA& tris, const GridBounds& bounds, float lambda, int max_resolution,
-               Grid* grid) {
-  SetGridGeometry(bounds, lambda, max_resolution, grid);
-  if (grid->num_cells == 0) return;
+size_t EstimateGridRefs(const TriangleSoA& tris, const Grid& geometry, size_t limit) {
+  if (geometry.num_cells == 0) return 0;
+  const BinGeometry geo = GridBinGeometry(geometry);
   const size_t n = tris.size;
-  const size_t num_valid = bounds.num_valid;
-  const size_t num_cells = grid->num_cells;
-  const BinGeometry geo = GridBinGeometry(*grid);
-
-  // Pass 1: the cells of each triangle, appended to one flat array (ref_begin[i] .. [i+1]),
-  // counted per cell on the way (cell_begin[c] holds the count of cell c). Temporary arrays are
-  // left uninitialised: every element read is written first.
-  grid->cell_begin = Allocate<uint32_t>(num_cells + 1);
-  uint32_t* begin = grid->cell_begin.get();
-  std::fill(begin, begin + num_cells + 1, 0u);
-  size_t capacity = num_valid * 3 + 64;
-  auto ref_cells = Allocate<uint32_t>(capacity);
-  auto ref_begin = Allocate<uint32_t>(n + 1);
-  size_t num_refs = 0;
-  BinScratch scratch;
-  const size_t stride_y = size_t(grid->res[0]), stride_z = stride_y * size_t(grid->res[1]);
-  const size_t strides[3] = {1, stride_y, stride_z};
-  const float* p[3][3];
-  for (int k = 0; k < 3; ++k) {
-    for (int a = 0; a < 3; ++a) p[k][a] = tris.p[k][a].data();
-  }
+  std::vector<uint32_t> boxes(n);
+  size_t total = 0;
   RangeBlock block;
   for (size_t first = 0; first < n; first += kRangeBlock) {
     const size_t count = std::min(kRangeBlock, n - first);
     SimdTriangleCellRanges(tris, geo, first, count, &block);
-    // room for the block's one-cell and line triangles (all their box cells are emitted) at
-    // once; each triangle tested by BinTriangleCells makes room for its box plus that reserve
-    // below (the line triangles after it in the block still need theirs)
-    size_t lines = 0;
     for (size_t j = 0; j < count; ++j) {
-      const int spans_mask = block.flags[j] & 7;
-      lines += (spans_mask & (spans_mask - 1)) == 0 ? size_t(block.box[j]) : 0;
-    }
-    if (num_refs + lines > capacity) Grow(&ref_cells, num_refs, &capacity, lines);
-    uint32_t* cells_out = ref_cells.get();
-    for (size_t j = 0; j < count; ++j) {
-      const uint32_t i = uint32_t(first + j);
-      ref_begin[i] = uint32_t(num_refs);
-      const int32_t flags = block.flags[j];
-      // degenerate, or outside (cannot happen: the bounds contain every triangle)
-      if (flags & (kRangeDegenerate | kRangeOutside)) continue;
-      const int c0[3] = {block.c0[0][j], block.c0[1][j], block.c0[2][j]};
-      size_t c = size_t(c0[0]) + stride_y * size_t(c0[1]) + stride_z * size_t(c0[2]);
-      const int spans_mask = flags & 7;
-      if ((spans_mask & (spans_mask - 1)) == 0) {
-        // one cell (the common case at low lambda), or a line of cells along one axis: the
-        // triangle crosses them all (BinTriangleCells)
-        const int a = spans_mask == 4 ? 2 : spans_mask >> 1;  // 0 -> axis 0, a 1-cell range
-        const size_t stride = strides[a];
-        const int cells = block.c1[a][j] - c0[a] + 1;
-        for (int k = 0; k < cells; ++k, c += stride) {
-          cells_out[num_refs++] = uint32_t(c);
-          ++begin[c];
-        }
-        continue;
-      }
-      const int c1[3] = {block.c1[0][j], block.c1[1][j], block.c1[2][j]};
-      const bool span[3] = {(flags & 1) != 0, (flags & 2) != 0, (flags & 4) != 0};
-      const int spans = int(span[0]) + int(span[1]) + int(span[2]);
-      const float v[3][3] = {{p[0][0][i], p[0][1][i], p[0][2][i]},
-                             {p[1][0][i], p[1][1][i], p[1][2][i]},
-                             {p[2][0][i], p[2][1][i], p[2][2][i]}};
-      // its box, and what the block's one-cell and line triangles after it may still need
-      if (num_refs + size_t(block.box[j]) + lines > capacity) {
-        Grow(&ref_cells, num_refs, &capacity, size_t(block.box[j]) + lines);
-        cells_out = ref_cells.get();
-      }
-      BinTriangleCells(geo, v, c0, c1, span, spans, &scratch, [&](int x, int y, int z) {
-        const size_t cell = size_t(x) + stride_y * size_t(y) + stride_z * size_t(z);
-        cells_out[num_refs++] = uint32_t(cell);
-        ++begin[cell];
-      });
+      boxes[first + j] = block.box[j];
+      total += size_t(block.box[j]);
     }
   }
+  if (total <= limit) return total;
+  // systematic sample with probability proportional to the box: sample k is the triangle whose
+  // box holds position (k + 1/2) total / kSamples of the running box sum; the estimate is
+  // total x the mean of exact / box over the samples
+  constexpr size_t kSamples = 256;
+  const double step = double(total) / double(kSamples);
+  BinScratch scratch;
+  double ratio_sum = 0.0, ratio = 0.0, before = 0.0;  // box sum of triangles before `i`
+  size_t i = 0, measured = n;
+  for (size_t k = 0; k < kSamples; ++k) {
+    const double at = (double(k) + 0.5) * step;
+    while (i + 1 < n && before + double(boxes[i]) <= at) before += double(boxes[i++]);
+    if (i != measured) {
+      measured = i;
+      const float v[3][3] = {{tris.p[0][0][i], tris.p[0][1][i], tris.p[0][2][i]},
+                             {tris.p[1][0][i], tris.p[1][1][i], tris.p[1][2][i]},
+                             {tris.p[2][0][i], tris.p[2][1][i], tris.p[2][2][i]}};
+      int c0[3], c1[3];
+      bool span[3];
+      const int spans = TriangleCellRange(geo, v, c0, c1, span);
+      size_t exact = 0, box = 1;
+      if (spans >= 0) {
+        BinTriangleCells(geo, v, c0, c1, span, spans, &scratch, [&](int, int, int) { ++exact; });
+        for (int a = 0; a < 3; ++a) box *= size_t(c1[a] - c0[a] + 1);
+      }
+      ratio = double(exact) / double(box);
+    }
+    ratio_sum += ratio;
+  }
+  return size_t(std::ceil(double(total) * ratio_sum / double(kSamples)));
+}
+
+namespace {
+
+// Pass 1 (BinReferences), then the CSR lists and occupancy bits. False if the references
+// passed `limit` (*num_refs > limit then; the grid's arrays are not complete).
+bool BuildLists(const TriangleSoA& tris, size_t limit, Grid* grid, size_t* num_refs_out) {
+  const size_t n = tris.size;
+  const size_t num_cells = grid->num_cells;
+  const BinGeometry geo = GridBinGeometry(*grid);
+  // cell_begin[c] holds the count of cell c during pass 1. Temporary arrays are left
+  // uninitialised: every element read is written first.
+  grid->cell_begin = AllocateBuildArray<uint32_t>(num_cells + 1, "cell offsets");
+  uint32_t* begin = grid->cell_begin.get();
+  std::fill(begin, begin + num_cells + 1, 0u);
+  size_t capacity = std::min(n * 3 + 64, limit + 1);
+  auto ref_cells = AllocateBuildArray<uint32_t>(capacity, "cell references");
+  auto ref_begin = AllocateBuildArray<uint32_t>(n + 1, "per-triangle reference offsets");
+  size_t num_refs = 0;
+  const bool fits = BinReferences(tris, *grid, geo, limit, begin, &ref_cells, &capacity,
+                                  ref_begin.get(), &num_refs);
+  *num_refs_out = num_refs;
+  if (!fits) return false;
 
   // Inclusive prefix sum -> end of each cell (occupancy bits and statistics on the way), then
   // fill backwards with pre-decrement so cell_begin[c] ends at the start of cell c and the ids
   // in each cell come out ascending.
   const size_t words = (num_cells + 63) / 64;
-  grid->occupancy = Allocate<uint64_t>(words);
+  grid->occupancy = AllocateBuildArray<uint64_t>(words, "occupancy bits");
   uint64_t* occ = grid->occupancy.get();
   uint32_t sum = 0;
   size_t max_per_cell = 0, occupied = 0;
@@ -295,9 +460,8 @@ void BuildGrid(const TriangleSoA& tris, const GridBounds& bounds, float lambda, 
     occupied += size_t(std::popcount(bits));
   }
   begin[num_cells] = sum;
-  grid->tri_ids = Allocate<uint32_t>(num_refs);
+  grid->tri_ids = AllocateBuildArray<uint32_t>(num_refs, "cell triangle ids");
   uint32_t* ids = grid->tri_ids.get();
-  ref_begin[n] = uint32_t(num_refs);
   const uint32_t* cells_in = ref_cells.get();
   for (size_t i = n; i-- > 0;) {
     for (size_t r = ref_begin[i + 1]; r-- > ref_begin[i];) ids[--begin[cells_in[r]]] = uint32_t(i);
@@ -305,6 +469,67 @@ void BuildGrid(const TriangleSoA& tris, const GridBounds& bounds, float lambda, 
   grid->num_refs = num_refs;
   grid->occupied_cells = occupied;
   grid->max_per_cell = max_per_cell;
+  return true;
+}
+
+}  // namespace
+
+void BuildGrid(const TriangleSoA& tris, float lambda, int max_resolution, Grid* grid) {
+  BuildGrid(tris, ComputeGridBounds(tris), lambda, max_resolution, grid);
+}
+
+void BuildGrid(const TriangleSoA& tris, const GridBounds& bounds, float lambda, int max_resolution,
+               Grid* grid) {
+  SetGeometry(bounds, double(lambda), max_resolution, grid);
+  if (grid->num_cells == 0) return;
+  const size_t limit = GridRefBudget(bounds.num_valid);
+  const double num_valid = double(bounds.num_valid);
+  // The common case in one pass: the lists at the asked resolution, which stop as soon as they
+  // pass the budget (O(budget) work and memory at most).
+  size_t refs = 0;
+  if (BuildLists(tris, limit, grid, &refs)) return;
+  // Over the budget: search the finest resolution whose estimate fits (EstimateGridRefs, no
+  // lists), then build it; if its lists still pass the budget, search again below it.
+  refs = std::max(refs, EstimateGridRefs(tris, *grid, limit));
+  for (;;) {
+    size_t fail = grid->num_cells;  // the fewest cells known to exceed the budget
+    // coarsen until the estimate fits: references fall at least like cells^(2/3) (triangles
+    // larger than a cell cover areas), so cells x (limit / refs)^(3/2) should fit; at least
+    // halve the cells per step. One cell lists every valid triangle once: the loop ends.
+    while (refs > limit) {
+      HWY_ASSERT(grid->num_cells > 1);
+      fail = std::min(fail, grid->num_cells);
+      const double factor = std::min(0.5, std::pow(double(limit) / double(refs), 1.5));
+      const size_t cells = grid->num_cells;
+      const int res[3] = {grid->res[0], grid->res[1], grid->res[2]};
+      SetGeometry(bounds, double(cells) * factor / num_valid, max_resolution, grid);
+      if (grid->num_cells >= cells) {
+        // rounding kept the cell count (tiny grids): halve the finest axis instead
+        const int a = res[0] >= res[1] ? (res[0] >= res[2] ? 0 : 2) : (res[1] >= res[2] ? 1 : 2);
+        int halved[3] = {res[0], res[1], res[2]};
+        halved[a] = std::max(1, halved[a] / 2);
+        SetResolution(bounds, halved, grid);
+      }
+      refs = EstimateGridRefs(tris, *grid, limit);
+    }
+    // the coarsening may overshoot by up to its step: up to 3 bisections (geometric mean of the
+    // cell counts) between the fitting resolution and the failing one
+    for (int step = 0; step < 3 && double(fail) > 1.5 * double(grid->num_cells); ++step) {
+      const int fit[3] = {grid->res[0], grid->res[1], grid->res[2]};
+      const size_t fit_cells = grid->num_cells;
+      SetGeometry(bounds, std::sqrt(double(fail) * double(fit_cells)) / num_valid, max_resolution,
+                  grid);
+      if (grid->num_cells <= fit_cells || grid->num_cells >= fail) {
+        SetResolution(bounds, fit, grid);  // no resolution in between
+        break;
+      }
+      if (EstimateGridRefs(tris, *grid, limit) > limit) {
+        fail = grid->num_cells;
+        SetResolution(bounds, fit, grid);
+      }
+    }
+    if (BuildLists(tris, limit, grid, &refs)) return;
+  }
 }
 
 }  // namespace rs

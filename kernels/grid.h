@@ -45,6 +45,30 @@ struct Grid {
   }
 };
 
+// Bounds that keep every grid within a fixed factor of its triangle count (issue 13 item 1):
+//  - Cells no smaller than the coordinates allow. The binning margin holds 4 FLT_EPSILON
+//    max|coordinate| (the float DDA's rounding); a cell edge below that separates nothing the
+//    DDA can tell apart, and lists every triangle in ~(1 + 2 margin / cell)^2 cells or more (73
+//    per triangle for a radius-1 sphere at 2e5). At kMinCellMargins = 2 such terms a small
+//    triangle grown by the margin on both sides is at most about a cell wide: 2 cells per axis.
+//    SetGridGeometry lowers the resolution of finer axes, and a sub-grid is built only where its
+//    cells keep that size.
+//  - References: BuildGrid lists at most GridRefBudget(valid triangles) references; a
+//    resolution that would list more (identical or overlapping triangles, long thin ones) is
+//    coarsened before the lists are allocated (EstimateGridRefs), and again if the binning
+//    itself passes the budget. The second level adds at most another budget (two_level.h).
+//  - Cells: more than kMaxGridCells, or cell arrays larger than the physical memory, are
+//    refused with rs::Error naming the resolution and the bytes (only BuildOptions can ask
+//    for that many: the heuristic asks for lambda cells per triangle).
+inline constexpr double kMinCellMargins = 2.0;
+inline constexpr size_t kMaxRefsPerTriangle = 8;
+inline constexpr size_t kRefSlack = size_t{1} << 16;  // small scenes are never coarsened
+inline constexpr size_t kMaxGridCells = size_t{UINT32_MAX} - 1;  // 32-bit cell ids and offsets
+inline size_t GridRefBudget(size_t num_valid) {
+  const size_t budget = kMaxRefsPerTriangle * num_valid + kRefSlack;
+  return budget < size_t{UINT32_MAX} - 1 ? budget : size_t{UINT32_MAX} - 2;
+}
+
 // Resolution from the density heuristic (Cleary & Wyvill): res_axis = extent_axis *
 // cbrt(lambda * N / volume), rounded to nearest, clamped to [1, max_resolution]. Axes whose
 // share would be < 1 cell (flat or thin scenes, zero extent) get 1 cell, and the cell budget
@@ -63,8 +87,19 @@ struct GridBounds {
 GridBounds ComputeGridBounds(const TriangleSoA& tris);
 
 // Resets *grid and fills its geometry for `lambda` (bounds, res, cell sizes, margin, num_cells),
-// without lists: what BuildGrid does before binning. num_valid = 0 gives an empty grid.
+// without lists: the resolution of ComputeGridResolution, lowered on axes whose cells would be
+// shorter than kMinCellMargins x the margin's ulp term (4 FLT_EPSILON max|bound|). What
+// BuildGrid starts from before binning. num_valid = 0 gives an empty grid. Throws rs::Error if
+// the grid would have more than kMaxGridCells cells or its cell arrays would not fit in the
+// physical memory.
 void SetGridGeometry(const GridBounds& bounds, float lambda, int max_resolution, Grid* grid);
+
+// The references BuildGrid would list on `geometry`, estimated without binning everything: the
+// exact sum of the bounding-box cell counts (an upper bound) if it is at most `limit`, else
+// that sum scaled by the exact cells / box cells ratio of up to 256 triangles sampled with
+// probability proportional to their box (systematic PPS sampling: one huge triangle among many
+// small ones is seen; the estimate is unbiased). Deterministic.
+size_t EstimateGridRefs(const TriangleSoA& tris, const Grid& geometry, size_t limit);
 
 // Bounding-box statistics of the triangles on a grid geometry, without building lists: the sum
 // of bounding-box cell counts (>= the references BuildGrid makes) and the cells some box touches
@@ -83,8 +118,12 @@ GridBoxCounts CountGridBoxes(const TriangleSoA& tris, const Grid& geometry);
 // ranges come from a SIMD float pass widened by a proven slack, and the SAT runs only on the
 // axes that span more than one cell (kernels/grid_binning.h), so a triangle may also be listed
 // in a cell its box reaches within ~1e-6 (res + 3) cells; ids ascend within each cell.
+// The resolution is SetGridGeometry's, coarsened (the cell count divided by at least 2 per
+// step) while the references would exceed GridRefBudget(num_valid): num_refs is always within
+// the budget, so memory is O(triangles + cells) for any input.
 // Preconditions: lambda > 0 and finite, max_resolution >= 1 (Accel checks them).
-// Throws rs::Error if the references do not fit 32-bit offsets.
+// Throws rs::Error (what, how many bytes) if the cells cannot be held (SetGridGeometry) or an
+// allocation fails; never aborts.
 void BuildGrid(const TriangleSoA& tris, float lambda, int max_resolution, Grid* grid);
 // The same, given ComputeGridBounds(tris) (so a caller that has them does not recompute them).
 void BuildGrid(const TriangleSoA& tris, const GridBounds& bounds, float lambda, int max_resolution,

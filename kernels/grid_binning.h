@@ -9,11 +9,43 @@
 #include <cmath>
 #include <cstddef>
 #include <cstdint>
+#include <cstdio>
+#include <new>
+#include <string>
 #include <vector>
 
 #include "kernels/grid.h"
 
 namespace rs {
+
+// "123456789 bytes (117.7 MiB)", for the build's error messages.
+inline std::string BytesText(double bytes) {
+  char text[64];
+  std::snprintf(text, sizeof(text), "%.0f bytes (%.1f MiB)", bytes, bytes / 1048576.0);
+  return text;
+}
+
+// An aligned array of n elements (at least one) for a build structure; throws rs::Error naming
+// `what` and the bytes asked for if they cannot be allocated (never aborts).
+template <typename T>
+hwy::AlignedFreeUniquePtr<T[]> AllocateBuildArray(size_t n, const char* what) {
+  const size_t count = n == 0 ? 1 : n;
+  hwy::AlignedFreeUniquePtr<T[]> p;
+  if (count <= (size_t{1} << 62) / sizeof(T)) {
+    try {
+      p = hwy::AllocateAligned<T>(count);
+    } catch (const std::bad_alloc&) {
+      p.reset();
+    }
+  }
+  if (!p) {
+    throw Error(std::string("grid build: out of memory: cannot allocate ") + what + " (" +
+                std::to_string(count) + " x " + std::to_string(sizeof(T)) + " = " +
+                BytesText(double(count) * double(sizeof(T))) +
+                "); lower BuildOptions::lambda or max_resolution");
+  }
+  return p;
+}
 
 // One level of cells: cell k along axis a spans [lo + k cs, lo + (k + 1) cs] (in double, from
 // the stored floats); a triangle is listed in a cell iff it overlaps that box grown by margin.

@@ -17,13 +17,6 @@
 namespace rs {
 namespace {
 
-template <typename T>
-hwy::AlignedFreeUniquePtr<T[]> Allocate(size_t n) {
-  auto p = hwy::AllocateAligned<T>(n == 0 ? 1 : n);
-  HWY_ASSERT(p);
-  return p;
-}
-
 // Surface area of one cell over that of the grid box: the probability that a ray through the
 // box passes through a given cell.
 double CellAreaRatio(const double cs[3], const int res[3]) {
@@ -104,6 +97,10 @@ void BuildTwoLevel(const Grid& grid, const TriangleSoA& tris, int threshold, boo
   for (int k = 0; k < 3; ++k) {
     for (int a = 0; a < 3; ++a) p[k][a] = tris.p[k][a].data();
   }
+  // sub-cells no smaller than the top level's (grid.h: kMinCellMargins), and the sub-cell
+  // references within one more reference budget in all
+  const double min_cell = kMinCellMargins * 4.0 * FLT_EPSILON * max_abs;
+  const size_t budget = GridRefBudget(tris.size - tris.num_degenerate);
 
   std::vector<SubGridRecord> records;
   std::vector<uint32_t> sub_begin;  // per occupied sub-cell (all records): start in sub_ids
@@ -127,6 +124,10 @@ void BuildTwoLevel(const Grid& grid, const TriangleSoA& tris, int threshold, boo
     const int c[3] = {cx, cy, cz};
     SubGridRecord rec{};
     BinGeometry geo;
+    bool too_fine = false;
+    for (int a = 0; a < 3; ++a) too_fine |= double(grid.cell_size[a]) / kSubRes < min_cell;
+    if (too_fine) continue;
+    const size_t room = budget - sub_ids.size();  // sub-cell references this cell may add
     for (int a = 0; a < 3; ++a) {
       // the parent cell's lower corner exactly as the float DDA computes boundaries
       rec.lo[a] = grid.lo[a] + float(c[a]) * grid.cell_size[a];
@@ -191,7 +192,9 @@ void BuildTwoLevel(const Grid& grid, const TriangleSoA& tris, int threshold, boo
           ++counts[sc];
         });
       }
+      if (num_sub_refs > room) break;  // over the budget: stays a leaf
     }
+    if (num_sub_refs > room) continue;
     size_t occupied = 0;
     for (const uint32_t k : counts) occupied += k != 0;
     if (by_cost && !(SubGridCost(occupied, num_sub_refs, model) < LeafCost(n, model))) continue;
@@ -232,12 +235,11 @@ void BuildTwoLevel(const Grid& grid, const TriangleSoA& tris, int threshold, boo
 
   // records and the refined-cell bits with their per-word ranks
   out->num_records = records.size();
-  out->records = hwy::AllocateAligned<SubGridRecord>(records.size());
-  HWY_ASSERT(out->records);
+  out->records = AllocateBuildArray<SubGridRecord>(records.size(), "sub-grid records");
   std::copy(records.begin(), records.end(), out->records.get());
   const size_t words = (num_cells + 63) / 64;
-  out->refined = Allocate<uint64_t>(words);
-  out->refined_rank = Allocate<uint32_t>(words);
+  out->refined = AllocateBuildArray<uint64_t>(words, "refined-cell bits");
+  out->refined_rank = AllocateBuildArray<uint32_t>(words, "refined-cell ranks");
   std::fill(out->refined.get(), out->refined.get() + words, uint64_t{0});
   for (const uint32_t cell : refined_cells) out->refined[cell >> 6] |= uint64_t{1} << (cell & 63);
   uint32_t rank = 0;
@@ -250,13 +252,13 @@ void BuildTwoLevel(const Grid& grid, const TriangleSoA& tris, int threshold, boo
   Grid& leaves = out->leaves;
   const size_t num_sub_leaves = sub_begin.size();
   leaves.num_cells = num_cells + num_sub_leaves;
-  leaves.cell_begin = Allocate<uint32_t>(leaves.num_cells + 1);
+  leaves.cell_begin = AllocateBuildArray<uint32_t>(leaves.num_cells + 1, "leaf offsets");
   const size_t top_refs = grid.num_refs - out->refined_top_refs;
   leaves.num_refs = top_refs + sub_ids.size();
   if (leaves.num_refs >= size_t{UINT32_MAX}) {
     throw Error("two-level grid build: more than 2^32 - 1 leaf references");
   }
-  leaves.tri_ids = Allocate<uint32_t>(leaves.num_refs);
+  leaves.tri_ids = AllocateBuildArray<uint32_t>(leaves.num_refs, "leaf triangle ids");
   uint32_t* lb = leaves.cell_begin.get();
   uint32_t* li = leaves.tri_ids.get();
   uint32_t at = 0;

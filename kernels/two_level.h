@@ -124,7 +124,12 @@ double TwoLevelCostBound(const Grid& grid, int threshold, const GridCostModel& m
 // triangles and, when `by_cost` is set, its sub-grid is cheaper under `model` than testing the
 // list (cells that do not pay off are left as leaves). Sub-cells are binned conservatively like
 // the top level (kernels/grid_binning.h), with a margin of 1e-3 sub-cell plus the grid's ulp
-// term. With no refined cell, `out` is empty (num_records = 0) and the grid is flat.
+// term. Bounded like the top level (grid.h): a cell is never refined if its sub-cells would be
+// shorter than kMinCellMargins x that ulp term on some axis, nor if its sub-cell references
+// would take the sub-cells' total past GridRefBudget(non-degenerate triangles) (cells in index
+// order; such a cell stays a leaf), so sub_refs <= that budget for any input.
+// With no refined cell, `out` is empty (num_records = 0) and the grid is flat. Throws rs::Error
+// if an allocation fails.
 void BuildTwoLevel(const Grid& grid, const TriangleSoA& tris, int threshold, bool by_cost,
                    const GridCostModel& model, TwoLevelGrid* out);
 
