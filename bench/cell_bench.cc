@@ -91,7 +91,6 @@ struct Setup {
 BuildOptions PaperGrid() {
   BuildOptions b;
   b.grid = GridKind::kUniform;
-  b.auto_lambda = false;
   b.lambda = 4.0f;
   return b;
 }
@@ -315,7 +314,6 @@ void AtOnceSection(const Options& o, std::string& md) {
   o.Size(256, 192, 512, 512, &w, &h);
   BuildOptions two;  // the two-level grid of 3.8 (as in Fig. 8)
   two.grid = GridKind::kTwoLevel;
-  two.auto_lambda = false;
   two.lambda = 0.5f;
   two.subgrid_threshold = 8;
   struct Case {
@@ -404,7 +402,6 @@ void Depth(const Options& o, std::string& md) {
   // The two-level grid of 3.8: a coarse top level whose dense cells get 8x8x8 sub-grids.
   BuildOptions two;
   two.grid = GridKind::kTwoLevel;
-  two.auto_lambda = false;
   two.lambda = 0.5f;
   two.subgrid_threshold = 8;
   const Setup su("spherebox", PaperGrid(), w);

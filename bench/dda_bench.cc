@@ -141,14 +141,13 @@ WorkData& GetWork(const Workload& w) {
     BuildOptions options;
     options.grid = w.grid;
     options.lambda = w.lambda;
-    options.auto_lambda = false;
     d.accel = std::make_unique<Accel>(s.scene.mesh(), options);
     d.rays = MakeRays(s, w.rays);
     const size_t n = d.rays.size();
     d.ref.Resize(n);
     d.hits.Resize(n);
     d.ref.Reset();
-    ref::AccelIntersect(d.accel->impl(), d.rays.view(), d.ref.view(), &d.ref_stats);
+    ref::AccelIntersect(AccelImpl(*d.accel), d.rays.view(), d.ref.view(), &d.ref_stats);
   } catch (const Error& e) {
     d.error = e.what();
   }
@@ -195,7 +194,7 @@ void BM_Dda(benchmark::State& state, Workload w, int64_t target, int kind) {
     return;
   }
   hwy::SetSupportedTargetsForTest(target);
-  const Accel::Impl& m = d.accel->impl();
+  const Accel::Impl& m = AccelImpl(*d.accel);
   const RayStreamView rays = d.rays.view();
   const HitStreamView hits = d.hits.view();
   DdaOptions options = m.dda_options;
@@ -248,7 +247,7 @@ void BM_Scalar(benchmark::State& state, Workload w) {
   const uint64_t t0 = Ticks();
   const double c0 = ThreadCpuSeconds();
   for (auto _ : state) {
-    ref::AccelIntersect(d.accel->impl(), d.rays.view(), d.hits.view(), &st);
+    ref::AccelIntersect(AccelImpl(*d.accel), d.rays.view(), d.hits.view(), &st);
     benchmark::ClobberMemory();
   }
   Report(state, Ticks() - t0, ThreadCpuSeconds() - c0, st, d.rays.size());

@@ -92,7 +92,6 @@ int RunDda(const Args& a) {
     scene = CornersScene();
     options.grid = GridKind::kUniform;
     options.lambda = 32768.0f;
-    options.auto_lambda = false;
     RandomRays(scene, rays);
   } else if (a.workload == "spherebox") {
     scene = LoadScene("spherebox");
@@ -120,7 +119,7 @@ int RunDda(const Args& a) {
   hits.Resize(rays.size());
   hits.Reset();
   TraceStats st;
-  const Accel::Impl& m = accel.impl();
+  const Accel::Impl& m = AccelImpl(accel);
   if (a.kernel == "dda_single") {
     const RayStreamView r = rays.view();
     for (size_t i = 0; i < r.size; ++i) {

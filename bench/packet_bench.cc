@@ -68,7 +68,7 @@ Data& Get(const std::string& name) {
 // Runs one form over one set; returns the results for the validation.
 void Run(Data& d, bool shadow, bool packets, TraceStats* st, HitStreamView hits,
          int32_t* occluded) {
-  const Accel::Impl& m = d.accel->impl();
+  const Accel::Impl& m = AccelImpl(*d.accel);
   const RayStreamView rays = shadow ? d.shadow.view() : d.primary.view();
   hits.size = rays.size;
   if (shadow) {

@@ -258,7 +258,7 @@ void BM_Trace(benchmark::State& state, const std::string& scene, RaySet set, int
         d.accel->Intersect(rays, hits);
       }
     } else if (tracer == -2) {  // the same structure without packets: the per-ray stream DDA
-      const Accel::Impl& m = d.accel->impl();
+      const Accel::Impl& m = AccelImpl(*d.accel);
       if (occlusion) {
         OccludedStreamDda(m.dda, rays, d.occluded.data(), m.dda_options, nullptr);
       } else {

@@ -23,6 +23,8 @@ namespace {
 // Empty-space skipping is used on grids with at least this share of their cells inside empty
 // 5x5x5 blocks (see Accel::Accel).
 constexpr double kEmptySkipMinShare = 0.75;
+// BuildOptions::lambda 0 with a fixed grid kind: the Cleary/Wyvill density.
+constexpr float kDefaultLambda = 4.0f;
 
 std::string FormatFloat(float x) {
   std::ostringstream s;
@@ -32,9 +34,9 @@ std::string FormatFloat(float x) {
 
 // Throws rs::Error for bad options or mesh arrays; the per-triangle checks are ValidateTriangles.
 void ValidateOptionsAndArrays(const MeshView& mesh, const BuildOptions& options) {
-  if (!(options.lambda > 0.0f) || !std::isfinite(options.lambda)) {
-    throw Error("BuildOptions: lambda must be a positive finite number, got " +
-                FormatFloat(options.lambda));
+  if (!(options.lambda >= 0.0f) || !std::isfinite(options.lambda)) {
+    throw Error("BuildOptions: lambda must be 0 (chosen by the grid cost model) or a positive "
+                "finite number, got " + FormatFloat(options.lambda));
   }
   if (options.grid != GridKind::kAuto && options.grid != GridKind::kUniform &&
       options.grid != GridKind::kTwoLevel) {
@@ -108,9 +110,9 @@ Accel::Accel(const MeshView& mesh, const BuildOptions& options) : impl_(std::mak
   BuildTriangleSoA(mesh, &m.triangles);
   if (m.triangles.num_nonfinite != 0) ValidateTriangles(mesh);
   const GridCostModel model;
-  m.lambda = options.lambda;
+  m.lambda = options.lambda > 0.0f ? options.lambda : kDefaultLambda;
   const GridBounds bounds = ComputeGridBounds(m.triangles);  // shared by the lambda choice
-  if (options.grid == GridKind::kAuto && options.auto_lambda) {
+  if (options.grid == GridKind::kAuto && options.lambda == 0.0f) {
     m.lambda = ChooseLambda(m.triangles, bounds, options.max_resolution, model);
   }
   BuildGrid(m.triangles, bounds, m.lambda, options.max_resolution, &m.grid);
@@ -146,16 +148,112 @@ Accel::~Accel() = default;
 Accel::Accel(Accel&&) noexcept = default;
 Accel& Accel::operator=(Accel&&) noexcept = default;
 
+const Accel::Impl& AccelImpl(const Accel& accel) {
+  HWY_ASSERT(accel.impl_ != nullptr);
+  return *accel.impl_;
+}
+
+namespace {
+
+// The checks of the public entry points (the kernels assume them).
+const Accel::Impl& Checked(const std::unique_ptr<Accel::Impl>& impl, const char* what) {
+  if (!impl) throw Error(std::string("Accel::") + what + ": this Accel was moved from");
+  return *impl;
+}
+
+void CheckRays(const RayStreamView& rays, const char* what) {
+  if (rays.size == 0) return;
+  const float* arrays[] = {rays.ox, rays.oy, rays.oz, rays.dx, rays.dy, rays.dz, rays.tmin,
+                           rays.tmax};
+  const char* names[] = {"ox", "oy", "oz", "dx", "dy", "dz", "tmin", "tmax"};
+  for (int i = 0; i < 8; ++i) {
+    if (arrays[i] == nullptr) {
+      throw Error(std::string("Accel::") + what + ": rays." + names[i] + " is null for " +
+                  std::to_string(rays.size) + " rays");
+    }
+  }
+}
+
+// The kernels load and store whole vectors up to PaddedSize(size) elements. Callers' arrays may
+// hold exactly `size`: the rays before the last multiple of kStreamPad are traced in place (then
+// PaddedSize is their count), the rest through padded copies on the stack. The split changes no
+// result (each ray's trace is independent) and no packet (a packet is 64 consecutive rays from
+// the start; the tail is shorter than any packet).
+struct PaddedTail {
+  alignas(kStreamAlign) float f[8][kStreamPad];
+  alignas(kStreamAlign) float t[kStreamPad], u[kStreamPad], v[kStreamPad];
+  alignas(kStreamAlign) int32_t prim[kStreamPad];
+  RayStreamView rays;
+  HitStreamView hits;
+
+  // rays[first, first + n), n < kStreamPad, copied; the padding never hits (zero direction).
+  PaddedTail(const RayStreamView& from, size_t first, size_t n) {
+    float* const dst[8] = {f[0], f[1], f[2], f[3], f[4], f[5], f[6], f[7]};
+    const float* const src[8] = {from.ox, from.oy, from.oz, from.dx, from.dy, from.dz, from.tmin,
+                                 from.tmax};
+    for (int a = 0; a < 8; ++a) {
+      std::fill(dst[a], dst[a] + kStreamPad, 0.0f);
+      std::copy(src[a] + first, src[a] + first + n, dst[a]);
+    }
+    rays.ox = f[0], rays.oy = f[1], rays.oz = f[2];
+    rays.dx = f[3], rays.dy = f[4], rays.dz = f[5];
+    rays.tmin = f[6], rays.tmax = f[7];
+    rays.size = n;
+    hits = HitStreamView{t, u, v, prim, n};
+  }
+};
+
+RayStreamView Head(const RayStreamView& rays, size_t n) {
+  RayStreamView head = rays;
+  head.size = n;
+  return head;
+}
+
+}  // namespace
+
 void Accel::Intersect(const RayStreamView& rays, const HitStreamView& hits,
                       TraceStats* stats) const {
-  HWY_ASSERT(hits.size == rays.size);
-  if (impl_->packets) return IntersectCoherent(impl_->dda, rays, hits, impl_->dda_options, stats);
-  IntersectStreamDda(impl_->dda, rays, hits, impl_->dda_options, stats);
+  const Impl& m = Checked(impl_, "Intersect");
+  if (hits.size != rays.size) {
+    throw Error("Accel::Intersect: hits.size " + std::to_string(hits.size) +
+                " differs from rays.size " + std::to_string(rays.size));
+  }
+  CheckRays(rays, "Intersect");
+  if (rays.size > 0 && (!hits.t || !hits.u || !hits.v || !hits.prim)) {
+    throw Error("Accel::Intersect: a hit array (t, u, v or prim) is null for " +
+                std::to_string(rays.size) + " rays");
+  }
+  const auto trace = [&](const RayStreamView& r, const HitStreamView& h) {
+    if (m.packets) return IntersectCoherent(m.dda, r, h, m.dda_options, stats);
+    IntersectStreamDda(m.dda, r, h, m.dda_options, stats);
+  };
+  const size_t body = rays.size / kStreamPad * kStreamPad, tail = rays.size - body;
+  if (body > 0) trace(Head(rays, body), HitStreamView{hits.t, hits.u, hits.v, hits.prim, body});
+  if (tail == 0) return;
+  PaddedTail p(rays, body, tail);
+  trace(p.rays, p.hits);
+  std::copy(p.t, p.t + tail, hits.t + body);
+  std::copy(p.u, p.u + tail, hits.u + body);
+  std::copy(p.v, p.v + tail, hits.v + body);
+  std::copy(p.prim, p.prim + tail, hits.prim + body);
 }
 
 void Accel::Occluded(const RayStreamView& rays, int32_t* occluded, TraceStats* stats) const {
-  if (impl_->packets) return OccludedCoherent(impl_->dda, rays, occluded, impl_->dda_options, stats);
-  OccludedStreamDda(impl_->dda, rays, occluded, impl_->dda_options, stats);
+  const Impl& m = Checked(impl_, "Occluded");
+  CheckRays(rays, "Occluded");
+  if (rays.size > 0 && occluded == nullptr) {
+    throw Error("Accel::Occluded: occluded is null for " + std::to_string(rays.size) + " rays");
+  }
+  const auto trace = [&](const RayStreamView& r, int32_t* out) {
+    if (m.packets) return OccludedCoherent(m.dda, r, out, m.dda_options, stats);
+    OccludedStreamDda(m.dda, r, out, m.dda_options, stats);
+  };
+  const size_t body = rays.size / kStreamPad * kStreamPad, tail = rays.size - body;
+  if (body > 0) trace(Head(rays, body), occluded);
+  if (tail == 0) return;
+  PaddedTail p(rays, body, tail);
+  trace(p.rays, p.prim);
+  std::copy(p.prim, p.prim + tail, occluded + body);
 }
 
 namespace ref {
@@ -201,7 +299,7 @@ void AccelOccluded(const Accel::Impl& m, const RayStreamView& rays, int32_t* occ
 }  // namespace ref
 
 AccelInfo Accel::Info() const {
-  const Impl& m = *impl_;
+  const Impl& m = Checked(impl_, "Info");
   AccelInfo info;
   info.triangles = m.triangles.size;
   info.degenerate_triangles = m.triangles.num_degenerate;

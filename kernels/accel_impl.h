@@ -1,5 +1,6 @@
 // rs::Accel's private state (the triangle SoA, the uniform grid, the optional second level and
-// the SIMD traversal data), visible to the kernels, the renderer and tests through Accel::impl().
+// the SIMD traversal data), visible to the kernels, the renderer and tests through AccelImpl
+// (this header is internal: the installed header declares Impl only).
 #pragma once
 
 #include "include/raystream/raystream.h"
@@ -23,6 +24,9 @@ struct Accel::Impl {
   double flat_cost_estimate = 0.0;
   double build_seconds = 0.0;
 };
+
+// The state of a built Accel (HWY_ASSERT: not a moved-from one).
+const Accel::Impl& AccelImpl(const Accel& accel);
 
 namespace ref {
 

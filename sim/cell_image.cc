@@ -14,7 +14,7 @@ namespace rs::sim {
 
 CellImage::CellImage(const Scene& scene, const Accel& accel) : scene_(&scene), accel_(&accel) {
   const auto start = std::chrono::steady_clock::now();
-  const Accel::Impl& m = accel.impl();
+  const Accel::Impl& m = AccelImpl(accel);
   const TriangleSoA& tris = m.triangles;
   const Grid& g = m.grid;
   if (tris.size != scene.triangles.size()) {

@@ -330,7 +330,6 @@ Accel BuildCellAccel(const Scene& scene, BuildOptions options, const SimConfig& 
   float lambda = info.lambda > 0 ? info.lambda : options.lambda;
   for (int attempt = 0; attempt < 40; ++attempt) {
     lambda *= 0.9f * float(double(budget) / double(std::max<size_t>(info.cells, 1)));
-    options.auto_lambda = false;
     options.lambda = lambda;
     accel = Accel(scene.mesh(), options);
     info = accel.Info();

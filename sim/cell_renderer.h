@@ -130,7 +130,7 @@ class CellRenderer {
 
 // The acceleration structure for the cell backend: built with `options` when its top-level
 // occupancy bits fit the SPE's local store (OccupancyBudgetCells); otherwise rebuilt with a lower
-// lambda (auto_lambda off, the grid kind kept, so kAuto may refine dense cells into 8x8x8
+// lambda (the grid kind kept, so kAuto may refine dense cells into 8x8x8
 // sub-grids, as paper 3.8 does for large scenes) until they fit. *note (if given) is set to a
 // sentence saying what was changed, or cleared. Throws rs::Error if no lambda fits.
 Accel BuildCellAccel(const Scene& scene, BuildOptions options, const SimConfig& config,

@@ -118,15 +118,12 @@ void PrintInfo(const Json& j) {
 struct InfoArgs {
   std::string scene = kDefaultScene;
   bool json = false;
-  float lambda = 0.0f;  // 0: chosen by the grid cost model (BuildOptions::auto_lambda)
+  float lambda = 0.0f;  // 0: chosen by the grid cost model (BuildOptions::lambda)
 };
 
 // --lambda: 0 (the default) lets the grid cost model choose; anything else is used as given.
 void SetLambda(float lambda, BuildOptions* build) {
-  if (lambda > 0.0f) {
-    build->lambda = lambda;
-    build->auto_lambda = false;
-  }
+  if (lambda > 0.0f) build->lambda = lambda;
 }
 
 int RunInfo(const InfoArgs& args) {

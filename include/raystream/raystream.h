@@ -1,5 +1,6 @@
 // raystream public API: build a grid over caller-owned triangles, trace SoA ray streams.
-// This header is all a tracer that links raystream needs (pkg-config raystream).
+// This header (standard library only) is all a tracer that links raystream needs: pkg-config
+// raystream, or CMake find_package(raystream) and the target raystream::raystream.
 #pragma once
 
 #include <cstddef>
@@ -8,30 +9,45 @@
 #include <stdexcept>
 #include <string>
 
+// The library's version; Version() returns the same string at run time.
+#define RS_VERSION_MAJOR 0
+#define RS_VERSION_MINOR 1
+#define RS_VERSION_PATCH 0
+#define RS_VERSION_STRING "0.1.0"
+
+// What libraystream exports: everything marked RS_API, nothing else.
+#if defined(__GNUC__) || defined(__clang__)
+#define RS_API __attribute__((visibility("default")))
+#else
+#define RS_API
+#endif
+
 namespace rs {
 
-// Every stream array is aligned to kStreamAlign bytes and holds at least PaddedSize(size)
-// elements, so SIMD kernels load whole vectors and mask lanes >= size (no scalar tails).
+// Stream arrays of any alignment and exactly `size` elements are accepted. Arrays aligned to
+// kStreamAlign bytes and holding PaddedSize(size) elements are traced in place to the end;
+// otherwise the last size % kStreamPad rays pass through a padded copy (a few rays).
 inline constexpr size_t kStreamAlign = 64;
 inline constexpr size_t kStreamPad = 16;  // floats per 64 B: the widest vector (AVX-512)
 constexpr size_t PaddedSize(size_t n) {
   return n == 0 ? kStreamPad : (n + kStreamPad - 1) / kStreamPad * kStreamPad;
 }
 
-// All user-input errors (bad mesh, bad scene file, bad option) are thrown as rs::Error with a
-// message naming the file and the line or element. Kernels never throw.
-class Error : public std::runtime_error {
+// All user-input errors (bad mesh, bad scene file, bad option, misuse of an Accel) are thrown as
+// rs::Error with a message naming the file and the line or element. The kernels under Accel's
+// checked entry points never throw.
+class RS_API Error : public std::runtime_error {
  public:
   using std::runtime_error::runtime_error;
 };
 
 enum class RayKind : int32_t { kPrimary = 0, kShadow = 1, kReflection = 2, kRefraction = 3 };
 inline constexpr int kNumRayKinds = 4;
-const char* RayKindName(RayKind kind);
+RS_API const char* RayKindName(RayKind kind);
 
 // A stream of rays, one pointer per component (SoA). The geometric fields (o, d, tmin, tmax)
-// are all the trace functions read; pixel, weight, depth and kind are carried for the
-// renderer and may be null for callers that only trace. Directions need not be normalized;
+// are all the trace functions read (none may be null when size > 0); pixel, weight, depth and
+// kind are carried for the renderer and may be null for callers that only trace. Directions need not be normalized;
 // t is measured in units of |d|. Views do not own their data.
 struct RayStreamView {
   float* ox = nullptr;
@@ -74,16 +90,16 @@ struct MeshView {
 enum class GridKind : int { kAuto = 0, kUniform = 1, kTwoLevel = 2 };
 
 struct BuildOptions {
-  float lambda = 4.0f;    // grid density: cells ~= lambda * triangles (Cleary/Wyvill heuristic)
+  // Grid density: cells ~= lambda * triangles (Cleary/Wyvill). 0 (the default): chosen by the
+  // grid cost model under kAuto, 4 under kUniform and kTwoLevel; > 0: used as given.
+  float lambda = 0.0f;
   int max_resolution = 512;  // per axis
   // kUniform: one grid at `lambda`. kTwoLevel: the grid at `lambda`, and every cell holding more
   // than subgrid_threshold triangles gets an 8x8x8 sub-grid (Cell paper 3.8). kAuto: lambda
-  // from the grid cost model when auto_lambda is set (else `lambda`), then only the cells whose
+  // from the grid cost model when `lambda` is 0 (else `lambda`), then only the cells whose
   // sub-grid the cost model finds cheaper are refined; AccelInfo::kind says what was built.
   GridKind grid = GridKind::kAuto;
-  // Appended fields.
   int subgrid_threshold = 32;  // kTwoLevel: refine cells with more triangles; kAuto: candidates
-  bool auto_lambda = true;     // kAuto only: choose lambda from the cost model
   int micro_cache = 8;         // traversal micro-cache entries (0 = off, at most 16)
   // Jump over blocks of empty cells where the grid has enough of them (results unchanged).
   bool empty_skip = true;
@@ -107,7 +123,6 @@ struct AccelInfo {
   double build_seconds = 0;
   size_t bytes = 0;
   const char* kind = "uniform";  // "uniform" or "two-level"
-  // Appended fields.
   float lambda = 0.0f;            // the lambda the top-level grid was built with
   size_t subgrids = 0;            // refined cells (8x8x8 sub-grids, one 128-B record each)
   size_t sub_references = 0;      // triangle references held by sub-cells
@@ -125,7 +140,7 @@ struct TraceStats {
   uint64_t cell_steps = 0;      // cells entered (top-level and sub-grid cells; not the empty
                                 // cells that BuildOptions::empty_skip jumps over)
   uint64_t triangle_tests = 0;  // ray/triangle tests (SIMD: packet lanes holding a triangle)
-  // Appended fields: the traversal micro-cache (BuildOptions::micro_cache).
+  // The traversal micro-cache (BuildOptions::micro_cache).
   uint64_t cache_lookups = 0;
   uint64_t cache_hits = 0;
   uint64_t empty_skips = 0;  // jumps over blocks of empty cells (BuildOptions::empty_skip)
@@ -140,7 +155,7 @@ struct TraceStats {
 // optionally with 8x8x8 sub-grids in its densest cells (BuildOptions::grid), traced by SIMD
 // stream kernels (Highway dynamic dispatch; results identical on every CPU target).
 // Thread-safe for concurrent Intersect/Occluded calls once built.
-class Accel {
+class RS_API Accel {
  public:
   // Throws rs::Error if an index is out of range or a vertex of a referenced triangle is
   // NaN/Inf (message names the triangle and vertex). An empty mesh builds an Accel that
@@ -150,26 +165,28 @@ class Accel {
   Accel(Accel&&) noexcept;
   Accel& operator=(Accel&&) noexcept;
 
-  // Closest hit with t in (tmin, tmax] for rays[0, size). hits.size must equal rays.size.
+  // Closest hit with t in (tmin, tmax] for rays[0, size). Throws rs::Error if hits.size !=
+  // rays.size, a ray or hit array is null while size > 0, or this Accel was moved from.
   // Rays with NaN/Inf components or zero direction never hit. Results are exact in the sense of
   // the watertight test (Woop, Benthin, Wald 2013): no ray passes between two triangles sharing
   // an edge. On equal t the lower triangle id wins. Optional stats are accumulated (not reset).
   void Intersect(const RayStreamView& rays, const HitStreamView& hits,
                  TraceStats* stats = nullptr) const;
   // Any hit with t in (tmin, tmax]: occluded[i] = 1 if ray i is blocked, else 0. May stop at the
-  // first hit found.
+  // first hit found. Throws rs::Error like Intersect (occluded null while size > 0).
   void Occluded(const RayStreamView& rays, int32_t* occluded, TraceStats* stats = nullptr) const;
 
+  // Throws rs::Error if this Accel was moved from.
   AccelInfo Info() const;
 
   struct Impl;
-  const Impl& impl() const { return *impl_; }
 
  private:
+  friend const Impl& AccelImpl(const Accel& accel);  // kernels/accel_impl.h: not installed
   std::unique_ptr<Impl> impl_;
 };
 
-// Library version, e.g. "0.1.0".
-const char* Version();
+// Library version, RS_VERSION_STRING of the library actually loaded, e.g. "0.1.0".
+RS_API const char* Version();
 
 }  // namespace rs

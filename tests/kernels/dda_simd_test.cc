@@ -627,8 +627,8 @@ void CheckAccel(const MeshView& mesh, const std::string& name, size_t n, uint32_
     ref.Reset();
     std::vector<int32_t> ref_any(n), got_any(n);
     TraceStats rs;
-    ref::AccelIntersect(accel.impl(), stream.view(), ref.view(), &rs);
-    ref::AccelOccluded(accel.impl(), stream.view(), ref_any.data());
+    ref::AccelIntersect(AccelImpl(accel), stream.view(), ref.view(), &rs);
+    ref::AccelOccluded(AccelImpl(accel), stream.view(), ref_any.data());
     size_t hits = 0;
     for (size_t i = 0; i < n; ++i) hits += ref.view().prim[i] >= 0;
     CHECK(hits > n / 5);
@@ -869,7 +869,7 @@ TEST_CASE("empty-space skipping: ring counts equal a brute-force search, steps d
   HitStream want(rays.size()), got(rays.size());
   want.Resize(rays.size());
   got.Resize(rays.size());
-  ref::AccelIntersect(sparse.impl(), stream.view(), want.view());
+  ref::AccelIntersect(AccelImpl(sparse), stream.view(), want.view());
   size_t hits = 0;
   for (size_t i = 0; i < rays.size(); ++i) hits += want.view().prim[i] >= 0;
   CHECK(hits > rays.size() / 8);

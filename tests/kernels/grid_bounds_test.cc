@@ -92,8 +92,8 @@ AccelInfo CheckBoundedAndExact(const std::string& what, const MeshView& mesh, Gr
   got.Resize(count);
   want.Reset();
   std::vector<int32_t> want_occluded(count), got_occluded(count);
-  ref::AccelIntersect(accel.impl(), rv, want.view());
-  ref::AccelOccluded(accel.impl(), rv, want_occluded.data());
+  ref::AccelIntersect(AccelImpl(accel), rv, want.view());
+  ref::AccelOccluded(AccelImpl(accel), rv, want_occluded.data());
   size_t misses = 0, occluded_misses = 0;
   for (size_t i = 0; i < count; ++i) {
     if (!r.must_hit[i]) continue;

@@ -473,7 +473,7 @@ TEST_CASE("rs::Accel: packets on equal packets off on a procedural scene") {
   BuildOptions on, off;
   off.packets = false;
   const Accel a(scene.mesh(), on), b(scene.mesh(), off);
-  const Grid& g = a.impl().grid;
+  const Grid& g = AccelImpl(a).grid;
   const float c[3] = {0.5f * (g.lo[0] + g.hi[0]), 0.5f * (g.lo[1] + g.hi[1]),
                       0.5f * (g.lo[2] + g.hi[2])};
   const float at[3] = {g.hi[0], c[1], c[2]};
@@ -503,7 +503,7 @@ TEST_CASE("rs::Accel: concurrent packet traces from two threads equal one thread
   // ThreadSanitizer with -Db_sanitize=thread)
   const Scene scene = LoadScene("erw6");
   const Accel accel(scene.mesh());
-  const Grid& g = accel.impl().grid;
+  const Grid& g = AccelImpl(accel).grid;
   const float c[3] = {0.5f * (g.lo[0] + g.hi[0]), 0.5f * (g.lo[1] + g.hi[1]),
                       0.5f * (g.lo[2] + g.hi[2])};
   const float at[3] = {g.hi[0], c[1], c[2]};

@@ -194,7 +194,6 @@ TEST_CASE("Build: the cell backend lowers lambda until the occupancy bits fit, a
   const Scene scene = LoadScene("spherebox");  // 49,920 triangles: 3.2 M cells at lambda 64
   BuildOptions dense;
   dense.lambda = 64;
-  dense.auto_lambda = false;
   BackendConfig config;
   config.render = Options();
   std::string note;

@@ -112,7 +112,6 @@ TEST_CASE("procedural scenes: bit-identical to the serial backend") {
 TEST_CASE("secondary rays intersected at once with the loaded triangles") {
   BuildOptions two;
   two.grid = GridKind::kTwoLevel;
-  two.auto_lambda = false;
   two.lambda = 0.5f;
   two.subgrid_threshold = 8;
   struct Case {
@@ -227,7 +226,6 @@ TEST_CASE("two-level grids: sub-grid records, shared refined cells, chunked leav
   // (paper 3.8), so rays enter, leave and resume inside sub-grids.
   BuildOptions two;
   two.grid = GridKind::kTwoLevel;
-  two.auto_lambda = false;
   two.lambda = 0.5f;
   two.subgrid_threshold = 8;
   for (const char* name : {"spherebox", "erw6"}) {
@@ -613,7 +611,6 @@ TEST_CASE("a grid whose occupancy bits do not fit the local store is refused") {
   // 100 KiB of LS are left for them, ~800,000 cells).
   BuildOptions uniform;
   uniform.grid = GridKind::kUniform;
-  uniform.auto_lambda = false;
   const Accel accel(scene.mesh(), uniform);
   REQUIRE(accel.Info().cells > sim::OccupancyBudgetCells(SimConfig{}, 4, 8, true));
   const FrameContext ctx = Context(scene, accel, 8, 8, 0);

@@ -1,0 +1,228 @@
+// The public entry points of rs::Accel as a tracer calls them: arrays of exactly `size`
+// elements at any alignment (each one ending at a guard page, so any read or write past its end
+// faults) give the padded, aligned stream's results for every size 0..100 on every target;
+// misuse (sizes that differ, null arrays, a moved-from Accel, a bad lambda) is an rs::Error, never
+// a crash; lambda is used as given under the default grid kind.
+#include <doctest/doctest.h>
+#include <sys/mman.h>
+#include <unistd.h>
+
+#include <cmath>
+#include <cstdint>
+#include <cstring>
+#include <random>
+#include <string>
+#include <vector>
+
+#include "include/raystream/raystream.h"
+#include "tests/test_util.h"
+
+namespace rs {
+namespace {
+
+// `n` elements of T ending exactly at a PROT_NONE page, `shift` bytes off the page's alignment
+// at the start (so they are unaligned for shift % 64 != 0).
+template <class T>
+class GuardedArray {
+ public:
+  GuardedArray(size_t n, size_t shift) {
+    const size_t page = static_cast<size_t>(sysconf(_SC_PAGESIZE));
+    const size_t bytes = n * sizeof(T) + shift;
+    pages_ = (bytes + page - 1) / page + 1;
+    base_ = static_cast<char*>(
+        mmap(nullptr, pages_ * page, PROT_READ | PROT_WRITE, MAP_PRIVATE | MAP_ANONYMOUS, -1, 0));
+    REQUIRE(base_ != MAP_FAILED);
+    char* guard = base_ + (pages_ - 1) * page;
+    REQUIRE(mprotect(guard, page, PROT_NONE) == 0);
+    data_ = reinterpret_cast<T*>(guard - n * sizeof(T));
+    (void)shift;
+  }
+  ~GuardedArray() { munmap(base_, pages_ * static_cast<size_t>(sysconf(_SC_PAGESIZE))); }
+  GuardedArray(const GuardedArray&) = delete;
+  GuardedArray& operator=(const GuardedArray&) = delete;
+  T* data() { return data_; }
+
+ private:
+  char* base_ = nullptr;
+  size_t pages_ = 0;
+  T* data_ = nullptr;
+};
+
+// A closed box of 12 triangles, [-1, 1]^3, and a floor of 32 triangles below it.
+struct Scene {
+  std::vector<float> p;
+  std::vector<uint32_t> idx;
+  MeshView View() const {
+    MeshView m;
+    m.positions = p.data();
+    m.num_vertices = p.size() / 3;
+    m.indices = idx.data();
+    m.num_triangles = idx.size() / 3;
+    return m;
+  }
+};
+
+Scene Box() {
+  Scene s;
+  for (int i = 0; i < 8; ++i) {
+    s.p.insert(s.p.end(), {i & 1 ? 1.f : -1.f, i & 2 ? 1.f : -1.f, i & 4 ? 1.f : -1.f});
+  }
+  const uint32_t faces[6][4] = {{0, 1, 3, 2}, {4, 6, 7, 5}, {0, 4, 5, 1},
+                                {2, 3, 7, 6}, {0, 2, 6, 4}, {1, 5, 7, 3}};
+  for (const auto& f : faces) s.idx.insert(s.idx.end(), {f[0], f[1], f[2], f[0], f[2], f[3]});
+  for (int y = 0; y < 4; ++y) {
+    for (int x = 0; x < 4; ++x) {
+      const uint32_t b = static_cast<uint32_t>(s.p.size() / 3);
+      for (int c = 0; c < 4; ++c) {
+        s.p.insert(s.p.end(), {-4.f + 2.f * float(x + (c & 1)), -2.f, -4.f + 2.f * float(y + (c >> 1))});
+      }
+      s.idx.insert(s.idx.end(), {b, b + 1, b + 3, b, b + 3, b + 2});
+    }
+  }
+  return s;
+}
+
+struct Rays {
+  std::vector<float> f[8];  // ox oy oz dx dy dz tmin tmax
+  explicit Rays(size_t n) {
+    std::mt19937 rng(static_cast<uint32_t>(n) * 7919u + 1u);
+    std::uniform_real_distribution<float> u(-1.f, 1.f);
+    for (auto& v : f) v.resize(n);
+    for (size_t i = 0; i < n; ++i) {
+      // From a ring around the box toward points near it: hits on the box and the floor, misses.
+      const float a = 6.2831853f * float(i) / float(n + 1);
+      f[0][i] = 5 * std::cos(a), f[1][i] = 0.5f * u(rng), f[2][i] = 5 * std::sin(a);
+      f[3][i] = 1.5f * u(rng) - f[0][i], f[4][i] = 1.5f * u(rng) - 1.0f, f[5][i] = 1.5f * u(rng) - f[2][i];
+      f[6][i] = 0, f[7][i] = i % 5 == 0 ? 0.5f : INFINITY;
+    }
+  }
+};
+
+TEST_CASE("arrays of exactly `size` elements, unaligned, next to a guard page: padded results") {
+  const Scene scene = Box();
+  test::ForEachTarget([&](const char* target) {
+    for (const bool packets : {true, false}) {
+      BuildOptions o;
+      o.packets = packets;
+      const Accel accel(scene.View(), o);
+      for (size_t n = 0; n <= 100; n += (n < 20 ? 1 : 7)) {
+        CAPTURE(target);
+        CAPTURE(packets);
+        CAPTURE(n);
+        const Rays r(n);
+        // The reference: padded, aligned copies.
+        const size_t pn = PaddedSize(n);
+        std::vector<std::vector<float>> pad(8);
+        RayStreamView want_rays;
+        float** fields[8] = {&want_rays.ox, &want_rays.oy, &want_rays.oz, &want_rays.dx,
+                             &want_rays.dy, &want_rays.dz, &want_rays.tmin, &want_rays.tmax};
+        alignas(64) static float storage[8][128];
+        alignas(64) static float wt[128], wu[128], wv[128];
+        alignas(64) static int32_t wp[128], wocc[128];
+        for (int a = 0; a < 8; ++a) {
+          std::fill(storage[a], storage[a] + pn, 0.0f);
+          std::copy(r.f[a].begin(), r.f[a].end(), storage[a]);
+          *fields[a] = storage[a];
+        }
+        want_rays.size = n;
+        accel.Intersect(want_rays, HitStreamView{wt, wu, wv, wp, n});
+        accel.Occluded(want_rays, wocc);
+        // The caller's exact arrays, 4 bytes off 64-byte alignment.
+        std::vector<std::unique_ptr<GuardedArray<float>>> g;
+        RayStreamView rays;
+        float** got_fields[8] = {&rays.ox, &rays.oy, &rays.oz, &rays.dx,
+                                 &rays.dy, &rays.dz, &rays.tmin, &rays.tmax};
+        for (int a = 0; a < 8; ++a) {
+          g.push_back(std::make_unique<GuardedArray<float>>(n, 4));
+          std::copy(r.f[a].begin(), r.f[a].end(), g.back()->data());
+          *got_fields[a] = g.back()->data();
+        }
+        rays.size = n;
+        GuardedArray<float> t(n, 4), u(n, 4), v(n, 4);
+        GuardedArray<int32_t> prim(n, 4), occ(n, 4);
+        accel.Intersect(rays, HitStreamView{t.data(), u.data(), v.data(), prim.data(), n});
+        accel.Occluded(rays, occ.data());
+        int hits = 0;
+        for (size_t i = 0; i < n; ++i) {
+          CHECK(prim.data()[i] == wp[i]);
+          CHECK(std::memcmp(&t.data()[i], &wt[i], sizeof(float)) == 0);
+          CHECK(std::memcmp(&u.data()[i], &wu[i], sizeof(float)) == 0);
+          CHECK(std::memcmp(&v.data()[i], &wv[i], sizeof(float)) == 0);
+          CHECK(occ.data()[i] == wocc[i]);
+          CHECK(occ.data()[i] == (prim.data()[i] >= 0 ? 1 : 0));
+          hits += prim.data()[i] >= 0;
+        }
+        if (n >= 20) CHECK(hits > 0);
+      }
+    }
+  });
+}
+
+TEST_CASE("misuse is an rs::Error naming the problem, never a crash") {
+  const Scene scene = Box();
+  Accel accel(scene.View());
+  alignas(64) float a[16] = {}, b[16] = {}, c[16] = {}, d[16] = {};
+  alignas(64) int32_t p[16] = {};
+  RayStreamView rays{a, a, a, b, b, b, c, d};
+  rays.size = 4;
+  auto what = [](auto&& f) {
+    try {
+      f();
+    } catch (const Error& e) {
+      return std::string(e.what());
+    }
+    return std::string();
+  };
+  CHECK(what([&] { accel.Intersect(rays, HitStreamView{a, b, c, p, 5}); }).find("hits.size 5") !=
+        std::string::npos);
+  RayStreamView no_tmin = rays;
+  no_tmin.tmin = nullptr;
+  CHECK(what([&] { accel.Intersect(no_tmin, HitStreamView{a, b, c, p, 4}); }).find("rays.tmin") !=
+        std::string::npos);
+  CHECK(what([&] { accel.Occluded(no_tmin, p); }).find("rays.tmin") != std::string::npos);
+  CHECK(what([&] { accel.Occluded(rays, nullptr); }).find("occluded is null") !=
+        std::string::npos);
+  CHECK(what([&] { accel.Intersect(rays, HitStreamView{a, b, c, nullptr, 4}); })
+            .find("hit array") != std::string::npos);
+  // Empty streams need no arrays.
+  accel.Intersect(RayStreamView{}, HitStreamView{});
+  accel.Occluded(RayStreamView{}, nullptr);
+  const Accel moved = std::move(accel);
+  CHECK(moved.Info().triangles == 44u);
+  CHECK(what([&] { accel.Intersect(rays, HitStreamView{a, b, c, p, 4}); }).find("moved from") !=
+        std::string::npos);
+  CHECK(what([&] { accel.Occluded(rays, p); }).find("moved from") != std::string::npos);
+  CHECK(what([&] { (void)accel.Info(); }).find("moved from") != std::string::npos);
+  BuildOptions bad;
+  bad.lambda = -1;
+  CHECK(what([&] { Accel x(scene.View(), bad); }).find("lambda") != std::string::npos);
+  bad.lambda = NAN;
+  CHECK(what([&] { Accel x(scene.View(), bad); }).find("lambda") != std::string::npos);
+}
+
+TEST_CASE("lambda: 0 lets the cost model choose; a positive lambda is used under every kind") {
+  const Scene scene = Box();
+  for (const GridKind kind : {GridKind::kAuto, GridKind::kUniform, GridKind::kTwoLevel}) {
+    BuildOptions o;
+    o.grid = kind;
+    o.lambda = 2.5f;
+    CHECK(Accel(scene.View(), o).Info().lambda == 2.5f);
+    o.lambda = 0;
+    const float chosen = Accel(scene.View(), o).Info().lambda;
+    if (kind == GridKind::kAuto) {
+      CHECK(chosen > 0);
+    } else {
+      CHECK(chosen == 4.0f);
+    }
+  }
+}
+
+TEST_CASE("version macros and Version() agree") {
+  CHECK(std::string(Version()) == RS_VERSION_STRING);
+  CHECK(std::string(RS_VERSION_STRING) == std::to_string(RS_VERSION_MAJOR) + "." +
+                                              std::to_string(RS_VERSION_MINOR) + "." +
+                                              std::to_string(RS_VERSION_PATCH));
+}
+
+}  // namespace
+}  // namespace rs
