@@ -1,0 +1,115 @@
+/* raystream's C API: the same library (libraystream) behind opaque handles and error codes, for C
+ * programs and for bindings (Rust, Python, ...). Errors are reported like Embree's device errors:
+ * every call that fails returns (or records) an RSError code, the calling thread's last error is
+ * read with rsGetError (which clears it), and an optional callback set with
+ * rsSetErrorFunction receives every error with its message. No call aborts on bad input.
+ * Results are those of the C++ API (include/raystream/raystream.h) bit for bit. */
+#ifndef RAYSTREAM_C_H_
+#define RAYSTREAM_C_H_
+
+#include <stddef.h>
+#include <stdint.h>
+
+#if defined(__GNUC__) || defined(__clang__)
+#define RS_C_API __attribute__((visibility("default")))
+#else
+#define RS_C_API
+#endif
+
+#ifdef __cplusplus
+extern "C" {
+#endif
+
+typedef enum RSError {
+  RS_ERROR_NONE = 0,
+  RS_ERROR_INVALID_ARGUMENT = 1, /* a null or inconsistent argument, a bad option or mesh */
+  RS_ERROR_OUT_OF_MEMORY = 2,
+  RS_ERROR_UNKNOWN = 3
+} RSError;
+
+/* Called on every error with the code and a one-line message (valid during the call only), on
+ * the thread that met the error. NULL removes the callback. Process-wide; set it before other
+ * threads call into the library. */
+typedef void (*RSErrorFunction)(void* user, RSError code, const char* message);
+RS_C_API void rsSetErrorFunction(RSErrorFunction function, void* user);
+/* The calling thread's last error since the previous rsGetError (RS_ERROR_NONE if none), and its
+ * message ("" if none; valid until the thread's next call into the library). rsGetError clears
+ * the code. */
+RS_C_API RSError rsGetError(void);
+RS_C_API const char* rsGetErrorMessage(void);
+
+/* Library version ("0.1.0"). */
+RS_C_API const char* rsGetVersion(void);
+
+/* A caller-owned triangle mesh (as rs::MeshView): xyz float positions with a stride in floats
+ * (>= 3), 3 indices per triangle. The library copies what it needs. */
+typedef struct RSMesh {
+  const float* positions;
+  size_t num_vertices;
+  size_t stride;
+  const uint32_t* indices;
+  size_t num_triangles;
+} RSMesh;
+
+typedef enum RSGridKind { RS_GRID_AUTO = 0, RS_GRID_UNIFORM = 1, RS_GRID_TWO_LEVEL = 2 } RSGridKind;
+
+/* rs::BuildOptions; rsInitBuildOptions fills the defaults. */
+typedef struct RSBuildOptions {
+  float lambda; /* 0: chosen by the grid cost model (RS_GRID_AUTO) or 4; > 0: as given */
+  int max_resolution;
+  RSGridKind grid;
+  int subgrid_threshold;
+  int micro_cache;
+  int empty_skip; /* 0 or 1 */
+  int packets;    /* 0 or 1 */
+} RSBuildOptions;
+RS_C_API void rsInitBuildOptions(RSBuildOptions* options);
+
+/* SoA ray and hit streams (as rs::RayStreamView / HitStreamView): arrays of exactly `size`
+ * elements, any alignment. t in (tmin, tmax]; prim -1 and t +inf on a miss. */
+typedef struct RSRayStream {
+  const float* ox;
+  const float* oy;
+  const float* oz;
+  const float* dx;
+  const float* dy;
+  const float* dz;
+  const float* tmin;
+  const float* tmax;
+  size_t size;
+} RSRayStream;
+
+typedef struct RSHitStream {
+  float* t;
+  float* u;
+  float* v;
+  int32_t* prim;
+  size_t size;
+} RSHitStream;
+
+typedef struct RSAccelInfo {
+  size_t triangles;
+  size_t cells;
+  size_t references;
+  int resolution[3];
+  float lambda;
+  size_t bytes;
+} RSAccelInfo;
+
+/* The acceleration structure. rsNewAccel returns NULL on error (options NULL: the defaults).
+ * A built RSAccel may be traced from several threads at once; rsReleaseAccel(NULL) is a no-op. */
+typedef struct RSAccelTy* RSAccel;
+RS_C_API RSAccel rsNewAccel(const RSMesh* mesh, const RSBuildOptions* options);
+RS_C_API void rsReleaseAccel(RSAccel accel);
+
+/* Closest hits / any hits (occluded[i] = 1 or 0). Return RS_ERROR_NONE, or the error (nothing is
+ * written then): a null accel, stream or array, hits->size != rays->size. */
+RS_C_API RSError rsIntersect(RSAccel accel, const RSRayStream* rays, const RSHitStream* hits);
+RS_C_API RSError rsOccluded(RSAccel accel, const RSRayStream* rays, int32_t* occluded);
+RS_C_API RSError rsGetAccelInfo(RSAccel accel, RSAccelInfo* info);
+
+#ifdef __cplusplus
+}
+#endif
+
+#endif /* RAYSTREAM_C_H_ */
