@@ -1,0 +1,129 @@
+#!/usr/bin/env bash
+# Hostile input and output faults through the `raystream` command (issue 15, the scenes/ rows):
+# every case must exit 1 (never >= 128), print exactly one line "raystream: error: <file>...",
+# and leave nothing behind; valid-but-odd inputs must render with a one-line warning.
+# Full disk: a size-limited write (ulimit -f, RLIMIT_FSIZE). usage: loader_faults.sh RAYSTREAM
+set -uo pipefail
+rs=$(realpath "$1")
+tmp=$(mktemp -d)
+trap 'rm -rf "$tmp"' EXIT
+cd "$tmp" || exit 1
+fails=0 checks=0
+ok() { checks=$((checks+1)); echo "ok   $*"; }
+bad() { checks=$((checks+1)); fails=$((fails+1)); echo "FAIL $*"; }
+
+# expect_error NAME PATTERN CMD...: exit 1, exactly one line on stderr, matching PATTERN.
+expect_error() {
+  local name=$1 pattern=$2; shift 2
+  "$@" >out.txt 2>err.txt </dev/null; local rc=$?
+  local lines; lines=$(wc -l <err.txt)
+  if [ $rc -ne 1 ]; then bad "$name: exit $rc (want 1)"; cat err.txt; return; fi
+  if [ "$lines" -ne 1 ]; then bad "$name: $lines lines on stderr (want 1)"; cat err.txt; return; fi
+  if grep -qE "^raystream: error: $pattern" err.txt; then ok "$name: $(cat err.txt)"
+  else bad "$name: stderr does not match /^raystream: error: $pattern/:"; cat err.txt; fi
+}
+# expect_empty NAME DIR: DIR holds no file at all (hidden temporaries included).
+expect_empty() {
+  if [ -z "$(ls -A "$2")" ]; then ok "$1: nothing left in $2"; else bad "$1: left behind: $(ls -A "$2")"; fi
+}
+
+tri='v 0 0 0\nv 1 0 0\nv 0 1 0\n'
+tri_uv='v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nvt 1 0\nvt 0 1\n'
+
+# Rows 1, 2: output on a full disk (RLIMIT_FSIZE 8 KiB; noise-free renders still exceed it at
+# 160x160 for every format). SIGXFSZ left at its default: the library must not die of it.
+for ext in png jpg bmp tga exr; do
+  mkdir -p "full_$ext"
+  expect_error "full disk .$ext" "full_$ext/x\\.$ext: cannot write image: File too large\$" \
+    bash -c "ulimit -f 8; exec \"\$0\" render --width 160 --height 160 --out full_$ext/x.$ext" "$rs"
+  expect_empty "full disk .$ext" "full_$ext"
+done
+# A frame sequence on a full disk: the first frame fails, nothing left (no temporary).
+mkdir -p seq
+expect_error "full disk, frame sequence" "seq/f0000\\.png: cannot write image: File too large\$" \
+  bash -c "ulimit -f 8; exec \"\$0\" render --width 160 --height 160 --frames 3 --out 'seq/f#.png' -q" "$rs"
+expect_empty "full disk, frame sequence" seq
+
+# Row 17: output into a missing folder or a place that refuses new files: the final path and why.
+expect_error "missing output folder" "nosuch/x\\.png: .*folder 'nosuch' does not exist" \
+  "$rs" render --width 8 --height 8 --out nosuch/x.png
+expect_error "unwritable output folder" "/proc/x\\.png: cannot write image: " \
+  "$rs" render --width 8 --height 8 --out /proc/x.png
+expect_error "output is a directory" "adir\\.png: cannot write image: .*directory" \
+  bash -c 'mkdir -p adir.png && exec "$0" render --width 8 --height 8 --out adir.png' "$rs"
+
+# Row 10: a 254-byte PNG claiming 16000x16000 as map_Kd: a warning, bounded memory and time.
+python3 - <<'PY'
+import struct, zlib
+def chunk(t, d): return struct.pack('>I', len(d)) + t + d + struct.pack('>I', zlib.crc32(t + d) & 0xffffffff)
+def png(w, h, rows):
+    return (b'\x89PNG\r\n\x1a\n' + chunk(b'IHDR', struct.pack('>IIBBBBB', w, h, 8, 2, 0, 0, 0))
+            + chunk(b'IDAT', zlib.compress(rows)) + chunk(b'IEND', b''))
+big = png(16000, 16000, bytes(range(256)) * 2)
+open('big.png', 'wb').write(big + b'\0' * max(0, 254 - len(big)))
+good = png(2, 2, b'\x00' + b'\xff\x00\x00' * 2 + b'\x00' + b'\x00\xff\x00' * 2)
+open('trunc.png', 'wb').write(good[:40])
+bad = bytearray(good); bad[45] ^= 0xff; open('corrupt.png', 'wb').write(bytes(bad))
+PY
+printf "mtllib big.mtl\n${tri_uv}usemtl a\nf 1/1 2/2 3/3\n" >tex.obj
+printf 'newmtl a\nmap_Kd big.png\n' >big.mtl
+start=$(date +%s)
+bash -c "ulimit -v 1500000; exec \"\$0\" info --scene tex.obj" "$rs" >out.txt 2>err.txt; rc=$?
+secs=$(( $(date +%s) - start ))
+if [ $rc -eq 0 ] && [ "$(wc -l <err.txt)" -eq 1 ] && grep -q 'big\.png: image 16000x16000 .* limit' err.txt && [ $secs -lt 20 ]; then
+  ok "16000x16000 texture header under a 1.5 GB limit: $(cat err.txt) (${secs}s)"
+else bad "16000x16000 texture header: exit $rc, ${secs}s"; cat err.txt; fi
+
+# Row 16: corrupt or truncated textures: one warning line, nothing from libpng.
+for t in trunc corrupt; do
+  printf "newmtl a\nmap_Kd $t.png\n" >big.mtl
+  "$rs" info --scene tex.obj >out.txt 2>err.txt; rc=$?
+  if [ $rc -eq 0 ] && [ "$(wc -l <err.txt)" -eq 1 ] && grep -q "^raystream: warning: .*big\.mtl: material 'a': .*$t\.png" err.txt \
+     && ! grep -qi libpng err.txt; then ok "$t texture: $(cat err.txt)"
+  else bad "$t texture: exit $rc"; cat err.txt; fi
+done
+
+# Rows 12, 13: strict .mtl values, errors name the .mtl and its line.
+printf "mtllib m.mtl\n${tri}usemtl a\nf 1 2 3\n" >m.obj
+mtl_case() {
+  printf "$2" >m.mtl
+  expect_error "$1" "$3" "$rs" info --scene m.obj
+}
+mtl_case "mtl Kd nan" 'newmtl a\nKd nan 1 1\n' '\./m\.mtl:2: Kd value .nan. is not a finite number'
+mtl_case "mtl Kd abc" 'newmtl a\nKd abc 1 1\n' "\./m\.mtl:2: Kd: bad number 'abc'"
+mtl_case "mtl Ns 1e39" 'newmtl a\nKd 1 1 1\nNs 1e39\n' '\./m\.mtl:3: Ns value .1e39. is not a finite number'
+mtl_case "mtl d 2" 'newmtl a\nd 2\n' '\./m\.mtl:2: d value 2 outside \[0, 1\]'
+head -c 400 /dev/urandom | tr -d '\n\r' | tr '\000-\010' '\001' >m.mtl
+expect_error "binary mtl" '\./m\.mtl:1: unexpected control character 0x[0-9a-f]{2} \(binary data' "$rs" info --scene m.obj
+
+# Row 14: directories, FIFOs and devices say what they are (a FIFO must not hang).
+mkdir -p dir.obj
+expect_error "directory as scene" 'dir\.obj: is a directory' "$rs" info --scene dir.obj
+mkfifo fifo.obj
+expect_error "FIFO as scene" 'fifo\.obj: is a named pipe \(FIFO\)' timeout 20 "$rs" info --scene fifo.obj
+expect_error "/dev/zero as scene" '/dev/zero: is a character device' timeout 20 "$rs" info --scene /dev/zero
+printf '{"meshes": [{"file": "."}]}' >dot.json
+expect_error 'JSON "file": "."' 'dot\.json: /meshes/0/file: .*: is a directory' "$rs" info --scene dot.json
+rm -f m.mtl; mkdir m.mtl
+expect_error "directory as .mtl" '\./m\.mtl: is a directory' "$rs" info --scene m.obj
+rmdir m.mtl
+
+# Row 15 (and 19's zero-area scenes): degenerate faces name the line.
+printf "${tri}f 1 2 3 1 2 3\n" >deg.obj
+expect_error "repeated corners" 'deg\.obj:4: scene has no triangles: every face is degenerate' "$rs" info --scene deg.obj
+printf 'v 0 0 0\nv 1 0 0\nv 2 0 0\nf 1 2 3\n' >flat.obj
+expect_error "zero-area scene" 'flat\.obj:4: every triangle has zero area' "$rs" info --scene flat.obj
+
+# Row 18: JSON numbers and duplicate keys with line:column.
+box='"meshes": [{"box": {"min": [0,0,0], "max": [1,1,1]}}]'
+printf '{%s,\n "ambient": 1e400}' "$box" >j1.json
+expect_error "JSON 1e400" 'j1\.json:2:13: number 1e400 out of range' "$rs" info --scene j1.json
+printf '{%s,\n "path": {"frames": 18446744073709551615}}' "$box" >j2.json
+expect_error "JSON 2^64-1" 'j2\.json: /path/frames: 18446744073709551615 outside' "$rs" info --scene j2.json
+printf '{%s,\n "path": {"frames": 99999999999999999999}}' "$box" >j3.json
+expect_error "JSON beyond 64 bits" 'j3\.json:2:21: integer 99999999999999999999 out of range' "$rs" info --scene j3.json
+printf '{%s,\n "ambient": 0.5,\n "ambient": 0.7}' "$box" >j4.json
+expect_error "JSON duplicate key" 'j4\.json:3:2: duplicate key "ambient"' "$rs" info --scene j4.json
+
+echo "$checks checks, $fails failed"
+[ $fails -eq 0 ]
