@@ -133,21 +133,26 @@ class QuietStderr {
  public:
   QuietStderr() : lock_(Mutex()) {
     if (::fcntl(2, F_GETFD) == -1) return;  // stderr closed: nothing to protect
+    // One memory file for the process, emptied for each use (cheap: no syscalls to create).
+    static const int mem = ::memfd_create("raystream-stderr", MFD_CLOEXEC);
+    if (mem < 0 || ::ftruncate(mem, 0) != 0 || ::lseek(mem, 0, SEEK_SET) != 0) return;
     std::fflush(stderr);
-    mem_ = ::memfd_create("raystream-stderr", MFD_CLOEXEC);
-    if (mem_ < 0) return;
     saved_ = ::fcntl(2, F_DUPFD_CLOEXEC, 3);
-    if (saved_ < 0 || ::dup2(mem_, 2) < 0) {
-      if (saved_ >= 0) ::close(saved_);
-      ::close(mem_);
-      mem_ = saved_ = -1;
+    if (saved_ < 0) return;
+    if (::dup2(mem, 2) < 0) {
+      ::close(saved_);
+      saved_ = -1;
+      return;
     }
+    mem_ = mem;
   }
   ~QuietStderr() {
     if (mem_ < 0) return;
     std::fflush(stderr);
     ::dup2(saved_, 2);
     ::close(saved_);
+    const off_t size = ::lseek(mem_, 0, SEEK_CUR);
+    if (size <= 0) return;  // the usual case: nothing was printed
     std::string text;
     char buf[4096];
     if (::lseek(mem_, 0, SEEK_SET) == 0) {
@@ -156,7 +161,6 @@ class QuietStderr {
         text.append(buf, static_cast<size_t>(n));
       }
     }
-    ::close(mem_);
     size_t pos = 0;
     while (pos < text.size()) {
       size_t end = text.find('\n', pos);
@@ -522,6 +526,8 @@ Texture ReadImage(const std::string& path, const ImageReadLimits& limits) {
          path, spec.width, spec.height, file_size);
   }
   if (channels > 64) Fail("{}: image has {} channels (at most 64)", path, channels);
+  // Small images: decode on this thread (OIIO would start worker threads for each read).
+  if (pixels < (uint64_t{1} << 20)) in->threads(1);
   // Read the colour channels only: rgb directly, or the first channel of grey (+ alpha).
   const int read_channels = channels >= 3 ? 3 : 1;
   Texture tex;
