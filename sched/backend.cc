@@ -2,6 +2,8 @@
 
 #include <fmt/core.h>
 
+#include "scenes/image_io.h"  // WriteFileAtomically
+
 #include <thread>
 #include <utility>
 
@@ -15,8 +17,8 @@ Accel Backend::Build(const Scene& scene, const BuildOptions& build, int /*image_
 
 std::string Backend::Summary(std::span<const FrameReport>) const { return {}; }
 
-void WriteFrameReports(const std::string& path, const std::string& scene, const Backend& backend,
-                       std::span<const FrameReport> frames) {
+std::string FrameReportsText(const std::string& path, const std::string& scene,
+                             const Backend& backend, std::span<const FrameReport> frames) {
   std::vector<HostFrameStats> stats;
   StatsExtra extra;
   extra.backend = std::string(backend.name());
@@ -31,7 +33,12 @@ void WriteFrameReports(const std::string& path, const std::string& scene, const 
   }
   if (!frame_fields) extra.frames.clear();
   if (!worker_fields) extra.threads.clear();
-  WriteHostStats(path, scene, backend.options(), stats, extra);
+  return HostStatsText(path, scene, backend.options(), stats, extra);
+}
+
+void WriteFrameReports(const std::string& path, const std::string& scene, const Backend& backend,
+                       std::span<const FrameReport> frames) {
+  WriteFileAtomically(path, FrameReportsText(path, scene, backend, frames), "statistics");
 }
 
 void BackendRegistry::Add(std::string name, std::string help, Factory make) {

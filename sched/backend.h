@@ -95,6 +95,9 @@ class Backend {
 // JSON if path ends in ".json", CSV if ".csv". Throws rs::Error as WriteHostStats does.
 void WriteFrameReports(const std::string& path, const std::string& scene, const Backend& backend,
                        std::span<const FrameReport> frames);
+// The same file's text (HostStatsText), for staging.
+std::string FrameReportsText(const std::string& path, const std::string& scene,
+                             const Backend& backend, std::span<const FrameReport> frames);
 
 // The backends by name. The command registers what it links (RegisterHostBackends,
 // sim::RegisterCellBackend, RegisterMpiBackend); tests may register their own.

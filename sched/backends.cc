@@ -3,6 +3,8 @@
 // JSON / CSV export of their per-frame, per-thread and per-tile statistics.
 #include "sched/backends.h"
 
+#include "scenes/image_io.h"  // WriteFileAtomically
+
 #include <fmt/core.h>
 #include <nlohmann/json.hpp>
 
@@ -1684,9 +1686,9 @@ bool StatsFileFormatOk(const std::string& path) {
   return EndsWith(path, ".json") || EndsWith(path, ".csv");
 }
 
-void WriteHostStats(const std::string& path, const std::string& scene,
-                    const BackendOptions& options, std::span<const HostFrameStats> frames,
-                    const StatsExtra& extra) {
+std::string HostStatsText(const std::string& path, const std::string& scene,
+                          const BackendOptions& options, std::span<const HostFrameStats> frames,
+                          const StatsExtra& extra) {
   if (!StatsFileFormatOk(path)) {
     throw Error(fmt::format("{}: statistics file must end in .json or .csv", path));
   }
@@ -1728,11 +1730,13 @@ void WriteHostStats(const std::string& path, const std::string& scene,
     j["frames"] = list;
     text << j.dump(2) << "\n";
   }
-  std::ofstream f(path);
-  if (!f) throw Error(fmt::format("{}: cannot write statistics file", path));
-  f << text.str();
-  f.flush();
-  if (!f) throw Error(fmt::format("{}: cannot write statistics file", path));
+  return text.str();
+}
+
+void WriteHostStats(const std::string& path, const std::string& scene,
+                    const BackendOptions& options, std::span<const HostFrameStats> frames,
+                    const StatsExtra& extra) {
+  WriteFileAtomically(path, HostStatsText(path, scene, options, frames, extra), "statistics");
 }
 
 }  // namespace rs

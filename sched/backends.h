@@ -239,6 +239,12 @@ struct StatsExtra {
 void WriteHostStats(const std::string& path, const std::string& scene,
                     const BackendOptions& options, std::span<const HostFrameStats> frames,
                     const StatsExtra& extra = {});
+// The same file's text (the format from path's extension), for a caller that stages several
+// outputs and places them together (scenes/image_io.h StageFile). WriteHostStats writes it
+// atomically: the whole file or nothing at `path`.
+std::string HostStatsText(const std::string& path, const std::string& scene,
+                          const BackendOptions& options, std::span<const HostFrameStats> frames,
+                          const StatsExtra& extra = {});
 bool StatsFileFormatOk(const std::string& path);
 
 }  // namespace rs

@@ -75,7 +75,9 @@ bool MpiBuilt();
 
 // Hidden --dump-raw format, for exact comparisons between backends: "RSFB" (4 bytes), int32
 // width, int32 height (little endian, host order), then width * height * 3 int64 sums.
-// Written through a temporary name and renamed. Throws rs::Error naming the path.
+// Written atomically (scenes/image_io.h). Throws rs::Error naming the path.
 void WriteRawFramebuffer(const std::string& path, const Framebuffer& fb);
+// The file's bytes, for staging.
+std::string RawFramebufferBytes(const Framebuffer& fb);
 
 }  // namespace rs

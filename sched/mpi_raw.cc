@@ -8,6 +8,7 @@
 
 #include "include/raystream/raystream.h"
 #include "sched/mpi_backend.h"
+#include "scenes/image_io.h"  // WriteFileAtomically
 
 namespace rs {
 
@@ -19,25 +20,16 @@ bool MpiBuilt() {
 #endif
 }
 
+std::string RawFramebufferBytes(const Framebuffer& fb) {
+  const int32_t size[2] = {fb.width(), fb.height()};
+  std::string bytes = "RSFB";
+  bytes.append(reinterpret_cast<const char*>(size), sizeof(size));
+  bytes.append(reinterpret_cast<const char*>(fb.sums()), fb.num_pixels() * 3 * sizeof(int64_t));
+  return bytes;
+}
+
 void WriteRawFramebuffer(const std::string& path, const Framebuffer& fb) {
-  const std::string tmp = path + ".tmp";
-  {
-    std::ofstream f(tmp, std::ios::binary | std::ios::trunc);
-    if (!f) throw Error(fmt::format("{}: cannot open for writing", path));
-    const int32_t size[2] = {fb.width(), fb.height()};
-    f.write("RSFB", 4);
-    f.write(reinterpret_cast<const char*>(size), sizeof(size));
-    f.write(reinterpret_cast<const char*>(fb.sums()),
-            static_cast<std::streamsize>(fb.num_pixels() * 3 * sizeof(int64_t)));
-    if (!f) {
-      std::remove(tmp.c_str());
-      throw Error(fmt::format("{}: write failed", path));
-    }
-  }
-  if (std::rename(tmp.c_str(), path.c_str()) != 0) {
-    std::remove(tmp.c_str());
-    throw Error(fmt::format("{}: cannot rename the temporary file into place", path));
-  }
+  WriteFileAtomically(path, RawFramebufferBytes(fb), "raw framebuffer");
 }
 
 }  // namespace rs

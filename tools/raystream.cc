@@ -1,16 +1,21 @@
 // The `raystream` command: render a scene to an image, or print what a scene and its grid hold.
 // Every user-input problem ends in one clear line on stderr and a non-zero exit status.
 #include <CLI/CLI.hpp>
+#include <fcntl.h>
 #include <fmt/core.h>
 #include <nlohmann/json.hpp>
 #include <unistd.h>
 
+#include <cerrno>
 #include <chrono>
+#include <cmath>
+#include <csignal>
 #include <cstdio>
+#include <cstring>
 #include <exception>
 #include <optional>
-#include <fstream>
 #include <string>
+#include <system_error>
 #include <thread>
 #include <vector>
 
@@ -422,6 +427,10 @@ int RunRender(RenderArgs args) {
   options.order = args.order == "block" ? RayOrder::kBlock4x2 : RayOrder::kScanline;
   const std::string out = args.out.empty() ? args.scene + ".png" : args.out;
   const bool tty = isatty(fileno(stderr)) != 0;
+  // Every output can be written (folder exists, writable, a known image format) before any work.
+  CheckImageOutputPath(FrameFileName(out, 0));
+  if (!args.stats.empty()) CheckOutputPath(args.stats);
+  if (!args.dump_raw.empty()) CheckOutputPath(FrameFileName(args.dump_raw, 0));
 
   const BackendRegistry registry = Backends();
   const std::unique_ptr<Backend> backend =
@@ -443,24 +452,43 @@ int RunRender(RenderArgs args) {
   const bool owner = backend->owns_image();
   if (owner && !note.empty() && !args.quiet) fmt::print(stderr, "raystream: note: {}\n", note);
   const AccelInfo info = accel->Info();
+  if (owner && info.triangles > 0 && info.degenerate_triangles == info.triangles) {
+    fmt::print(stderr,
+               "raystream: warning: {}: all {} triangles have zero area or a non-finite vertex "
+               "and are never hit; the image shows the background only\n",
+               scene->source, info.triangles);
+  }
 
   std::vector<FrameReport> reports;
   reports.reserve(owner ? static_cast<size_t>(args.frames) : 0);
+  // Every output of the run is staged (a complete, fsynced temporary beside its target) and put
+  // in place only when all of them are: a failed run writes nothing, not frame 0 when frame 2
+  // fails, not the image when the statistics fail (scenes/image_io.h). Staged files that are
+  // not committed remove their temporaries; SIGINT and SIGTERM remove them too (Main).
+  std::vector<StagedFile> staged;
   std::vector<float> rgb;
   const auto write = [&](int frame) {
     const Framebuffer& fb = *backend->image();
     if (fb.storage() == Framebuffer::Storage::kResolved) {
-      WriteImage(FrameFileName(out, frame), args.width, args.height, fb.resolved());
+      staged.push_back(StageImage(FrameFileName(out, frame), args.width, args.height, fb.resolved()));
     } else {
       fb.ToRgb(rgb);
-      WriteImage(FrameFileName(out, frame), args.width, args.height, rgb);
+      staged.push_back(StageImage(FrameFileName(out, frame), args.width, args.height, rgb));
     }
-    if (!args.dump_raw.empty()) WriteRawFramebuffer(FrameFileName(args.dump_raw, frame), fb);
+    if (!args.dump_raw.empty()) {
+      staged.push_back(StageFile(FrameFileName(args.dump_raw, frame), RawFramebufferBytes(fb),
+                                 "raw framebuffer"));
+    }
   };
   const int last = args.frames - 1;
   for (int frame = 0; frame <= last; ++frame) {
     const Camera camera = scene->path.At(frame, args.speed, scene->camera);
-    const FrameContext ctx = MakeFrameContext(*scene, *accel, camera, options);
+    FrameContext ctx;
+    try {
+      ctx = MakeFrameContext(*scene, *accel, camera, options);
+    } catch (const Error& e) {
+      throw Error(fmt::format("{}: camera path frame {}: {}", scene->source, frame, e.what()));
+    }
     backend->BeginFrame(ctx);
     const FrameReport& report = backend->EndFrame();
     if (!owner) continue;
@@ -492,7 +520,12 @@ int RunRender(RenderArgs args) {
                "incomplete\n",
                total.budget_dropped, args.ray_budget);
   }
-  if (!args.stats.empty()) WriteFrameReports(args.stats, scene->name, *backend, reports);
+  if (!args.stats.empty()) {
+    staged.push_back(StageFile(args.stats, FrameReportsText(args.stats, scene->name, *backend,
+                                                           reports),
+                               "statistics"));
+  }
+  for (StagedFile& f : staged) f.Commit();
   if (args.quiet) return 0;
   fmt::print("scene      {}: {} triangles, {} lights, grid {} {}x{}x{}\n", scene->name,
              info.triangles, scene->lights.size(), info.kind, info.resolution[0],
@@ -527,7 +560,50 @@ int RunRender(RenderArgs args) {
   return 0;
 }
 
+// One line on stderr; never throws (a closed or full stderr loses the line, nothing else).
+void PrintError(const char* kind, const std::string& what) noexcept {
+  std::fprintf(stderr, "raystream: %s: %s\n", kind, what.c_str());
+  std::fflush(stderr);
+}
+
+// Everything written to stdout reached it, or the run fails (e.g. `info >/dev/full`).
+int FlushStdout(int status) {
+  errno = 0;
+  if (std::fflush(stdout) != 0 || std::ferror(stdout)) {
+    throw Error(fmt::format("cannot write to standard output: {}",
+                            errno != 0 ? std::strerror(errno) : "write error"));
+  }
+  return status;
+}
+
+void CheckFinite(const char* option, float value) {
+  if (!std::isfinite(value)) throw Error(fmt::format("{} {}: must be a finite number", option, value));
+}
+
+// SIGINT, SIGTERM, SIGHUP: remove this process's temporary outputs, then die of the signal.
+extern "C" void OnSignal(int sig) {
+  RemoveTemporaries();
+  signal(sig, SIG_DFL);
+  raise(sig);
+}
+
+// A closed stdin, stdout or stderr (`2>&-`) becomes /dev/null, so that no output of ours lands in
+// a file that later takes its number, and writing to it cannot fail.
+void OpenStdio() {
+  for (int fd = 0; fd <= 2; ++fd) {
+    if (fcntl(fd, F_GETFD) == -1 && errno == EBADF) {
+      const int got = open("/dev/null", fd == 0 ? O_RDONLY : O_WRONLY);
+      if (got != fd && got >= 0) close(got);
+    }
+  }
+}
+
 int Main(int argc, char** argv) {
+  OpenStdio();
+  struct sigaction action = {};
+  action.sa_handler = OnSignal;
+  sigemptyset(&action.sa_mask);
+  for (const int sig : {SIGINT, SIGTERM, SIGHUP}) sigaction(sig, &action, nullptr);
   CLI::App app{"raystream: SIMD ray-stream kernels, render and inspect scenes"};
   app.require_subcommand(1);
   app.set_version_flag("--version", std::string(Version()));
@@ -550,7 +626,7 @@ int Main(int argc, char** argv) {
   render->add_option("--speed", r.speed, "camera speed along the path (1 or 2)")
       ->check(CLI::Range(0.0f, 64.0f))
       ->capture_default_str();
-  render->add_option("--out", r.out,
+  CLI::Option* out_option = render->add_option("--out", r.out,
                      "output image (default SCENE.png); a '#' becomes the frame number and "
                      "writes every frame, otherwise only the last frame is written");
   render->add_option("--backend", r.backend,
@@ -586,6 +662,13 @@ int Main(int argc, char** argv) {
                      "counts; cell: its simulated cycles; lock, lfree, local: work only)")
       ->check(CLI::IsMember({"wall", "cpu", "work"}));
   render->add_option("--seed", r.seed, "seed of PBT-Random and static assignments")
+      ->check(CLI::Validator(
+          [](std::string& v) {
+            return v.find_first_not_of("0123456789") == std::string::npos && !v.empty()
+                       ? std::string()
+                       : std::string("expected a non-negative integer");
+          },
+          "UINT", "non-negative integer"))
       ->capture_default_str();
   render->add_flag("--steal", r.steal,
                    "PBT: a thread done with its tiles takes waiting tiles of the most loaded "
@@ -636,8 +719,13 @@ int Main(int argc, char** argv) {
 
   CLI11_PARSE(app, argc, argv);
   try {
-    if (*render) return RunRender(r);
-    if (*info) return RunInfo(i);
+    if (out_option->count() > 0 && r.out.empty()) throw Error("--out '': empty file name");
+    CheckFinite("--speed", r.speed);
+    CheckFinite("--cutoff", r.cutoff);
+    CheckFinite("--lambda", r.lambda);
+    CheckFinite("--lambda", i.lambda);
+    if (*render) return FlushStdout(RunRender(r));
+    if (*info) return FlushStdout(RunInfo(i));
     if (*scenes) {
       fmt::print("procedural:");
       for (const auto& n : ProceduralSceneNames()) fmt::print(" {}", n);
@@ -645,13 +733,19 @@ int Main(int argc, char** argv) {
       for (const auto& n : BuiltinSceneFileNames()) fmt::print(" {}", n);
       fmt::print("\nsearch path ($RAYSTREAM_SCENES first):\n");
       for (const auto& d : SceneSearchPath()) fmt::print("  {}\n", d);
-      return 0;
+      return FlushStdout(0);
     }
   } catch (const Error& e) {
-    fmt::print(stderr, "raystream: error: {}\n", e.what());
+    PrintError("error", e.what());
+    return 1;
+  } catch (const std::system_error& e) {  // fmt: a write to stdout failed (full disk, pipe)
+    PrintError("error", std::string("cannot write to standard output: ") + e.what());
+    return 1;
+  } catch (const std::bad_alloc&) {
+    PrintError("error", "out of memory");
     return 1;
   } catch (const std::exception& e) {
-    fmt::print(stderr, "raystream: internal error: {}\n", e.what());
+    PrintError("internal error", e.what());
     return 2;
   }
   return 0;
