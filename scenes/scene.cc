@@ -219,6 +219,26 @@ void ValidateSceneAs(const Scene& scene, const std::string& label) {
     CheckCamera(scene.path.keys[k], label, fmt::format("path key {}", k));
   }
   if (scene.path.frames < 1) Fail("{}: path: frames {} < 1", label, scene.path.frames);
+  // Between two keys the view direction is interpolated linearly: d(f) = da + f (db - da). If
+  // it (nearly) vanishes for some f in [0, 1], the eye meets look_at at that frame. Checked at
+  // load time, so no frame is rendered (and written) before the bad one.
+  const std::vector<Camera>& keys = scene.path.keys;
+  for (size_t k = 0; k + 1 < keys.size() && scene.path.frames > 1; ++k) {
+    const glm::dvec3 da(keys[k].look_at - keys[k].eye);
+    const glm::dvec3 db(keys[k + 1].look_at - keys[k + 1].eye);
+    const glm::dvec3 dd = db - da;
+    const double dd2 = glm::dot(dd, dd);
+    const double f = dd2 > 0.0 ? std::clamp(-glm::dot(da, dd) / dd2, 0.0, 1.0) : 0.0;
+    const glm::dvec3 d = da + f * dd;
+    const double scale = std::max(glm::dot(da, da), glm::dot(db, db));
+    if (glm::dot(d, d) <= 1e-10 * scale) {
+      const double frame = (static_cast<double>(k) + f) *
+                           static_cast<double>(scene.path.frames - 1) /
+                           static_cast<double>(keys.size() - 1);
+      Fail("{}: path keys {} and {}: the eye meets look_at between them (frame {:.0f} at speed 1)",
+           label, k, k + 1, frame);
+    }
+  }
   if (!Finite(scene.background)) Fail("{}: background is not finite", label);
   if (!std::isfinite(scene.ambient) || scene.ambient < 0.0f) {
     Fail("{}: ambient {} must be finite and >= 0", label, scene.ambient);

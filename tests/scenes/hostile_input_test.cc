@@ -329,6 +329,25 @@ TEST_CASE("scene file: 1e400, integers beyond 64 bits, above 2^63, duplicate key
   CHECK(s.path.frames == 3);
 }
 
+// ---- Row 5: a camera path whose eye meets look_at between keys is a load-time error -------
+
+TEST_CASE("scene file: a path through its own look_at names the keys and the frame") {
+  const std::string box = R"("meshes": [{"box": {"min": [0,0,0], "max": [1,1,1]}}])";
+  // The eye moves from z = 5 to z = -5 through the fixed look_at (0, 0, 0): frame 2 of 5.
+  ExpectError(
+      [&] {
+        ParseSceneJsonText("{" + box + R"(, "path": {"frames": 5, "keys": [
+            {"eye": [0,0,5], "look_at": [0,0,0]}, {"eye": [0,0,-5], "look_at": [0,0,0]}]}})",
+                           "p.json");
+      },
+      {"p.json: path keys 0 and 1: the eye meets look_at between them (frame 2 at speed 1)"});
+  // Passing beside the target is fine.
+  const Scene s = ParseSceneJsonText("{" + box + R"(, "path": {"frames": 5, "keys": [
+      {"eye": [0,1,5], "look_at": [0,0,0]}, {"eye": [0,1,-5], "look_at": [0,0,0]}]}})",
+                                     "p.json");
+  CHECK(s.path.keys.size() == 2);
+}
+
 // ---- Row 10, 16: texture headers checked before allocating; corrupt files print nothing -------
 
 TEST_CASE("texture: a 16000x16000 header in a small file is refused before any allocation") {
