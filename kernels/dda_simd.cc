@@ -31,6 +31,7 @@
 // a moment ago has issued) and the lane is tested one iteration later. Testing at once instead
 // stalled on that prefetch while it was still in flight: 10-12 % slower on the room scenes
 // (sponza, office-graz, conference, primary and shadow rays, AVX3). It never changes a result.
+#include "streams/ray_stream.h"  // AllocateAlignedOrThrow
 #include "kernels/dda_simd.h"
 
 #include <cfloat>
@@ -1022,15 +1023,13 @@ void BuildDdaGrid(const Grid& grid, const TwoLevelGrid* two_level, const Triangl
     size_t blocks = 0;
     for (size_t c = 0; c < grid.num_cells; ++c) blocks += rings[c] >= 2;
     out->empty_block_share = double(blocks) / double(grid.num_cells);
-    out->skip = hwy::AllocateAligned<uint32_t>(rings.size() / 4);
-    HWY_ASSERT(out->skip);
+    out->skip = AllocateAlignedOrThrow<uint32_t>(rings.size() / 4, "the grid's empty-space rings");
     for (size_t w = 0; w < rings.size() / 4; ++w) {
       out->skip[w] = uint32_t(rings[4 * w]) | uint32_t(rings[4 * w + 1]) << 8 |
                      uint32_t(rings[4 * w + 2]) << 16 | uint32_t(rings[4 * w + 3]) << 24;
     }
   }
-  out->bits = hwy::AllocateAligned<uint32_t>(total);
-  HWY_ASSERT(out->bits);
+  out->bits = AllocateAlignedOrThrow<uint32_t>(total, "the grid's occupancy bits");
   for (size_t w = 0; w < words64; ++w) {
     out->bits[2 * w] = uint32_t(grid.occupancy[w]);
     out->bits[2 * w + 1] = uint32_t(grid.occupancy[w] >> 32);

@@ -2,6 +2,7 @@
 // offsets, then one pass over the CSR lists gathering 9 floats per reference, a vector of
 // references at a time (hardware gathers where the target has them). Per-target code;
 // foreach_target re-includes this file.
+#include "streams/ray_stream.h"  // AllocateAlignedOrThrow
 #include "kernels/tri_packets.h"
 
 #include <algorithm>
@@ -98,8 +99,7 @@ HWY_EXPORT(FillPacketCells);
 
 template <typename T>
 void Grow(hwy::AlignedFreeUniquePtr<T[]>* p, size_t n) {
-  *p = hwy::AllocateAligned<T>(n == 0 ? 1 : n);
-  HWY_ASSERT(*p);
+  *p = AllocateAlignedOrThrow<T>(n == 0 ? 1 : n, "the grid's triangle packets");
 }
 
 // Makes room for `packets` packets and `cells` cells (contents are not kept).

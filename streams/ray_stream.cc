@@ -1,7 +1,9 @@
 // Owning SoA ray, hit and contribution buffers (see ray_stream.h).
 #include "streams/ray_stream.h"
 
+#include <cstdio>
 #include <limits>
+#include <string>
 
 namespace rs {
 
@@ -16,6 +18,16 @@ const char* RayKindName(RayKind kind) {
 }
 
 const char* Version() { return RS_VERSION; }
+
+void ThrowOutOfMemory(size_t bytes, const char* what) {
+  char size[32];
+  if (bytes >= (size_t{1} << 30)) {
+    std::snprintf(size, sizeof(size), "%.1f GiB", double(bytes) / double(size_t{1} << 30));
+  } else {
+    std::snprintf(size, sizeof(size), "%.1f MiB", double(bytes) / double(size_t{1} << 20));
+  }
+  throw Error(std::string("out of memory: cannot allocate ") + size + " for " + what);
+}
 
 void RayStream::Reserve(size_t capacity) {
   for (auto* a : {&ox_, &oy_, &oz_, &dx_, &dy_, &dz_, &tmin_, &tmax_, &wr_, &wg_, &wb_}) {

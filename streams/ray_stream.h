@@ -13,6 +13,18 @@
 
 namespace rs {
 
+// Throws rs::Error "out of memory: cannot allocate <size> for <what>" (the allocation that failed
+// and how much; an exhausted memory is never an assert abort).
+[[noreturn]] void ThrowOutOfMemory(size_t bytes, const char* what);
+
+// hwy::AllocateAligned<T>(n), or ThrowOutOfMemory naming `what`.
+template <typename T>
+hwy::AlignedFreeUniquePtr<T[]> AllocateAlignedOrThrow(size_t n, const char* what) {
+  auto p = hwy::AllocateAligned<T>(n);
+  if (!p) ThrowOutOfMemory(n * sizeof(T), what);
+  return p;
+}
+
 // One aligned array of T with capacity rounded up to kStreamPad.
 template <typename T>
 class AlignedArray {
@@ -36,8 +48,7 @@ template <typename T>
 void AlignedArray<T>::Reserve(size_t capacity) {
   const size_t padded = PaddedSize(capacity);
   if (padded <= capacity_ && ptr_) return;
-  auto grown = hwy::AllocateAligned<T>(padded);
-  HWY_ASSERT(grown);
+  auto grown = AllocateAlignedOrThrow<T>(padded, "a ray, hit or contribution stream");
   for (size_t i = 0; i < capacity_; ++i) grown[i] = ptr_[i];
   for (size_t i = capacity_; i < padded; ++i) grown[i] = T{};
   ptr_ = std::move(grown);

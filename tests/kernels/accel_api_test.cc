@@ -15,6 +15,7 @@
 #include <vector>
 
 #include "include/raystream/raystream.h"
+#include "streams/ray_stream.h"
 #include "tests/test_util.h"
 
 namespace rs {
@@ -214,6 +215,17 @@ TEST_CASE("lambda: 0 lets the cost model choose; a positive lambda is used under
     } else {
       CHECK(chosen == 4.0f);
     }
+  }
+}
+
+TEST_CASE("an allocation that fails is an rs::Error naming what and how much, not an abort") {
+  try {
+    (void)AllocateAlignedOrThrow<float>(size_t{1} << 44, "the test's rays");  // 64 TiB
+    FAIL("64 TiB allocated");
+  } catch (const Error& e) {
+    const std::string what = e.what();
+    CHECK(what.find("out of memory: cannot allocate 65536.0 GiB for the test's rays") !=
+          std::string::npos);
   }
 }
 
