@@ -159,6 +159,27 @@ inline void Shade(const Scene& scene, const ShadeOptions& options, const RayStre
 // integer space, so the offset scales with |p|, and by 2^-16 * n in absolute terms for
 // coordinates within 1/32 of 0 (where ulps become tiny). n must be unit length and point to the
 // side the new ray leaves toward. p must be finite.
+// The power of two that brings m (> 0, the largest edge component) into [1, 2): its exponent
+// clamped so that the factor stays a normal float (m of 0, inf or NaN keep their meaning).
+inline float EdgeScale(float m) {
+  int32_t e = (std::bit_cast<int32_t>(m) >> 23) & 0xFF;
+  e = e < 1 ? 1 : (e > 253 ? 253 : e);
+  return std::bit_cast<float>((254 - e) << 23);
+}
+
+// The unit face normal of (p0, p1, p2) by winding: normalize(cross(p1 - p0, p2 - p0)) with both
+// edges first scaled by EdgeScale of their largest component. Scaling by a power of two is
+// exact, so the result is the unscaled expression's bit for bit wherever that one neither
+// overflows nor underflows, and triangles of 1e14 or 1e-15 units (whose cross product leaves
+// the float range) keep a normal. The SIMD shading kernel computes the same (FaceNormal3).
+inline glm::vec3 FaceNormal(const glm::vec3& p0, const glm::vec3& p1, const glm::vec3& p2) {
+  const glm::vec3 e1 = p1 - p0, e2 = p2 - p0;
+  float m = 0.0f;
+  for (int a = 0; a < 3; ++a) m = std::fmax(m, std::fmax(std::fabs(e1[a]), std::fabs(e2[a])));
+  const float s = EdgeScale(m);
+  return glm::normalize(glm::cross(e1 * s, e2 * s));
+}
+
 inline glm::vec3 OffsetRayOrigin(const glm::vec3& p, const glm::vec3& n) {
   constexpr float kOrigin = 1.0f / 32.0f;
   constexpr float kFloatScale = 1.0f / 65536.0f;
