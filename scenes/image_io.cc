@@ -237,6 +237,79 @@ std::string Lower(std::string s) {
   return s;
 }
 
+// OpenEXR sizes its line-offset table from the header's dataWindow inside ImageInput::open,
+// before OIIO hands us a spec: a 299-byte file claiming 2^28 lines allocates 1.8 GB there (a
+// texture_fuzz finding). So the dataWindow of every header (multi-part files have several) is
+// read here first. Layout: magic 76 2f 31 01, version word, then per header attributes
+// "name\0type\0<int32 size><value>" ending with an empty name; dataWindow is a box2i (4 int32
+// LE: xmin ymin xmax ymax). Returns false if the file is not EXR or no dataWindow was found
+// (OIIO then reports the error); `pixels` is the largest window, UINT64_MAX for a corrupt header.
+bool ExrLargestWindow(const std::string& path, uint64_t file_size, uint64_t& pixels,
+                      std::string& why) {
+  const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
+  if (fd < 0) return false;
+  unsigned char buf[1 << 16];
+  ssize_t n = 0, got;
+  while (n < static_cast<ssize_t>(sizeof(buf)) &&
+         (got = ::read(fd, buf + n, sizeof(buf) - static_cast<size_t>(n))) > 0) {
+    n += got;
+  }
+  ::close(fd);
+  const size_t size = static_cast<size_t>(std::max<ssize_t>(n, 0));
+  if (size < 8 || std::memcmp(buf, "v/1\x01", 4) != 0) return false;
+  const bool multipart = (buf[5] & 0x10) != 0;  // version word bit 12
+  auto le32 = [&](size_t at) {
+    return static_cast<int32_t>(
+        static_cast<uint32_t>(buf[at]) | static_cast<uint32_t>(buf[at + 1]) << 8 |
+        static_cast<uint32_t>(buf[at + 2]) << 16 | static_cast<uint32_t>(buf[at + 3]) << 24);
+  };
+  auto cstring = [&](size_t& at, std::string_view& out) {
+    const void* end = std::memchr(buf + at, 0, size - at);
+    if (end == nullptr) return false;
+    const size_t len = static_cast<size_t>(static_cast<const unsigned char*>(end) - (buf + at));
+    out = std::string_view(reinterpret_cast<const char*>(buf + at), len);
+    at += len + 1;
+    return true;
+  };
+  size_t at = 8;
+  bool found = false;
+  pixels = 0;
+  for (;;) {  // headers
+    bool header_empty = true;
+    for (;;) {  // attributes
+      std::string_view name, type;
+      if (at >= size || !cstring(at, name)) return found;
+      if (name.empty()) break;
+      header_empty = false;
+      if (!cstring(at, type) || at + 4 > size) return found;
+      const int32_t len = le32(at);
+      at += 4;
+      // OpenEXR allocates an attribute's declared size before reading it (a texture_fuzz
+      // finding: 'capDate' claiming 1.7 GB in a 299-byte file).
+      if (len < 0 || static_cast<uint64_t>(len) > file_size - at) {
+        why = fmt::format("EXR attribute '{}' claims {} bytes", name.substr(0, 40), len);
+        pixels = UINT64_MAX;
+        return true;
+      }
+      if (static_cast<size_t>(len) > size - at) return found;  // beyond what was read
+      if (name == "dataWindow" && type == "box2i" && len == 16) {
+        const int64_t w = static_cast<int64_t>(le32(at + 8)) - le32(at) + 1;
+        const int64_t h = static_cast<int64_t>(le32(at + 12)) - le32(at + 4) + 1;
+        if (w <= 0 || h <= 0) {
+          why = fmt::format("EXR dataWindow is empty ({}x{})", w, h);
+          pixels = UINT64_MAX;
+          return true;
+        }
+        pixels = std::max(pixels, static_cast<uint64_t>(w) * static_cast<uint64_t>(h));
+        why = fmt::format("EXR dataWindow {}x{}", w, h);
+        found = true;
+      }
+      at += static_cast<size_t>(len);
+    }
+    if (!multipart || header_empty) return found;
+  }
+}
+
 std::atomic<uint64_t> g_max_pixels{ImageReadLimits{}.max_pixels};
 std::atomic<uint64_t> g_max_pixels_per_byte{ImageReadLimits{}.max_pixels_per_byte};
 
@@ -499,6 +572,14 @@ Texture ReadImage(const std::string& path, const ImageReadLimits& limits) {
   // Only regular files: OIIO would block forever on a FIFO and read /dev/zero without end.
   const uint64_t file_size = detail::RegularFileSize(path, "image");
   if (file_size == 0) Fail("{}: cannot read image: the file is empty", path);
+  uint64_t exr_pixels = 0;
+  std::string exr_what;
+  if (ExrLargestWindow(path, file_size, exr_pixels, exr_what) &&
+      (exr_pixels > limits.max_pixels ||
+       (limits.max_pixels_per_byte > 0 && exr_pixels / limits.max_pixels_per_byte >= file_size))) {
+    Fail("{}: {} in a {}-byte file: corrupt, or more than the limit of {} pixels for textures",
+         path, exr_what, file_size, limits.max_pixels);
+  }
   // Keep colours as stored: OIIO would premultiply by alpha, darkening a texture's rgb.
   OIIO::ImageSpec config;
   config.attribute("oiio:UnassociatedAlpha", 1);

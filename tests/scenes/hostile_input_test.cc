@@ -380,6 +380,13 @@ TEST_CASE("texture: a 16000x16000 header in a small file is refused before any a
   huge.max_pixels = uint64_t{1} << 32;
   ExpectError([&] { ReadImage(path, huge); },
               {path, "claims 16000x16000", "only 168 bytes (corrupt or truncated)"});
+  // Regression (texture_fuzz): an EXR attribute claiming 1.7 GB made OpenEXR allocate it inside
+  // OIIO's open(), before any spec; the header is now checked first.
+  const std::string exr =
+      dir.Write("attr.exr", std::string("v/1\x01\x02\0\0\0capDate\0string\0\x61\x74\x6e\x65", 27) +
+                                std::string(200, '\x0d'));
+  ExpectError([&] { ReadImage(exr); },
+              {exr, "EXR attribute 'capDate' claims 1701737569 bytes", "corrupt"});
   // The configurable limit: a real 64x64 image above a 1000-pixel limit.
   WriteImage(dir.File("small.png"), 64, 64, std::vector<float>(64 * 64 * 3, 0.5f));
   ImageReadLimits limits;
