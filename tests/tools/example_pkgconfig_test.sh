@@ -66,7 +66,12 @@ find_package(raystream 0.1 REQUIRED)
 add_executable(trace_quad "$src/examples/trace_quad.cc")
 target_link_libraries(trace_quad PRIVATE raystream::raystream)
 CMAKE
+  # raystream_DIR: the installed package's folder (libdir/cmake/raystream; libdir is lib64 where
+  # meson cannot tell the multiarch folder, e.g. without dpkg-dev).
+  cfg=$(find "$stage" -name raystreamConfig.cmake | head -1)
+  [ -n "$cfg" ] || fail "raystreamConfig.cmake was not installed"
   cmake -G Ninja -S "$stage/cm" -B "$stage/cm/build" -DCMAKE_PREFIX_PATH="$stage$prefix" \
+    -Draystream_DIR="$(dirname "$cfg")" \
     -DCMAKE_CXX_FLAGS="${extra[*]}" >"$stage/cm.log" 2>&1 || { cat "$stage/cm.log"; fail "cmake configure"; }
   cmake --build "$stage/cm/build" >>"$stage/cm.log" 2>&1 || { cat "$stage/cm.log"; fail "cmake build"; }
   LD_LIBRARY_PATH="$libdir" "$stage/cm/build/trace_quad" >"$stage/cm.out"
