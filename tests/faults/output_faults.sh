@@ -9,26 +9,9 @@ set -uo pipefail
 rs=$(realpath "$1")
 tmp=$(mktemp -d)
 trap 'chmod -R u+w "$tmp"; rm -rf "$tmp"' EXIT
+. "$(dirname "$0")/fault_lib.sh"  # before the cd: $0 may be relative
 cd "$tmp" || exit 1
-fails=0 checks=0
-ok() { checks=$((checks+1)); echo "ok   $*"; }
-bad() { checks=$((checks+1)); fails=$((fails+1)); echo "FAIL $*"; }
 small=(--width 48 --height 32 --depth 1 -q)
-
-# expect_error NAME PATTERN CMD...: exit 1, exactly one line on stderr matching PATTERN.
-expect_error() {
-  local name=$1 pattern=$2; shift 2
-  "$@" >out.txt 2>err.txt </dev/null; local rc=$?
-  local lines; lines=$(wc -l <err.txt)
-  if [ $rc -ne 1 ]; then bad "$name: exit $rc (want 1)"; cat err.txt; return; fi
-  if [ "$lines" -ne 1 ]; then bad "$name: $lines lines on stderr (want 1)"; cat err.txt; return; fi
-  if grep -qE "^raystream: error: $pattern" err.txt; then ok "$name: $(cat err.txt)"
-  else bad "$name: stderr does not match /^raystream: error: $pattern/:"; cat err.txt; fi
-}
-# expect_empty NAME DIR: DIR holds no file at all (hidden temporaries included).
-expect_empty() {
-  if [ -z "$(ls -A "$2")" ]; then ok "$1: nothing left in $2"; else bad "$1: left behind: $(ls -A "$2")"; fi
-}
 
 # 1, 2: a full disk, as a file size limit of 4 KiB (the 256x256 image needs more): every format.
 for ext in png jpg bmp tga exr; do
