@@ -41,6 +41,14 @@ struct TriPacketSpan {
   size_t lanes() const { return kPacketLanes * count; }
 };
 
+// Triangles (not padding lanes) in a span's packets.
+inline size_t SpanTriangles(const TriPacketSpan& s) {
+  if (s.count == 0) return 0;
+  const int32_t* last = s.ids + kPacketLanes * (s.count - 1);
+  return kPacketLanes * (s.count - 1) + size_t(last[0] >= 0) + size_t(last[1] >= 0) +
+         size_t(last[2] >= 0) + size_t(last[3] >= 0);
+}
+
 // All cells' packets: cell c owns packets [cell_begin[c], cell_begin[c + 1]); its block starts
 // at data[kPacketFloats * cell_begin[c]] and its ids at ids[kPacketLanes * cell_begin[c]].
 // Empty cells own no packet. Arrays are 64-B aligned; total size about (refs + 1.5 * occupied

@@ -1,6 +1,6 @@
 // Two-level grid: sub-grid records for dense cells (conservative 8x8x8 binning of the parent
 // cell's list), the leaf lists, the SAH-style cost model that decides which cells to refine and
-// which lambda to use, and the scalar traversal over both levels.
+// which lambda to use (the scalar traversal over both levels is kernels/dda.cc's).
 #include "kernels/two_level.h"
 
 #include <algorithm>
@@ -10,9 +10,7 @@
 #include <string>
 #include <vector>
 
-#include "kernels/dda.h"
 #include "kernels/grid_binning.h"
-#include "kernels/two_level_dda.h"
 
 namespace rs {
 namespace {
@@ -315,184 +313,6 @@ float ChooseLambda(const TriangleSoA& tris, const GridBounds& bounds, int max_re
   }
   if (cost != nullptr) *cost = best_cost;
   return best;
-}
-
-namespace {
-
-// The ids of the last 8 triangles tested by this ray (as kernels/dda.cc).
-class Mailbox {
- public:
-  bool Contains(uint32_t id) const {
-    bool found = false;
-    for (const uint32_t m : ids_) found |= m == id;
-    return found;
-  }
-  void Insert(uint32_t id) { ids_[next_++ & 7u] = id; }
-
- private:
-  uint32_t ids_[8] = {UINT32_MAX, UINT32_MAX, UINT32_MAX, UINT32_MAX,
-                      UINT32_MAX, UINT32_MAX, UINT32_MAX, UINT32_MAX};
-  uint32_t next_ = 0;
-};
-
-// kernels/dda.cc's Traverse, plus: occupied refined cells are traversed through their sub-grid
-// (TraverseSubGrid) and leaves are tested from the leaf lists.
-template <bool kAnyHit>
-bool Traverse(const Grid& grid, const TwoLevelGrid& two, const TriangleSoA& tris, float ox,
-              float oy, float oz, float dx, float dy, float dz, float tmin, float tmax,
-              RayHit* hit, TraceStats* stats) {
-  if (grid.empty() || !RayIsValid(ox, oy, oz, dx, dy, dz)) return false;
-  const float tmax_f = tmax > FLT_MAX ? FLT_MAX : tmax;  // NaN stays NaN
-  if (!(tmin < tmax_f)) return false;
-
-  DdaRay r;
-  r.o[0] = ox;
-  r.o[1] = oy;
-  r.o[2] = oz;
-  r.d[0] = dx;
-  r.d[1] = dy;
-  r.d[2] = dz;
-  float t0 = tmin, t1 = tmax_f;
-  for (int a = 0; a < 3; ++a) {
-    const float inv = 1.0f / r.d[a];
-    const bool parallel = !(r.d[a] != 0.0f && std::isfinite(inv));
-    if (parallel) {
-      r.inv_d[a] = 0.0f;
-      r.step[a] = 0;
-      if (r.o[a] < grid.lo[a] || r.o[a] > grid.hi[a]) return false;
-      continue;
-    }
-    r.inv_d[a] = inv;
-    r.step[a] = r.d[a] > 0.0f ? 1 : -1;
-    float ta = (grid.lo[a] - r.o[a]) * inv;
-    float tb = (grid.hi[a] - r.o[a]) * inv;
-    if (ta > tb) std::swap(ta, tb);
-    t0 = ta > t0 ? ta : t0;
-    t1 = tb < t1 ? tb : t1;
-  }
-  if (!(t0 <= t1)) return false;
-  r.t1 = t1;
-
-  int cell[3];
-  float t_next[3];
-  size_t idx = 0;
-  const size_t stride[3] = {1, size_t(grid.res[0]), size_t(grid.res[0]) * size_t(grid.res[1])};
-  for (int a = 0; a < 3; ++a) {
-    const float p = r.o[a] + t0 * r.d[a];
-    const float f = (p - grid.lo[a]) * grid.inv_cell_size[a];
-    int c = f >= 0.0f ? (f < float(grid.res[a]) ? int(f) : grid.res[a] - 1) : 0;  // NaN -> 0
-    if (c >= grid.res[a]) c = grid.res[a] - 1;
-    cell[a] = c;
-    idx += size_t(c) * stride[a];
-    if (r.step[a] == 0) {
-      t_next[a] = std::numeric_limits<float>::infinity();
-    } else {
-      const int boundary = c + (r.step[a] > 0 ? 1 : 0);
-      t_next[a] = (grid.lo[a] + float(boundary) * grid.cell_size[a] - r.o[a]) * r.inv_d[a];
-    }
-  }
-
-  const WatertightRay ray = PrepareWatertightRay(ox, oy, oz, dx, dy, dz);
-  const float* v[3][3];
-  for (int k = 0; k < 3; ++k) {
-    v[k][0] = tris.p[k][ray.kx].data();
-    v[k][1] = tris.p[k][ray.ky].data();
-    v[k][2] = tris.p[k][ray.kz].data();
-  }
-  const bool flat = two.empty();
-  const uint32_t* list_begin = flat ? grid.cell_begin.get() : two.leaves.cell_begin.get();
-  const uint32_t* list_ids = flat ? grid.tri_ids.get() : two.leaves.tri_ids.get();
-  const uint64_t* occupancy = grid.occupancy.get();
-
-  Mailbox mailbox;
-  uint64_t cell_steps = 0, triangle_tests = 0;
-  float best_t = tmax_f;
-  uint32_t best_prim = UINT32_MAX;
-  TriHit best{};
-  bool found = false;
-  // Tests leaf `leaf`; true iff any-hit found.
-  auto visit = [&](size_t leaf) {
-    const uint32_t end = list_begin[leaf + 1];
-    for (uint32_t k = list_begin[leaf]; k < end; ++k) {
-      const uint32_t id = list_ids[k];
-      if (mailbox.Contains(id)) continue;
-      mailbox.Insert(id);
-      ++triangle_tests;
-      TriHit th;
-      if (!IntersectWatertightPermuted(ray, v[0][0][id], v[0][1][id], v[0][2][id], v[1][0][id],
-                                       v[1][1][id], v[1][2][id], v[2][0][id], v[2][1][id],
-                                       v[2][2][id], tmin, best_t, &th)) {
-        continue;
-      }
-      if constexpr (kAnyHit) {
-        found = true;
-        return true;
-      } else {
-        if (th.t < best_t || id < best_prim) {
-          best_t = th.t;
-          best_prim = id;
-          best = th;
-          found = true;
-        }
-      }
-    }
-    return false;
-  };
-  float t_enter = t0;
-  int enter_axis = -1;
-  for (;;) {
-    ++cell_steps;
-    const float t_exit = std::fmin(t_next[0], std::fmin(t_next[1], t_next[2]));
-    if ((occupancy[idx >> 6] >> (idx & 63)) & 1u) {
-      if (!flat && two.Refined(idx)) {
-        const SubExit e = TraverseSubGrid(two.Record(idx), r, t_enter, enter_axis, &best_t,
-                                          &cell_steps, visit);
-        if (e != SubExit::kLeft) break;
-      } else if (visit(idx)) {
-        break;
-      }
-    }
-    if (best_t <= t_exit || t1 <= t_exit) break;
-    const int a = t_next[0] < t_next[1] ? (t_next[0] < t_next[2] ? 0 : 2)
-                                        : (t_next[1] < t_next[2] ? 1 : 2);
-    cell[a] += r.step[a];
-    if (cell[a] < 0 || cell[a] >= grid.res[a]) break;
-    idx = r.step[a] > 0 ? idx + stride[a] : idx - stride[a];
-    const int boundary = cell[a] + (r.step[a] > 0 ? 1 : 0);
-    t_next[a] = (grid.lo[a] + float(boundary) * grid.cell_size[a] - r.o[a]) * r.inv_d[a];
-    t_enter = t_exit;
-    enter_axis = a;
-  }
-  if (stats != nullptr) {
-    stats->cell_steps += cell_steps;
-    stats->triangle_tests += triangle_tests;
-  }
-  if constexpr (!kAnyHit) {
-    if (found) {
-      hit->t = best.t;
-      hit->u = best.u;
-      hit->v = best.v;
-      hit->prim = int32_t(best_prim);
-    }
-  }
-  return found;
-}
-
-}  // namespace
-
-bool TraceClosestTwoLevel(const Grid& grid, const TwoLevelGrid& two, const TriangleSoA& tris,
-                          float ox, float oy, float oz, float dx, float dy, float dz, float tmin,
-                          float tmax, RayHit* hit, TraceStats* stats) {
-  hit->t = std::numeric_limits<float>::infinity();
-  hit->u = hit->v = 0.0f;
-  hit->prim = -1;
-  return Traverse<false>(grid, two, tris, ox, oy, oz, dx, dy, dz, tmin, tmax, hit, stats);
-}
-
-bool TraceAnyTwoLevel(const Grid& grid, const TwoLevelGrid& two, const TriangleSoA& tris,
-                      float ox, float oy, float oz, float dx, float dy, float dz, float tmin,
-                      float tmax, TraceStats* stats) {
-  return Traverse<true>(grid, two, tris, ox, oy, oz, dx, dy, dz, tmin, tmax, nullptr, stats);
 }
 
 }  // namespace rs

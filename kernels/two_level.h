@@ -145,8 +145,9 @@ float ChooseLambda(const TriangleSoA& tris, const GridBounds& bounds, int max_re
 
 // Scalar traversal of the two-level grid: TraceClosest / TraceAny (kernels/dda.h) with the same
 // contracts, stepping into a refined cell's sub-grid (TraverseSubGrid in two_level_dda.h) and
-// testing leaf lists with the mailboxed watertight test. `two` may be empty (then this is the
-// flat DDA). The oracle of the SIMD two-level kernels; same cell_steps (top and sub cells).
+// testing leaf lists with the mailboxed watertight test; the same code as the flat DDA
+// (kernels/dda.cc). `two` may be empty (then this is the flat DDA). The oracle of the SIMD
+// two-level kernels; same cell_steps (top and sub cells).
 bool TraceClosestTwoLevel(const Grid& grid, const TwoLevelGrid& two, const TriangleSoA& tris,
                           float ox, float oy, float oz, float dx, float dy, float dz, float tmin,
                           float tmax, RayHit* hit, TraceStats* stats);

@@ -6,18 +6,10 @@
 #include <cstdint>
 #include <limits>
 
+#include "kernels/dda.h"  // DdaRay
 #include "kernels/two_level.h"
 
 namespace rs {
-
-// Per-ray constants of the DDA (kernels/dda.cc computes the same values).
-struct DdaRay {
-  float o[3];
-  float d[3];
-  float inv_d[3];  // 1 / d, 0 on parallel axes
-  int step[3];     // +1 / -1, 0 on parallel axes (d = +-0 or 1 / d not finite)
-  float t1;        // end of the ray's segment inside the grid
-};
 
 enum class SubExit : int {
   kLeft = 0,   // the ray left the sub-grid: continue in the top level
@@ -40,8 +32,7 @@ inline void SubGridStart(const SubGridRecord& rec, const DdaRay& r, float t_ente
     if (r.step[a] == 0) {
       t_next[a] = std::numeric_limits<float>::infinity();
     } else {
-      const int boundary = c[a] + (r.step[a] > 0 ? 1 : 0);
-      t_next[a] = (rec.lo[a] + float(boundary) * rec.cell_size[a] - r.o[a]) * r.inv_d[a];
+      t_next[a] = DdaBoundaryT(rec, r, a, c[a] + (r.step[a] > 0 ? 1 : 0));
     }
   }
 }
@@ -72,8 +63,7 @@ inline SubExit TraverseSubGrid(const SubGridRecord& rec, const DdaRay& r, float 
                                         : (t_next[1] < t_next[2] ? 1 : 2);
     c[a] += r.step[a];
     if (c[a] < 0 || c[a] >= kSubRes) return SubExit::kLeft;
-    const int boundary = c[a] + (r.step[a] > 0 ? 1 : 0);
-    t_next[a] = (rec.lo[a] + float(boundary) * rec.cell_size[a] - r.o[a]) * r.inv_d[a];
+    t_next[a] = DdaBoundaryT(rec, r, a, c[a] + (r.step[a] > 0 ? 1 : 0));
   }
 }
 

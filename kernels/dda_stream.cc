@@ -1,6 +1,7 @@
-// SIMD 3D-DDA over SoA ray streams (one ray per lane, lanes refilled from the stream) and the
-// Cell paper's single-ray form (x y z in lanes). Per-target code; foreach_target re-includes
-// this file. Contracts in kernels/dda_simd.h.
+// SIMD 3D-DDA over SoA ray streams (one ray per lane, lanes refilled from the stream), flat and
+// two-level grids. Per-target code; foreach_target re-includes this file. Contracts in
+// kernels/dda_simd.h; the single-ray form is kernels/dda_single.cc, the DdaGrid it reads is
+// built in kernels/dda_grid.cc.
 //
 // Stream kernel, per iteration of the lane loop (Lanes(d) rays in flight):
 //   1. free lanes take the next rays, whose setup (slab clip, start cell, boundary t, and the
@@ -31,18 +32,18 @@
 // a moment ago has issued) and the lane is tested one iteration later. Testing at once instead
 // stalled on that prefetch while it was still in flight: 10-12 % slower on the room scenes
 // (sponza, office-graz, conference, primary and shadow rays, AVX3). It never changes a result.
-#include "streams/ray_stream.h"  // AllocateAlignedOrThrow
 #include "kernels/dda_simd.h"
 
+#include <algorithm>
 #include <cfloat>
 #include <cmath>
-#include <algorithm>
 #include <cstring>
 #include <limits>
-#include <vector>
+
+#include "streams/ray_stream.h"  // SubView
 
 #undef HWY_TARGET_INCLUDE
-#define HWY_TARGET_INCLUDE "kernels/dda_simd.cc"
+#define HWY_TARGET_INCLUDE "kernels/dda_stream.cc"
 #include <hwy/foreach_target.h>  // IWYU pragma: keep
 #include <hwy/highway.h>         // must follow foreach_target.h
 
@@ -204,13 +205,6 @@ HWY_INLINE uint64_t LaneBits(D d, hn::Mask<D> mask) {
 // Index of the lowest set bit of bits != 0 (the next lane of a LaneBits loop).
 HWY_INLINE size_t LowestLane(uint64_t bits) { return hwy::Num0BitsBelowLS1Bit_Nonzero64(bits); }
 
-// Triangles (not padding lanes) in a leaf's packets.
-inline size_t SpanTriangles(const TriPacketSpan& s) {
-  if (s.count == 0) return 0;
-  const int32_t* last = s.ids + kPacketLanes * (s.count - 1);
-  return kPacketLanes * (s.count - 1) + size_t(last[0] >= 0) + size_t(last[1] >= 0) +
-         size_t(last[2] >= 0) + size_t(last[3] >= 0);
-}
 
 // Output of one kernel call: closest hits or occlusion flags.
 struct StreamOut {
@@ -739,197 +733,6 @@ void OccludedStreamDda(const DdaGrid& g, const RayStreamView& rays, int32_t* occ
   }
 }
 
-// The single-ray form (Cell paper, Listing 1): the ray's x y z DDA state in lanes 0..2 of one
-// 4-lane vector (lane 3 is inert: t_next = +inf, never selected). The next axis comes from two
-// lane rotations and compares instead of branches; cell, index and boundary t are updated with
-// the selected lane's mask. Per cell the work is the same as the scalar loop's, so on a CPU with
-// good branch prediction this form mostly shows what the SPE needed (it has no scalar unit).
-template <bool kAny, bool kTwoLevel>
-HWY_INLINE bool SingleT(const DdaGrid& g, float ox, float oy, float oz, float dx, float dy,
-                        float dz, float tmin, float tmax, RayHit* hit, TraceStats* stats) {
-#if HWY_TARGET == HWY_SCALAR
-  // one lane: no room for x y z; the scalar DDA is the single-ray form here
-  if constexpr (kTwoLevel) {
-    return kAny ? TraceAnyTwoLevel(*g.grid, *g.two_level, *g.tris, ox, oy, oz, dx, dy, dz, tmin,
-                                   tmax, stats)
-                : TraceClosestTwoLevel(*g.grid, *g.two_level, *g.tris, ox, oy, oz, dx, dy, dz,
-                                       tmin, tmax, hit, stats);
-  } else {
-    return kAny ? TraceAny(*g.grid, *g.tris, ox, oy, oz, dx, dy, dz, tmin, tmax, stats)
-                : TraceClosest(*g.grid, *g.tris, ox, oy, oz, dx, dy, dz, tmin, tmax, hit, stats);
-  }
-#else
-  const Grid& grid = *g.grid;
-  if (!RayIsValid(ox, oy, oz, dx, dy, dz)) return false;
-  const float tmax_f = tmax > FLT_MAX ? FLT_MAX : tmax;  // NaN stays NaN
-  if (!(tmin < tmax_f)) return false;
-  // scalar setup, as kernels/dda.cc
-  DdaRay r;
-  r.o[0] = ox;
-  r.o[1] = oy;
-  r.o[2] = oz;
-  r.d[0] = dx;
-  r.d[1] = dy;
-  r.d[2] = dz;
-  float t0 = tmin, t1 = tmax_f;
-  for (int a = 0; a < 3; ++a) {
-    const float inv = 1.0f / r.d[a];
-    if (!(r.d[a] != 0.0f && std::isfinite(inv))) {
-      r.inv_d[a] = 0.0f;
-      r.step[a] = 0;
-      if (r.o[a] < grid.lo[a] || r.o[a] > grid.hi[a]) return false;
-      continue;
-    }
-    r.inv_d[a] = inv;
-    r.step[a] = r.d[a] > 0.0f ? 1 : -1;
-    float ta = (grid.lo[a] - r.o[a]) * inv;
-    float tb = (grid.hi[a] - r.o[a]) * inv;
-    if (ta > tb) {
-      const float tmp = ta;
-      ta = tb;
-      tb = tmp;
-    }
-    t0 = ta > t0 ? ta : t0;
-    t1 = tb < t1 ? tb : t1;
-  }
-  if (!(t0 <= t1)) return false;
-  r.t1 = t1;
-  const int32_t stride[3] = {1, grid.res[0], grid.res[0] * grid.res[1]};
-  HWY_ALIGN int32_t cell_a[4] = {0, 0, 0, 0}, step_a[4] = {0, 0, 0, 0}, up_a[4] = {0, 0, 0, 0};
-  HWY_ALIGN int32_t didx_a[4] = {0, 0, 0, 0};
-  HWY_ALIGN int32_t res_m1_a[4] = {0, 0, 0, std::numeric_limits<int32_t>::max()};
-  HWY_ALIGN float tn_a[4], lo_a[4] = {0, 0, 0, 0}, cs_a[4] = {0, 0, 0, 0};
-  HWY_ALIGN float o_a[4] = {0, 0, 0, 0}, inv_a[4] = {0, 0, 0, 0};
-  int32_t idx = 0;
-  for (int a = 0; a < 3; ++a) {
-    const float p = r.o[a] + t0 * r.d[a];
-    const float f = (p - grid.lo[a]) * grid.inv_cell_size[a];
-    int c = f >= 0.0f ? (f < float(grid.res[a]) ? int(f) : grid.res[a] - 1) : 0;  // NaN -> 0
-    if (c >= grid.res[a]) c = grid.res[a] - 1;
-    cell_a[a] = c;
-    idx += c * stride[a];
-    step_a[a] = r.step[a];
-    up_a[a] = r.step[a] > 0 ? 1 : 0;
-    didx_a[a] = r.step[a] * stride[a];
-    res_m1_a[a] = grid.res[a] - 1;
-    lo_a[a] = grid.lo[a];
-    cs_a[a] = grid.cell_size[a];
-    o_a[a] = r.o[a];
-    inv_a[a] = r.inv_d[a];
-    tn_a[a] = r.step[a] == 0
-                  ? std::numeric_limits<float>::infinity()
-                  : (grid.lo[a] + float(c + up_a[a]) * grid.cell_size[a] - r.o[a]) * r.inv_d[a];
-  }
-  tn_a[3] = std::numeric_limits<float>::infinity();
-
-  const hn::FixedTag<float, 4> d4;
-  const hn::RebindToSigned<decltype(d4)> di4;
-  auto tn = hn::Load(d4, tn_a);
-  auto cell = hn::Load(di4, cell_a);
-  const auto step = hn::Load(di4, step_a), up = hn::Load(di4, up_a), didx = hn::Load(di4, didx_a);
-  const auto res_m1 = hn::Load(di4, res_m1_a), zero_i = hn::Zero(di4);
-  const auto lo = hn::Load(d4, lo_a), cs = hn::Load(d4, cs_a), o = hn::Load(d4, o_a);
-  const auto inv = hn::Load(d4, inv_a);
-  // rotations: r1 = (ty, tz, tx, -), r2 = (tz, tx, ty, -)
-  HWY_ALIGN static constexpr int32_t kRot1[4] = {1, 2, 0, 3};
-  HWY_ALIGN static constexpr int32_t kRot2[4] = {2, 0, 1, 3};
-  const auto rot1 = hn::SetTableIndices(d4, kRot1), rot2 = hn::SetTableIndices(d4, kRot2);
-  // x wins iff tx < ty && tx < tz; y iff ty < tz && ty <= tx; z iff tz <= tx && tz <= ty (the
-  // scalar tie rule); lane 3 compares strictly (inf < inf is false), so it never wins
-  HWY_ALIGN static constexpr int32_t kStrict1[4] = {-1, -1, 0, -1};  // vs r1: x <, y <, z <=
-  HWY_ALIGN static constexpr int32_t kStrict2[4] = {-1, 0, 0, -1};   // vs r2: x <, y <=, z <=
-  const auto strict1 = hn::RebindMask(d4, hn::Lt(hn::Load(di4, kStrict1), zero_i));
-  const auto strict2 = hn::RebindMask(d4, hn::Lt(hn::Load(di4, kStrict2), zero_i));
-
-  const PacketRay pray = MakePacketRay(ox, oy, oz, dx, dy, dz);
-  PacketHit best;
-  best.t = tmax_f;
-  bool found = false;
-  uint64_t steps = 0, tests = 0;
-  auto visit = [&](uint32_t leaf) {
-    const TriPacketSpan span = g.packets.Cell(leaf);
-    tests += SpanTriangles(span);
-    if constexpr (kAny) {
-      found = PacketsWidth<TriTest::kWatertight, true>(pray, span, tmin, tmax_f,
-                                                       PacketWidth::kAuto, nullptr);
-      return found;
-    } else {
-      PacketsWidth<TriTest::kWatertight, false>(pray, span, tmin, tmax_f, PacketWidth::kAuto,
-                                                &best);
-      return false;
-    }
-  };
-  const uint64_t* occupancy = grid.occupancy.get();
-  float t_enter = t0;
-  int enter_axis = -1;
-  for (;;) {
-    ++steps;
-    const auto r1 = hn::TableLookupLanes(tn, rot1), r2 = hn::TableLookupLanes(tn, rot2);
-    const auto m1 = hn::Or(hn::And(strict1, hn::Lt(tn, r1)), hn::AndNot(strict1, hn::Le(tn, r1)));
-    const auto m2 = hn::Or(hn::And(strict2, hn::Lt(tn, r2)), hn::AndNot(strict2, hn::Le(tn, r2)));
-    const auto sel = hn::And(m1, m2);  // exactly one of lanes 0..2
-    const auto sel_i = hn::RebindMask(di4, sel);
-    // t_exit: the selected lane (the others are zeroed; x + 0 = x)
-    const float t_exit = hn::GetLane(hn::SumOfLanes(d4, hn::IfThenElseZero(sel, tn)));
-    if ((occupancy[uint32_t(idx) >> 6] >> (uint32_t(idx) & 63)) & 1u) {
-      bool stop = false;
-      if constexpr (kTwoLevel) {
-        const TwoLevelGrid& two = *g.two_level;
-        if (two.Refined(uint32_t(idx))) {
-          stop = TraverseSubGrid(two.Record(uint32_t(idx)), r, t_enter, enter_axis, &best.t,
-                                 &steps, visit) != SubExit::kLeft;
-        } else {
-          stop = visit(uint32_t(idx));
-        }
-      } else {
-        stop = visit(uint32_t(idx));
-      }
-      if (stop) break;
-    }
-    if (best.t <= t_exit || t1 <= t_exit) break;
-    cell = hn::Add(cell, hn::IfThenElseZero(sel_i, step));
-    if (!hn::AllFalse(di4, hn::And(sel_i, hn::Or(hn::Lt(cell, zero_i), hn::Gt(cell, res_m1))))) {
-      break;
-    }
-    idx += hn::GetLane(hn::SumOfLanes(di4, hn::IfThenElseZero(sel_i, didx)));
-    const auto boundary = hn::ConvertTo(d4, hn::Add(cell, up));
-    tn = hn::IfThenElse(sel, hn::Mul(hn::Sub(hn::Add(lo, hn::Mul(boundary, cs)), o), inv), tn);
-    t_enter = t_exit;
-    enter_axis = int(hn::FindKnownFirstTrue(d4, sel));
-  }
-  if (stats != nullptr) {
-    stats->cell_steps += steps;
-    stats->triangle_tests += tests;
-  }
-  if constexpr (kAny) {
-    return found;
-  } else {
-    if (best.prim < 0) return false;
-    hit->t = best.t;
-    hit->u = best.u;
-    hit->v = best.v;
-    hit->prim = best.prim;
-    return true;
-  }
-#endif
-}
-
-bool IntersectSingleDda(const DdaGrid& g, float ox, float oy, float oz, float dx, float dy,
-                        float dz, float tmin, float tmax, RayHit* hit, TraceStats* stats) {
-  if (g.two_level != nullptr) {
-    return SingleT<false, true>(g, ox, oy, oz, dx, dy, dz, tmin, tmax, hit, stats);
-  }
-  return SingleT<false, false>(g, ox, oy, oz, dx, dy, dz, tmin, tmax, hit, stats);
-}
-
-bool OccludedSingleDda(const DdaGrid& g, float ox, float oy, float oz, float dx, float dy,
-                       float dz, float tmin, float tmax, TraceStats* stats) {
-  if (g.two_level != nullptr) {
-    return SingleT<true, true>(g, ox, oy, oz, dx, dy, dz, tmin, tmax, nullptr, stats);
-  }
-  return SingleT<true, false>(g, ox, oy, oz, dx, dy, dz, tmin, tmax, nullptr, stats);
-}
-
 const char* DdaTargetName() { return hwy::TargetName(HWY_TARGET); }
 
 }  // namespace HWY_NAMESPACE
@@ -941,108 +744,7 @@ namespace rs {
 
 HWY_EXPORT(IntersectStreamDda);
 HWY_EXPORT(OccludedStreamDda);
-HWY_EXPORT(IntersectSingleDda);
-HWY_EXPORT(OccludedSingleDda);
 HWY_EXPORT(DdaTargetName);
-
-size_t DdaGrid::Bytes() const {
-  const size_t records = two_level != nullptr ? two_level->num_records : 0;
-  const size_t skip_bytes = grid != nullptr && skip ? (grid->num_cells + 3) / 4 * 4 : 0;  // 4/word
-  return packets.Bytes() + (top_words32 + records * (kSubCells / 32)) * sizeof(uint32_t) +
-         skip_bytes;
-}
-
-void BuildSkipRings(const Grid& grid, uint8_t* skip) {
-  // Chebyshev distance to the nearest occupied cell, capped at kFar, is separable:
-  // dist = min_z' max(|dz|, min_y' max(|dy|, min_x' |dx|)) over occupied (x', y', z'). Pass 1
-  // takes the 1-D distance along each x row (two sweeps); passes 2 and 3 take windowed min-max
-  // along y and z over whole x rows at once (contiguous bytes: the compiler vectorizes them).
-  constexpr int kFar = kMaxSkipRings + 1;
-  const size_t nx = size_t(grid.res[0]), ny = size_t(grid.res[1]), nz = size_t(grid.res[2]);
-  std::vector<uint8_t> a(grid.num_cells), b(grid.num_cells);
-  for (size_t row = 0; row < ny * nz; ++row) {
-    uint8_t* r = a.data() + row * nx;
-    int dist = kFar;
-    for (size_t x = 0; x < nx; ++x) {
-      dist = grid.Occupied(row * nx + x) ? 0 : std::min(dist + 1, kFar);
-      r[x] = uint8_t(dist);
-    }
-    dist = kFar;
-    for (size_t x = nx; x-- > 0;) {
-      dist = r[x] == 0 ? 0 : std::min(dist + 1, kFar);
-      r[x] = std::min(r[x], uint8_t(dist));
-    }
-  }
-  // out[i] = min over |j - i| <= kFar of max(|j - i|, in[j]), i and j along an axis of `count`
-  // runs of `width` bytes, `pitch` bytes apart, in `blocks` such axes `block_pitch` apart
-  auto window = [&](const uint8_t* in, uint8_t* out, size_t count, size_t width, size_t pitch,
-                    size_t blocks, size_t block_pitch) {
-    for (size_t blk = 0; blk < blocks; ++blk) {
-      for (size_t i = 0; i < count; ++i) {
-        uint8_t* o = out + blk * block_pitch + i * pitch;
-        std::copy_n(in + blk * block_pitch + i * pitch, width, o);
-        const size_t j0 = i >= size_t(kFar) ? i - kFar : 0;
-        const size_t j1 = std::min(count - 1, i + kFar);
-        for (size_t j = j0; j <= j1; ++j) {
-          const uint8_t dj = uint8_t(j > i ? j - i : i - j);
-          const uint8_t* q = in + blk * block_pitch + j * pitch;
-          for (size_t x = 0; x < width; ++x) o[x] = std::min(o[x], std::max(dj, q[x]));
-        }
-      }
-    }
-  };
-  window(a.data(), b.data(), ny, nx, nx, nz, nx * ny);   // along y, x rows
-  window(b.data(), a.data(), nz, nx * ny, nx * ny, 1, 0);  // along z, xy planes
-  for (size_t c = 0; c < grid.num_cells; ++c) skip[c] = uint8_t(a[c] == 0 ? 0 : a[c] - 1);
-}
-
-void BuildDdaGrid(const Grid& grid, const TwoLevelGrid* two_level, const TriangleSoA& tris,
-                  DdaGrid* out) {
-  out->grid = &grid;
-  out->two_level = two_level != nullptr && !two_level->empty() ? two_level : nullptr;
-  out->tris = &tris;
-  out->simd_ok = grid.num_cells < size_t{0x7fffffc0};
-  if (grid.empty()) {
-    out->packets = TriPackets();
-    out->bits.reset();
-    out->skip.reset();
-    out->top_words32 = 0;
-    return;
-  }
-  BuildTriPackets(out->two_level != nullptr ? out->two_level->leaves : grid, tris, &out->packets);
-  // the 64-bit occupancy words as little-endian 32-bit words (a copy: no aliasing), then the
-  // 512 bits of each sub-grid record
-  const size_t words64 = (grid.num_cells + 63) / 64;
-  const size_t records = out->two_level != nullptr ? out->two_level->num_records : 0;
-  out->top_words32 = 2 * words64;
-  const size_t total = out->top_words32 + records * (kSubCells / 32);
-  out->simd_ok = out->simd_ok && total < size_t{0x7fffffc0};
-  {
-    std::vector<uint8_t> rings((grid.num_cells + 3) / 4 * 4, uint8_t{0});
-    BuildSkipRings(grid, rings.data());
-    size_t blocks = 0;
-    for (size_t c = 0; c < grid.num_cells; ++c) blocks += rings[c] >= 2;
-    out->empty_block_share = double(blocks) / double(grid.num_cells);
-    out->skip = AllocateAlignedOrThrow<uint32_t>(rings.size() / 4, "the grid's empty-space rings");
-    for (size_t w = 0; w < rings.size() / 4; ++w) {
-      out->skip[w] = uint32_t(rings[4 * w]) | uint32_t(rings[4 * w + 1]) << 8 |
-                     uint32_t(rings[4 * w + 2]) << 16 | uint32_t(rings[4 * w + 3]) << 24;
-    }
-  }
-  out->bits = AllocateAlignedOrThrow<uint32_t>(total, "the grid's occupancy bits");
-  for (size_t w = 0; w < words64; ++w) {
-    out->bits[2 * w] = uint32_t(grid.occupancy[w]);
-    out->bits[2 * w + 1] = uint32_t(grid.occupancy[w] >> 32);
-  }
-  for (size_t r = 0; r < records; ++r) {
-    uint32_t* dst = out->bits.get() + out->top_words32 + r * (kSubCells / 32);
-    for (int z = 0; z < kSubRes; ++z) {
-      const uint64_t w = out->two_level->records[r].bits[z];
-      dst[2 * z] = uint32_t(w);
-      dst[2 * z + 1] = uint32_t(w >> 32);
-    }
-  }
-}
 
 namespace {
 
@@ -1060,19 +762,11 @@ void ScalarStream(const DdaGrid& g, const RayStreamView& rays, const HitStreamVi
     if (!g.empty()) {
       const float o[3] = {rays.ox[i], rays.oy[i], rays.oz[i]};
       const float d[3] = {rays.dx[i], rays.dy[i], rays.dz[i]};
-      if (hits != nullptr) {
-        any = g.two_level != nullptr
-                  ? TraceClosestTwoLevel(*g.grid, *g.two_level, *g.tris, o[0], o[1], o[2], d[0],
-                                         d[1], d[2], rays.tmin[i], rays.tmax[i], &h, stats)
-                  : TraceClosest(*g.grid, *g.tris, o[0], o[1], o[2], d[0], d[1], d[2],
-                                 rays.tmin[i], rays.tmax[i], &h, stats);
-      } else {
-        any = g.two_level != nullptr
-                  ? TraceAnyTwoLevel(*g.grid, *g.two_level, *g.tris, o[0], o[1], o[2], d[0],
-                                     d[1], d[2], rays.tmin[i], rays.tmax[i], stats)
-                  : TraceAny(*g.grid, *g.tris, o[0], o[1], o[2], d[0], d[1], d[2],
-                             rays.tmin[i], rays.tmax[i], stats);
-      }
+      any = hits != nullptr
+                ? TraceClosestGrid(*g.grid, g.two_level, *g.tris, o[0], o[1], o[2], d[0], d[1],
+                                   d[2], rays.tmin[i], rays.tmax[i], &h, stats)
+                : TraceAnyGrid(*g.grid, g.two_level, *g.tris, o[0], o[1], o[2], d[0], d[1],
+                               d[2], rays.tmin[i], rays.tmax[i], stats);
     }
     if (hits != nullptr) {
       hits->t[i] = h.t;
@@ -1110,34 +804,6 @@ void OccludedStreamDda(const DdaGrid& g, const RayStreamView& rays, int32_t* occ
     const RayStreamView part = SubView(rays, first, std::min(kMaxChunk, rays.size - first));
     HWY_DYNAMIC_DISPATCH(OccludedStreamDda)(g, part, occluded + first, options, stats);
   }
-}
-
-bool IntersectSingleDda(const DdaGrid& g, float ox, float oy, float oz, float dx, float dy,
-                        float dz, float tmin, float tmax, RayHit* hit, TraceStats* stats) {
-  *hit = RayHit{std::numeric_limits<float>::infinity(), 0.0f, 0.0f, -1};
-  if (stats != nullptr) ++stats->rays;
-  if (g.empty()) return false;
-  if (!g.simd_ok) {
-    return g.two_level != nullptr
-               ? TraceClosestTwoLevel(*g.grid, *g.two_level, *g.tris, ox, oy, oz, dx, dy, dz,
-                                      tmin, tmax, hit, stats)
-               : TraceClosest(*g.grid, *g.tris, ox, oy, oz, dx, dy, dz, tmin, tmax, hit, stats);
-  }
-  return HWY_DYNAMIC_DISPATCH(IntersectSingleDda)(g, ox, oy, oz, dx, dy, dz, tmin, tmax, hit,
-                                                  stats);
-}
-
-bool OccludedSingleDda(const DdaGrid& g, float ox, float oy, float oz, float dx, float dy,
-                       float dz, float tmin, float tmax, TraceStats* stats) {
-  if (stats != nullptr) ++stats->rays;
-  if (g.empty()) return false;
-  if (!g.simd_ok) {
-    return g.two_level != nullptr
-               ? TraceAnyTwoLevel(*g.grid, *g.two_level, *g.tris, ox, oy, oz, dx, dy, dz, tmin,
-                                  tmax, stats)
-               : TraceAny(*g.grid, *g.tris, ox, oy, oz, dx, dy, dz, tmin, tmax, stats);
-  }
-  return HWY_DYNAMIC_DISPATCH(OccludedSingleDda)(g, ox, oy, oz, dx, dy, dz, tmin, tmax, stats);
 }
 
 const char* DdaTargetName() { return HWY_DYNAMIC_DISPATCH(DdaTargetName)(); }
