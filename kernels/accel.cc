@@ -135,9 +135,10 @@ Accel::Accel(const MeshView& mesh, const BuildOptions& options) : impl_(std::mak
   m.packets = options.packets;
   // A jump costs a gather and the exact boundary search (dda_simd.cc: JumpEmpty), several
   // plain steps' worth, and steps are not what bounds the stream kernel on real scenes (the
-  // triangle tests and lane refills are): bench/dda_bench.cc (Dda vs DdaNoSkip) measured 6-20 %
-  // slower with skipping on bunny (49 % of cells in empty blocks) and spherebox (12 %) in spite of
-  // 2-4x fewer steps, no change on conference, and 2.7x faster on the sparse "corners" grid.
+  // triangle tests and lane refills are): bench/kernels/dda_bench.cc (Dda vs DdaNoSkip) measured
+  // 6-20 % slower with skipping on bunny (49 % of cells in empty blocks) and spherebox (12 %) in
+  // spite of 2-4x fewer steps, no change on conference, and 2.7x faster on the sparse "corners"
+  // grid.
   m.dda_options.empty_skip = options.empty_skip && m.dda.empty_block_share >= kEmptySkipMinShare;
   m.flat_cost_estimate = FlatGridCost(m.grid, model);
   m.cost_estimate = TwoLevelGridCost(m.grid, m.two_level, model);

@@ -11,10 +11,11 @@ namespace rs::sim {
 
 // Timing of the MFC, the memory interface controller (MIC) and the atomic unit, from the hardware
 // facts of shared/CELL-FACTS.md section 1 (cited per field) at 3.2 GHz (1 cycle = 0.3125 ns,
-// 25.6 GB/s = 8 B/cycle). Nothing here is fitted to the paper's Table 1: bench/load_cost_bench.cc
-// reports how far the Table 1 micro-benchmarks (sim/load_bench.h) land from it. The one latency
-// figure is Kistler, Perrone, Petrini (IEEE Micro 26(3), 2006): one 128-B line in < 100 ns, about
-// 320 cycles, issue to data in LS as the SPU sees it; kLineRoundTripCycles below.
+// 25.6 GB/s = 8 B/cycle). Nothing here is fitted to the paper's Table 1:
+// bench/sim/load_cost_bench.cc reports how far the Table 1 micro-benchmarks (sim/load_bench.h) land
+// from it. The one latency figure is Kistler, Perrone, Petrini (IEEE Micro 26(3), 2006): one 128-B
+// line in < 100 ns, about 320 cycles, issue to data in LS as the SPU sees it; kLineRoundTripCycles
+// below.
 struct MemoryTiming {
   // Kistler et al.: a 128-B DMA completes in < 100 ns = 320 cycles at 3.2 GHz (CELL-FACTS
   // section 1, "DMA latency"; section 4 rule 6: "calibrate L0 so that one line takes about

@@ -1,7 +1,7 @@
 // The micro-benchmarks behind Table 1 of the Cell paper (section 3.4): average SPU cycles to
 // load 8 bytes from main memory through the software cache, a synchronous / asynchronous DMA,
 // and a synchronous / asynchronous atomic (getllar) load, run on the simulated MFC. A probe of
-// the memory model for tests/sim/load_cost_test and bench/load_cost_bench (its own static
+// the memory model for tests/sim/load_cost_test and bench/sim/load_cost_bench (its own static
 // library, not part of libraystream).
 #pragma once
 

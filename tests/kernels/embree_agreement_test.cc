@@ -11,8 +11,8 @@
 #include <string>
 #include <vector>
 
-#include "bench/embree_peer.h"
-#include "bench/ray_sets.h"
+#include "bench/peer/embree_peer.h"
+#include "bench/peer/ray_sets.h"
 #include "include/raystream/raystream.h"
 #include "kernels/reference.h"
 #include "scenes/load.h"

@@ -16,12 +16,12 @@
 #include <utility>
 #include <vector>
 
-#include "bench/icosphere.h"
 #include "include/raystream/raystream.h"
 #include "kernels/accel_impl.h"
 #include "kernels/grid.h"
 #include "kernels/grid_binning.h"
 #include "kernels/reference.h"
+#include "scenes/icosphere.h"
 #include "streams/ray_stream.h"
 #include "tests/kernels/geometry_util.h"
 #include "tests/test_util.h"
@@ -156,7 +156,7 @@ AccelInfo CheckBoundedAndExact(const std::string& what, const MeshView& mesh, Gr
 // centre) aimed exactly at `per_kind` vertices and `per_kind` edge midpoints: o + d = target in
 // real arithmetic, so each ray crosses the closed surface where triangles meet.
 struct SphereCase {
-  bench::Icosphere ico;
+  Icosphere ico;
   std::vector<float> positions;
   std::vector<uint32_t> indices;
   Rays r;
@@ -167,7 +167,7 @@ struct SphereCase {
 
 void MakeSphereCase(const std::array<double, 3>& c, double snap, double lattice, size_t per_kind,
                     SphereCase* s) {
-  s->ico = bench::MakeIcosphere(6, 1.0, c, snap);
+  s->ico = MakeIcosphere(6, 1.0, c, snap);
   for (const auto& v : s->ico.v) s->positions.insert(s->positions.end(), {v[0], v[1], v[2]});
   for (const auto& t : s->ico.tri) s->indices.insert(s->indices.end(), {t[0], t[1], t[2]});
   std::vector<std::pair<uint32_t, uint32_t>> edges;

@@ -17,7 +17,6 @@
 #include <thread>
 #include <vector>
 
-#include "bench/icosphere.h"
 #include "include/raystream/raystream.h"
 #include "kernels/accel_impl.h"
 #include "kernels/dda.h"
@@ -26,6 +25,7 @@
 #include "kernels/packet_dda.h"
 #include "kernels/triangle.h"
 #include "kernels/two_level.h"
+#include "scenes/icosphere.h"
 #include "scenes/load.h"
 #include "streams/ray_stream.h"
 #include "tests/kernels/dda_util.h"
@@ -284,8 +284,8 @@ TEST_CASE("shared scenes: camera and shadow packets equal the scalar DDA") {
 }
 
 TEST_CASE("closed sphere at 1e5: packets of rays at vertices and edges from inside never leak") {
-  // bench/icosphere.h: coordinates snapped so that edge midpoints and o + d are exact floats
-  const bench::Icosphere ico = bench::MakeIcosphere(4, 100.0, {1e5, 1e5, 1e5}, 64.0);
+  // scenes/icosphere.h: coordinates snapped so that edge midpoints and o + d are exact floats
+  const Icosphere ico = MakeIcosphere(4, 100.0, {1e5, 1e5, 1e5}, 64.0);
   Soup s;
   for (const auto& v : ico.v) s.AddVertex(v[0], v[1], v[2]);
   for (const auto& t : ico.tri) s.indices.insert(s.indices.end(), {t[0], t[1], t[2]});

@@ -20,7 +20,7 @@
 #include "scenes/load.h"
 #include "sched/framebuffer.h"
 #include "sched/render.h"
-#include "tests/sched/hand_scenes.h"
+#include "tests/support/hand_scenes.h"
 #include "tests/test_util.h"
 
 namespace rs {

@@ -11,7 +11,7 @@
 #include <vector>
 
 #include "sched/framebuffer.h"
-#include "tests/sched/hand_scenes.h"
+#include "tests/support/hand_scenes.h"
 
 namespace rs {
 namespace {

@@ -18,7 +18,6 @@
 #include <utility>
 #include <vector>
 
-#include "bench/icosphere.h"
 #include "include/raystream/raystream.h"
 #include "kernels/grid.h"
 #include "kernels/tri_intersect.h"
@@ -27,6 +26,7 @@
 #include "streams/ray_stream.h"
 #include "tests/kernels/geometry_util.h"
 #include "tests/kernels/spawn_util.h"
+#include "tests/support/watertight.h"
 #include "tests/test_util.h"
 
 namespace rs {
@@ -832,16 +832,17 @@ TEST_CASE("no self-hit: spawned rays never hit their large triangle, every targe
 // ---------------------------------------------------------------------------------------------
 // Watertightness stress (the issue's figure): 1e6 rays (1e5 in debug and sanitizer builds) from
 // inside a closed 81920-triangle icosphere at (1e5, 1e5, 1e5), aimed exactly at its vertices and
-// edge midpoints (bench/icosphere.h). Each ray is tested against the triangles around its target
-// (the vertex fan or the edge's two triangles) on every target, 1 x packets at each width and N x
-// 1; the watertight kernels never miss and agree with the scalar oracle ray by ray; rs::Accel,
-// tracing the whole mesh, never misses either. bench/robust_bench adds Embree's counts beside ours.
+// edge midpoints (tests/support/watertight.h). Each ray is tested against the triangles around
+// its target (the vertex fan or the edge's two triangles) on every target, 1 x packets at each
+// width and N x 1; the watertight kernels never miss and agree with the scalar oracle ray by ray;
+// rs::Accel, tracing the whole mesh, never misses either. bench/kernels/robust_bench adds
+// Embree's counts beside ours.
 TEST_CASE(
     "watertight stress: 1e6 rays from inside a closed icosphere at 1e5 through its "
     "vertices and edge midpoints") {
   const size_t num_rays = test::kSlowBuild ? 100000 : 1000000;
-  bench::WatertightSetup ws;
-  const std::string error = bench::MakeWatertightSetup(6, num_rays, &ws);
+  test::WatertightSetup ws;
+  const std::string error = test::MakeWatertightSetup(6, num_rays, &ws);
   REQUIRE(error.empty());
   REQUIRE(ws.ico.tri.size() == 81920);
   const RayStreamView rv = ws.rays.view();

@@ -9,7 +9,7 @@
 #include <thread>
 
 #include "sched/backends.h"
-#include "tests/sched/hand_scenes.h"
+#include "tests/support/hand_scenes.h"
 
 extern "C" {
 void* __libc_malloc(size_t size);

@@ -9,7 +9,7 @@
 #include <vector>
 
 #include "sched/backends.h"
-#include "tests/sched/hand_scenes.h"
+#include "tests/support/hand_scenes.h"
 
 namespace rs {
 namespace {

@@ -14,7 +14,7 @@
 #include <vector>
 
 #include "scenes/load.h"
-#include "tests/sched/hand_scenes.h"
+#include "tests/support/hand_scenes.h"
 
 namespace rs {
 namespace {

@@ -14,7 +14,7 @@
 #include <vector>
 
 #include "sched/render.h"
-#include "tests/sched/hand_scenes.h"
+#include "tests/support/hand_scenes.h"
 
 namespace rs {
 namespace {

@@ -1,10 +1,10 @@
 // The load-cost micro-benchmarks of the Cell paper's Table 1 (sim/load_bench.h) as a probe of the
 // simulated memory system: its own properties and the hardware facts it is built from
-// (shared/CELL-FACTS.md), never the paper's five figures (bench/load_cost_bench.cc reports those).
-// A synchronous load costs one 128-B line round trip (Kistler et al.: < 100 ns = 320 cycles)
-// plus the LS load; asynchronous loads never cost more and hide the line behind enough work;
-// every cost moves the right way, and only the right costs move, when a parameter changes; the
-// software cache costs its hit time on a dataset that fits and a line fetch per miss otherwise.
+// (shared/CELL-FACTS.md), never the paper's five figures (bench/sim/load_cost_bench.cc reports
+// those). A synchronous load costs one 128-B line round trip (Kistler et al.: < 100 ns = 320
+// cycles) plus the LS load; asynchronous loads never cost more and hide the line behind enough
+// work; every cost moves the right way, and only the right costs move, when a parameter changes;
+// the software cache costs its hit time on a dataset that fits and a line fetch per miss otherwise.
 #include <doctest/doctest.h>
 
 #include <cstdint>

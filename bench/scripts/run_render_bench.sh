@@ -1,0 +1,74 @@
+#!/usr/bin/env bash
+# Renderer measurements for bench/results/render: render_bench (raystream vs the same renderer
+# with Embree 3 as the traversal), the command's time and peak RSS on the shared scenes, peak
+# RSS against image size, and the parallel efficiency of LOCAL, LFREE and tiles at 2 threads.
+# usage: bench/scripts/run_render_bench.sh BUILD_DIR [OUT_DIR (default bench/results/render)]
+# Run it with nothing else on the machine: it records the load average at the start.
+set -euo pipefail
+here=$(cd "$(dirname "$0")" && pwd)
+build=${1:?usage: run_render_bench.sh BUILD_DIR [OUT_DIR]}
+out=${2:-$here/../results/render}
+rs=$build/tools/raystream
+ninja -C "$build" bench/render/render_bench tools/raystream
+mkdir -p "$out"
+tmp=$(mktemp -d)
+trap 'rm -rf "$tmp"' EXIT
+{
+  echo "# $(date -u +%Y-%m-%dT%H:%MZ) $(git -C "$here/.." rev-parse --short HEAD), $(nproc) cores,"\
+       "$(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2 | sed 's/^ *//')"
+  echo "# load average at the start: $(cut -d' ' -f1-3 /proc/loadavg)"
+} >"$out/machine.txt"
+cat "$out/machine.txt"
+
+# 1. render_bench: 1024x1024, depth 4, one thread; JSON rows, summary on stderr.
+"$build/bench/render/render_bench" --benchmark_format=json >"$out/render.json" 2>"$out/render_summary.txt"
+cat "$out/render_summary.txt"
+
+# peak RSS (MiB) and wall seconds of one command.
+measure() {
+  python3 - "$@" <<'EOF'
+import resource, subprocess, sys, time
+t = time.time()
+p = subprocess.run(sys.argv[1:], capture_output=True, text=True)
+wall = time.time() - t
+if p.returncode != 0:
+    sys.exit(p.stderr)
+rss = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
+trace = [l for l in p.stdout.splitlines() if l.startswith(('trace', 'kernels'))]
+print(f"{wall:.2f} s wall, {rss:.0f} MiB peak | " + " | ".join(' '.join(l.split()) for l in trace))
+EOF
+}
+
+# 2. The command as a new user runs it (the issue's table).
+{
+  echo "| run | result |"
+  echo "|---|---|"
+  echo "| render (default: tiles, all threads), erw6 512x512 depth 4 | $(measure "$rs" render --out "$tmp/a.png") |"
+  for scene in bunny conference; do
+    for b in "--backend serial" "--backend tiles --threads 1"; do
+      if "$rs" info --scene $scene >/dev/null 2>&1; then
+        echo "| $scene 1024x1024 $b | $(measure "$rs" render --scene $scene --width 1024 --height 1024 $b --out "$tmp/a.png") |"
+      fi
+    done
+  done
+  for size in 256 512 1024 2048 4096; do
+    echo "| erw6 ${size}x${size} depth 4, default backend | $(measure "$rs" render --width $size --height $size --out "$tmp/a.png") |"
+  done
+} | tee "$out/command.md"
+
+# 3. Parallel efficiency at 2 threads: T(1 thread) / (2 T(2 threads)), 3 frames each.
+{
+  echo "| scene | backend | 1 thread | 2 threads | efficiency |"
+  echo "|---|---|---|---|---|"
+  for scene in bunny office-graz conference; do
+    "$rs" info --scene $scene >/dev/null 2>&1 || continue
+    for b in local lfree tiles; do
+      t=()
+      for n in 1 2; do
+        t+=("$("$rs" render --scene $scene --width 1024 --height 1024 --frames 3 --backend $b \
+                --threads $n --out "$tmp/e.png" | awk '/^trace/ {print $2}')")
+      done
+      echo "| $scene | $b | ${t[0]} ms | ${t[1]} ms | $(python3 -c "print(f'{${t[0]} / (2 * ${t[1]}):.3f}')") |"
+    done
+  done
+} | tee "$out/efficiency.md"
