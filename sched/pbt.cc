@@ -3,6 +3,7 @@
 #include "sched/pbt.h"
 
 #include <algorithm>
+#include <cassert>
 #include <cmath>
 #include <cstdio>
 #include <deque>
@@ -486,6 +487,34 @@ Assignment AssignLpt(std::span<const double> estimates, int num_workers) {
   return a;
 }
 
+namespace {
+
+// The §2 frame: n workers free at time 0; the one free first (ties by id) asks next(w, &affine)
+// for a tile (-1: nothing left, the worker is done) and is busy for tile_times[t].
+template <class NextTile>
+DemandDrivenRun RunDemandDriven(size_t n, std::span<const double> tile_times, NextTile next) {
+  DemandDrivenRun run;
+  run.executed.resize(n);
+  run.finish.assign(n, 0.0);
+  using Event = std::pair<double, size_t>;  // (time the worker becomes free, worker)
+  std::priority_queue<Event, std::vector<Event>, std::greater<Event>> free_at;
+  for (size_t w = 0; w < n; ++w) free_at.push({0.0, w});
+  while (!free_at.empty()) {
+    const auto [now, w] = free_at.top();
+    free_at.pop();
+    bool affine = true;
+    const int32_t tile = next(w, &affine);
+    if (tile < 0) continue;  // nothing left: this worker is done
+    if (!affine) ++run.non_affine;
+    run.executed[w].push_back(tile);
+    run.finish[w] = now + tile_times[static_cast<size_t>(tile)];
+    free_at.push({run.finish[w], w});
+  }
+  return run;
+}
+
+}  // namespace
+
 DemandDrivenRun SimulateDemandDriven(const Assignment& affinity, std::span<const double> estimates,
                                      std::span<const double> tile_times) {
   if (estimates.size() != tile_times.size()) {
@@ -505,15 +534,7 @@ DemandDrivenRun SimulateDemandDriven(const Assignment& affinity, std::span<const
       waiting_load[w] += estimates[static_cast<size_t>(t)];
     }
   }
-  DemandDrivenRun run;
-  run.executed.resize(n);
-  run.finish.assign(n, 0.0);
-  using Event = std::pair<double, size_t>;  // (time the worker becomes free, worker)
-  std::priority_queue<Event, std::vector<Event>, std::greater<Event>> free_at;
-  for (size_t w = 0; w < n; ++w) free_at.push({0.0, w});
-  while (!free_at.empty()) {
-    const auto [now, w] = free_at.top();
-    free_at.pop();
+  return RunDemandDriven(n, tile_times, [&](size_t w, bool* affine) -> int32_t {
     size_t donor = w;
     if (waiting[w].empty()) {
       donor = n;
@@ -522,7 +543,7 @@ DemandDrivenRun SimulateDemandDriven(const Assignment& affinity, std::span<const
           donor = v;
         }
       }
-      if (donor == n) continue;  // nothing left: this worker is done
+      if (donor == n) return -1;
     }
     int32_t tile;
     if (donor == w) {
@@ -531,14 +552,72 @@ DemandDrivenRun SimulateDemandDriven(const Assignment& affinity, std::span<const
     } else {
       tile = waiting[donor].back();
       waiting[donor].pop_back();
-      ++run.non_affine;
+      *affine = false;
     }
     waiting_load[donor] -= estimates[static_cast<size_t>(tile)];
-    run.executed[w].push_back(tile);
-    run.finish[w] = now + tile_times[static_cast<size_t>(tile)];
-    free_at.push({run.finish[w], w});
+    return tile;
+  });
+}
+
+void DemandMaster::Load(std::span<const int32_t> owner, int requesters) {
+  if (requesters < 1) {
+    throw Error("DemandMaster: " + std::to_string(requesters) + " requesters (need at least 1)");
   }
-  return run;
+  const size_t m = owner.size();
+  const size_t r_count = static_cast<size_t>(requesters);
+  group_.assign(r_count + 1, 0);
+  for (size_t t = 0; t < m; ++t) {
+    if (owner[t] < 0) {
+      throw Error("DemandMaster: tile " + std::to_string(t) + " has no list (owner " +
+                  std::to_string(owner[t]) + ")");
+    }
+    ++group_[static_cast<size_t>(owner[t]) % r_count + 1];
+  }
+  for (size_t r = 0; r < r_count; ++r) group_[r + 1] += group_[r];
+  // Counting sort by requester, tiles in increasing index: each group is in PBT order.
+  cursor_.assign(group_.begin(), group_.end() - 1);
+  affine_.resize(m);
+  for (size_t t = 0; t < m; ++t) {
+    affine_[cursor_[static_cast<size_t>(owner[t]) % r_count]++] = static_cast<int32_t>(t);
+  }
+  cursor_.assign(group_.begin(), group_.end() - 1);
+  taken_.assign(m, 0);
+  next_ = 0;
+  waiting_ = m;
+}
+
+int32_t DemandMaster::Next(int requester, bool* affine) {
+  assert(requester >= 0 && static_cast<size_t>(requester) + 1 < group_.size());
+  const size_t r = static_cast<size_t>(requester);
+  // Positions before a cursor are taken, so each cursor only moves forward: O(m + R) a frame.
+  size_t& mine = cursor_[r];
+  while (mine < group_[r + 1] && taken_[static_cast<size_t>(affine_[mine])] != 0) ++mine;
+  size_t tile;
+  if (mine < group_[r + 1]) {
+    tile = static_cast<size_t>(affine_[mine++]);
+    *affine = true;
+  } else {
+    while (next_ < taken_.size() && taken_[next_] != 0) ++next_;
+    if (next_ == taken_.size()) return -1;
+    tile = next_++;
+    *affine = false;
+  }
+  taken_[tile] = 1;
+  --waiting_;
+  return static_cast<int32_t>(tile);
+}
+
+DemandDrivenRun SimulateDemandMaster(std::span<const int32_t> owner, int requesters,
+                                     std::span<const double> tile_times) {
+  if (owner.size() != tile_times.size()) {
+    throw Error("SimulateDemandMaster: " + std::to_string(owner.size()) + " tiles for " +
+                std::to_string(tile_times.size()) + " tile times");
+  }
+  DemandMaster master;
+  master.Load(owner, requesters);
+  return RunDemandDriven(static_cast<size_t>(requesters), tile_times, [&](size_t w, bool* affine) {
+    return master.Next(static_cast<int>(w), affine);
+  });
 }
 
 // ---------------------------------------------------------------------------------------------

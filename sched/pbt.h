@@ -175,6 +175,38 @@ struct DemandDrivenRun {
 DemandDrivenRun SimulateDemandDriven(const Assignment& affinity, std::span<const double> estimates,
                                      std::span<const double> tile_times);
 
+// The §2 master handing a frame's tiles out on request in PBT order, with the §4 affinity as the
+// preference ("when a worker asks for a tile the master node tries to assign an affine tile"):
+// requester r (of R) is affine to the tiles whose list v has v % R == r; a request gets the
+// first waiting tile affine to it in PBT order (tile index = the in-order leaf), else the first
+// waiting tile in PBT order. Every tile is handed out once per Load. One master: not
+// thread-safe (the tiles backend's render threads call Next under one lock). Next and Waiting
+// never allocate; Load allocates only when the tile or requester count grows.
+class DemandMaster {
+ public:
+  // owner: per tile the list holding it (TilePlanFrame::owner), each >= 0; requesters >= 1.
+  // Throws rs::Error naming the tile or the count.
+  void Load(std::span<const int32_t> owner, int requesters);
+  // The next tile for requester r in [0, requesters) (assert), or -1 when none is left;
+  // *affine: the tile is one of r's.
+  int32_t Next(int requester, bool* affine);
+  size_t Waiting() const { return waiting_; }
+
+ private:
+  std::vector<int32_t> affine_;  // tile indices grouped by requester, each group in PBT order
+  std::vector<size_t> group_;    // requester r's group: affine_[group_[r], group_[r + 1])
+  std::vector<size_t> cursor_;   // per requester: its first position not known to be taken
+  std::vector<uint8_t> taken_;   // per tile
+  size_t next_ = 0;              // the first tile index not known to be taken
+  size_t waiting_ = 0;
+};
+
+// The §2 frame model of a DemandMaster: `requesters` workers free at time 0; the earliest free
+// (ties by id) asks for a tile and is busy for its tile_times[t]. Throws rs::Error if the sizes
+// differ (and as DemandMaster::Load).
+DemandDrivenRun SimulateDemandMaster(std::span<const int32_t> owner, int requesters,
+                                     std::span<const double> tile_times);
+
 // ---------------------------------------------------------------------------------------------
 // Measures.
 

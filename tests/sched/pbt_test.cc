@@ -8,9 +8,11 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
+#include <initializer_list>
 #include <limits>
 #include <random>
 #include <set>
+#include <span>
 #include <string>
 #include <vector>
 
@@ -93,6 +95,23 @@ bool CoversEachTileOnce(const Assignment& a, size_t m, int n) {
     }
   }
   return std::all_of(seen.begin(), seen.end(), [](int c) { return c == 1; });
+}
+
+// A demand-driven run of tile times t on n workers: every tile ran once, the busy times add up
+// to the tile times and the makespan is at least the largest tile and the mean load. Returns
+// the makespan.
+double CheckDemandRun(const DemandDrivenRun& r, std::span<const double> t, int n) {
+  Assignment done;
+  done.tiles = r.executed;
+  done.predicted_load.assign(static_cast<size_t>(n), 0.0);
+  CHECK(CoversEachTileOnce(done, t.size(), n));
+  double sum = 0.0, sum_t = 0.0;
+  for (const double f : r.finish) sum += f;
+  for (const double x : t) sum_t += x;
+  CHECK(sum == doctest::Approx(sum_t).epsilon(1e-12));
+  const double makespan = std::ranges::max(r.finish);
+  CHECK(makespan >= std::max(std::ranges::max(t), sum_t / n) * (1.0 - 1e-12));
+  return makespan;
 }
 
 bool SameTile(const Tile& a, const Tile& b) {
@@ -606,19 +625,144 @@ TEST_CASE("demand-driven master: hand example and coverage") {
     }
     const Assignment a = AssignRandom(e, 6, static_cast<uint64_t>(trial));
     const DemandDrivenRun r = SimulateDemandDriven(a, e, t);
-    Assignment done;
-    done.tiles = r.executed;
-    done.predicted_load.assign(6, 0.0);
-    CHECK(CoversEachTileOnce(done, 40, 6));
-    double sum = 0.0, sum_t = 0.0;
-    for (const double f : r.finish) sum += f;
-    for (const double x : t) sum_t += x;
-    CHECK(sum == doctest::Approx(sum_t).epsilon(1e-12));
-    const double makespan = std::ranges::max(r.finish);
-    CHECK(makespan >= std::max(std::ranges::max(t), sum_t / 6.0) * (1.0 - 1e-12));
+    const double makespan = CheckDemandRun(r, t, 6);
     CHECK(makespan <= std::ranges::max(WorkerTimes(a, t)) * (1.0 + 1e-12));
   }
   CHECK_THROWS_AS(SimulateDemandDriven(affinity, ones, std::vector<double>(3, 1.0)), Error);
+}
+
+// The demand-driven master: tiles on request in PBT order (tile index), the requester's own
+// lists' tiles first. Serve makes the requests in order: requester, the tile it must get (-1:
+// none left) and whether that tile is one of its own.
+struct Request {
+  int requester;
+  int32_t tile;
+  bool affine;
+};
+void Serve(DemandMaster& master, std::initializer_list<Request> requests) {
+  for (const Request& q : requests) {
+    INFO("requester ", q.requester, " expects tile ", q.tile);
+    bool affine = !q.affine;
+    CHECK(master.Next(q.requester, &affine) == q.tile);
+    if (q.tile >= 0) CHECK(affine == q.affine);
+  }
+}
+
+TEST_CASE("DemandMaster: tiles in PBT order on request, the requester's own lists first") {
+  DemandMaster master;
+  // 6 tiles in 2 lists; requester 0 is affine to tiles 1, 3, 4, requester 1 to 0, 2, 5. When
+  // requester 0's tiles are gone it gets the first waiting tile in PBT order (2, requester 1's);
+  // requester 1 then goes on with its own next tile (5).
+  const std::vector<int32_t> owner = {1, 0, 1, 0, 0, 1};
+  master.Load(owner, 2);
+  CHECK(master.Waiting() == 6u);
+  Serve(master, {{0, 1, true}, {0, 3, true}, {1, 0, true}, {0, 4, true}, {0, 2, false},
+                 {1, 5, true}, {1, -1, false}, {0, -1, false}});
+  CHECK(master.Waiting() == 0u);
+  // Load again: the same frame is handed out again (the state is reset, capacity reused).
+  master.Load(owner, 2);
+  Serve(master, {{1, 0, true}});
+  CHECK(master.Waiting() == 5u);
+
+  // One requester owns every list: the whole frame in PBT order, all its own.
+  const std::vector<int32_t> four_lists = {3, 0, 2, 1, 1, 0, 3, 2};
+  master.Load(four_lists, 1);
+  for (int32_t t = 0; t < 8; ++t) Serve(master, {{0, t, true}});
+  Serve(master, {{0, -1, false}});
+  // Two requesters over four lists: list v is requester v % 2's.
+  master.Load(four_lists, 2);
+  Serve(master, {{0, 1, true}, {0, 2, true}, {1, 0, true}});
+  // Requesters without lists (2 and 3 of 4 over two lists) get tiles only in PBT order.
+  master.Load(std::vector<int32_t>{0, 1, 0, 1}, 4);
+  Serve(master, {{3, 0, false}, {1, 1, true}, {2, 2, false}, {0, 3, false}, {1, -1, false}});
+  // No tiles: nothing to hand out.
+  master.Load(std::vector<int32_t>{}, 3);
+  Serve(master, {{2, -1, false}});
+  CHECK(master.Waiting() == 0u);
+
+  CHECK_THROWS_AS(master.Load(owner, 0), Error);
+  CHECK_THROWS_AS(master.Load(std::vector<int32_t>{0, -1}, 1), Error);
+}
+
+TEST_CASE("DemandMaster: random requests take every tile once, in the master's order") {
+  std::mt19937_64 rng(11);
+  DemandMaster master;
+  for (int trial = 0; trial < 50; ++trial) {
+    const int lists = 1 + static_cast<int>(rng() % 9);
+    const int requesters = 1 + static_cast<int>(rng() % 6);
+    const size_t m = rng() % 70;
+    std::vector<int32_t> owner(m);
+    for (int32_t& o : owner) o = static_cast<int32_t>(rng() % static_cast<uint64_t>(lists));
+    master.Load(owner, requesters);
+    std::vector<bool> taken(m, false);
+    size_t handed = 0;
+    for (;;) {
+      const int r = static_cast<int>(rng() % static_cast<uint64_t>(requesters));
+      // The oracle: the first waiting affine tile in index order, else the first waiting tile.
+      int32_t want = -1;
+      bool want_affine = false;
+      for (size_t t = 0; t < m && want < 0; ++t) {
+        if (!taken[t] && owner[t] % requesters == r) {
+          want = static_cast<int32_t>(t);
+          want_affine = true;
+        }
+      }
+      for (size_t t = 0; t < m && want < 0; ++t) {
+        if (!taken[t]) want = static_cast<int32_t>(t);
+      }
+      bool affine = false;
+      const int32_t got = master.Next(r, &affine);
+      REQUIRE(got == want);
+      if (got < 0) break;
+      CHECK(affine == want_affine);
+      taken[static_cast<size_t>(got)] = true;
+      ++handed;
+      CHECK(master.Waiting() == m - handed);
+    }
+    CHECK(handed == m);
+  }
+}
+
+TEST_CASE("SimulateDemandMaster: the frame model of the demand-driven master") {
+  // Worker 0 is affine to tiles 0-3, worker 1 to tile 4; unit times.
+  const std::vector<int32_t> owner = {0, 0, 0, 0, 1};
+  const std::vector<double> ones(5, 1.0);
+  const DemandDrivenRun run = SimulateDemandMaster(owner, 2, ones);
+  // t=0: w0 runs 0, w1 runs 4; t=1: w0 runs 1, w1 (nothing of its own) the first waiting tile
+  // in PBT order, 2; t=2: w0 runs 3, w1 finds nothing.
+  CHECK(run.executed[0] == std::vector<int32_t>{0, 1, 3});
+  CHECK(run.executed[1] == std::vector<int32_t>{4, 2});
+  CHECK(run.finish == std::vector<double>{3.0, 2.0});
+  CHECK(run.non_affine == 1u);
+  // The static lists' master (SimulateDemandDriven) takes the donor's last tile instead.
+  Assignment lists;
+  lists.tiles = {{0, 1, 2, 3}, {4}};
+  const DemandDrivenRun mpi = SimulateDemandDriven(lists, ones, ones);
+  CHECK(mpi.executed[1] == std::vector<int32_t>{4, 3});
+  // Random data: every tile runs once, busy times add up, the makespan is within list
+  // scheduling's bounds (a worker never idles while a tile waits).
+  std::mt19937_64 rng(9);
+  std::uniform_real_distribution<double> u(0.1, 3.0);
+  for (int trial = 0; trial < 20; ++trial) {
+    std::vector<double> t(40);
+    for (double& x : t) x = u(rng);
+    std::vector<int32_t> own(40);
+    for (int32_t& o : own) o = static_cast<int32_t>(rng() % 5);
+    const DemandDrivenRun r = SimulateDemandMaster(own, 4, t);
+    const double makespan = CheckDemandRun(r, t, 4);
+    double sum_t = 0.0;
+    for (const double x : t) sum_t += x;
+    CHECK(makespan <= (sum_t / 4.0 + std::ranges::max(t)) * (1.0 + 1e-12));
+    size_t foreign = 0;
+    for (size_t w = 0; w < 4; ++w) {
+      for (const int32_t x : r.executed[w]) {
+        foreign += static_cast<size_t>(own[static_cast<size_t>(x)] % 4) != w;
+      }
+    }
+    CHECK(foreign == r.non_affine);
+  }
+  CHECK_THROWS_AS(SimulateDemandMaster(owner, 2, std::vector<double>(4, 1.0)), Error);
+  CHECK_THROWS_AS(SimulateDemandMaster(owner, 0, ones), Error);
 }
 
 // ---------------------------------------------------------------------------------------------
