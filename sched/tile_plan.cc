@@ -142,6 +142,17 @@ void ValidateTilePlanOptions(const TilePlanOptions& o) {
   if (o.steal && o.assign == PbtAssign::kCounter) {
     fail("stealing needs per-worker lists; assignment counter has none (one shared counter)");
   }
+  if (o.demand && o.pbt_tiles_per_worker == 0) {
+    fail("the demand-driven master needs a PBT tiling (pbt tiles per worker > 0)");
+  }
+  if (o.demand && o.assign == PbtAssign::kCounter) {
+    fail("the demand-driven master needs per-worker lists as its affinity; assignment counter "
+         "has none");
+  }
+  if (o.demand && o.steal) {
+    fail("stealing and the demand-driven master exclude each other (the master hands out every "
+         "tile)");
+  }
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -250,7 +261,8 @@ TilePlanReport TilePlan::End(std::span<const double> costs, std::span<const int3
     }
   }
   const bool counter = uses_pbt() && options_.assign == PbtAssign::kCounter;
-  if (counter && !ran_by.empty() && ran_by.size() != m) {
+  const bool demand = uses_pbt() && options_.demand;
+  if ((counter || demand) && !ran_by.empty() && ran_by.size() != m) {
     throw Error(fmt::format("tile plan: {} workers given for {} tiles", ran_by.size(), m));
   }
   TilePlanReport r;
@@ -259,15 +271,19 @@ TilePlanReport TilePlan::End(std::span<const double> costs, std::span<const int3
     r.pbt = true;
     r.has_prediction = frame_.has_prediction;
     if (r.has_prediction) r.accuracy = MeasurePredictionAccuracy(frame_.predicted, costs);
-    if (counter) {
-      // Demand driven: the next tile of the order to the worker that is free first (ties: id).
-      std::vector<double> finish(static_cast<size_t>(n), 0.0);
-      for (const int32_t t : frame_.order) {
-        const size_t w =
-            static_cast<size_t>(std::min_element(finish.begin(), finish.end()) - finish.begin());
-        finish[w] += costs[static_cast<size_t>(t)];
+    if (counter || demand) {
+      if (counter) {
+        // Demand driven: the next tile of the order to the worker free first (ties: id).
+        std::vector<double> finish(static_cast<size_t>(n), 0.0);
+        for (const int32_t t : frame_.order) {
+          const size_t w =
+              static_cast<size_t>(std::min_element(finish.begin(), finish.end()) - finish.begin());
+          finish[w] += costs[static_cast<size_t>(t)];
+        }
+        r.demand_imbalance = FrameImbalance(finish);
+      } else {
+        r.demand_imbalance = FrameImbalance(SimulateDemandMaster(frame_.owner, n, costs).finish);
       }
-      r.demand_imbalance = FrameImbalance(finish);
       r.worker_imbalance = r.demand_imbalance;
       if (!ran_by.empty()) {  // the workers that really took the tiles
         std::vector<double> load(static_cast<size_t>(n), 0.0);
@@ -279,9 +295,12 @@ TilePlanReport TilePlan::End(std::span<const double> costs, std::span<const int3
         }
         r.worker_imbalance = FrameImbalance(load);
       }
-      // A shared counter in decreasing order is LPT list scheduling on the predictions.
-      if (r.has_prediction)
-        r.predicted_makespan = AssignLpt(frame_.predicted, n).PredictedMakespan();
+      // A shared counter in decreasing order is LPT list scheduling on the predictions; the
+      // demand master's preference is the lists.
+      if (r.has_prediction) {
+        r.predicted_makespan = counter ? AssignLpt(frame_.predicted, n).PredictedMakespan()
+                                       : frame_.assignment.PredictedMakespan();
+      }
     } else {
       r.worker_imbalance = FrameImbalance(WorkerTimes(frame_.assignment, costs));
       r.demand_imbalance =

@@ -94,12 +94,16 @@ struct TilePlanOptions {
   // The backend lets a worker whose list is done take the last waiting tile of the list with the
   // most predicted work waiting (TilePlanFrame::weight). Recorded; not with kCounter.
   bool steal = false;
+  // The backend's threads ask one DemandMaster (pbt.h) for tiles, in PBT order with their lists
+  // as the preference (the paper's demand-driven master). Recorded; lists only, not with steal.
+  bool demand = false;
   // What End's costs are (recorded for the statistics; the backend measures them).
   PbtCost cost = PbtCost::kWall;
 };
 
 // Throws rs::Error naming the field: tile sizes < 1, pbt_tiles_per_worker outside [0, 4096],
-// workers outside [1, 65536], unknown assign / cost, steal with kCounter or without PBT.
+// workers outside [1, 65536], unknown assign / cost, steal or demand with kCounter or without
+// PBT, steal with demand.
 void ValidateTilePlanOptions(const TilePlanOptions& options);
 
 // What a frame is rendered with (TilePlan::Begin).
@@ -130,9 +134,9 @@ struct TilePlanReport {
   PredictionAccuracy accuracy;    // predicted vs measured costs (if has_prediction)
   double worker_imbalance = 1.0;  // FrameImbalance of the workers' measured costs
   // The paper's master-worker (§2), demand driven with the §4 affinity (SimulateDemandDriven on
-  // the lists, the steal weights and the measured costs; kCounter: list scheduling in the
-  // counter's order): the slowest / mean worker finish time. What a cluster of n workers that
-  // asks the master for tiles would have had this frame.
+  // the lists, the steal weights and the measured costs; demand: SimulateDemandMaster on the
+  // lists' owners; kCounter: list scheduling in the counter's order): the slowest / mean worker
+  // finish time. What a cluster of n workers that asks the master for tiles would have had.
   double demand_imbalance = 1.0;
   double predicted_makespan = 0;  // the largest predicted worker load (if has_prediction)
   PbtUpdateStats update;          // the PBT-Update run after this frame (not for static)
@@ -160,11 +164,12 @@ class TilePlan {
 
   // This frame's tiles, predictions and lists. Throws rs::Error if the frame has begun.
   const TilePlanFrame& Begin();
-  // The frame's measured costs per tile (size = tiles, finite, >= 0). ran_by (kCounter only,
-  // optional): per tile the worker that took it from the counter, in [0, workers), when the
-  // workers are real (cell: the SPEs); without it kCounter's worker imbalance is its
-  // demand_imbalance (the workers a model: tiles backend threads != workers). With lists the
-  // list owner is charged (as SimulateDemandDriven models a steal) and ran_by is ignored.
+  // The frame's measured costs per tile (size = tiles, finite, >= 0). ran_by (kCounter and
+  // demand only, optional): per tile the worker that took it, in [0, workers), when the workers
+  // are real (cell: the SPEs; tiles: as many threads as workers); without it the worker
+  // imbalance is the demand_imbalance (the workers a model: tiles backend threads != workers).
+  // With static lists the list owner is charged (as SimulateDemandDriven models a steal) and
+  // ran_by is ignored.
   // Computes the Table 1 accuracy, the worker imbalance and the predicted makespan,
   // then PBT-Update (not for static) and the next frame's assignment. Fixed tiles: the report
   // only says pbt = false. Throws rs::Error (no Begin, sizes, bad costs or workers).

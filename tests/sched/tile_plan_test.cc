@@ -254,6 +254,47 @@ TEST_CASE("counter: costliest first; without the real workers the worker imbalan
   CHECK(r.predicted_makespan == *std::max_element(finish.begin(), finish.end()));
 }
 
+TEST_CASE("demand: the lists as the affinity, the demand master's model, real workers charged") {
+  TilePlanOptions o;
+  o.pbt_tiles_per_worker = 3;
+  o.workers = 2;
+  o.assign = PbtAssign::kGreedy;
+  o.demand = true;
+  TilePlan plan(32, 32, o);
+  const std::vector<Tile> tiles0 = plan.Begin().tiles;
+  plan.End(Costs(tiles0, 0.2));
+  const TilePlanFrame frame = plan.Begin();  // a copy: End re-plans
+  REQUIRE(frame.has_prediction);
+  REQUIRE(frame.owner.size() == 6u);
+  CHECK(frame.order.empty());  // the master's order is the PBT's (tile index)
+  const std::vector<double>& p = frame.predicted;
+  const TilePlanReport r = plan.End(p);  // exact predictions, no ran_by: the model's workers
+  CHECK(r.demand_imbalance == FrameImbalance(SimulateDemandMaster(frame.owner, 2, p).finish));
+  CHECK(r.worker_imbalance == r.demand_imbalance);
+  CHECK(r.predicted_makespan == frame.assignment.PredictedMakespan());
+  // The workers that really ran the tiles: charged by ran_by, not by the lists' owners.
+  const TilePlanFrame next = plan.Begin();
+  std::vector<int32_t> ran_by(next.tiles.size(), 0);
+  const std::vector<double> ones(next.tiles.size(), 1.0);
+  CHECK(plan.End(ones, ran_by).worker_imbalance == 2.0);  // all on worker 0: 6 / mean 3
+  plan.Begin();
+  CHECK_THROWS_AS(plan.End(ones, std::vector<int32_t>(6, 2)), Error);  // no worker 2
+  CHECK_THROWS_AS(plan.End(ones, std::vector<int32_t>(5, 0)), Error);  // sizes differ
+
+  auto bad = [](TilePlanOptions x) { CHECK_THROWS_AS(ValidateTilePlanOptions(x), Error); };
+  TilePlanOptions b;
+  b.demand = true;  // without PBT
+  bad(b);
+  b.pbt_tiles_per_worker = 2;
+  b.assign = PbtAssign::kCounter;  // no lists to prefer
+  bad(b);
+  b.assign = PbtAssign::kVisit;
+  b.steal = true;  // the master hands out every tile
+  bad(b);
+  b.steal = false;
+  CHECK_NOTHROW(ValidateTilePlanOptions(b));
+}
+
 TEST_CASE("misuse: Begin twice, End without Begin, bad costs, bad options; Cancel") {
   TilePlanOptions o;
   o.pbt_tiles_per_worker = 2;
