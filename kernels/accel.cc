@@ -113,9 +113,11 @@ Accel::Accel(const MeshView& mesh, const BuildOptions& options) : impl_(std::mak
   m.lambda = options.lambda > 0.0f ? options.lambda : kDefaultLambda;
   const GridBounds bounds = ComputeGridBounds(m.triangles);  // shared by the lambda choice
   if (options.grid == GridKind::kAuto && options.lambda == 0.0f) {
-    m.lambda = ChooseLambda(m.triangles, bounds, options.max_resolution, model);
+    m.lambda = ChooseLambda(m.triangles, bounds, options.max_resolution, model, nullptr,
+                            options.build_threads);
   }
-  BuildGrid(m.triangles, bounds, m.lambda, options.max_resolution, &m.grid);
+  BuildGrid(m.triangles, bounds, m.lambda, options.max_resolution, &m.grid,
+            options.build_threads);
   const bool may_refine =
       options.grid == GridKind::kTwoLevel ||
       (options.grid == GridKind::kAuto &&

@@ -13,6 +13,7 @@
 
 #include <unistd.h>  // sysconf: physical memory
 
+#include "kernels/build_threads.h"
 #include "kernels/grid_binning.h"
 
 namespace rs {
@@ -110,10 +111,13 @@ void SetGeometry(const GridBounds& bounds, double lambda, int max_resolution, Gr
 // [i+1]), counted per cell on the way (begin[c] = the count of cell c). Returns false, leaving
 // the arrays unusable, as soon as more than `limit` references are listed; *num_refs then holds
 // a count > limit.
+// Triangles [first_tri, last_tri) only; ref_begin is indexed from first_tri (ref_begin[0] is
+// triangle first_tri's, ref_begin[last_tri - first_tri] the end).
 bool BinReferences(const TriangleSoA& tris, const Grid& grid, const BinGeometry& geo,
-                   size_t limit, uint32_t* begin, hwy::AlignedFreeUniquePtr<uint32_t[]>* ref_cells,
-                   size_t* capacity, uint32_t* ref_begin, size_t* num_refs_out) {
-  const size_t n = tris.size;
+                   size_t first_tri, size_t last_tri, size_t limit, uint32_t* begin,
+                   hwy::AlignedFreeUniquePtr<uint32_t[]>* ref_cells, size_t* capacity,
+                   uint32_t* ref_begin, size_t* num_refs_out) {
+  const size_t n = last_tri;
   size_t num_refs = 0;
   BinScratch scratch;
   const size_t stride_y = size_t(grid.res[0]), stride_z = stride_y * size_t(grid.res[1]);
@@ -123,7 +127,7 @@ bool BinReferences(const TriangleSoA& tris, const Grid& grid, const BinGeometry&
     for (int a = 0; a < 3; ++a) p[k][a] = tris.p[k][a].data();
   }
   RangeBlock block;
-  for (size_t first = 0; first < n; first += kRangeBlock) {
+  for (size_t first = first_tri; first < n; first += kRangeBlock) {
     const size_t count = std::min(kRangeBlock, n - first);
     SimdTriangleCellRanges(tris, geo, first, count, &block);
     // room for the block's one-cell and line triangles (all their box cells are emitted) at
@@ -142,7 +146,7 @@ bool BinReferences(const TriangleSoA& tris, const Grid& grid, const BinGeometry&
     uint32_t* cells_out = ref_cells->get();
     for (size_t j = 0; j < count; ++j) {
       const uint32_t i = uint32_t(first + j);
-      ref_begin[i] = uint32_t(num_refs);
+      ref_begin[i - first_tri] = uint32_t(num_refs);
       const int32_t flags = block.flags[j];
       // degenerate, or outside (cannot happen: the bounds contain every triangle)
       if (flags & (kRangeDegenerate | kRangeOutside)) continue;
@@ -192,7 +196,7 @@ bool BinReferences(const TriangleSoA& tris, const Grid& grid, const BinGeometry&
       });
     }
   }
-  ref_begin[n] = uint32_t(num_refs);
+  ref_begin[n - first_tri] = uint32_t(num_refs);
   *num_refs_out = num_refs;
   return true;
 }
@@ -278,11 +282,13 @@ BinGeometry GridBinGeometry(const Grid& grid) {
   return geo;
 }
 
-GridBoxCounts CountGridBoxes(const TriangleSoA& tris, const Grid& geometry) {
-  GridBoxCounts c;
-  if (geometry.num_cells == 0) return c;
-  c.cells = geometry.num_cells;
-  const BinGeometry geo = GridBinGeometry(geometry);
+namespace {
+
+// CountGridBoxes over triangles [first, last): marks the cells of small boxes in `mark` (one
+// byte per cell, plus the spare byte at num_cells), adds big boxes' corners to *diff (allocated
+// at the first big box) and returns the sum of the box cell counts.
+size_t MarkGridBoxes(const TriangleSoA& tris, const Grid& geometry, const BinGeometry& geo,
+                     size_t first_tri, size_t last_tri, uint8_t* mark, std::vector<int32_t>* diff) {
   // one byte per cell: boxes of at most 2 cells per axis (nearly all at the lambdas tried) mark
   // their corners with 8 unconditional stores (repeats on 1-cell axes), no loop to mispredict;
   // flagged triangles (box 0, range [0, 0]) mark the spare byte at num_cells instead. Boxes of
@@ -291,17 +297,15 @@ GridBoxCounts CountGridBoxes(const TriangleSoA& tris, const Grid& geometry) {
   // much of the grid (identical or overlapping triangles: the fill was O(triangles x cells)).
   constexpr size_t kBigBox = 64;
   const size_t num_cells = geometry.num_cells;
-  std::vector<uint8_t> marked(num_cells + 1, 0);
-  std::vector<int32_t> diff;  // allocated at the first big box
-  uint8_t* mark = marked.data();
   const int res[3] = {geometry.res[0], geometry.res[1], geometry.res[2]};
   const size_t stride_y = size_t(res[0]);
   const size_t stride_z = stride_y * size_t(res[1]);
+  size_t refs = 0;
   RangeBlock block;
-  for (size_t first = 0; first < tris.size; first += kRangeBlock) {
-    const size_t count = std::min(kRangeBlock, tris.size - first);
+  for (size_t first = first_tri; first < last_tri; first += kRangeBlock) {
+    const size_t count = std::min(kRangeBlock, last_tri - first);
     SimdTriangleCellRanges(tris, geo, first, count, &block);
-    for (size_t j = 0; j < count; ++j) c.refs += size_t(block.box[j]);
+    for (size_t j = 0; j < count; ++j) refs += size_t(block.box[j]);
     for (size_t j = 0; j < count; ++j) {
       const int x0 = block.c0[0][j], y0 = block.c0[1][j], z0 = block.c0[2][j];
       const int ex = block.c1[0][j] - x0, ey = block.c1[1][j] - y0, ez = block.c1[2][j] - z0;
@@ -320,7 +324,7 @@ GridBoxCounts CountGridBoxes(const TriangleSoA& tris, const Grid& geometry) {
         continue;
       }
       if (size_t(block.box[j]) > kBigBox) {
-        if (diff.empty()) diff.assign(num_cells, 0);
+        if (diff->empty()) diff->assign(num_cells, 0);
         // +1 at the low corner, alternating signs at the corners one past the high end (those
         // outside the grid are dropped: the prefix sums never reach them)
         const int lo[3] = {x0, y0, z0};
@@ -335,7 +339,9 @@ GridBoxCounts CountGridBoxes(const TriangleSoA& tris, const Grid& geometry) {
             sign = high ? -sign : sign;
             inside &= q[a] < res[a];
           }
-          if (inside) diff[size_t(q[0]) + stride_y * size_t(q[1]) + stride_z * size_t(q[2])] += sign;
+          if (inside) {
+            (*diff)[size_t(q[0]) + stride_y * size_t(q[1]) + stride_z * size_t(q[2])] += sign;
+          }
         }
         continue;
       }
@@ -347,6 +353,47 @@ GridBoxCounts CountGridBoxes(const TriangleSoA& tris, const Grid& geometry) {
       }
     }
   }
+  return refs;
+}
+
+}  // namespace
+
+GridBoxCounts CountGridBoxes(const TriangleSoA& tris, const Grid& geometry, int threads) {
+  GridBoxCounts c;
+  if (geometry.num_cells == 0) return c;
+  c.cells = geometry.num_cells;
+  const BinGeometry geo = GridBinGeometry(geometry);
+  const size_t num_cells = geometry.num_cells;
+  const int res[3] = {geometry.res[0], geometry.res[1], geometry.res[2]};
+  const size_t stride_y = size_t(res[0]);
+  const size_t stride_z = stride_y * size_t(res[1]);
+  // parts of whole range blocks; each part marks its own bytes and difference array, merged
+  // below (an OR and a sum: the counts do not depend on the split)
+  const int parts = int(std::max<size_t>(
+      1, std::min<size_t>(size_t(BuildThreadCount(threads)), tris.size / (2 * kRangeBlock))));
+  std::vector<std::vector<uint8_t>> marks(size_t(std::max(parts, 1)));
+  std::vector<std::vector<int32_t>> diffs(marks.size());
+  std::vector<size_t> refs(marks.size(), 0);
+  RunParts(parts, [&](int t) {
+    marks[size_t(t)].assign(num_cells + 1, 0);
+    refs[size_t(t)] = MarkGridBoxes(tris, geometry, geo, PartBegin(tris.size, parts, t, kRangeBlock),
+                                    PartBegin(tris.size, parts, t + 1, kRangeBlock),
+                                    marks[size_t(t)].data(), &diffs[size_t(t)]);
+  });
+  uint8_t* mark = marks[0].data();
+  std::vector<int32_t>& diff = diffs[0];
+  for (size_t t = 1; t < marks.size(); ++t) {
+    const uint8_t* m = marks[t].data();
+    for (size_t k = 0; k < num_cells; ++k) mark[k] |= m[k];
+    if (!diffs[t].empty()) {
+      if (diff.empty()) {
+        diff.swap(diffs[t]);
+      } else {
+        for (size_t k = 0; k < num_cells; ++k) diff[k] += diffs[t][k];
+      }
+    }
+  }
+  for (const size_t r : refs) c.refs += r;
   if (!diff.empty()) {
     // prefix sums along x, y, z turn the corner updates into the number of big boxes per cell
     int32_t* d = diff.data();
@@ -433,7 +480,7 @@ bool BuildLists(const TriangleSoA& tris, size_t limit, Grid* grid, size_t* num_r
   auto ref_cells = AllocateBuildArray<uint32_t>(capacity, "cell references");
   auto ref_begin = AllocateBuildArray<uint32_t>(n + 1, "per-triangle reference offsets");
   size_t num_refs = 0;
-  const bool fits = BinReferences(tris, *grid, geo, limit, begin, &ref_cells, &capacity,
+  const bool fits = BinReferences(tris, *grid, geo, 0, n, limit, begin, &ref_cells, &capacity,
                                   ref_begin.get(), &num_refs);
   *num_refs_out = num_refs;
   if (!fits) return false;
@@ -472,14 +519,135 @@ bool BuildLists(const TriangleSoA& tris, size_t limit, Grid* grid, size_t* num_r
   return true;
 }
 
+// BuildLists on `parts` threads, the same grid bit for bit: each part bins a contiguous range
+// of triangles (whole range blocks) into its own per-cell counts and reference array; the cell
+// offsets are the sums of the parts' counts, and part t fills its ids into cell c after those
+// of parts 0 .. t-1, so every cell lists its ids ascending exactly as the serial fill does. Over
+// the budget, the serial BuildLists runs again for its exact *num_refs (the coarsening in
+// BuildGrid depends on it).
+bool BuildListsThreaded(const TriangleSoA& tris, size_t limit, int parts, Grid* grid,
+                        size_t* num_refs_out) {
+  const size_t n = tris.size;
+  const size_t num_cells = grid->num_cells;
+  const BinGeometry geo = GridBinGeometry(*grid);
+  struct Part {
+    size_t first = 0, last = 0;
+    hwy::AlignedFreeUniquePtr<uint32_t[]> counts;  // per cell, then the fill cursors
+    hwy::AlignedFreeUniquePtr<uint32_t[]> cells;   // the part's references (cell ids)
+    hwy::AlignedFreeUniquePtr<uint32_t[]> ref_begin;
+    size_t capacity = 0;
+    size_t refs = 0;
+    bool fits = false;
+  };
+  std::vector<Part> part(static_cast<size_t>(parts));
+  RunParts(parts, [&](int t) {
+    Part& p = part[size_t(t)];
+    p.first = PartBegin(n, parts, t, kRangeBlock);
+    p.last = PartBegin(n, parts, t + 1, kRangeBlock);
+    const size_t count = p.last - p.first;
+    p.counts = AllocateBuildArray<uint32_t>(num_cells + 1, "cell offsets");
+    std::fill(p.counts.get(), p.counts.get() + num_cells + 1, 0u);
+    p.capacity = std::min(count * 3 + 64, limit + 1);
+    p.cells = AllocateBuildArray<uint32_t>(p.capacity, "cell references");
+    p.ref_begin = AllocateBuildArray<uint32_t>(count + 1, "per-triangle reference offsets");
+    p.fits = BinReferences(tris, *grid, geo, p.first, p.last, limit, p.counts.get(), &p.cells,
+                           &p.capacity, p.ref_begin.get(), &p.refs);
+  });
+  size_t num_refs = 0;
+  bool fits = true;
+  for (const Part& p : part) {
+    num_refs += p.refs;
+    fits &= p.fits;
+  }
+  if (!fits || num_refs > limit) {
+    part.clear();
+    return BuildLists(tris, limit, grid, num_refs_out);
+  }
+  *num_refs_out = num_refs;
+
+  // cell offsets, occupancy bits and statistics over chunks of cells (whole 64-bit words): the
+  // chunks' totals first, then each chunk from its start
+  grid->cell_begin = AllocateBuildArray<uint32_t>(num_cells + 1, "cell offsets");
+  const size_t words = (num_cells + 63) / 64;
+  grid->occupancy = AllocateBuildArray<uint64_t>(words, "occupancy bits");
+  uint32_t* begin = grid->cell_begin.get();
+  uint64_t* occ = grid->occupancy.get();
+  std::vector<uint32_t> chunk_sum(size_t(parts) + 1, 0);
+  std::vector<size_t> chunk_max(size_t(parts), 0), chunk_occupied(size_t(parts), 0);
+  RunParts(parts, [&](int k) {
+    const size_t c0 = PartBegin(num_cells, parts, k, 64), c1 = PartBegin(num_cells, parts, k + 1, 64);
+    uint32_t sum = 0;
+    for (const Part& p : part) {
+      const uint32_t* cnt = p.counts.get();
+      for (size_t c = c0; c < c1; ++c) sum += cnt[c];
+    }
+    chunk_sum[size_t(k) + 1] = sum;
+  });
+  for (int k = 0; k < parts; ++k) chunk_sum[size_t(k) + 1] += chunk_sum[size_t(k)];
+  RunParts(parts, [&](int k) {
+    const size_t c0 = PartBegin(num_cells, parts, k, 64), c1 = PartBegin(num_cells, parts, k + 1, 64);
+    uint32_t at = chunk_sum[size_t(k)];
+    size_t max_per_cell = 0, occupied = 0;
+    for (size_t w = c0 / 64; w < (c1 + 63) / 64; ++w) {
+      const size_t end = std::min(c1, 64 * w + 64);
+      uint64_t bits = 0;
+      for (size_t c = 64 * w; c < end; ++c) {
+        begin[c] = at;
+        for (Part& p : part) {
+          at += p.counts[c];
+          p.counts[c] = at;  // the end of part p's ids in cell c: its fill cursor
+        }
+        const uint32_t count = at - begin[c];
+        max_per_cell = std::max<size_t>(max_per_cell, count);
+        bits |= uint64_t{count != 0} << (c & 63);
+      }
+      occ[w] = bits;
+      occupied += size_t(std::popcount(bits));
+    }
+    chunk_max[size_t(k)] = max_per_cell;
+    chunk_occupied[size_t(k)] = occupied;
+  });
+  begin[num_cells] = uint32_t(num_refs);
+  grid->tri_ids = AllocateBuildArray<uint32_t>(num_refs, "cell triangle ids");
+  uint32_t* ids = grid->tri_ids.get();
+  RunParts(parts, [&](int t) {
+    Part& p = part[size_t(t)];
+    uint32_t* cursor = p.counts.get();
+    const uint32_t* cells_in = p.cells.get();
+    const uint32_t* rb = p.ref_begin.get();
+    for (size_t j = p.last - p.first; j-- > 0;) {
+      const uint32_t i = uint32_t(p.first + j);
+      for (size_t r = rb[j + 1]; r-- > rb[j];) ids[--cursor[cells_in[r]]] = i;
+    }
+  });
+  grid->num_refs = num_refs;
+  grid->occupied_cells = 0;
+  grid->max_per_cell = 0;
+  for (int k = 0; k < parts; ++k) {
+    grid->occupied_cells += chunk_occupied[size_t(k)];
+    grid->max_per_cell = std::max(grid->max_per_cell, chunk_max[size_t(k)]);
+  }
+  return true;
+}
+
+// BuildLists, threaded when that pays (at least two range blocks per part).
+bool BuildListsOn(const TriangleSoA& tris, size_t limit, int threads, Grid* grid,
+                  size_t* num_refs_out) {
+  const int parts = int(std::min<size_t>(size_t(BuildThreadCount(threads)),
+                                         tris.size / (2 * kRangeBlock)));
+  if (parts <= 1) return BuildLists(tris, limit, grid, num_refs_out);
+  return BuildListsThreaded(tris, limit, parts, grid, num_refs_out);
+}
+
 }  // namespace
 
-void BuildGrid(const TriangleSoA& tris, float lambda, int max_resolution, Grid* grid) {
-  BuildGrid(tris, ComputeGridBounds(tris), lambda, max_resolution, grid);
+void BuildGrid(const TriangleSoA& tris, float lambda, int max_resolution, Grid* grid,
+               int threads) {
+  BuildGrid(tris, ComputeGridBounds(tris), lambda, max_resolution, grid, threads);
 }
 
 void BuildGrid(const TriangleSoA& tris, const GridBounds& bounds, float lambda, int max_resolution,
-               Grid* grid) {
+               Grid* grid, int threads) {
   SetGeometry(bounds, double(lambda), max_resolution, grid);
   if (grid->num_cells == 0) return;
   const size_t limit = GridRefBudget(bounds.num_valid);
@@ -487,7 +655,7 @@ void BuildGrid(const TriangleSoA& tris, const GridBounds& bounds, float lambda, 
   // The common case in one pass: the lists at the asked resolution, which stop as soon as they
   // pass the budget (O(budget) work and memory at most).
   size_t refs = 0;
-  if (BuildLists(tris, limit, grid, &refs)) return;
+  if (BuildListsOn(tris, limit, threads, grid, &refs)) return;
   // Over the budget: search the finest resolution whose estimate fits (EstimateGridRefs, no
   // lists), then build it; if its lists still pass the budget, search again below it.
   refs = std::max(refs, EstimateGridRefs(tris, *grid, limit));
@@ -528,7 +696,7 @@ void BuildGrid(const TriangleSoA& tris, const GridBounds& bounds, float lambda, 
         SetResolution(bounds, fit, grid);
       }
     }
-    if (BuildLists(tris, limit, grid, &refs)) return;
+    if (BuildListsOn(tris, limit, threads, grid, &refs)) return;
   }
 }
 

@@ -109,7 +109,8 @@ struct GridBoxCounts {
   size_t occupied = 0;
   size_t refs = 0;
 };
-GridBoxCounts CountGridBoxes(const TriangleSoA& tris, const Grid& geometry);
+// threads: BuildOptions::build_threads (the counts do not depend on it).
+GridBoxCounts CountGridBoxes(const TriangleSoA& tris, const Grid& geometry, int threads = 1);
 
 // Builds the grid over the non-degenerate triangles of `tris`. With none, the grid is empty
 // (num_cells = 0, never hit). Binning is conservative: each triangle goes into every cell its
@@ -124,9 +125,12 @@ GridBoxCounts CountGridBoxes(const TriangleSoA& tris, const Grid& geometry);
 // Preconditions: lambda > 0 and finite, max_resolution >= 1 (Accel checks them).
 // Throws rs::Error (what, how many bytes) if the cells cannot be held (SetGridGeometry) or an
 // allocation fails; never aborts.
-void BuildGrid(const TriangleSoA& tris, float lambda, int max_resolution, Grid* grid);
+// threads (BuildOptions::build_threads): the binning and the lists run on that many threads
+// (std::thread, parts of the triangles); the grid is the same bit for bit for any count.
+void BuildGrid(const TriangleSoA& tris, float lambda, int max_resolution, Grid* grid,
+               int threads = 1);
 // The same, given ComputeGridBounds(tris) (so a caller that has them does not recompute them).
 void BuildGrid(const TriangleSoA& tris, const GridBounds& bounds, float lambda, int max_resolution,
-               Grid* grid);
+               Grid* grid, int threads = 1);
 
 }  // namespace rs

@@ -288,12 +288,12 @@ void BuildTwoLevel(const Grid& grid, const TriangleSoA& tris, int threshold, boo
 }
 
 float ChooseLambda(const TriangleSoA& tris, int max_resolution, const GridCostModel& model,
-                   double* cost) {
-  return ChooseLambda(tris, ComputeGridBounds(tris), max_resolution, model, cost);
+                   double* cost, int threads) {
+  return ChooseLambda(tris, ComputeGridBounds(tris), max_resolution, model, cost, threads);
 }
 
 float ChooseLambda(const TriangleSoA& tris, const GridBounds& bounds, int max_resolution,
-                   const GridCostModel& model, double* cost) {
+                   const GridCostModel& model, double* cost, int threads) {
   static constexpr float kCandidates[] = {0.5f, 1.0f, 2.0f, 4.0f, 8.0f};
   // the cost is unimodal in lambda on every scene measured: stop at the first increase
   float best = 1.0f;
@@ -302,7 +302,7 @@ float ChooseLambda(const TriangleSoA& tris, const GridBounds& bounds, int max_re
     Grid geometry;
     SetGridGeometry(bounds, lambda, max_resolution, &geometry);
     if (geometry.empty()) break;
-    const GridBoxCounts counts = CountGridBoxes(tris, geometry);
+    const GridBoxCounts counts = CountGridBoxes(tris, geometry, threads);
     const double cs[3] = {geometry.cell_size[0], geometry.cell_size[1], geometry.cell_size[2]};
     const double c = CellAreaRatio(cs, geometry.res) *
                      (double(counts.cells) * model.step + double(counts.occupied) * model.visit +

@@ -137,11 +137,12 @@ void BuildTwoLevel(const Grid& grid, const TriangleSoA& tris, int threshold, boo
 // bounding-box counts (CountGridBoxes: no lists are built; references and occupied cells are
 // slightly overestimated, equally for every candidate), trying them in increasing order and
 // stopping at the first that costs more than the one before. *cost (may be null) gets its cost.
+// The counts run on `threads` threads (the result does not depend on it).
 float ChooseLambda(const TriangleSoA& tris, int max_resolution, const GridCostModel& model = {},
-                   double* cost = nullptr);
+                   double* cost = nullptr, int threads = 1);
 // The same, given ComputeGridBounds(tris).
 float ChooseLambda(const TriangleSoA& tris, const GridBounds& bounds, int max_resolution,
-                   const GridCostModel& model = {}, double* cost = nullptr);
+                   const GridCostModel& model = {}, double* cost = nullptr, int threads = 1);
 
 // Scalar traversal of the two-level grid: TraceClosest / TraceAny (kernels/dda.h) with the same
 // contracts, stepping into a refined cell's sub-grid (TraverseSubGrid in two_level_dda.h) and

@@ -107,6 +107,10 @@ struct BuildOptions {
   // packet that walks the grid slice by slice (coherent grid traversal; results unchanged).
   // Pays for primary and shadow rays in scanline or tile order; others fall back per packet.
   bool packets = true;
+  // Threads of the build (std::thread; the lambda choice and the grid's binning and lists). The
+  // structure, and so every result, is the same for any count; 1 (the default) builds on the
+  // calling thread only. Values below 1 count as 1, above 64 as 64.
+  int build_threads = 1;
 };
 
 // Figures about a built structure, as printed by `raystream info`.

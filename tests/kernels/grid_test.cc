@@ -547,5 +547,55 @@ TEST_CASE("reference arrays grow past their first guess: SAT and line triangles 
   CHECK(refs > 6 * tris);
 }
 
+
+// The grids of two builds are the same bit for bit: geometry, offsets, ids, bits, statistics.
+void CheckSameGrid(const Grid& a, const Grid& b) {
+  for (int k = 0; k < 3; ++k) {
+    CHECK(a.res[k] == b.res[k]);
+    CHECK(a.lo[k] == b.lo[k]);
+    CHECK(a.cell_size[k] == b.cell_size[k]);
+  }
+  REQUIRE(a.num_cells == b.num_cells);
+  REQUIRE(a.num_refs == b.num_refs);
+  CHECK(a.occupied_cells == b.occupied_cells);
+  CHECK(a.max_per_cell == b.max_per_cell);
+  if (a.num_cells == 0) return;
+  CHECK(std::equal(a.cell_begin.get(), a.cell_begin.get() + a.num_cells + 1, b.cell_begin.get()));
+  CHECK(std::equal(a.tri_ids.get(), a.tri_ids.get() + a.num_refs, b.tri_ids.get()));
+  const size_t words = (a.num_cells + 63) / 64;
+  CHECK(std::equal(a.occupancy.get(), a.occupancy.get() + words, b.occupancy.get()));
+}
+
+TEST_CASE("threaded build (BuildOptions::build_threads): the same grid and box counts for 1-5 threads") {
+  Rng rng(71);
+  for (int round = 0; round < 4; ++round) {
+    // enough triangles for several parts (2 range blocks each), small and large mixed; round 3:
+    // 3,000 copies of one triangle among them, over the reference budget at lambda 64 (the
+    // threaded lists fall back to the serial pass and coarsen the same way)
+    const size_t n = 2000 + 1500 * size_t(round);
+    Soup soup = test::RandomSoup(rng, n, -1.0, 1.0, round == 1 ? 0.4 : 0.05);
+    if (round == 3) {
+      const float a[3] = {-0.9f, -0.9f, -0.9f}, b[3] = {0.9f, 0.9f, -0.9f}, c[3] = {0.9f, -0.9f, 0.9f};
+      for (int k = 0; k < 3000; ++k) soup.AddTriangle(a, b, c);
+    }
+    TriangleSoA tris;
+    BuildTriangleSoA(soup.view(), &tris);
+    const float lambda = round == 3 ? 64.0f : float(2 << round);
+    Grid one;
+    BuildGrid(tris, lambda, 512, &one, 1);
+    const GridBoxCounts counts = CountGridBoxes(tris, one, 1);
+    for (int threads = 2; threads <= 5; ++threads) {
+      INFO("round ", round, " threads ", threads);
+      Grid many;
+      BuildGrid(tris, lambda, 512, &many, threads);
+      CheckSameGrid(one, many);
+      const GridBoxCounts c = CountGridBoxes(tris, one, threads);
+      CHECK(c.cells == counts.cells);
+      CHECK(c.refs == counts.refs);
+      CHECK(c.occupied == counts.occupied);
+    }
+  }
+}
+
 }  // namespace
 }  // namespace rs
