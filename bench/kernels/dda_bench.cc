@@ -10,12 +10,12 @@
 // it is timed. Environment: RS_DDA_BENCH_RAYS=n (random rays, default 65536), RS_DDA_BENCH_SIZE=W
 // (primary rays W x W, default 256). Shared scenes that are missing are skipped.
 //
-// Counters: cyc/step = cycles per ray-cell step and cyc/test = per ray/triangle test, cyc/ray per
-// ray, each the whole run divided by the count (not a split of the time). "Cycles" are the
-// thread's CPU time in rdtsc reference ticks (CPU seconds x tsc_ghz; robust when other processes
-// share the cores); ticks/ray is the same from wall-clock rdtsc. Neither is a core cycle count:
-// hardware performance counters (cycles, instructions) are not available on these machines (KVM
-// guest without a PMU), so the figures assume the core runs at the TSC rate.
+// Counters: cpu_ticks/ray = this thread's CPU time per ray in rdtsc reference ticks (CPU seconds x
+// tsc_ghz; robust when other processes share the cores), the whole traversal (setup, steps,
+// triangle tests, lane refills) divided by the rays; ticks/ray is the same from wall-clock rdtsc;
+// steps/ray and tests/ray are the work per ray. None is a per-step or per-test cost (that is
+// step_bench) nor a core cycle count: hardware performance counters are not available on these
+// machines (KVM guest without a PMU).
 #include <benchmark/benchmark.h>
 #include <hwy/targets.h>
 
@@ -168,17 +168,15 @@ std::string Validate(const WorkData& d, const HitStreamView& got, const char* wh
 void Report(benchmark::State& state, uint64_t ticks, double cpu_seconds, const TraceStats& st,
             size_t rays) {
   const double iters = double(state.iterations());
-  const double cycles = cpu_seconds * TscGhz() * 1e9;
+  const double cpu_ticks = cpu_seconds * TscGhz() * 1e9;
   state.SetItemsProcessed(state.iterations() * int64_t(rays));
   if (st.cell_steps > 0) {
-    state.counters["cyc/step"] = cycles / double(st.cell_steps);
     state.counters["steps/ray"] = double(st.cell_steps) / (iters * double(rays));
   }
   if (st.triangle_tests > 0) {
-    state.counters["cyc/test"] = cycles / double(st.triangle_tests);
     state.counters["tests/ray"] = double(st.triangle_tests) / (iters * double(rays));
   }
-  state.counters["cyc/ray"] = cycles / (iters * double(rays));
+  state.counters["cpu_ticks/ray"] = cpu_ticks / (iters * double(rays));
   state.counters["ticks/ray"] = double(ticks) / (iters * double(rays));
   if (st.cache_lookups > 0) {
     state.counters["cache_hit"] = double(st.cache_hits) / double(st.cache_lookups);
@@ -199,8 +197,7 @@ void BM_Dda(benchmark::State& state, Workload w, int64_t target, int kind) {
   const HitStreamView hits = d.hits.view();
   DdaOptions options = m.dda_options;
   if (kind == 2) options.micro_cache = 0;
-  // corners measures the cost of one empty-cell step: every cell is stepped (no jumps, which
-  // would leave the time of the skipped cells in the per-step figure)
+  // corners: rays through empty cells, every cell stepped (no jumps), as the scalar DDA does
   if (kind == 3 || w.scene == "corners") options.empty_skip = false;
   auto run = [&](TraceStats* st) {
     if (kind == 1) {
@@ -448,9 +445,10 @@ int main(int argc, char** argv) {
   benchmark::Initialize(&argc, argv);
   benchmark::AddCustomContext("tsc_ghz", std::to_string(rs::bench::TscGhz()));
   benchmark::AddCustomContext(
-      "cycles", "cyc/step, cyc/test, cyc/ray = thread CPU time x tsc_ghz / count (ticks/ray: "
-                "wall-clock rdtsc); hardware perf counters (core cycles) are not available on "
-                "these machines (KVM guest without a PMU)");
+      "ticks", "cpu_ticks/ray = thread CPU time x tsc_ghz / rays (ticks/ray: wall-clock "
+               "rdtsc), the whole traversal per ray; one step or test alone: step_bench; "
+               "hardware perf counters (core cycles) are not available on these machines "
+               "(KVM guest without a PMU)");
   benchmark::AddCustomContext("dispatch_target", rs::DdaTargetName());
   rs::bench::RegisterAll();
   benchmark::RunSpecifiedBenchmarks();

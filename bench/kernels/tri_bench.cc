@@ -4,10 +4,11 @@
 // (bench/kernels/tri_workload.h). Names: "<kernel>/<target|ref>/<test>[/<width>]/tris:<n>"; items
 // are ray/triangle tests.
 //
-// Counters: cyc/test = this thread's CPU time in rdtsc reference ticks (CPU seconds x tsc_ghz) per
-// ray/triangle test; ticks/test = the same from wall-clock rdtsc. Neither is a core cycle count:
-// hardware performance counters (cycles, instructions) are not available on these machines (KVM
-// guest without a PMU). bench/scripts/run_callgrind.sh counts instructions on the same workload.
+// Counters: cpu_ticks/test = this thread's CPU time in rdtsc reference ticks (CPU seconds x
+// tsc_ghz) of a whole pass divided by its ray/triangle tests (the call and dispatch per ray
+// included; step_bench subtracts them); ticks/test = the same from wall-clock rdtsc. Neither is a
+// core cycle count: hardware performance counters (cycles, instructions) are not available on
+// these machines (KVM guest without a PMU). bench/scripts/run_callgrind.sh counts instructions on the same workload.
 #include <benchmark/benchmark.h>
 #include <hwy/targets.h>
 
@@ -128,7 +129,7 @@ void BM_Tri(benchmark::State& state, size_t num_tris, Kernel kernel, TriTest tes
   const double tests =
       static_cast<double>(state.iterations()) * static_cast<double>(w.tests_per_pass());
   state.SetItemsProcessed(static_cast<int64_t>(tests));
-  state.counters["cyc/test"] = cpu * TscGhz() * 1e9 / tests;
+  state.counters["cpu_ticks/test"] = cpu * TscGhz() * 1e9 / tests;
   state.counters["ticks/test"] = ticks / tests;
   state.counters["hit_rays"] = static_cast<double>(hit_rays) / static_cast<double>(n);
   // Any-hit stops early: count what ran as if every lane were tested (an upper bound), and say so.
@@ -177,10 +178,10 @@ int main(int argc, char** argv) {
   std::snprintf(ghz, sizeof(ghz), "%.3f", rs::bench::TscGhz());
   benchmark::AddCustomContext("tsc_ghz", ghz);
   benchmark::AddCustomContext(
-      "cycles",
-      "cyc/test = thread CPU time x tsc_ghz per ray/triangle test (ticks/test: "
-      "wall-clock rdtsc); hardware perf counters (core cycles) are not available on "
-      "these machines (KVM guest without a PMU)");
+      "ticks",
+      "cpu_ticks/test = thread CPU time x tsc_ghz of a pass / its ray/triangle tests "
+      "(ticks/test: wall-clock rdtsc); hardware perf counters (core cycles) are not "
+      "available on these machines (KVM guest without a PMU)");
   benchmark::AddCustomContext("workload",
                               "1 cell of 16 or 64 random triangles, 4096 rays "
                               "(bench/kernels/tri_workload.h); items = ray/triangle tests");
