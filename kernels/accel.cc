@@ -135,7 +135,7 @@ Accel::Accel(const MeshView& mesh, const BuildOptions& options) : impl_(std::mak
   BuildDdaGrid(m.grid, &m.two_level, m.triangles, &m.dda);
   m.dda_options.micro_cache = options.micro_cache;
   m.packets = options.packets;
-  // A jump costs a gather and the exact boundary search (dda_simd.cc: JumpEmpty), several
+  // A jump costs a gather and the exact boundary search (dda_stream.cc: JumpEmpty), several
   // plain steps' worth, and steps are not what bounds the stream kernel on real scenes (the
   // triangle tests and lane refills are): bench/kernels/dda_bench.cc (Dda vs DdaNoSkip) measured
   // 6-20 % slower with skipping on bunny (49 % of cells in empty blocks) and spherebox (12 %) in

@@ -1,6 +1,6 @@
 // Per-target setup of a vector of rays shared by the SIMD traversals (the stream DDA in
-// kernels/dda_simd.cc, the coherent packets in kernels/packet_dda.cc): validity, the slab clip to
-// the grid box and the watertight test's shear, each lane rounding exactly as the scalar code
+// kernels/dda_stream.cc, the coherent packets in kernels/packet_dda.cc): validity, the slab clip
+// to the grid box and the watertight test's shear, each lane rounding exactly as the scalar code
 // (RayIsValid, ClipRayToGrid, PrepareWatertightRay), so every traversal tests the same rays.
 #if defined(RS_KERNELS_RAY_SETUP_INL_H_) == defined(HWY_TARGET_TOGGLE)
 #ifdef RS_KERNELS_RAY_SETUP_INL_H_

@@ -39,7 +39,7 @@ const char* ShadeStageName(int stage_index);
 struct ShadeOptions {
   int max_depth = 4;            // a ray of depth d spawns bounces (depth d + 1) only if d < max
   float weight_cutoff = 1e-3f;  // bounce rays with max(weight channel) below this are dropped
-  // Appended: the stage set (ShadeStage bits) to run, or kShadeStagesAuto for
+  // The stage set (ShadeStage bits) to run, or kShadeStagesAuto for
   // ShadeStagesFor(scene, *this) on every call. Any superset of ShadeStagesFor gives the same
   // image, contributions and rays (up to their order in the output stream); kShadeAllStages is
   // the general pipeline. A subset drops the missing terms.
@@ -98,7 +98,7 @@ struct ShadeStats {
   uint64_t texture_fetches = 0;  // bilinear texture samples
   uint64_t culled = 0;           // bounce rays not spawned: weight below the cutoff
   uint64_t spawned[kNumRayKinds] = {};  // secondary rays emitted, by RayKind
-  // Appended: what the pipeline ran. A block is one SIMD vector of rays in rs::Shade and one
+  // What the pipeline ran. A block is one SIMD vector of rays in rs::Shade and one
   // ray in ref::Shade; the per-lane counters above are the same for both.
   uint64_t highlights = 0;                     // PhongPow evaluations (lanes)
   uint64_t blocks = 0;                         // blocks holding at least one hit

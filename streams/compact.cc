@@ -1,5 +1,4 @@
-// Stable stream compaction (see compact.h). Scalar for now; a Highway CompressStore version
-// can sit beside it, checked against this one.
+// Stable stream compaction (see compact.h), scalar: a loop of copies over the SoA arrays.
 #include "streams/compact.h"
 
 namespace rs {

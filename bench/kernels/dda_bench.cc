@@ -359,7 +359,7 @@ void BM_BuildPhase(benchmark::State& state, std::string scene, int phase) {
 std::string TargetName(int64_t t) { return hwy::TargetName(t); }
 
 void RegisterAll() {
-  // lambda 4 (the old default) and the cost model's choice for these scenes (0.5); corners: a
+  // lambda 4 (the kUniform default) and the cost model's choice for these scenes (0.5); corners: a
   // 64^3 grid with 8 occupied cells (lambda 32768 over 8 triangles)
   const std::vector<Workload> speedup = {
       {"bunny/primary", "bunny", Rays::kPrimary, GridKind::kUniform, 4.0f},

@@ -6,7 +6,7 @@
 // secondary rays spawned by rs::Shade on closed spheres near, at and far from the origin, traced
 // with rs::Accel, counting hits on the spawning triangle. Prints counts, not times.
 //
-// Usage: robust_bench [--rays N] [--secondary N]  (defaults 1e6 each; the figure).
+// Usage: robust_bench [--rays N] [--secondary N]  (defaults 1e6 each).
 // Exit status 1 if a watertight kernel or rs::Accel misses a ray, or a spawned ray self-hits
 // (or, on the convex test spheres, an outward ray hits or an inward ray misses).
 #include <hwy/targets.h>

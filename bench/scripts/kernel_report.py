@@ -263,7 +263,7 @@ def packet_tables(data, lines):
 
 
 def goals_section(goals, lines):
-    lines.append("## Where the goals of issue 3 stand (this run)\n")
+    lines.append("## Where the kernel goals stand (this run)\n")
     lines.append("| goal | measured | met |")
     lines.append("|---|---|---|")
 

@@ -39,7 +39,7 @@ print(f"{wall:.2f} s wall, {rss:.0f} MiB peak | " + " | ".join(' '.join(l.split(
 EOF
 }
 
-# 2. The command as a new user runs it (the table).
+# 2. The command as a new user runs it.
 {
   echo "| run | result |"
   echo "|---|---|"

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Hostile input and output faults through the `raystream` command (issue 15, the scenes/ rows):
+# Hostile input and output faults through the `raystream` command (the loaders):
 # every case must exit 1 (never >= 128), print exactly one line "raystream: error: <file>...",
 # and leave nothing behind; valid-but-odd inputs must render with a one-line warning.
 # Full disk: a size-limited write (ulimit -f, RLIMIT_FSIZE). usage: loader_faults.sh RAYSTREAM

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# Output faults and hostile options through the `raystream` command (issue 15, the command's
-# rows): a full disk (RLIMIT_FSIZE) for every image format and for the statistics, a missing or
+# Output faults and hostile options through the `raystream` command:
+# a full disk (RLIMIT_FSIZE) for every image format and for the statistics, a missing or
 # read-only folder, SIGINT / SIGTERM in a multi-frame render, a camera path that fails at frame
 # 2, closed stderr, a full stdout, NaN and out-of-range options. Each failure exits 1 (never >= 128)
 # with one line naming the final path and the reason, and leaves nothing behind: no image, no

@@ -1,4 +1,4 @@
-// Grids that cannot explode (issue 13 item 1): on inputs that made the uniform grid grow with the
+// Grids that cannot explode: on inputs that made the uniform grid grow with the
 // square of their size (a small sphere far from the origin, thousands of identical triangles, a
 // fan of long thin triangles) the references and bytes of every structure stay within a fixed
 // factor of the triangle count, the build stays fast, and the grids stay watertight and give the

@@ -830,7 +830,7 @@ TEST_CASE("no self-hit: spawned rays never hit their large triangle, every targe
 }
 
 // ---------------------------------------------------------------------------------------------
-// Watertightness stress (the issue's figure): 1e6 rays (1e5 in debug and sanitizer builds) from
+// Watertightness stress: 1e6 rays (1e5 in debug and sanitizer builds) from
 // inside a closed 81920-triangle icosphere at (1e5, 1e5, 1e5), aimed exactly at its vertices and
 // edge midpoints (tests/support/watertight.h). Each ray is tested against the triangles around
 // its target (the vertex fan or the edge's two triangles) on every target, 1 x packets at each

@@ -1,4 +1,4 @@
-// Hostile input and output faults (issue 15): strict MTL values, non-regular files, degenerate
+// Hostile input and output faults: strict MTL values, non-regular files, degenerate
 // faces, JSON numbers and duplicate keys, textures whose header lies about their size, corrupt
 // textures (no library text on stderr), and output files (checked up front, size limits, no
 // temporary left behind, temporaries removable from a signal handler).
@@ -380,8 +380,8 @@ TEST_CASE("texture: a 16000x16000 header in a small file is refused before any a
   huge.max_pixels = uint64_t{1} << 32;
   ExpectError([&] { ReadImage(path, huge); },
               {path, "claims 16000x16000", "only 168 bytes (corrupt or truncated)"});
-  // Regression (texture_fuzz): an EXR attribute claiming 1.7 GB made OpenEXR allocate it inside
-  // OIIO's open(), before any spec; the header is now checked first.
+  // An EXR attribute claiming 1.7 GB (found by texture_fuzz) would make OpenEXR allocate it
+  // inside OIIO's open(), before any spec: ReadImage checks the header first.
   const std::string exr =
       dir.Write("attr.exr", std::string("v/1\x01\x02\0\0\0capDate\0string\0\x61\x74\x6e\x65", 27) +
                                 std::string(200, '\x0d'));
