@@ -95,7 +95,7 @@ class HostBackend final : public Backend {
     if (o.pbt_tiles_per_worker > 0) {
       how += fmt::format(", PBT k={} assign {} cost {}{}", o.pbt_tiles_per_worker,
                          PbtAssignName(o.assign), PbtCostName(o.pbt_cost),
-                         o.pbt_steal ? " + steal" : "");
+                         o.pbt_steal ? " + steal" : o.pbt_demand ? " + demand" : "");
       if (o.kind != BackendKind::kTiles) how += " (tiles feed the queues)";
     } else if (o.kind == BackendKind::kTiles) {
       how += fmt::format(", tiles {}x{}", o.tile_width, o.tile_height);

@@ -123,6 +123,17 @@ void ValidateBackendOptions(const BackendOptions& o) {
   if (o.pbt_steal && o.assign == PbtAssign::kCounter) {
     fail("pbt_steal needs per-worker lists; assign counter has one shared counter");
   }
+  if (o.pbt_demand && (o.kind != BackendKind::kTiles || o.pbt_tiles_per_worker == 0)) {
+    fail(fmt::format("pbt_demand (the demand-driven master) needs the tiles backend with a PBT "
+                     "tiling (pbt_tiles_per_worker > 0), not {} with k = {}",
+                     name, o.pbt_tiles_per_worker));
+  }
+  if (o.pbt_demand && o.assign == PbtAssign::kCounter) {
+    fail("pbt_demand needs per-worker lists as the affinity; assign counter has none");
+  }
+  if (o.pbt_demand && o.pbt_steal) {
+    fail("pbt_demand and pbt_steal exclude each other (the master hands out every tile)");
+  }
 }
 
 int PbtWorkers(const BackendOptions& o) { return o.pbt_workers > 0 ? o.pbt_workers : o.threads; }
@@ -136,6 +147,7 @@ TilePlanOptions TilePlanOptionsFor(const BackendOptions& o) {
   p.assign = o.assign;
   p.seed = o.seed;
   p.steal = o.pbt_steal;
+  p.demand = o.pbt_demand;
   p.cost = o.pbt_cost;
   return p;
 }
@@ -976,7 +988,8 @@ class QueueImpl final : public HostRenderer::Impl {
 };
 
 // ---------------------------------------------------------------------------------------------
-// tiles: an atomic tile counter (Benthin et al. 3.9) or PBT tile lists (Cosenza et al.).
+// tiles: an atomic tile counter (Benthin et al. 3.9) or PBT tile lists (Cosenza et al.), run
+// as static lists, with stealing, or through the demand-driven master.
 
 class TilesImpl final : public HostRenderer::Impl {
  public:
@@ -1070,6 +1083,7 @@ class TilesImpl final : public HostRenderer::Impl {
   void Load() {
     if (frame_ != nullptr) tiles_ = frame_->tiles;
     if (lists_ && options_.pbt_steal) ranges_.Load(frame_->assignment);
+    if (lists_ && options_.pbt_demand) master_.Load(frame_->owner, options_.threads);
     records_.assign(tiles_.size(), TileRecord{});
     for (auto& w : workers_) {
       w->stats = FrameStats();
@@ -1104,6 +1118,28 @@ class TilesImpl final : public HostRenderer::Impl {
 
   void Work(int w) {
     Worker& me = *workers_[static_cast<size_t>(w)];
+    if (lists_ && options_.pbt_demand) {
+      // The demand-driven master: ask for a tile, render it, ask again (the lists only say
+      // which tiles are w's). The lock is the master; the records are read after the barrier.
+      for (;;) {
+        const uint64_t t0 = options_.queue_stats ? QueueClock::Now() : 0;
+        bool affine = false;
+        int32_t i = -1;
+        size_t handout = 0;
+        {
+          const std::lock_guard<std::mutex> lock(master_mutex_);
+          handout = records_.size() - master_.Waiting();
+          i = master_.Next(w, &affine);
+        }
+        if (options_.queue_stats) me.ticks += QueueClock::Now() - t0;
+        ++me.ops;
+        if (i < 0) return;
+        if (!affine) ++me.steals;
+        const size_t tile = static_cast<size_t>(i);
+        RenderTile(me, w, frame_->owner[tile], tile);
+        records_[tile].handout = static_cast<int64_t>(handout);
+      }
+    }
     if (lists_) {
       // Thread w runs the lists of (virtual) workers w, w + threads, ... in list order.
       const auto& lists = frame_->assignment.tiles;
@@ -1175,7 +1211,9 @@ class TilesImpl final : public HostRenderer::Impl {
   std::vector<double> costs_;     // FinishPlan's scratch
   std::vector<int32_t> ran_by_;
   alignas(kQueueFalseSharing) std::atomic<size_t> next_{0};
-  PbtListRanges ranges_;  // pbt_steal: per list {head, tail}
+  PbtListRanges ranges_;     // pbt_steal: per list {head, tail}
+  std::mutex master_mutex_;  // pbt_demand: the render threads' requests, one at a time
+  DemandMaster master_;
   std::unique_ptr<FrameLoop> loop_;  // last: its threads use everything above
 };
 
@@ -1713,6 +1751,7 @@ std::string HostStatsText(const std::string& path, const std::string& scene,
         backend["pbt_time"] = PbtCostName(options.pbt_cost);
         backend["pbt_cost"] = PbtCostName(options.pbt_cost);
         backend["steal"] = options.pbt_steal;
+        backend["demand"] = options.pbt_demand;
       }
     }
     AddFields(backend, extra.options, "options");

@@ -61,6 +61,13 @@ struct BackendOptions {
   // before the first prediction), so the owner keeps its spatial order. Lock-free: each list is
   // one 64-bit {head, tail} word; the owner CASes head forward, thieves CAS tail back.
   bool pbt_steal = false;
+  // Tiles backend, the paper's demand-driven master (§2, with §4's "when a worker asks for a
+  // tile the master node tries to assign an affine tile"): no thread owns a list; a thread that
+  // is free asks one DemandMaster (pbt.h, under a lock) for a tile and gets the first waiting
+  // tile of its own lists (w, w + threads, ...) in PBT order (the in-order leaves), else the
+  // first waiting tile in PBT order (counted in ThreadStats::steals). The lists (assign) are
+  // only the preference. Not with pbt_steal or assign counter.
+  bool pbt_demand = false;
   // PBT assignment (tile_plan.h). kCounter: no lists, the threads take the tiles from the tile
   // counter in order of decreasing prediction (pbt_workers n > threads: m = k n tiles, and the
   // statistics' worker imbalance is the demand-driven model of n workers).
@@ -79,7 +86,7 @@ struct BackendOptions {
 // threads != 1, tile sizes < 1, pbt_tiles_per_worker < 0 or > 4096, pbt_workers < 0 or > 65536,
 // PBT options (k > 0, pbt_steal, pbt_workers, pbt_cost other than wall) on serial or without
 // k > 0, PBT on a queue backend with pbt_cost other than work, pbt_steal with assign counter,
-// unknown enum values.
+// pbt_demand other than on tiles with PBT lists or with pbt_steal, unknown enum values.
 void ValidateBackendOptions(const BackendOptions& options);
 
 // Per render thread, one frame.
@@ -92,7 +99,8 @@ struct ThreadStats {
   uint64_t queue_ops = 0;
   uint64_t empty_polls = 0;  // TryPop calls that found EMPTY
   uint64_t tiles = 0;        // tiles rendered (tiles backend) / taken to feed (queues + PBT)
-  uint64_t steals = 0;       // PBT with pbt_steal: tiles taken from another worker's list
+  uint64_t steals = 0;       // PBT with pbt_steal: tiles taken from another worker's list;
+                             // pbt_demand: tiles the master gave from another thread's lists
 };
 
 // One tile of the tiles backend, one frame. Queue backends with PBT: thread = the thread that
@@ -106,6 +114,7 @@ struct TileRecord {
   double seconds = 0;      // wall time: primary generation + the tile's whole ray tree
   double cpu_seconds = 0;  // the thread's CPU time for the same span
   double predicted = -1;   // PBT: the estimate e(l) this frame was tiled with (-1: none)
+  int64_t handout = -1;    // pbt_demand: the master handed it out as its handout-th (from 0)
   uint64_t rays = 0;       // rays traced for this tile, all kinds
   TileWork counts;         // the deterministic counters of the tile's ray tree
   double work = 0;         // TileWorkCost(counts): its work in calibrated seconds

@@ -171,6 +171,7 @@ struct RenderArgs {
   std::string pbt_cost;  // empty: the backend's default (wall; cell: its simulated cycles)
   uint64_t seed = 1;
   bool steal = false;
+  bool demand = false;
   bool queue_stats = true;
   int spes = 6;  // --backend cell: simulated SPEs
   double mpi_timeout = 120;  // --backend mpi: bound on every wait of the master for a worker
@@ -260,6 +261,7 @@ void CheckBackendOptions(const RenderArgs& args) {
     if (!args.assign.empty()) fail("--assign " + args.assign, "needs --pbt k");
     if (seed_given) fail(fmt::format("--seed {}", args.seed), "needs --pbt k");
     if (args.steal) fail("--steal", "needs a PBT tiling (--backend tiles --pbt k)");
+    if (args.demand) fail("--demand", "needs a PBT tiling (--backend tiles --pbt k)");
     if (pbt_cost_given) fail("--pbt-cost " + args.pbt_cost, "needs --pbt k");
   } else {
     const PbtAssign assign = PbtAssignFor(args);
@@ -273,6 +275,20 @@ void CheckBackendOptions(const RenderArgs& args) {
       fail("--steal", "the cell backend's SPEs take tiles only from their own list (the SPE "
                       "program reads no other SPE's counter); use --assign counter for tiles "
                       "on demand");
+    }
+    if (args.demand && !tiles) {
+      fail("--demand",
+           mpi ? "the mpi backend's master always hands tiles out on demand (a worker's own list "
+                 "first, then the last tile of the list with most work waiting)"
+               : fmt::format("the demand-driven master runs the tiles backend's threads, not {}",
+                             b));
+    }
+    if (args.demand && args.steal) {
+      fail("--demand", "with --steal: the master hands out every tile, there is nothing to steal");
+    }
+    if (args.demand && assign == PbtAssign::kCounter) {
+      fail("--demand", "--assign counter has no per-worker lists to prefer (it is demand driven "
+                       "already, costliest tile first)");
     }
     if (args.steal && assign == PbtAssign::kCounter) {
       fail("--steal", fmt::format("--assign counter has no per-worker lists to steal from "
@@ -340,6 +356,7 @@ BackendOptions MakeBackendOptions(const RenderArgs& args) {
   o.pbt_cost = PbtCostFor(args);
   o.seed = args.seed;
   o.pbt_steal = args.steal;
+  o.pbt_demand = args.demand;
   o.queue_stats = args.queue_stats;
   if (o.kind == BackendKind::kSerial && o.threads != 1) {
     throw Error(fmt::format("--threads {}: the serial backend runs one thread (use lock, lfree, "
@@ -673,6 +690,10 @@ int Main(int argc, char** argv) {
   render->add_flag("--steal", r.steal,
                    "PBT: a thread done with its tiles takes waiting tiles of the most loaded "
                    "worker (demand-driven with affinity)");
+  render->add_flag("--demand", r.demand,
+                   "PBT, tiles backend: the paper's demand-driven master; a free thread asks for "
+                   "a tile and gets the next in PBT order, one of its own lists' if any is left "
+                   "(--assign gives the affinity)");
   render->add_flag("!--no-queue-stats", r.queue_stats, "do not time queue operations");
   render->add_option("--task-size", r.task_size, "rays per task")
       ->check(CLI::Range(1, 1 << 20))

@@ -74,6 +74,22 @@ void operator delete[](void* p, size_t) noexcept { free(p); }
 namespace rs {
 namespace {
 
+// Renders `frames` frames of ctx; the allocations counted while all but the first rendered.
+uint64_t LaterFrameAllocations(HostRenderer& r, const FrameContext& ctx, Framebuffer& fb,
+                               int frames) {
+  uint64_t allocations = 0;
+  for (int frame = 0; frame < frames; ++frame) {
+    fb.Clear();
+    g_allocations.store(0);
+    g_counting.store(frame >= 1);
+    r.BeginFrame(ctx, fb);
+    r.EndFrame();
+    g_counting.store(false);
+    allocations += g_allocations.load();
+  }
+  return allocations;
+}
+
 TEST_CASE("the counter sees allocations") {
   g_allocations.store(0);
   g_counting.store(true);
@@ -98,28 +114,19 @@ TEST_CASE("no heap allocation while a later frame renders, on every host backend
       b.threads = b.kind == BackendKind::kSerial ? 1 : 2;
       o.batch = batch;
       HostRenderer r(b);
-      const FrameContext ctx = MakeFrameContext(s, accel, s.camera, o);
       Framebuffer fb(o.width, o.height);
-      uint64_t allocations = 0;
-      for (int frame = 0; frame < 3; ++frame) {  // counted: the second and third
-        fb.Clear();
-        g_allocations.store(0);
-        g_counting.store(frame >= 1);
-        r.BeginFrame(ctx, fb);
-        r.EndFrame();
-        g_counting.store(false);
-        allocations += g_allocations.load();
-      }
-      CHECK(allocations == 0);
+      CHECK(LaterFrameAllocations(r, MakeFrameContext(s, accel, s.camera, o), fb, 3) == 0);
     }
   }
 }
 
-// PBT tiles feeding the queues: the render threads allocate nothing in a later frame (their
-// tile counters, feed slots and pixel -> tile lookup are sized on the application thread). The
-// application thread is not counted: TilePlan re-plans between frames (PBT-Update and the next
-// assignment build new vectors there, once per frame, outside the render threads).
-TEST_CASE("no heap allocation on the render threads in a later PBT frame, queue backends") {
+// PBT tiles feeding the queues, and the tiles backend's PBT lists (static, stealing, the
+// demand-driven master): the render threads allocate nothing in a later frame (their tile
+// counters, feed slots, steal ranges, the master's state and the pixel -> tile lookup are sized
+// on the application thread). The application thread is not counted: TilePlan re-plans between
+// frames (PBT-Update and the next assignment build new vectors there, once per frame, outside
+// the render threads).
+TEST_CASE("no heap allocation on the render threads in a later PBT frame, queue and tiles") {
   const Scene s = test::HandScene();
   const Accel accel(test::MeshOf(s));
   RenderOptions o;
@@ -138,31 +145,38 @@ TEST_CASE("no heap allocation on the render threads in a later PBT frame, queue 
     CHECK(own == 0);
     CHECK(g_allocations.load() >= 1);
   }
-  for (const char* name : {"lock", "lfree", "local"}) {
-    for (const PbtAssign assign : {PbtAssign::kGreedy, PbtAssign::kCounter}) {
-      INFO("backend ", std::string(name), " assign ", std::string(PbtAssignName(assign)));
-      BackendOptions b;
-      REQUIRE(ParseBackendKind(name, &b.kind));
-      b.threads = 2;
-      b.pbt_tiles_per_worker = 4;
-      b.assign = assign;
-      b.pbt_cost = PbtCost::kWork;
-      b.pbt_steal = assign != PbtAssign::kCounter;
-      HostRenderer r(b);
-      const FrameContext ctx = MakeFrameContext(s, accel, s.camera, o);
-      Framebuffer fb(o.width, o.height);
-      uint64_t allocations = 0;
-      for (int frame = 0; frame < 4; ++frame) {  // counted: the second to the fourth
-        fb.Clear();
-        g_allocations.store(0);
-        g_counting.store(frame >= 1);
-        r.BeginFrame(ctx, fb);
-        r.EndFrame();
-        g_counting.store(false);
-        allocations += g_allocations.load();
-      }
-      CHECK(allocations == 0);
-    }
+  struct Mode {
+    const char* name;
+    PbtAssign assign;
+    bool steal;
+    bool demand;
+  };
+  const Mode modes[] = {{"lock", PbtAssign::kGreedy, true, false},
+                        {"lock", PbtAssign::kCounter, false, false},
+                        {"lfree", PbtAssign::kGreedy, true, false},
+                        {"lfree", PbtAssign::kCounter, false, false},
+                        {"local", PbtAssign::kGreedy, true, false},
+                        {"local", PbtAssign::kCounter, false, false},
+                        {"tiles", PbtAssign::kGreedy, false, false},
+                        {"tiles", PbtAssign::kGreedy, true, false},
+                        {"tiles", PbtAssign::kGreedy, false, true},
+                        {"tiles", PbtAssign::kRandom, false, true},
+                        {"tiles", PbtAssign::kCounter, false, false}};
+  for (const Mode& mode : modes) {
+    INFO("backend ", std::string(mode.name), " assign ", std::string(PbtAssignName(mode.assign)),
+         " steal ", mode.steal, " demand ", mode.demand);
+    BackendOptions b;
+    REQUIRE(ParseBackendKind(mode.name, &b.kind));
+    b.threads = 2;
+    b.pbt_tiles_per_worker = 4;
+    b.pbt_workers = mode.demand ? 3 : 0;  // the master: lists not one per thread
+    b.assign = mode.assign;
+    b.pbt_cost = PbtCost::kWork;
+    b.pbt_steal = mode.steal;
+    b.pbt_demand = mode.demand;
+    HostRenderer r(b);
+    Framebuffer fb(o.width, o.height);
+    CHECK(LaterFrameAllocations(r, MakeFrameContext(s, accel, s.camera, o), fb, 4) == 0);
   }
   g_render_threads_only.store(false);
   t_application = false;

@@ -95,17 +95,21 @@ TEST_CASE("every host backend and the cell simulator through the interface: the 
     int threads;
     int pbt;
     bool fixed;
+    bool demand = false;  // tiles: the demand-driven master
   };
   const Case cases[] = {{"serial", 1, 0, true},  {"serial", 1, 0, false}, {"lock", 2, 0, true},
                         {"lfree", 2, 2, true},   {"local", 2, 0, true},   {"tiles", 2, 0, false},
-                        {"tiles", 2, 3, true},   {"cell", 1, 0, true},    {"cell", 1, 2, true}};
+                        {"tiles", 2, 3, true},   {"tiles", 2, 3, false, true},
+                        {"cell", 1, 0, true},    {"cell", 1, 2, true}};
   for (const Case& c : cases) {
     CAPTURE(c.name);
     CAPTURE(c.pbt);
     CAPTURE(c.fixed);
+    CAPTURE(c.demand);
     BackendConfig config;
     config.host.threads = c.threads;
     config.host.pbt_tiles_per_worker = c.pbt;
+    config.host.pbt_demand = c.demand;
     if (c.pbt > 0 && (c.name == "lock" || c.name == "lfree" || c.name == "local")) {
       config.host.pbt_cost = PbtCost::kWork;
     }
@@ -155,6 +159,7 @@ TEST_CASE("every host backend and the cell simulator through the interface: the 
     }
     backend->Finish();
     CHECK_FALSE(backend->Describe().empty());
+    CHECK((backend->Describe().find("demand") != std::string::npos) == c.demand);
     if (c.name == "cell") {
       CHECK(backend->Summary(reports).find("SPEs:") != std::string::npos);
       CHECK(reports[0].worker_extra.size() == 3u);

@@ -16,6 +16,7 @@
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
+#include <functional>
 #include <memory>
 #include <span>
 #include <sstream>
@@ -195,6 +196,43 @@ void CheckQueuePbtStats(const HostFrameStats& s, const BackendOptions& o, const 
   }
 }
 
+// The demand-driven master's rule replayed on a frame's records in the order the master handed
+// the tiles out (whatever the threads' timing): every tile handed out once, each the first
+// waiting tile (in PBT order) of its thread's lists (list v is thread v % threads's) if one was
+// left, else the first waiting tile; a steal is a tile from another thread's lists.
+void CheckDemandOrder(const HostFrameStats& s, const BackendOptions& o) {
+  const size_t m = s.tiles.size();
+  std::vector<size_t> tile_at(m, m);  // hand-out position -> tile
+  for (size_t i = 0; i < m; ++i) {
+    const int64_t h = s.tiles[i].handout;
+    REQUIRE(h >= 0);
+    REQUIRE(static_cast<size_t>(h) < m);
+    REQUIRE(tile_at[static_cast<size_t>(h)] == m);  // one tile per position
+    tile_at[static_cast<size_t>(h)] = i;
+  }
+  auto mine = [&](size_t t, int thread) { return s.tiles[t].worker % o.threads == thread; };
+  std::vector<bool> taken(m, false);
+  uint64_t foreign = 0;
+  for (size_t h = 0; h < m; ++h) {
+    const size_t got = tile_at[h];
+    const int thread = s.tiles[got].thread;
+    size_t want = m;
+    for (size_t t = 0; t < m && want == m; ++t) {
+      if (!taken[t] && mine(t, thread)) want = t;
+    }
+    for (size_t t = 0; t < m && want == m; ++t) {
+      if (!taken[t]) want = t;
+    }
+    INFO("hand-out ", h, " to thread ", thread);
+    CHECK(got == want);
+    taken[got] = true;
+    foreign += !mine(got, thread);
+  }
+  uint64_t steals = 0;
+  for (const ThreadStats& t : s.threads) steals += t.steals;
+  CHECK(steals == foreign);
+}
+
 // Rays, tasks and per-thread bookkeeping must add up to the serial frame's counts.
 void CheckStats(const HostFrameStats& s, const BackendOptions& o, const FrameStats& want,
                 size_t expected_tiles) {
@@ -265,7 +303,12 @@ void CheckStats(const HostFrameStats& s, const BackendOptions& o, const FrameSta
       }
       uint64_t steals = 0;
       for (const ThreadStats& t : s.threads) steals += t.steals;
-      if (!o.pbt_steal) CHECK(steals == 0);
+      if (!o.pbt_steal && !o.pbt_demand) CHECK(steals == 0);
+      if (o.pbt_demand) {
+        CheckDemandOrder(s, o);
+      } else {
+        for (const TileRecord& r : s.tiles) CHECK(r.handout == -1);
+      }
       CHECK(steals <= expected_tiles);
       // A tile ran on the thread owning its list unless it was stolen.
       uint64_t foreign = 0;
@@ -305,9 +348,11 @@ class References {
 };
 
 // Renders frames 0..frames-1 of the scene's path with one renderer (the render threads live
-// across frames) and compares each against the serial render of the same camera.
+// across frames) and compares each against the serial render of the same camera; `more` (if
+// any) checks each frame's statistics further.
 void CheckBackend(const Loaded& l, const RenderOptions& ro, References& refs,
-                  const BackendOptions& o, int frames, float speed = 1.0f) {
+                  const BackendOptions& o, int frames, float speed = 1.0f,
+                  const std::function<void(const HostFrameStats&)>& more = {}) {
   HostRenderer renderer(o);
   Framebuffer fb(ro.width, ro.height);
   for (int f = 0; f < frames; ++f) {
@@ -359,6 +404,7 @@ void CheckBackend(const Loaded& l, const RenderOptions& ro, References& refs,
       }
     }
     CheckStats(s, o, ref.stats, tiles);
+    if (more) more(s);
   }
   CHECK(renderer.frames() == static_cast<uint64_t>(frames));
 }
@@ -440,6 +486,14 @@ void CheckAllBackends(const std::string& scene_name, int size, const std::vector
     steal.pbt_workers = 3 * n;
     steal.pbt_steal = true;
     CheckBackend(l, ro, refs, steal, 3, 2.0f);
+    // The demand-driven master: tiles on request in PBT order, own lists first, over the
+    // walk-through; one list per thread, and 3 lists per thread.
+    for (const PbtAssign a : {PbtAssign::kGreedy, PbtAssign::kVisit, PbtAssign::kRandom}) {
+      BackendOptions demand = PbtBackend(n, 2, a);
+      demand.pbt_demand = true;
+      if (a == PbtAssign::kVisit) demand.pbt_workers = 3 * n;
+      CheckBackend(l, ro, refs, demand, 3, 2.0f);
+    }
   }
 }
 
@@ -610,6 +664,55 @@ TEST_CASE("queue backends with PBT: re-tiling, affinity, deterministic work cost
       CHECK(t.frames[0][i].rays == first.frames[0][i].rays);
     }
   }
+}
+
+// The demand-driven master over a walk-through, with the hand-out order pinned down where the
+// threads cannot race: one thread asks for every tile (all its own: PBT order, no steals); a
+// thread with no lists (threads > PBT workers) gets only other threads' tiles (all steals).
+TEST_CASE("tiles, demand-driven master: PBT order, own lists first, every tile once, stats") {
+  const Loaded l = Load("erw6");
+  const RenderOptions ro = Options(40, 32, 3);
+  References refs(l, ro);
+  BackendOptions one = PbtBackend(1, 3, PbtAssign::kGreedy);
+  one.pbt_workers = 4;  // 12 tiles in 4 lists, all thread 0's
+  one.pbt_demand = true;
+  CheckBackend(l, ro, refs, one, 4, 2.0f, [](const HostFrameStats& s) {
+    REQUIRE(s.tiles.size() == 12u);
+    for (size_t i = 0; i < s.tiles.size(); ++i) {
+      CHECK(s.tiles[i].handout == static_cast<int64_t>(i));  // PBT (in-order) order
+      CHECK(s.tiles[i].thread == 0);
+    }
+    CHECK(s.threads[0].tiles == 12u);
+    CHECK(s.threads[0].steals == 0u);
+    CHECK(s.threads[0].queue_ops == 13u);  // 12 tiles and the request that found none
+  });
+  BackendOptions three = PbtBackend(3, 2, PbtAssign::kVisit);
+  three.pbt_workers = 2;  // lists 0 and 1: threads 0 and 1; thread 2 has none
+  three.pbt_demand = true;
+  CheckBackend(l, ro, refs, three, 3, 2.0f, [](const HostFrameStats& s) {
+    CHECK(s.threads[2].steals == s.threads[2].tiles);  // CheckStats ran CheckDemandOrder
+  });
+  // The statistics say which mode ran.
+  BackendOptions o = PbtBackend(2, 2, PbtAssign::kGreedy);
+  o.pbt_demand = true;
+  HostRenderer r(o);
+  Framebuffer fb(ro.width, ro.height);
+  std::vector<HostFrameStats> frames = {
+      r.RenderFrame(MakeFrameContext(l.scene, *l.accel, l.scene.camera, ro), fb)};
+  const std::filesystem::path path =
+      std::filesystem::temp_directory_path() /
+      ("rs_backend_test_demand_" + std::to_string(getpid()) + ".json");
+  WriteHostStats(path.string(), "erw6", o, frames);
+  std::ifstream in(path);
+  const nlohmann::json j = nlohmann::json::parse(in);
+  in.close();
+  std::filesystem::remove(path);
+  CHECK(j["options"]["demand"] == true);
+  CHECK(j["options"]["steal"] == false);
+  REQUIRE(j["frames"][0]["threads"].size() == 2);
+  uint64_t steals = 0;
+  for (const auto& t : j["frames"][0]["threads"]) steals += t["steals"].get<uint64_t>();
+  CHECK(steals == frames[0].threads[0].steals + frames[0].threads[1].steals);
 }
 
 TEST_CASE("queue backends with PBT: options") {
@@ -941,6 +1044,19 @@ TEST_CASE("renderer misuse and bad options are rs::Error") {
   BackendOptions steal_counter = PbtBackend(2, 2, PbtAssign::kCounter);
   steal_counter.pbt_steal = true;
   bad(steal_counter);
+  BackendOptions demand_without_pbt = TilesBackend(2, 8, 8);
+  demand_without_pbt.pbt_demand = true;
+  bad(demand_without_pbt);
+  BackendOptions demand_counter = PbtBackend(2, 2, PbtAssign::kCounter);
+  demand_counter.pbt_demand = true;
+  bad(demand_counter);
+  BackendOptions demand_steal = PbtBackend(2, 2, PbtAssign::kGreedy);
+  demand_steal.pbt_demand = true;
+  demand_steal.pbt_steal = true;
+  bad(demand_steal);
+  BackendOptions demand_queue = QueuePbt(BackendKind::kLocal, 2, 2, PbtAssign::kGreedy);
+  demand_queue.pbt_demand = true;
+  bad(demand_queue);
   BackendOptions unknown_cost = PbtBackend(2, 2, PbtAssign::kVisit);
   unknown_cost.pbt_cost = static_cast<PbtCost>(9);
   bad(unknown_cost);
