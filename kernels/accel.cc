@@ -107,7 +107,7 @@ Accel::Accel(const MeshView& mesh, const BuildOptions& options) : impl_(std::mak
   ValidateOptionsAndArrays(mesh, options);
   if (!IndicesInRange(mesh)) ValidateTriangles(mesh);
   Impl& m = *impl_;
-  BuildTriangleSoA(mesh, &m.triangles);
+  BuildTriangleSoA(mesh, &m.triangles, options.build_threads);
   if (m.triangles.num_nonfinite != 0) ValidateTriangles(mesh);
   const GridCostModel model;
   m.lambda = options.lambda > 0.0f ? options.lambda : kDefaultLambda;
@@ -132,7 +132,7 @@ Accel::Accel(const MeshView& mesh, const BuildOptions& options) : impl_(std::mak
       m.two_level = TwoLevelGrid();  // not worth it: stay flat
     }
   }
-  BuildDdaGrid(m.grid, &m.two_level, m.triangles, &m.dda);
+  BuildDdaGrid(m.grid, &m.two_level, m.triangles, &m.dda, options.build_threads);
   m.dda_options.micro_cache = options.micro_cache;
   m.packets = options.packets;
   // A jump costs a gather and the exact boundary search (dda_stream.cc: JumpEmpty), several

@@ -44,14 +44,16 @@ struct DdaGrid {
   size_t Bytes() const;
 };
 
-// Builds `out` for `grid` (and `two_level` if non-null and non-empty) over `tris`.
+// Builds `out` for `grid` (and `two_level` if non-null and non-empty) over `tris`, on `threads`
+// threads (BuildOptions::build_threads; the same data for any count).
 void BuildDdaGrid(const Grid& grid, const TwoLevelGrid* two_level, const TriangleSoA& tris,
-                  DdaGrid* out);
+                  DdaGrid* out, int threads = 1);
 
 inline constexpr int kMaxSkipRings = 15;
 
 // Fills skip[cell] = min(Chebyshev distance to the nearest occupied cell - 1, kMaxSkipRings)
 // for the empty cells of `grid` (occupied cells get 0); skip holds at least num_cells bytes.
-void BuildSkipRings(const Grid& grid, uint8_t* skip);
+// threads: as BuildDdaGrid.
+void BuildSkipRings(const Grid& grid, uint8_t* skip, int threads = 1);
 
 }  // namespace rs

@@ -383,16 +383,19 @@ GridBoxCounts CountGridBoxes(const TriangleSoA& tris, const Grid& geometry, int 
   uint8_t* mark = marks[0].data();
   std::vector<int32_t>& diff = diffs[0];
   for (size_t t = 1; t < marks.size(); ++t) {
-    const uint8_t* m = marks[t].data();
-    for (size_t k = 0; k < num_cells; ++k) mark[k] |= m[k];
-    if (!diffs[t].empty()) {
-      if (diff.empty()) {
-        diff.swap(diffs[t]);
-      } else {
-        for (size_t k = 0; k < num_cells; ++k) diff[k] += diffs[t][k];
+    if (!diffs[t].empty() && diff.empty()) diff.assign(num_cells, 0);
+  }
+  RunParts(parts, [&](int k) {  // the merge, by ranges of cells
+    const size_t c0 = PartBegin(num_cells, parts, k, 64), c1 = PartBegin(num_cells, parts, k + 1, 64);
+    for (size_t t = 1; t < marks.size(); ++t) {
+      const uint8_t* m = marks[t].data();
+      for (size_t c = c0; c < c1; ++c) mark[c] |= m[c];
+      if (!diffs[t].empty()) {
+        const int32_t* dt = diffs[t].data();
+        for (size_t c = c0; c < c1; ++c) diff[c] += dt[c];
       }
     }
-  }
+  });
   for (const size_t r : refs) c.refs += r;
   if (!diff.empty()) {
     // prefix sums along x, y, z turn the corner updates into the number of big boxes per cell
@@ -410,9 +413,14 @@ GridBoxCounts CountGridBoxes(const TriangleSoA& tris, const Grid& geometry, int 
     for (size_t k = stride_z; k < num_cells; ++k) d[k] += d[k - stride_z];
     for (size_t k = 0; k < num_cells; ++k) mark[k] |= uint8_t(d[k] != 0);
   }
-  size_t occupied = 0;
-  for (size_t k = 0; k < num_cells; ++k) occupied += mark[k];
-  c.occupied = occupied;
+  std::vector<size_t> occupied(size_t(parts), 0);
+  RunParts(parts, [&](int k) {
+    const size_t c0 = PartBegin(num_cells, parts, k, 64), c1 = PartBegin(num_cells, parts, k + 1, 64);
+    size_t n = 0;
+    for (size_t c = c0; c < c1; ++c) n += mark[c];
+    occupied[size_t(k)] = n;
+  });
+  for (const size_t n : occupied) c.occupied += n;
   return c;
 }
 

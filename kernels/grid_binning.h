@@ -85,6 +85,10 @@ BinGeometry GridBinGeometry(const Grid& grid);
 // tris->degenerate[i] = IsDegenerateTriangle(triangle i) for i < size (the same flags bit for bit),
 // num_degenerate and num_nonfinite. Reads the padded vertex arrays (size vertices valid).
 void SimdDegenerateFlags(TriangleSoA* tris);
+// The same for triangles [first, last) (first a multiple of 8): their flags, and their counts in
+// *degenerate and *nonfinite (tris->num_* are not written). Parts of one array may run at once.
+void SimdDegenerateFlags(TriangleSoA* tris, size_t first, size_t last, size_t* degenerate,
+                         size_t* nonfinite);
 
 // Float min / max of the vertices of the non-degenerate triangles (+-FLT_MAX if none) and
 // their number.

@@ -54,14 +54,15 @@ void SimdTriangleBounds(const TriangleSoA& tris, float lo[3], float hi[3], size_
 // IsDegenerateTriangle a vector of triangles at a time: float -> double is exact and the
 // differences and products below round as the scalar code's (no contraction), so the flags are
 // the same bit for bit.
-void SimdDegenerateFlags(TriangleSoA* tris) {
+void SimdDegenerateFlagsRange(TriangleSoA* tris, size_t first, size_t n, size_t* degenerate_out,
+                              size_t* nonfinite_out) {
   const hn::ScalableTag<double> dd;
   const hn::Rebind<float, decltype(dd)> df;
   const auto zero = hn::Zero(dd);
-  const size_t n = tris->size, lanes = hn::Lanes(dd);
+  const size_t lanes = hn::Lanes(dd);
   uint8_t* flags = tris->degenerate.data();
   size_t degenerate = 0, nonfinite = 0;
-  for (size_t i = 0; i < n; i += lanes) {
+  for (size_t i = first; i < n; i += lanes) {
     // the vertex arrays are padded (AlignedArray): whole-vector loads are safe
     hn::Vec<decltype(dd)> p[3][3];
     auto finite = hn::FirstN(dd, n - i);
@@ -90,8 +91,8 @@ void SimdDegenerateFlags(TriangleSoA* tris) {
     }
     nonfinite += live - hn::CountTrue(dd, finite);
   }
-  tris->num_degenerate = degenerate;
-  tris->num_nonfinite = nonfinite;
+  *degenerate_out = degenerate;
+  *nonfinite_out = nonfinite;
 }
 
 void SimdTriangleCellRanges(const TriangleSoA& tris, const BinGeometry& g, size_t first,
@@ -180,14 +181,21 @@ namespace rs {
 
 HWY_EXPORT(SimdTriangleBounds);
 HWY_EXPORT(SimdTriangleCellRanges);
-HWY_EXPORT(SimdDegenerateFlags);
+HWY_EXPORT(SimdDegenerateFlagsRange);
 HWY_EXPORT(SimdEdgeTable);
 
 void SimdEdgeTable(const EdgeSet& e, int ci0, int ni, int cj0, int nj, uint8_t* out) {
   HWY_DYNAMIC_DISPATCH(SimdEdgeTable)(e, ci0, ni, cj0, nj, out);
 }
 
-void SimdDegenerateFlags(TriangleSoA* tris) { HWY_DYNAMIC_DISPATCH(SimdDegenerateFlags)(tris); }
+void SimdDegenerateFlags(TriangleSoA* tris, size_t first, size_t last, size_t* degenerate,
+                         size_t* nonfinite) {
+  HWY_DYNAMIC_DISPATCH(SimdDegenerateFlagsRange)(tris, first, last, degenerate, nonfinite);
+}
+
+void SimdDegenerateFlags(TriangleSoA* tris) {
+  SimdDegenerateFlags(tris, 0, tris->size, &tris->num_degenerate, &tris->num_nonfinite);
+}
 
 void SimdTriangleBounds(const TriangleSoA& tris, float lo[3], float hi[3], size_t* num_valid) {
   HWY_DYNAMIC_DISPATCH(SimdTriangleBounds)(tris, lo, hi, num_valid);

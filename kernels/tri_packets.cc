@@ -7,6 +7,9 @@
 
 #include <algorithm>
 #include <limits>
+#include <vector>
+
+#include "kernels/build_threads.h"
 
 #undef HWY_TARGET_INCLUDE
 #define HWY_TARGET_INCLUDE "kernels/tri_packets.cc"
@@ -121,7 +124,7 @@ void Sources(const TriangleSoA& tris, const float* src[kPacketComponents]) {
 
 }  // namespace
 
-void BuildTriPackets(const Grid& grid, const TriangleSoA& tris, TriPackets* out) {
+void BuildTriPackets(const Grid& grid, const TriangleSoA& tris, TriPackets* out, int threads) {
   const size_t cells = grid.empty() ? 0 : grid.num_cells;
   const uint32_t* cell_begin = grid.cell_begin.get();
   // Packet offsets: cell c gets ceil(refs / 4) packets. Reads only the CSR offsets.
@@ -138,9 +141,29 @@ void BuildTriPackets(const Grid& grid, const TriangleSoA& tris, TriPackets* out)
   const float* src[kPacketComponents];
   Sources(tris, src);
   const uint8_t* degenerate = tris.num_degenerate != 0 ? tris.degenerate.data() : nullptr;
-  // One pass over the lists, in cell order: the output is written sequentially.
-  HWY_DYNAMIC_DISPATCH(FillPacketCells)(src, degenerate, grid.tri_ids.get(), cell_begin, cells,
-                                        out->data.get(), out->ids.get(), out->cell_begin.get());
+  // One pass over the lists, in cell order: the output is written sequentially. Threaded: each
+  // part fills a contiguous range of cells from its first packet (its offsets come out relative
+  // to it and are shifted after; FillPacketCells writes only offsets c0 + 1 .. c1), the same
+  // bytes as one pass.
+  const int parts = int(std::min<size_t>(size_t(BuildThreadCount(threads)), cells / 4096 + 1));
+  std::vector<size_t> part_first(size_t(parts) + 1, 0);
+  for (int k = 0; k < parts; ++k) {
+    const size_t c0 = PartBegin(cells, parts, k, 64), c1 = PartBegin(cells, parts, k + 1, 64);
+    size_t n = 0;
+    for (size_t c = c0; c < c1; ++c) {
+      n += (cell_begin[c + 1] - cell_begin[c] + kPacketLanes - 1) / kPacketLanes;
+    }
+    part_first[size_t(k) + 1] = part_first[size_t(k)] + n;
+  }
+  RunParts(parts, [&](int k) {
+    const size_t c0 = PartBegin(cells, parts, k, 64), c1 = PartBegin(cells, parts, k + 1, 64);
+    const size_t first = part_first[size_t(k)];
+    uint32_t* packet_begin = out->cell_begin.get() + c0;
+    HWY_DYNAMIC_DISPATCH(FillPacketCells)(src, degenerate, grid.tri_ids.get(), cell_begin + c0,
+                                          c1 - c0, out->data.get() + kPacketFloats * first,
+                                          out->ids.get() + kPacketLanes * first, packet_begin);
+    for (size_t c = 1; c <= c1 - c0; ++c) packet_begin[c] += uint32_t(first);
+  });
 }
 
 void BuildTriPacketList(const TriangleSoA& tris, const uint32_t* ids, size_t n, TriPackets* out) {

@@ -83,7 +83,9 @@ struct TriPackets {
 // lists, keeping each cell's id order. Reuses `out`'s arrays when they are large enough.
 // Degenerate triangles (tris.degenerate, never binned by BuildGrid) would get NaN vertices.
 // An empty grid gives num_cells = 0. Never throws (allocation failure aborts, as in Highway).
-void BuildTriPackets(const Grid& grid, const TriangleSoA& tris, TriPackets* out);
+// threads (BuildOptions::build_threads): parts of the cells filled on that many threads (the
+// same packets for any count).
+void BuildTriPackets(const Grid& grid, const TriangleSoA& tris, TriPackets* out, int threads = 1);
 
 // Packets for one list of triangle ids (any order, duplicates allowed): out becomes a single
 // cell, out->Cell(0). For tests, benchmarks and N rays x M triangles streams. Ids must be

@@ -5,7 +5,9 @@
 #include <algorithm>
 #include <cfloat>
 #include <cmath>
+#include <vector>
 
+#include "kernels/build_threads.h"
 #include "kernels/grid_binning.h"
 
 namespace rs {
@@ -26,15 +28,16 @@ bool IsDegenerateTriangle(const float p0[3], const float p1[3], const float p2[3
   return nx == 0.0 && ny == 0.0 && nz == 0.0;
 }
 
-void BuildTriangleSoA(const MeshView& mesh, TriangleSoA* out) {
+void BuildTriangleSoA(const MeshView& mesh, TriangleSoA* out, int threads) {
   const size_t n = mesh.num_triangles;
+  // every element below n is written next: no zero fill (it cost as much as the gather)
   for (auto& vertex : out->p) {
-    for (auto& axis : vertex) axis.Reserve(n);
+    for (auto& axis : vertex) axis.ReserveForOverwrite(n);
   }
-  out->degenerate.Reserve(n);
+  out->degenerate.ReserveForOverwrite(n);
   out->size = n;
   // gather (scalar: the index buffer makes it a gather), then the degenerate flags a vector of
-  // triangles at a time (kernels/grid_simd.cc)
+  // triangles at a time (kernels/grid_simd.cc); threaded: both per part of the triangles
   float* dst[3][3];
   for (int k = 0; k < 3; ++k) {
     for (int a = 0; a < 3; ++a) dst[k][a] = out->p[k][a].data();
@@ -42,15 +45,25 @@ void BuildTriangleSoA(const MeshView& mesh, TriangleSoA* out) {
   const uint32_t* indices = mesh.indices;
   const float* positions = mesh.positions;
   const size_t stride = mesh.stride;
-  for (size_t i = 0; i < n; ++i) {
-    for (int k = 0; k < 3; ++k) {
-      const float* src = positions + size_t{indices[3 * i + k]} * stride;
-      dst[k][0][i] = src[0];
-      dst[k][1][i] = src[1];
-      dst[k][2][i] = src[2];
+  const int parts = int(std::min<size_t>(size_t(BuildThreadCount(threads)), n / 4096 + 1));
+  std::vector<size_t> degenerate(size_t(parts), 0), nonfinite(size_t(parts), 0);
+  RunParts(parts, [&](int t) {
+    const size_t first = PartBegin(n, parts, t, 64), last = PartBegin(n, parts, t + 1, 64);
+    for (size_t i = first; i < last; ++i) {
+      for (int k = 0; k < 3; ++k) {
+        const float* src = positions + size_t{indices[3 * i + k]} * stride;
+        dst[k][0][i] = src[0];
+        dst[k][1][i] = src[1];
+        dst[k][2][i] = src[2];
+      }
     }
+    SimdDegenerateFlags(out, first, last, &degenerate[size_t(t)], &nonfinite[size_t(t)]);
+  });
+  out->num_degenerate = out->num_nonfinite = 0;
+  for (int t = 0; t < parts; ++t) {
+    out->num_degenerate += degenerate[size_t(t)];
+    out->num_nonfinite += nonfinite[size_t(t)];
   }
-  SimdDegenerateFlags(out);
 }
 
 bool WatertightAheadInDouble(float a0, float a1, float a2, float b0, float b1, float b2, float c0,

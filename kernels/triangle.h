@@ -34,8 +34,9 @@ struct TriangleSoA {
 bool IsDegenerateTriangle(const float p0[3], const float p1[3], const float p2[3]);
 
 // Gathers the mesh's triangles into `out`. Precondition: the mesh is valid (indices in range,
-// stride >= 3; see Accel's constructor, which checks and throws). Never throws.
-void BuildTriangleSoA(const MeshView& mesh, TriangleSoA* out);
+// stride >= 3; see Accel's constructor, which checks and throws). Never throws. threads
+// (BuildOptions::build_threads): parts of the triangles gathered on that many threads.
+void BuildTriangleSoA(const MeshView& mesh, TriangleSoA* out, int threads = 1);
 
 // Closest-hit record of the scalar tests: t along the ray (units of |d|), u, v barycentrics of
 // vertices 1 and 2.

@@ -33,6 +33,9 @@ class AlignedArray {
   explicit AlignedArray(size_t capacity) { Reserve(capacity); }
   // Grows (never shrinks) to hold at least `capacity` elements; old contents are kept.
   void Reserve(size_t capacity);
+  // The same for an array about to be overwritten: old contents are not kept, and elements
+  // [0, capacity) of a grown array are left unset (the padding after them is zeroed).
+  void ReserveForOverwrite(size_t capacity);
   T* data() { return ptr_.get(); }
   const T* data() const { return ptr_.get(); }
   size_t capacity() const { return capacity_; }
@@ -52,6 +55,15 @@ void AlignedArray<T>::Reserve(size_t capacity) {
   for (size_t i = 0; i < capacity_; ++i) grown[i] = ptr_[i];
   for (size_t i = capacity_; i < padded; ++i) grown[i] = T{};
   ptr_ = std::move(grown);
+  capacity_ = padded;
+}
+
+template <typename T>
+void AlignedArray<T>::ReserveForOverwrite(size_t capacity) {
+  const size_t padded = PaddedSize(capacity);
+  if (padded <= capacity_ && ptr_) return;
+  ptr_ = AllocateAlignedOrThrow<T>(padded, "a ray, hit or contribution stream");
+  for (size_t i = capacity; i < padded; ++i) ptr_[i] = T{};
   capacity_ = padded;
 }
 

@@ -6,9 +6,11 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstring>
 #include <limits>
 #include <vector>
 
+#include "kernels/dda_grid.h"
 #include "kernels/grid.h"
 #include "kernels/grid_binning.h"
 #include "kernels/triangle.h"
@@ -594,6 +596,47 @@ TEST_CASE("threaded build (BuildOptions::build_threads): the same grid and box c
       CHECK(c.refs == counts.refs);
       CHECK(c.occupied == counts.occupied);
     }
+  }
+}
+
+
+TEST_CASE("threaded build: the same triangles, packets, occupancy words and skip rings for 1-4 threads") {
+  Rng rng(73);
+  // 20,000 small triangles (several parts of every pass), every 97th degenerate
+  Soup soup = test::RandomSoup(rng, 20000, -1.0, 1.0, 0.05);
+  for (size_t t = 0; t < soup.triangles(); t += 97) soup.indices[3 * t + 2] = soup.indices[3 * t];
+  TriangleSoA one;
+  BuildTriangleSoA(soup.view(), &one, 1);
+  Grid grid;
+  BuildGrid(one, 4.0f, 512, &grid, 1);
+  DdaGrid dda_one;
+  BuildDdaGrid(grid, nullptr, one, &dda_one, 1);
+  REQUIRE(one.num_degenerate > 200);
+  for (int threads = 2; threads <= 4; ++threads) {
+    INFO("threads ", threads);
+    TriangleSoA tris;
+    BuildTriangleSoA(soup.view(), &tris, threads);
+    CHECK(tris.num_degenerate == one.num_degenerate);
+    CHECK(tris.num_nonfinite == one.num_nonfinite);
+    CHECK(std::equal(one.degenerate.data(), one.degenerate.data() + one.size, tris.degenerate.data()));
+    for (int k = 0; k < 3; ++k) {
+      for (int a = 0; a < 3; ++a) {
+        CHECK(std::equal(one.p[k][a].data(), one.p[k][a].data() + one.size, tris.p[k][a].data()));
+      }
+    }
+    DdaGrid dda;
+    BuildDdaGrid(grid, nullptr, one, &dda, threads);
+    REQUIRE(dda.packets.num_packets == dda_one.packets.num_packets);
+    const TriPackets& p = dda.packets;
+    const TriPackets& q = dda_one.packets;
+    CHECK(std::equal(p.cell_begin.get(), p.cell_begin.get() + p.num_cells + 1, q.cell_begin.get()));
+    CHECK(std::equal(p.ids.get(), p.ids.get() + kPacketLanes * p.num_packets, q.ids.get()));
+    // NaN padding: compare the bits
+    CHECK(std::memcmp(p.data.get(), q.data.get(), kPacketFloats * p.num_packets * sizeof(float)) == 0);
+    CHECK(dda.top_words32 == dda_one.top_words32);
+    CHECK(std::equal(dda.bits.get(), dda.bits.get() + dda.top_words32, dda_one.bits.get()));
+    CHECK(std::equal(dda.skip.get(), dda.skip.get() + (grid.num_cells + 3) / 4, dda_one.skip.get()));
+    CHECK(dda.empty_block_share == dda_one.empty_block_share);
   }
 }
 
