@@ -193,20 +193,34 @@ HWY_INLINE V3 FaceNormal3(const V3& p0, const V3& p1, const V3& p2) {
   const VF scale = hn::BitCast(df, hn::ShiftLeft<23>(hn::Sub(hn::Set(di, 254), e)));
   return Normalize3(Cross3(Scale3(e1, scale), Scale3(e2, scale)));
 }
-// OffsetRayOrigin (Waechter and Binder), one component: integer ulp step, or a tiny absolute
-// step within 1/32 of 0.
-HWY_INLINE VF OffsetComponent(VF p, VF n) {
+// OffsetUnit of the triangles (p0, p1, p2), lane by lane.
+HWY_INLINE VF OffsetUnit3(const V3& p0, const V3& p1, const V3& p2) {
+  const DF df;
+  const DI di;
+  const auto max3 = [](const V3& p) {
+    return hn::Max(hn::Abs(p.x), hn::Max(hn::Abs(p.y), hn::Abs(p.z)));
+  };
+  const VF m = hn::Max(max3(p0), hn::Max(max3(p1), max3(p2)));
+  VI e = hn::And(hn::ShiftRight<23>(hn::BitCast(di, m)), hn::Set(di, 0xFF));
+  e = hn::Min(hn::Max(e, hn::Set(di, 1)), hn::Set(di, 254));
+  return hn::BitCast(df, hn::ShiftLeft<23>(e));
+}
+// OffsetRayOrigin (Waechter and Binder), one component: integer ulp step, or a small absolute
+// step (unit * 2^-16) within unit / 32 of 0.
+HWY_INLINE VF OffsetComponent(VF p, VF n, VF unit) {
   const DF df;
   const DI di;
   const VI of = hn::ConvertTo(di, hn::Mul(hn::Set(df, 256.0f), n));  // truncates, |n| <= 1
   const VI bits = hn::BitCast(di, p);
   const auto negative = hn::RebindMask(di, hn::Lt(p, hn::Zero(df)));
   const VF pi = hn::BitCast(df, hn::Add(bits, hn::IfThenElse(negative, hn::Neg(of), of)));
-  const MF near_zero = hn::Lt(hn::Abs(p), hn::Set(df, 1.0f / 32.0f));
-  return hn::IfThenElse(near_zero, hn::Add(p, hn::Mul(hn::Set(df, 1.0f / 65536.0f), n)), pi);
+  const MF near_zero = hn::Lt(hn::Abs(p), hn::Mul(unit, hn::Set(df, 1.0f / 32.0f)));
+  const VF float_scale = hn::Mul(unit, hn::Set(df, 1.0f / 65536.0f));
+  return hn::IfThenElse(near_zero, hn::Add(p, hn::Mul(float_scale, n)), pi);
 }
-HWY_INLINE V3 OffsetRayOrigin3(const V3& p, const V3& n) {
-  return {OffsetComponent(p.x, n.x), OffsetComponent(p.y, n.y), OffsetComponent(p.z, n.z)};
+HWY_INLINE V3 OffsetRayOrigin3(const V3& p, const V3& n, VF unit) {
+  return {OffsetComponent(p.x, n.x, unit), OffsetComponent(p.y, n.y, unit),
+          OffsetComponent(p.z, n.z, unit)};
 }
 
 // PhongPow, lane by lane the same operations as the scalar rs::PhongPow (HWY_ONCE below).
@@ -597,7 +611,8 @@ HWY_NOINLINE size_t ShadeBlocks(const detail::ShadeArgs& a) {
     }
 
     // The origin on the incoming side, shared by shadow and reflection rays.
-    const V3 front = OffsetRayOrigin3(p, ng);
+    const VF unit = OffsetUnit3(p0, p1, p2);
+    const V3 front = OffsetRayOrigin3(p, ng, unit);
     // local = clamp((1 - reflectivity) - transmission, 0, 1), std::clamp's NaN behaviour.
     VF local = hn::Sub(hn::Sub(one, refl), trans);
     local = hn::IfThenElse(hn::Lt(local, zero), zero, hn::IfThenElse(hn::Lt(one, local), one, local));
@@ -708,7 +723,7 @@ HWY_NOINLINE size_t ShadeBlocks(const detail::ShadeArgs& a) {
             const MF through = hn::Or(hn::And(redo, ok_ng), hn::AndNot(redo, ok_ns));
             const V3 t = Select3(redo, t_ng, t_ns);
             // Total internal reflection: a reflection ray from the front side.
-            const V3 origin = Select3(through, OffsetRayOrigin3(p, Neg3(ng)), front);
+            const V3 origin = Select3(through, OffsetRayOrigin3(p, Neg3(ng), unit), front);
             const V3 dir = Select3(through, t, mirror());
             const VI kind = hn::IfThenElse(
                 hn::RebindMask(di, through), hn::Set(di, static_cast<int32_t>(RayKind::kRefraction)),
@@ -948,7 +963,8 @@ void Shade(const ShadeScene& scene, const ShadeOptions& options, const RayStream
     }
 
     // The origin on the incoming side, shared by shadow and reflection rays.
-    const glm::vec3 front = OffsetRayOrigin(p, ng);
+    const float unit = OffsetUnit(p0, p1, p2);
+    const glm::vec3 front = OffsetRayOrigin(p, ng, unit);
     const float local = std::clamp(1.0f - mat.reflectivity - mat.transmission, 0.0f, 1.0f);
     if (local > 0.0f) {
       const glm::vec3 wl = w * local;
@@ -1013,7 +1029,7 @@ void Shade(const ShadeScene& scene, const ShadeOptions& options, const RayStream
         bool through = Refract(d, nr, eta, &t);
         if (through && glm::dot(t, ng) >= 0.0f) through = Refract(d, ng, eta, &t);
         if (through) {
-          PushRay(secondary, OffsetRayOrigin(p, -ng), t, inf, pixel, wt, depth + 1,
+          PushRay(secondary, OffsetRayOrigin(p, -ng, unit), t, inf, pixel, wt, depth + 1,
                   RayKind::kRefraction);
           ++s.spawned[static_cast<int>(RayKind::kRefraction)];
         } else {  // total internal reflection

@@ -154,11 +154,6 @@ inline void Shade(const Scene& scene, const ShadeOptions& options, const RayStre
   rs::Shade(ShadeSceneOf(scene), options, rays, hits, contributions, secondary, stats);
 }
 
-// Robust secondary-ray origin (Waechter and Binder, "A Fast and Robust Method for Avoiding
-// Self-Intersection", Ray Tracing Gems ch. 6): moves p by ~256 ulps per unit of the normal in
-// integer space, so the offset scales with |p|, and by 2^-16 * n in absolute terms for
-// coordinates within 1/32 of 0 (where ulps become tiny). n must be unit length and point to the
-// side the new ray leaves toward. p must be finite.
 // The power of two that brings m (> 0, the largest edge component) into [1, 2): its exponent
 // clamped so that the factor stays a normal float (m of 0, inf or NaN keep their meaning).
 inline float EdgeScale(float m) {
@@ -180,9 +175,31 @@ inline glm::vec3 FaceNormal(const glm::vec3& p0, const glm::vec3& p1, const glm:
   return glm::normalize(glm::cross(e1 * s, e2 * s));
 }
 
-inline glm::vec3 OffsetRayOrigin(const glm::vec3& p, const glm::vec3& n) {
-  constexpr float kOrigin = 1.0f / 32.0f;
-  constexpr float kFloatScale = 1.0f / 65536.0f;
+// The unit of OffsetRayOrigin for a point on triangle (p0, p1, p2): the power of two
+// 2^floor(log2(m)) of m = the largest |component| of the three vertices, the magnitude that the
+// error of a point interpolated from them is relative to (exponent clamped to a normal float, as
+// EdgeScale). Scaling a scene by a power of two scales it exactly.
+inline float OffsetUnit(const glm::vec3& p0, const glm::vec3& p1, const glm::vec3& p2) {
+  float m = 0.0f;
+  for (int a = 0; a < 3; ++a) {
+    m = std::fmax(m, std::fmax(std::fabs(p0[a]), std::fmax(std::fabs(p1[a]), std::fabs(p2[a]))));
+  }
+  int32_t e = (std::bit_cast<int32_t>(m) >> 23) & 0xFF;
+  e = e < 1 ? 1 : (e > 254 ? 254 : e);
+  return std::bit_cast<float>(e << 23);
+}
+
+// Robust secondary-ray origin (Waechter and Binder, "A Fast and Robust Method for Avoiding
+// Self-Intersection", Ray Tracing Gems ch. 6), in units of `unit` (OffsetUnit of the triangle
+// hit): moves p by ~256 ulps per unit of the normal in integer space, so the offset scales with
+// |p|, and by unit * 2^-16 * n in absolute terms for components within unit / 32 of 0 (where
+// ulps become tiny compared with the error of p). With the triangle's unit the offset is
+// relative to the scene's scale: a scene scaled by 1e-12 or 1e12 gets the same shadows. unit = 1
+// is the paper's constants. n must be unit length and point to the side the new ray leaves
+// toward. p must be finite; unit a power of two.
+inline glm::vec3 OffsetRayOrigin(const glm::vec3& p, const glm::vec3& n, float unit = 1.0f) {
+  const float origin = unit * (1.0f / 32.0f);
+  const float float_scale = unit * (1.0f / 65536.0f);
   constexpr float kIntScale = 256.0f;
   glm::vec3 out;
   for (int a = 0; a < 3; ++a) {
@@ -190,7 +207,7 @@ inline glm::vec3 OffsetRayOrigin(const glm::vec3& p, const glm::vec3& n) {
     const int32_t bits = std::bit_cast<int32_t>(p[a]);
     // In sign-magnitude float bits, adding moves away from 0: flip the step for p < 0.
     const float pi = std::bit_cast<float>(bits + (p[a] < 0.0f ? -of : of));
-    out[a] = std::fabs(p[a]) < kOrigin ? p[a] + kFloatScale * n[a] : pi;
+    out[a] = std::fabs(p[a]) < origin ? p[a] + float_scale * n[a] : pi;
   }
   return out;
 }

@@ -319,6 +319,7 @@ void SetDefaultView(Scene& scene, const glm::vec3& up_in) {
 void FinishScene(Scene& scene) {
   const std::string& label = scene.source.empty() ? scene.name : scene.source;
   if (scene.triangles.empty()) Fail("{}: scene has no triangles", label);
+  NormalizeScale(scene);
   if (!AnyPositiveArea(scene)) {
     Fail("{}: every triangle has zero area ({} triangles); nothing to render", label,
          scene.triangles.size());

@@ -64,6 +64,43 @@ Camera CameraPath::At(int frame, float speed, const Camera& fallback) const {
   return c;
 }
 
+void NormalizeScale(Scene& scene) {
+  const std::string& label = scene.source.empty() ? scene.name : scene.source;
+  float m = 0.0f;
+  const auto take = [&m](const glm::vec3& p) {
+    for (int a = 0; a < 3; ++a) m = std::fmax(m, std::fabs(p[a]));  // fmax drops NaN: checked
+  };
+  for (const glm::vec3& p : scene.positions) take(p);
+  for (const PointLight& l : scene.lights) take(l.position);
+  take(scene.camera.eye);
+  take(scene.camera.look_at);
+  for (const Camera& c : scene.path.keys) {
+    take(c.eye);
+    take(c.look_at);
+  }
+  if (!(m >= kMinSceneMagnitude && m <= kMaxSceneMagnitude)) {
+    detail::Fail("{}: largest coordinate magnitude {} outside the supported range [{}, {}]",
+                 label, m, kMinSceneMagnitude, kMaxSceneMagnitude);
+  }
+  if (m >= std::ldexp(1.0f, -20) && m <= std::ldexp(1.0f, 20)) return;
+  const int e = std::ilogb(m);  // m in [2^e, 2^(e + 1))
+  const auto scale = [e](glm::vec3& p) {
+    for (int a = 0; a < 3; ++a) p[a] = std::ldexp(p[a], -e);
+  };
+  for (glm::vec3& p : scene.positions) scale(p);
+  for (PointLight& l : scene.lights) {
+    scale(l.position);
+    l.falloff = std::ldexp(l.falloff, 2 * e);
+  }
+  scale(scene.camera.eye);
+  scale(scene.camera.look_at);
+  for (Camera& c : scene.path.keys) {
+    scale(c.eye);
+    scale(c.look_at);
+  }
+  scene.coordinate_scale = std::ldexp(scene.coordinate_scale, -e);
+}
+
 SceneFeatures ComputeFeatures(const Scene& scene) {
   SceneFeatures features;
   features.lights = !scene.lights.empty();

@@ -81,6 +81,8 @@ struct Scene {
   glm::vec3 background{0.0f};
   float ambient = 0.1f;  // ambient term, scales diffuse colour
   SceneFeatures features;
+  // The power of two NormalizeScale multiplied every coordinate by (1: the scene as given).
+  float coordinate_scale = 1.0f;
   // Non-fatal problems met while loading (missing .mtl or texture, ignored statements), each
   // naming the file; LoadScene also prints them to stderr. Never affects the image silently:
   // every fallback taken (default material, untextured) is listed here.
@@ -89,6 +91,18 @@ struct Scene {
   MeshView mesh() const;
   void Bounds(glm::vec3& lo, glm::vec3& hi) const;
 };
+
+// Scenes render in coordinates whose largest magnitude lies in [2^-20, 2^20]: beyond about
+// 2^40 the watertight test's products overflow, below 2^-40 they underflow (and the shading's
+// offsets are relative to the triangles, OffsetUnit). A scene outside that band is multiplied
+// by the power of two that brings its largest coordinate (vertices, lights, camera, path keys)
+// into [1, 2), light falloffs by its inverse square; a power-of-two scale changes no rounding,
+// so the image is that of the scene as given. Sets coordinate_scale. The supported range:
+// largest coordinate magnitude in [kMinSceneMagnitude, kMaxSceneMagnitude]; outside it (or
+// with a non-finite coordinate) throws rs::Error naming scene.source.
+inline constexpr float kMinSceneMagnitude = 1e-18f;
+inline constexpr float kMaxSceneMagnitude = 1e18f;
+void NormalizeScale(Scene& scene);
 
 // Computes scene.features from its contents.
 SceneFeatures ComputeFeatures(const Scene& scene);

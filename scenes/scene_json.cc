@@ -300,6 +300,7 @@ class SceneFileParser {
     if (const Json* j = Find(root, "background")) scene_.background = Colour(*j, "/background");
     if (const Json* j = Find(root, "ambient")) scene_.ambient = Range(*j, "/ambient", 0.0f, 1e6f);
     CameraAndLights(root);
+    NormalizeScale(scene_);
     scene_.features = ComputeFeatures(scene_);
     ValidateScene(scene_);
     return std::move(scene_);
@@ -462,7 +463,7 @@ class SceneFileParser {
           At(p, "needs \"center\" and \"radius\"");
         }
         const glm::vec3 center = Vec3((*s)["center"], p + "/center");
-        const float radius = Range((*s)["radius"], p + "/radius", 1e-12f, 1e18f);
+        const float radius = Range((*s)["radius"], p + "/radius", 1e-15f, 1e18f);
         const int slices =
             s->contains("slices") ? Integer((*s)["slices"], p + "/slices", 3, 256) : 32;
         const int stacks =

@@ -56,8 +56,14 @@ Json InfoJson(const Scene& scene, const AccelInfo& a) {
       {"textures", scene.textures.size()},
       {"lights", scene.lights.size()},
       {"path_frames", scene.path.frames},
-      {"bounds", {{"lo", {a.bounds_lo[0], a.bounds_lo[1], a.bounds_lo[2]}},
-                  {"hi", {a.bounds_hi[0], a.bounds_hi[1], a.bounds_hi[2]}}}},
+      // in the scene's own units (the grid is built on the NormalizeScale'd coordinates)
+      {"bounds", {{"lo", {a.bounds_lo[0] / scene.coordinate_scale,
+                          a.bounds_lo[1] / scene.coordinate_scale,
+                          a.bounds_lo[2] / scene.coordinate_scale}},
+                  {"hi", {a.bounds_hi[0] / scene.coordinate_scale,
+                          a.bounds_hi[1] / scene.coordinate_scale,
+                          a.bounds_hi[2] / scene.coordinate_scale}}}},
+      {"coordinate_scale", scene.coordinate_scale},
       {"grid",
        {{"kind", a.kind},
         {"resolution", {a.resolution[0], a.resolution[1], a.resolution[2]}},
@@ -96,6 +102,10 @@ void PrintInfo(const Json& j) {
   fmt::print("bounds       ({:.4g}, {:.4g}, {:.4g}) .. ({:.4g}, {:.4g}, {:.4g})\n",
              lo[0].get<float>(), lo[1].get<float>(), lo[2].get<float>(), hi[0].get<float>(),
              hi[1].get<float>(), hi[2].get<float>());
+  if (const float k = j["coordinate_scale"].get<float>(); k != 1.0f) {
+    fmt::print("scale        rendered with coordinates x 2^{} (outside [2^-20, 2^20])\n",
+               std::ilogb(k));
+  }
   fmt::print("grid         {} {}x{}x{} = {} cells, {} occupied ({:.1f} %)\n",
              g["kind"].get<std::string>(), g["resolution"][0].get<int>(),
              g["resolution"][1].get<int>(), g["resolution"][2].get<int>(),

@@ -159,6 +159,11 @@ struct TraceStats {
 // optionally with 8x8x8 sub-grids in its densest cells (BuildOptions::grid), traced by SIMD
 // stream kernels (Highway dynamic dispatch; results identical on every CPU target).
 // Thread-safe for concurrent Intersect/Occluded calls once built.
+// Coordinate range: the watertight test multiplies three coordinates relative to the ray
+// origin, so vertices and ray origins must stay within magnitude 2^39 (about 5.5e11) to keep
+// its products finite, and triangles larger than about 2^-40 to keep them from underflowing.
+// Scale a scene outside that range by a power of two (exact: no rounding changes, hits scale
+// back exactly), as the raystream renderer does for every scene it loads.
 class RS_API Accel {
  public:
   // Throws rs::Error if an index is out of range or a vertex of a referenced triangle is

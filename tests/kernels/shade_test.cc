@@ -151,7 +151,7 @@ TEST_CASE("shadow ray: origin above the floor, aimed at the light, phong weight,
   CHECK(v.tmax[0] == kShadowTmax);
   const glm::vec3 o = Org(v, 0);
   CHECK(o.y > 0.0f);  // offset to the lit side
-  CHECK(o.y < 1e-4f);
+  CHECK(o.y == 8.0f / 65536.0f);  // the floor's OffsetUnit is 8 (|x| <= 10): 8 * 2^-16
   CheckVec(o + Dir(v, 0), light.position, 1e-6);  // o + 1 * d is the light
   // Weight: (kd cos + ks rv^n) * colour * w, cos = 1, rv = dot((0,1,0), view) = 1/sqrt(2).
   const float rv = 1.0f / std::sqrt(2.0f);
@@ -270,7 +270,7 @@ TEST_CASE("refraction: Snell's law entering and leaving, origin on the far side"
   CHECK(v.kind[0] == static_cast<int32_t>(RayKind::kRefraction));
   CheckVec(Dir(v, 0), glm::vec3(st, -std::sqrt(1 - st * st), 0), 1e-6);
   CHECK(v.oy[0] < 0.0f);  // went through: origin below the top face
-  CHECK(v.oy[0] > -1e-4f);
+  CHECK(v.oy[0] > -2e-4f);  // OffsetUnit of the slab's face, times 2^-16
   CheckVec(Weight(v, 0), glm::vec3(0.9f), 1e-6);
   CHECK(v.depth[0] == 1);
   // Leaving the bottom: sin t = 0.75, going down.
@@ -411,6 +411,24 @@ TEST_CASE("OffsetRayOrigin: moves along n, scales with |p|, small absolute step 
   const glm::vec3 z = OffsetRayOrigin(glm::vec3(0.0f), glm::vec3(0, -1, 0));
   CHECK(z.y == -1.0f / 65536.0f);
   CHECK(z.x == 0.0f);
+}
+
+TEST_CASE("OffsetUnit: the power of two of the triangle's largest coordinate; offsets scale with it") {
+  const glm::vec3 a(0.0f), b(10.0f, 0.0f, 0.0f), c(0.0f, 0.0f, -3.0f);
+  CHECK(OffsetUnit(a, b, c) == 8.0f);
+  CHECK(OffsetUnit(a, a * 2.0f, c) == 2.0f);
+  CHECK(OffsetUnit(a, a, a) == std::ldexp(1.0f, -126));  // clamped to the smallest normal
+  CHECK(OffsetUnit(b * 1e30f, c, a) == std::ldexp(1.0f, 102));
+  // A scene scaled by a power of two gets exactly the scaled origins, near 0 and away from it.
+  const glm::vec3 n = glm::normalize(glm::vec3(0.3f, 1.0f, -0.2f));
+  const glm::vec3 p(0.01f, 0.0f, 5.0f);
+  for (const int e : {-40, -12, 12, 40}) {
+    CAPTURE(e);
+    const float k = std::ldexp(1.0f, e);
+    const glm::vec3 o = OffsetRayOrigin(p, n, OffsetUnit(a, b, c));
+    const glm::vec3 ok = OffsetRayOrigin(p * k, n, OffsetUnit(a * k, b * k, c * k));
+    for (int i = 0; i < 3; ++i) CHECK(ok[i] == o[i] * k);
+  }
 }
 
 // Random points on random triangles, random directions on the side the ray leaves toward:

@@ -83,6 +83,8 @@ inline SpawnedRay SpawnRay(Rng& rng, const SpawnTriangle& t, double scale) {
     ng = -ng;
     side = -1.0;
   }
+  // unit 1 (the paper's constants): no larger than the shader's OffsetUnit step for triangles of
+  // magnitude >= 1, so the fixture stays the harder case where the t bound is needed
   const glm::vec3 o = OffsetRayOrigin(p, ng);
   float d[3];
   do {

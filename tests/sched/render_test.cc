@@ -107,7 +107,7 @@ class RecursiveRenderer {
     const glm::vec3 n = entering ? nf : -nf;
     const Material& m = s_.materials[s_.material_ids[static_cast<size_t>(prim)]];
     const float local = std::clamp(1.0f - m.reflectivity - m.transmission, 0.0f, 1.0f);
-    const glm::vec3 front = OffsetRayOrigin(p, n);
+    const glm::vec3 front = OffsetRayOrigin(p, n, OffsetUnit(p0, p1, p2));
     Add(pixel, w * local * s_.ambient * m.diffuse);
     for (const PointLight& light : s_.lights) {
       const glm::vec3 l = glm::normalize(light.position - p);
