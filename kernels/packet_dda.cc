@@ -52,6 +52,9 @@ inline constexpr int kMaxFoot = detail::PacketScratch::kMaxFoot;  // cells per a
 // Slice footprints of at most this many cells are visited whole (after checking that one of
 // their cells is occupied) rather than marked vector by vector.
 inline constexpr int kSmallBox = 4;
+// Empty slices ahead are predicted (PacketTracer::PredictEmpty) while the predicted box of the
+// packet's rays covers at most this many cells.
+inline constexpr int kPredictArea = 24;
 // Packets whose footprint widens by more than this many cells per slice are refused, scaled down
 // by kDenseCell / (triangles per occupied cell) in grids with denser cells: the wider the
 // vectors' boxes, the fewer triangles the culling removes, and in dense cells the per-ray walk's
@@ -101,6 +104,7 @@ struct SliceFoot {
   uint64_t in = 0;       // rays with a segment in the slice
   uint64_t vectors = 0;  // vectors with such a ray
   int u0 = 0, u1 = -1, v0 = 0, v1 = -1;
+  float wlo[2] = {0, 0}, whi[2] = {0, 0};  // the union box in world units (U, V)
 };
 
 // Geometry of one grid level along U and W (top-level grid or a sub-grid record).
@@ -128,6 +132,9 @@ struct PacketTracer {
   bool positive = true;     // d[K] > 0 for every live ray
   float err[3] = {0, 0, 0};  // rounding of o + t d, world units, per axis
   float sigma[2] = {0, 0};   // most cells (U, W) a ray moves per slice
+  // least and most motion (world units, U and W) of a ray per slice in the rays' direction:
+  // cell_size[K] times the least and the largest slope d[U] / d[K] (negated if d[K] < 0)
+  float move_lo[2] = {0, 0}, move_hi[2] = {0, 0};
   // slices where some ray's segment starts, as bits (slice s = bit s), for res[K] <= 1024
   uint64_t starts[16] = {};
   bool starts_ok = false;
@@ -222,6 +229,8 @@ struct PacketTracer {
     int c[4];
     for (int a = 0; a < 2; ++a) {
       const V lo = hn::MinOfLanes(d, plo[a]), hi = hn::MaxOfLanes(d, phi[a]);
+      f->wlo[a] = hn::GetLane(lo);
+      f->whi[a] = hn::GetLane(hi);
       c[2 * a] = hn::GetLane(CellOf(d, lo, lv, axes[a]));
       c[2 * a + 1] = hn::GetLane(CellOf(d, hi, lv, axes[a]));
     }
@@ -534,6 +543,66 @@ struct PacketTracer {
     return m >= 2 ? m : 0;
   }
 
+  // Cell of world coordinate x on the top level's axis a, clamped to [0, res - 1] (CellOf).
+  HWY_INLINE int TopCell(float x, int a) const {
+    const float c = (x - grid.lo[a]) * grid.inv_cell_size[a];
+    return c > 0.0f ? (c < float(grid.res[a]) ? int(c) : grid.res[a] - 1) : 0;
+  }
+
+  // Empty slices ahead of slice s without their footprints. After s the rays only retire or
+  // shorten, and no ray enters before the next slice where a segment starts (NextStart, as
+  // EmptyJump), so a ray in slice s + i (i >= 1, in the rays' direction) passed the far plane of
+  // slice s at a point P of f's world box, and its points in slice s + i lie between (i - 1) and
+  // i slices (widened by the err[K] of both footprints) beyond P: at P + t * slope * cell_size[K]
+  // along U and W, t in [i - 1, i], slope within [move_lo, move_hi]. So f's box moved by those
+  // bounds, widened by the rounding of o + t d in both footprints (2 err) and a margin, holds
+  // them. Returns m: slices s + 1 .. s + m (m <= left) whose predicted boxes (at most
+  // kPredictArea cells) hold no occupied cell, i.e. no triangle a ray of the packet could meet
+  // there. Results are unchanged: only empty slices are skipped. A skipped slice costs a few
+  // occupancy reads instead of a footprint (most of a shadow packet's walk is empty space that
+  // EmptyJump's rings, centred on the packet, are too small to jump).
+  HWY_INLINE int PredictEmpty(const SliceFoot& f, int s, int left, const uint64_t* occ,
+                              const int stride[3]) {
+    if (!starts_ok || left <= 0) return 0;
+    const int next = NextStart(s);
+    if (next >= 0) left = std::min(left, (positive ? next - s : s - next) - 1);
+    const int axes[2] = {U, W};
+    float pad[2];
+    for (int a = 0; a < 2; ++a) {
+      pad[a] = 2.0f * err[axes[a]] + 0.01f * grid.cell_size[axes[a]];
+    }
+    // err[K] in slices, both footprints
+    const float ek = 4.0f * err[K] * grid.inv_cell_size[K];
+    int m = 0;
+    for (int i = 1; i <= left; ++i) {
+      // t range in slices, widened by the K rounding and a relative margin
+      const float ta = float(i - 1) - ek - 1e-3f * float(i);
+      const float tb = float(i) + ek + 1e-3f * float(i);
+      int c0[2], c1[2];
+      for (int a = 0; a < 2; ++a) {
+        const float lo = std::min(ta * move_lo[a], tb * move_lo[a]);
+        const float hi = std::max(ta * move_hi[a], tb * move_hi[a]);
+        c0[a] = TopCell(f.wlo[a] + lo - pad[a], axes[a]);
+        c1[a] = TopCell(f.whi[a] + hi + pad[a], axes[a]);
+      }
+      const int area = (c1[0] - c0[0] + 1) * (c1[1] - c0[1] + 1);
+      if (area > kPredictArea) break;
+      const int sl = positive ? s + i : s - i;
+      const size_t row0 = size_t(sl) * stride[K];
+      bool any = false;
+      for (int cv = c0[1]; cv <= c1[1] && !any; ++cv) {
+        for (int cu = c0[0]; cu <= c1[0]; ++cu) {
+          const size_t cell = row0 + size_t(cv) * stride[W] + size_t(cu) * stride[U];
+          any = any || ((occ[cell >> 6] >> (cell & 63)) & 1u) != 0;
+        }
+      }
+      cells += uint64_t(area);
+      if (any) break;
+      m = i;
+    }
+    return m;
+  }
+
   // The nearest slice after s (in the rays' direction) where a segment starts, or -1.
   HWY_INLINE int NextStart(int s) const {
     if (positive) {
@@ -688,6 +757,8 @@ struct PacketTracer {
         const float to_cells = grid.cell_size[K] * grid.inv_cell_size[axes[a]];
         if (!((hi_slope - lo_slope) * to_cells <= max_spread)) return false;
         sigma[a] = std::max(std::abs(lo_slope), std::abs(hi_slope)) * to_cells;
+        move_lo[a] = (positive ? lo_slope : -hi_slope) * grid.cell_size[K];
+        move_hi[a] = (positive ? hi_slope : -lo_slope) * grid.cell_size[K];
       }
     }
     // rounding of the footprint: o + t d with |t d| <= t_far |d| (|d| summed: an upper bound)
@@ -775,6 +846,7 @@ struct PacketTracer {
           if (!ForMarkedCells<kMaxFoot>(f, sc.marks, sc.list, visit)) return false;
         }
         if (cells > budget) return false;
+        step += PredictEmpty(f, s, s_hi - s_lo - step, occ, stride);
       }
     }
     Write(first, n);
