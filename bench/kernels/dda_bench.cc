@@ -30,6 +30,7 @@
 #include <string>
 #include <vector>
 
+#include "bench/common/bench_main.h"
 #include "bench/common/tsc.h"
 #include "bench/kernels/dda_workload.h"
 #include "include/raystream/raystream.h"
@@ -442,16 +443,12 @@ void RegisterAll() {
 }  // namespace rs::bench
 
 int main(int argc, char** argv) {
-  benchmark::Initialize(&argc, argv);
-  benchmark::AddCustomContext("tsc_ghz", std::to_string(rs::bench::TscGhz()));
-  benchmark::AddCustomContext(
-      "ticks", "cpu_ticks/ray = thread CPU time x tsc_ghz / rays (ticks/ray: wall-clock "
-               "rdtsc), the whole traversal per ray; one step or test alone: step_bench; "
-               "hardware perf counters (core cycles) are not available on these machines "
-               "(KVM guest without a PMU)");
-  benchmark::AddCustomContext("dispatch_target", rs::DdaTargetName());
-  rs::bench::RegisterAll();
-  benchmark::RunSpecifiedBenchmarks();
-  benchmark::Shutdown();
-  return 0;
+  return rs::bench::RunBenchmarkMain(
+      argc, argv,
+      {{"ticks", "cpu_ticks/ray = thread CPU time x tsc_ghz / rays (ticks/ray: wall-clock "
+                 "rdtsc), the whole traversal per ray; one step or test alone: step_bench; "
+                 "hardware perf counters (core cycles) are not available on these machines "
+                 "(KVM guest without a PMU)"},
+       {"dispatch_target", rs::DdaTargetName()}},
+      rs::bench::RegisterAll);
 }

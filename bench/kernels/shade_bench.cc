@@ -22,6 +22,7 @@
 #include <string>
 #include <vector>
 
+#include "bench/common/bench_main.h"
 #include "bench/common/tsc.h"
 #include "kernels/shade.h"
 #include "scenes/load.h"
@@ -196,14 +197,8 @@ void RegisterAll() {
 }  // namespace rs::bench
 
 int main(int argc, char** argv) {
-  benchmark::Initialize(&argc, argv);
-  char ghz[32];
-  std::snprintf(ghz, sizeof(ghz), "%.3f", rs::bench::TscGhz());
-  benchmark::AddCustomContext("tsc_ghz", ghz);
-  benchmark::AddCustomContext(
-      "cycles", "rdtsc reference ticks (no hardware perf counters in this KVM guest)");
-  rs::bench::RegisterAll();
-  benchmark::RunSpecifiedBenchmarks();
-  benchmark::Shutdown();
-  return 0;
+  return rs::bench::RunBenchmarkMain(
+      argc, argv,
+      {{"cycles", "rdtsc reference ticks (no hardware perf counters in this KVM guest)"}},
+      rs::bench::RegisterAll);
 }

@@ -28,6 +28,7 @@
 #include <string>
 #include <vector>
 
+#include "bench/common/bench_main.h"
 #include "bench/common/tsc.h"
 #include "bench/kernels/dda_workload.h"
 #include "bench/kernels/tri_workload.h"
@@ -289,18 +290,12 @@ void RegisterAll() {
 }  // namespace rs::bench
 
 int main(int argc, char** argv) {
-  benchmark::Initialize(&argc, argv);
-  if (benchmark::ReportUnrecognizedArguments(argc, argv)) return 1;
-  char ghz[32];
-  std::snprintf(ghz, sizeof(ghz), "%.3f", rs::bench::TscGhz());
-  benchmark::AddCustomContext("tsc_ghz", ghz);
-  benchmark::AddCustomContext(
-      "method",
-      "per step / per test = (long run - short run) / (long work - short work) on the same rays: "
-      "setup, refills, call and dispatch drop out; ticks = wall-clock rdtsc, cpu_ticks = thread "
-      "CPU time x tsc_ghz; not core cycles (no hardware perf counters on these machines)");
-  rs::bench::RegisterAll();
-  benchmark::RunSpecifiedBenchmarks();
-  benchmark::Shutdown();
-  return 0;
+  return rs::bench::RunBenchmarkMain(
+      argc, argv,
+      {{"method",
+        "per step / per test = (long run - short run) / (long work - short work) on the same "
+        "rays: setup, refills, call and dispatch drop out; ticks = wall-clock rdtsc, cpu_ticks = "
+        "thread CPU time x tsc_ghz; not core cycles (no hardware perf counters on these "
+        "machines)"}},
+      rs::bench::RegisterAll);
 }

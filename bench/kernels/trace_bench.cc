@@ -23,6 +23,7 @@
 #include <vector>
 
 #include "bench/common/bench_scenes.h"
+#include "bench/common/bench_main.h"
 #include "bench/common/tsc.h"
 #include "bench/peer/embree_peer.h"
 #include "bench/peer/ray_sets.h"
@@ -490,9 +491,7 @@ int Main(int argc, char** argv) {
   benchmark::AddCustomContext("ray_sets", std::to_string(c.width) + "x" + std::to_string(c.height) +
                                               ", frame " + std::to_string(c.frame_size) + "x" +
                                               std::to_string(c.frame_size));
-  char ghz[32];
-  std::snprintf(ghz, sizeof(ghz), "%.3f", TscGhz());
-  benchmark::AddCustomContext("tsc_ghz", ghz);
+  AddTscContext();
   benchmark::AddCustomContext("cycles", kCycleNote);
   benchmark::AddCustomContext("ratios", "vs_X = raystream speed / X speed, same run");
 

@@ -20,6 +20,7 @@
 #include <string>
 #include <vector>
 
+#include "bench/common/bench_main.h"
 #include "bench/common/tsc.h"
 #include "bench/kernels/tri_workload.h"
 #include "kernels/tri_intersect.h"
@@ -172,21 +173,12 @@ void RegisterAll() {
 }  // namespace rs::bench
 
 int main(int argc, char** argv) {
-  benchmark::Initialize(&argc, argv);
-  if (benchmark::ReportUnrecognizedArguments(argc, argv)) return 1;
-  char ghz[32];
-  std::snprintf(ghz, sizeof(ghz), "%.3f", rs::bench::TscGhz());
-  benchmark::AddCustomContext("tsc_ghz", ghz);
-  benchmark::AddCustomContext(
-      "ticks",
-      "cpu_ticks/test = thread CPU time x tsc_ghz of a pass / its ray/triangle tests "
-      "(ticks/test: wall-clock rdtsc); hardware perf counters (core cycles) are not "
-      "available on these machines (KVM guest without a PMU)");
-  benchmark::AddCustomContext("workload",
-                              "1 cell of 16 or 64 random triangles, 4096 rays "
-                              "(bench/kernels/tri_workload.h); items = ray/triangle tests");
-  rs::bench::RegisterAll();
-  benchmark::RunSpecifiedBenchmarks();
-  benchmark::Shutdown();
-  return 0;
+  return rs::bench::RunBenchmarkMain(
+      argc, argv,
+      {{"ticks", "cpu_ticks/test = thread CPU time x tsc_ghz of a pass / its ray/triangle tests "
+                 "(ticks/test: wall-clock rdtsc); hardware perf counters (core cycles) are not "
+                 "available on these machines (KVM guest without a PMU)"},
+       {"workload", "1 cell of 16 or 64 random triangles, 4096 rays "
+                    "(bench/kernels/tri_workload.h); items = ray/triangle tests"}},
+      rs::bench::RegisterAll);
 }
