@@ -650,9 +650,11 @@ class QueueImpl final : public HostRenderer::Impl {
       // flight stay those of the default tiling, however large the PBT's tiles are.
       const size_t ts = TaskSize();
       const size_t t = static_cast<size_t>(ctx_.options.tile_size);
-      chunk_ = std::max<size_t>(1, (t * t + ts - 1) / ts) * ts;
-      chunk_ = std::min(chunk_, std::max<size_t>(tile_pixels, 1));
-      tile_pixels = chunk_;
+      const size_t chunk_bound = std::max<size_t>(1, (t * t + ts - 1) / ts) * ts;
+      chunk_ = std::min(chunk_bound, std::max<size_t>(tile_pixels, 1));
+      // The arena is sized for the bound, not this frame's tiling: a later frame whose largest
+      // tile grows finds its streams already there (no allocation once the first frame ran).
+      tile_pixels = chunk_bound;
       LoadPbt();
     }
     const size_t lights = ctx_.scene->lights.size();
