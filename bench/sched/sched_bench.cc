@@ -43,6 +43,7 @@ struct Args {
   // PBT paper's tracer).
   std::vector<PbtCost> pbt_costs = {PbtCost::kWork, PbtCost::kCpu, PbtCost::kWall};
   std::vector<int> pbt_batches = {RenderOptions{}.batch, 20};
+  int pbt_size = 512;  // --pbt-size: the image's width and height (the PBT paper's 512x512)
 };
 
 bool Want(const Args& a, const std::string& part) { return a.only.empty() || a.only.count(part); }
@@ -326,7 +327,7 @@ void TileShapes(const Args& a, const std::filesystem::path& dir) {
 // (not in the paper): no lists, the n workers take the tiles costliest-predicted first.
 void PbtAccuracy(const Args& a, const std::filesystem::path& dir) {
   const std::string name = "erw6";
-  const int size = a.quick ? 64 : 256;
+  const int size = a.quick ? 64 : a.pbt_size;
   const int frames = a.quick ? 4 : 20;
   const int workers = a.quick ? 4 : 32;
   const Loaded l = Load(name);
@@ -658,6 +659,12 @@ int Main(int argc, char** argv) {
         if (comma == std::string::npos) break;
         start = comma + 1;
       }
+    } else if (arg == "--pbt-size" && i + 1 < argc) {
+      a.pbt_size = std::atoi(argv[++i]);
+      if (a.pbt_size < 16 || a.pbt_size > 4096) {
+        fmt::print(stderr, "sched_bench: --pbt-size {}: expected 16 .. 4096\n", argv[i]);
+        return 2;
+      }
     } else if (arg == "--quick") {
       a.quick = true;
     } else if (arg == "--only" && i + 1 < argc) {
@@ -673,7 +680,7 @@ int Main(int argc, char** argv) {
     } else {
       fmt::print(stderr,
                  "usage: sched_bench [--out DIR] [--quick] [--only scaling,tiles,pbt,amphitheater,"
-                 "calibrate] [--pbt-costs work,cpu,wall] [--pbt-batches 1024,20]\n");
+                 "calibrate] [--pbt-costs work,cpu,wall] [--pbt-batches 1024,20] [--pbt-size 512]\n");
       return 2;
     }
   }
