@@ -13,6 +13,10 @@ struct RSAccelTy {
   rs::Accel accel;
 };
 
+struct RSSceneTy {
+  rs::TraceScene scene;
+};
+
 namespace {
 
 struct Callback {
@@ -64,6 +68,48 @@ rs::RayStreamView View(const RSRayStream& r) {
   return v;
 }
 
+rs::BuildOptions Options(const RSBuildOptions* options, const char* what) {
+  rs::BuildOptions o;
+  if (options == nullptr) return o;
+  if (options->empty_skip != 0 && options->empty_skip != 1) {
+    throw rs::Error(std::string(what) + ": empty_skip must be 0 or 1");
+  }
+  if (options->packets != 0 && options->packets != 1) {
+    throw rs::Error(std::string(what) + ": packets must be 0 or 1");
+  }
+  o.lambda = options->lambda;
+  o.max_resolution = options->max_resolution;
+  o.grid = static_cast<rs::GridKind>(options->grid);
+  o.subgrid_threshold = options->subgrid_threshold;
+  o.micro_cache = options->micro_cache;
+  o.empty_skip = options->empty_skip == 1;
+  o.packets = options->packets == 1;
+  return o;
+}
+
+rs::GeometryDesc Desc(const RSGeometryDesc* d, const char* what) {
+  if (d == nullptr) throw rs::Error(std::string(what) + ": desc is NULL");
+  if (d->instance_only != 0 && d->instance_only != 1) {
+    throw rs::Error(std::string(what) + ": instance_only must be 0 or 1");
+  }
+  rs::GeometryDesc g;
+  g.positions = d->positions;
+  g.num_vertices = d->num_vertices;
+  g.stride_bytes = d->stride_bytes;
+  g.indices = d->indices;
+  g.index_type = static_cast<rs::IndexType>(d->index_type);
+  g.num_triangles = d->num_triangles;
+  g.mask = d->mask;
+  g.mode = static_cast<rs::BufferMode>(d->mode);
+  g.instance_only = d->instance_only == 1;
+  return g;
+}
+
+rs::TraceScene& SceneOf(RSScene scene, const char* what) {
+  if (scene == nullptr) throw rs::Error(std::string(what) + ": scene is NULL");
+  return scene->scene;
+}
+
 }  // namespace
 
 extern "C" {
@@ -102,22 +148,7 @@ RSAccel rsNewAccel(const RSMesh* mesh, const RSBuildOptions* options) {
   RSAccel out = nullptr;
   Guard([&] {
     if (mesh == nullptr) throw rs::Error("rsNewAccel: mesh is NULL");
-    rs::BuildOptions o;
-    if (options != nullptr) {
-      if (options->empty_skip != 0 && options->empty_skip != 1) {
-        throw rs::Error("rsNewAccel: empty_skip must be 0 or 1");
-      }
-      if (options->packets != 0 && options->packets != 1) {
-        throw rs::Error("rsNewAccel: packets must be 0 or 1");
-      }
-      o.lambda = options->lambda;
-      o.max_resolution = options->max_resolution;
-      o.grid = static_cast<rs::GridKind>(options->grid);
-      o.subgrid_threshold = options->subgrid_threshold;
-      o.micro_cache = options->micro_cache;
-      o.empty_skip = options->empty_skip == 1;
-      o.packets = options->packets == 1;
-    }
+    const rs::BuildOptions o = Options(options, "rsNewAccel");
     rs::MeshView m;
     m.positions = mesh->positions;
     m.num_vertices = mesh->num_vertices;
@@ -158,6 +189,93 @@ RSError rsGetAccelInfo(RSAccel accel, RSAccelInfo* info) {
     for (int i = 0; i < 3; ++i) info->resolution[i] = a.resolution[i];
     info->lambda = a.lambda;
     info->bytes = a.bytes;
+  });
+}
+
+void rsInitGeometryDesc(RSGeometryDesc* desc) {
+  if (desc == nullptr) {
+    Fail(RS_ERROR_INVALID_ARGUMENT, "rsInitGeometryDesc: desc is NULL");
+    return;
+  }
+  const rs::GeometryDesc d;
+  desc->positions = d.positions;
+  desc->num_vertices = d.num_vertices;
+  desc->stride_bytes = d.stride_bytes;
+  desc->indices = d.indices;
+  desc->index_type = static_cast<RSIndexType>(d.index_type);
+  desc->num_triangles = d.num_triangles;
+  desc->mask = d.mask;
+  desc->mode = static_cast<RSBufferMode>(d.mode);
+  desc->instance_only = d.instance_only ? 1 : 0;
+}
+
+RSScene rsNewScene(const RSBuildOptions* options) {
+  RSScene out = nullptr;
+  Guard([&] { out = new RSSceneTy{rs::TraceScene(Options(options, "rsNewScene"))}; });
+  return out;
+}
+
+void rsReleaseScene(RSScene scene) { delete scene; }
+
+RSError rsSceneAttachGeometry(RSScene scene, const RSGeometryDesc* desc, uint32_t* geom_id) {
+  return Guard([&] {
+    rs::TraceScene& s = SceneOf(scene, "rsSceneAttachGeometry");
+    if (geom_id == nullptr) throw rs::Error("rsSceneAttachGeometry: geom_id is NULL");
+    *geom_id = s.AttachGeometry(Desc(desc, "rsSceneAttachGeometry"));
+  });
+}
+
+RSError rsSceneReplaceGeometry(RSScene scene, uint32_t geom_id, const RSGeometryDesc* desc) {
+  return Guard([&] {
+    SceneOf(scene, "rsSceneReplaceGeometry")
+        .ReplaceGeometry(geom_id, Desc(desc, "rsSceneReplaceGeometry"));
+  });
+}
+
+RSError rsSceneUpdateGeometry(RSScene scene, uint32_t geom_id, const void* positions,
+                              size_t stride_bytes) {
+  return Guard([&] {
+    SceneOf(scene, "rsSceneUpdateGeometry").UpdateGeometry(geom_id, positions, stride_bytes);
+  });
+}
+
+RSError rsSceneAttachInstance(RSScene scene, uint32_t geom_id, const float* transform,
+                              uint32_t mask, uint32_t* inst_id) {
+  return Guard([&] {
+    rs::TraceScene& s = SceneOf(scene, "rsSceneAttachInstance");
+    if (inst_id == nullptr) throw rs::Error("rsSceneAttachInstance: inst_id is NULL");
+    *inst_id = s.AttachInstance(geom_id, transform, mask);
+  });
+}
+
+RSError rsSceneSetInstanceTransform(RSScene scene, uint32_t inst_id, const float* transform) {
+  return Guard([&] {
+    SceneOf(scene, "rsSceneSetInstanceTransform").SetInstanceTransform(inst_id, transform);
+  });
+}
+
+RSError rsSceneCommit(RSScene scene) {
+  return Guard([&] { SceneOf(scene, "rsSceneCommit").Commit(); });
+}
+
+RSError rsSceneIntersect(RSScene scene, const RSRays* rays, const RSHits* hits) {
+  return Guard([&] {
+    rs::TraceScene& s = SceneOf(scene, "rsSceneIntersect");
+    if (rays == nullptr || hits == nullptr) throw rs::Error("rsSceneIntersect: rays or hits is NULL");
+    s.Intersect(rs::RayView{rays->ox, rays->oy, rays->oz, rays->dx, rays->dy, rays->dz,
+                            rays->tnear, rays->tfar, rays->mask, rays->id, rays->size},
+                rs::HitView{hits->t, hits->u, hits->v, hits->ng_x, hits->ng_y, hits->ng_z,
+                            hits->prim, hits->geom, hits->inst, hits->size});
+  });
+}
+
+RSError rsSceneOccluded(RSScene scene, const RSRays* rays, int32_t* occluded) {
+  return Guard([&] {
+    rs::TraceScene& s = SceneOf(scene, "rsSceneOccluded");
+    if (rays == nullptr) throw rs::Error("rsSceneOccluded: rays is NULL");
+    s.Occluded(rs::RayView{rays->ox, rays->oy, rays->oz, rays->dx, rays->dy, rays->dz,
+                           rays->tnear, rays->tfar, rays->mask, rays->id, rays->size},
+               occluded);
   });
 }
 

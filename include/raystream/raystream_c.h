@@ -108,6 +108,80 @@ RS_C_API RSError rsIntersect(RSAccel accel, const RSRayStream* rays, const RSHit
 RS_C_API RSError rsOccluded(RSAccel accel, const RSRayStream* rays, int32_t* occluded);
 RS_C_API RSError rsGetAccelInfo(RSAccel accel, RSAccelInfo* info);
 
+/* ---- The scene model (rs::TraceScene): several geometries, instances, masks, updates ----------- */
+
+/* Trace-only rays (rs::RayView): arrays of exactly `size` elements, any alignment; t in
+ * (tnear, tfar] (Embree: [tnear, tfar]); mask NULL: all ones; id is not read. */
+typedef struct RSRays {
+  const float* ox;
+  const float* oy;
+  const float* oz;
+  const float* dx;
+  const float* dy;
+  const float* dz;
+  const float* tnear;
+  const float* tfar;
+  const uint32_t* mask;
+  const uint32_t* id;
+  size_t size;
+} RSRays;
+
+/* Closest hits (rs::HitView): a miss has t +inf and prim = geom = inst = -1; ng is the
+ * unnormalized geometric normal (p1-p0)x(p2-p0) in world space; inst -1 unless instanced. */
+typedef struct RSHits {
+  float* t;
+  float* u;
+  float* v;
+  float* ng_x;
+  float* ng_y;
+  float* ng_z;
+  int32_t* prim;
+  int32_t* geom;
+  int32_t* inst;
+  size_t size;
+} RSHits;
+
+typedef enum RSIndexType { RS_INDEX_UINT32 = 0, RS_INDEX_UINT16 = 1 } RSIndexType;
+/* RS_BUFFER_COPY: positions copied; RS_BUFFER_SHARED: the caller keeps the position buffer alive
+ * and unchanged while the scene uses it (rs::BufferMode). */
+typedef enum RSBufferMode { RS_BUFFER_COPY = 0, RS_BUFFER_SHARED = 1 } RSBufferMode;
+
+/* rs::GeometryDesc; rsInitGeometryDesc fills the defaults (stride 12, 32-bit indices, mask all
+ * ones, copied, not instance-only). */
+typedef struct RSGeometryDesc {
+  const void* positions;
+  size_t num_vertices;
+  size_t stride_bytes;
+  const void* indices;
+  RSIndexType index_type;
+  size_t num_triangles;
+  uint32_t mask;
+  RSBufferMode mode;
+  int instance_only; /* 0 or 1 */
+} RSGeometryDesc;
+RS_C_API void rsInitGeometryDesc(RSGeometryDesc* desc);
+
+/* A scene (rs::TraceScene, same rules): edits take effect at rsSceneCommit; tracing a scene never
+ * committed or edited since is an error. rsNewScene returns NULL on error (options NULL: the
+ * defaults); rsReleaseScene(NULL) is a no-op. Ids are returned through *geom_id / *inst_id. */
+typedef struct RSSceneTy* RSScene;
+RS_C_API RSScene rsNewScene(const RSBuildOptions* options);
+RS_C_API void rsReleaseScene(RSScene scene);
+RS_C_API RSError rsSceneAttachGeometry(RSScene scene, const RSGeometryDesc* desc,
+                                       uint32_t* geom_id);
+RS_C_API RSError rsSceneReplaceGeometry(RSScene scene, uint32_t geom_id,
+                                        const RSGeometryDesc* desc);
+RS_C_API RSError rsSceneUpdateGeometry(RSScene scene, uint32_t geom_id, const void* positions,
+                                       size_t stride_bytes);
+/* transform: 12 floats, 3x4 row-major object to world, invertible and finite. */
+RS_C_API RSError rsSceneAttachInstance(RSScene scene, uint32_t geom_id, const float* transform,
+                                       uint32_t mask, uint32_t* inst_id);
+RS_C_API RSError rsSceneSetInstanceTransform(RSScene scene, uint32_t inst_id,
+                                             const float* transform);
+RS_C_API RSError rsSceneCommit(RSScene scene);
+RS_C_API RSError rsSceneIntersect(RSScene scene, const RSRays* rays, const RSHits* hits);
+RS_C_API RSError rsSceneOccluded(RSScene scene, const RSRays* rays, int32_t* occluded);
+
 #ifdef __cplusplus
 }
 #endif
