@@ -532,6 +532,88 @@ TEST_CASE("equal t: the lower geomID wins, a geometry beats an instance, then th
   }
 }
 
+TEST_CASE("watertight across geometries and across instances with one transform; NaN rays") {
+  // A 16x16 grid of quads over [0, 1]^2 at z = 0: the lower triangles in geometry 0 (16-bit
+  // indices), the upper ones in geometry 1 (32-bit, stride 16 B), so every diagonal and every
+  // other edge is shared by two geometries.
+  constexpr uint32_t kN = 16;
+  TestGeometry lower, upper;
+  lower.use16 = true, upper.stride = 4;
+  for (uint32_t y = 0; y <= kN; ++y) {
+    for (uint32_t x = 0; x <= kN; ++x) {
+      lower.AddVertex(float(x) / kN, float(y) / kN, 0.0f);
+      upper.AddVertex(float(x) / kN, float(y) / kN, 0.0f);
+    }
+  }
+  for (uint32_t y = 0; y < kN; ++y) {
+    for (uint32_t x = 0; x < kN; ++x) {
+      const uint32_t a = y * (kN + 1) + x, b = a + 1, c = a + kN + 1, d = c + 1;
+      lower.AddTriangle(a, b, d), upper.AddTriangle(a, d, c);
+    }
+  }
+  // Rays from random origins above at vertices and points on edges (in float).
+  std::mt19937 rng(8);
+  std::uniform_real_distribution<float> u(0.0f, 1.0f);
+  constexpr size_t kRays = 4000;
+  Rays r(kRays, 1);
+  for (size_t i = 0; i < kRays; ++i) {
+    const float gx = float(1 + rng() % (kN - 1)) / kN, gy = float(1 + rng() % (kN - 1)) / kN;
+    const float s = u(rng) / kN;
+    float px = gx, py = gy;
+    if (i % 3 == 1) px = gx + s, py = gy;       // horizontal edge
+    if (i % 3 == 2) px = gx + s, py = gy + s;   // diagonal
+    r.f[0][i] = u(rng) * 3 - 1, r.f[1][i] = u(rng) * 3 - 1, r.f[2][i] = 1 + u(rng);
+    r.f[3][i] = px - r.f[0][i], r.f[4][i] = py - r.f[1][i], r.f[5][i] = -r.f[2][i];
+    r.f[6][i] = 0, r.f[7][i] = kInf, r.mask[i] = ~0u;
+  }
+  const float xfm[12] = {0.8f, -0.6f, 0.0f, 3.0f, 0.6f, 0.8f, 0.0f, -1.0f, 0.0f, 0.0f, 2.0f, 0.5f};
+  test::ForEachTarget([&](const char* target) {
+    INFO("target: ", target);
+    TestScene direct;
+    direct.geoms = {lower, upper};
+    Hits h(kRays);
+    direct.Build().Intersect(r.View(), h.View());
+    size_t misses = 0;
+    for (size_t i = 0; i < kRays; ++i) misses += h.geom[i] < 0 ? 1 : 0;
+    CHECK(misses == 0);
+    // Both halves through instances with the same transform: the same object-space rays.
+    TestScene inst;
+    inst.geoms = {lower, upper};
+    inst.geoms[0].instance_only = inst.geoms[1].instance_only = true;
+    inst.insts.push_back(TestInstance{0, {}, ~0u});
+    inst.insts.push_back(TestInstance{1, {}, ~0u});
+    std::copy(xfm, xfm + 12, inst.insts[0].m), std::copy(xfm, xfm + 12, inst.insts[1].m);
+    Rays w = r;  // the rays moved to world space (double, rounded)
+    for (size_t i = 0; i < kRays; ++i) {
+      for (int a = 0; a < 3; ++a) {
+        w.f[a][i] = float(double{xfm[4 * a]} * r.f[0][i] + double{xfm[4 * a + 1]} * r.f[1][i] +
+                          double{xfm[4 * a + 2]} * r.f[2][i] + xfm[4 * a + 3]);
+        w.f[3 + a][i] = float(double{xfm[4 * a]} * r.f[3][i] + double{xfm[4 * a + 1]} * r.f[4][i] +
+                              double{xfm[4 * a + 2]} * r.f[5][i]);
+      }
+    }
+    inst.Build().Intersect(w.View(), h.View());
+    misses = 0;
+    for (size_t i = 0; i < kRays; ++i) misses += h.geom[i] < 0 ? 1 : 0;
+    CHECK(misses == 0);
+    // NaN / Inf rays never hit (and return).
+    Rays bad = r;
+    for (size_t i = 0; i < kRays; ++i) {
+      const float v[] = {NAN, INFINITY, -INFINITY};
+      bad.f[i % 6][i] = v[i % 3];
+    }
+    direct.Build().Intersect(bad.View(), h.View());
+    std::vector<int32_t> occ(kRays);
+    direct.Build().Occluded(bad.View(), occ.data());
+    for (size_t i = 0; i < kRays; ++i) {
+      CAPTURE(i);
+      // An infinite origin or direction component, or NaN: no hit (as rs::Accel).
+      CHECK(h.geom[i] == -1);
+      CHECK(occ[i] == 0);
+    }
+  });
+}
+
 TEST_CASE("misuse of TraceScene is an rs::Error, never a crash") {
   const TestGeometry box = Box(0, 0, 0, 1, 3, true);
   const Rays rays(5, 1);
