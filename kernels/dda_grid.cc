@@ -1,5 +1,5 @@
 // What the SIMD traversals read besides the grid (kernels/dda_simd.h: DdaGrid): the triangle
-// packets of every leaf, the occupancy bits of both levels as 32-bit words for the lane gathers,
+// bundles of every leaf, the occupancy bits of both levels as 32-bit words for the lane gathers,
 // and the empty-space skip rings. Build-side code, run once per grid.
 #include "kernels/dda_simd.h"
 
@@ -15,7 +15,7 @@ namespace rs {
 size_t DdaGrid::Bytes() const {
   const size_t records = two_level != nullptr ? two_level->num_records : 0;
   const size_t skip_bytes = grid != nullptr && skip ? (grid->num_cells + 3) / 4 * 4 : 0;  // 4/word
-  return packets.Bytes() + (top_words32 + records * (kSubCells / 32)) * sizeof(uint32_t) +
+  return bundles.Bytes() + (top_words32 + records * (kSubCells / 32)) * sizeof(uint32_t) +
          skip_bytes;
 }
 
@@ -82,13 +82,13 @@ void BuildDdaGrid(const Grid& grid, const TwoLevelGrid* two_level, const Triangl
   out->tris = &tris;
   out->simd_ok = grid.num_cells < size_t{0x7fffffc0};
   if (grid.empty()) {
-    out->packets = TriPackets();
+    out->bundles = TriBundles();
     out->bits.reset();
     out->skip.reset();
     out->top_words32 = 0;
     return;
   }
-  BuildTriPackets(out->two_level != nullptr ? out->two_level->leaves : grid, tris, &out->packets,
+  BuildTriBundles(out->two_level != nullptr ? out->two_level->leaves : grid, tris, &out->bundles,
                   threads);
   // the 64-bit occupancy words as little-endian 32-bit words (a copy: no aliasing), then the
   // 512 bits of each sub-grid record

@@ -1,5 +1,5 @@
 // The grid-side data of the SIMD traversals (kernels/dda_simd.h), built once per grid in
-// kernels/dda_grid.cc: triangle packets per leaf, occupancy bits of both levels as 32-bit words
+// kernels/dda_grid.cc: triangle bundles per leaf, occupancy bits of both levels as 32-bit words
 // for the lane gathers, and empty-space skip rings.
 #pragma once
 
@@ -9,7 +9,7 @@
 #include <cstdint>
 
 #include "kernels/grid.h"
-#include "kernels/tri_packets.h"
+#include "kernels/tri_bundles.h"
 #include "kernels/triangle.h"
 #include "kernels/two_level.h"
 
@@ -17,13 +17,13 @@ namespace rs {
 
 // What the SIMD traversal reads, derived once from a built grid: the grid (geometry), the
 // optional second level, all occupancy bits in one gather-able array, and the triangles of every
-// leaf as 4-wide packets (leaf = top-level cell for a flat grid; TwoLevelGrid::leaves otherwise).
+// leaf as 4-wide bundles (leaf = top-level cell for a flat grid; TwoLevelGrid::leaves otherwise).
 // Borrows `grid`, `two_level` and `tris`: they must outlive it and stay unmodified.
 struct DdaGrid {
   const Grid* grid = nullptr;
   const TwoLevelGrid* two_level = nullptr;  // null for a flat grid
   const TriangleSoA* tris = nullptr;        // for the scalar fallback
-  TriPackets packets;
+  TriBundles bundles;
   // Occupancy bits as 32-bit words for the lane gathers: the grid's (top_words32 words; the Grid
   // keeps its 64-bit words for the scalar code), then 16 words per sub-grid record (its 512
   // bits), so one gather base serves lanes on either level.

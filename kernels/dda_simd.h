@@ -2,7 +2,7 @@
 // (lanes refilled from the stream as rays finish; kernels/dda_stream.cc), and the Cell paper's
 // single-ray form (one ray, x y z in the lanes of a 4-lane vector, section 3.3;
 // kernels/dda_single.cc) for comparison. Flat and two-level grids (DdaGrid, kernels/dda_grid.h);
-// cells are tested with the 1-ray x 4-triangle packet kernels (kernels/tri_intersect.h).
+// cells are tested with the 1-ray x 4-triangle bundle kernels (kernels/tri_intersect.h).
 #pragma once
 
 #include <cstddef>
@@ -22,7 +22,7 @@ inline constexpr int kMaxMicroCache = 16;
 
 struct DdaOptions {
   // Micro-cache entries (Cell paper section 3.5): the last `micro_cache` leaves looked up by any
-  // lane, with their packet spans; 0 disables it, at most kMaxMicroCache. See dda_stream.cc for
+  // lane, with their bundle spans; 0 disables it, at most kMaxMicroCache. See dda_stream.cc for
   // what it does (and does not) save on a CPU.
   int micro_cache = 8;
   // Jump over blocks of empty cells (DdaGrid::skip). The cells a lane visits that hold
@@ -35,10 +35,10 @@ struct DdaOptions {
 // Closest hit of rays[0, size) (contract of Accel::Intersect): hits[i] for i < size are written
 // (a miss is t = +inf, u = v = 0, prim = -1); padding lanes of `hits` are never written. The
 // result (prim, and t, u, v bit for bit) equals TraceClosest / TraceClosestTwoLevel on the same
-// grid on every SIMD target: the same float DDA arithmetic visits the same cells and the packet
+// grid on every SIMD target: the same float DDA arithmetic visits the same cells and the bundle
 // test rounds like the scalar watertight test. Stream arrays are 64-B aligned and padded to
 // PaddedSize(size) (RayStream/HitStream). stats (may be null) gets rays, cell_steps (identical to
-// the scalar DDA's), triangle_tests (packet lanes holding a triangle; no mailbox, so >= the
+// the scalar DDA's), triangle_tests (bundle lanes holding a triangle; no mailbox, so >= the
 // scalar count), cache lookups and hits. No allocation; never throws.
 void IntersectStreamDda(const DdaGrid& g, const RayStreamView& rays, const HitStreamView& hits,
                         const DdaOptions& options, TraceStats* stats);

@@ -82,20 +82,20 @@ HWY_INLINE bool SingleT(const DdaGrid& g, float ox, float oy, float oz, float dx
   const auto strict1 = hn::RebindMask(d4, hn::Lt(hn::Load(di4, kStrict1), zero_i));
   const auto strict2 = hn::RebindMask(d4, hn::Lt(hn::Load(di4, kStrict2), zero_i));
 
-  const PacketRay pray = MakePacketRay(ox, oy, oz, dx, dy, dz);
-  PacketHit best;
+  const PreparedRay pray = PrepareRay(ox, oy, oz, dx, dy, dz);
+  ClosestHit best;
   best.t = tmax_f;
   bool found = false;
   uint64_t steps = 0, tests = 0;
   auto visit = [&](uint32_t leaf) {
-    const TriPacketSpan span = g.packets.Cell(leaf);
+    const TriBundleSpan span = g.bundles.Cell(leaf);
     tests += SpanTriangles(span);
     if constexpr (kAny) {
-      found = PacketsWidth<TriTest::kWatertight, true>(pray, span, tmin, tmax_f,
-                                                       PacketWidth::kAuto, nullptr);
+      found = BundlesWidth<TriTest::kWatertight, true>(pray, span, tmin, tmax_f,
+                                                       BundleWidth::kAuto, nullptr);
       return found;
     } else {
-      PacketsWidth<TriTest::kWatertight, false>(pray, span, tmin, tmax_f, PacketWidth::kAuto,
+      BundlesWidth<TriTest::kWatertight, false>(pray, span, tmin, tmax_f, BundleWidth::kAuto,
                                                 &best);
       return false;
     }

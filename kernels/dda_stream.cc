@@ -13,8 +13,8 @@
 //      bit of the new cell (occupancy first: empty cells never touch cell data);
 //   3. lanes that reached an occupied cell (found from the mask's bits, LaneBits) go through a
 //      small visit pipeline, the CPU form of the paper's asynchronous loads (3.2, 3.4): the
-//      leaf's span entry is prefetched, one iteration later its packets are looked up and
-//      prefetched, one more iteration later they are tested with the 1-ray x 4-triangle packet
+//      leaf's span entry is prefetched, one iteration later its bundles are looked up and
+//      prefetched, one more iteration later they are tested with the 1-ray x 4-triangle bundle
 //      kernel (kernels/tri_intersect-inl.h, inlined); meanwhile the other lanes keep stepping.
 //      Finished lanes become free and are refilled in step 1.
 // A lane never waits for the others: there is no "all lanes done" barrier, so the vector stays
@@ -25,7 +25,7 @@
 // ones, and the scalar oracle's TraverseSubGrid arithmetic is reproduced exactly.
 //
 // Micro-cache (Cell paper 3.5): the last `micro_cache` leaves looked up in this call, with their
-// packet spans, probed with one vector compare. On the SPE a hit saved a 128-B atomic load and a
+// bundle spans, probed with one vector compare. On the SPE a hit saved a 128-B atomic load and a
 // DMA of the triangles into the local store (hundreds of cycles). On a CPU the triangles stay in
 // the hardware caches either way and the span lookup a hit replaces is two adjacent 32-bit
 // loads; a hit skips stage 1 (the lookup and the prefetch, which the lane that entered the leaf
@@ -83,7 +83,7 @@ struct LaneSlots {
   HWY_ALIGN int32_t stage[kDdaMaxLanes];    // cell visit pipeline: 0 stepping, 1, 2 (below)
   int32_t prim[kDdaMaxLanes];               // candidate triangle, -1 none
   int32_t leaf[kDdaMaxLanes];               // stage 1: the leaf to visit
-  TriPacketSpan span[kDdaMaxLanes];         // stage 2: the leaf's packets
+  TriBundleSpan span[kDdaMaxLanes];         // stage 2: the leaf's bundles
   // Two-level grids: the grid level each lane steps through (0 top, 1 the sub-grid of record
   // rec), that level's geometry, the word offset of its occupancy bits in DdaGrid::bits, and
   // the top-level state to resume when the lane leaves the sub-grid.
@@ -96,7 +96,7 @@ struct LaneSlots {
   HWY_ALIGN int32_t top_cell[3][kDdaMaxLanes];
   HWY_ALIGN int32_t top_idx[kDdaMaxLanes];
   HWY_ALIGN float top_t_next[3][kDdaMaxLanes];
-  PacketRay packet_ray[kDdaMaxLanes];       // watertight setup, once per ray (at refill)
+  PreparedRay prepared_ray[kDdaMaxLanes];       // watertight setup, once per ray (at refill)
   // staging only: the watertight setup computed a vector at a time (PrepareWatertightRay)
   HWY_ALIGN int32_t k[3][kDdaMaxLanes];     // kx, ky, kz
   HWY_ALIGN float shear[3][kDdaMaxLanes];   // sx, sy, sz
@@ -133,18 +133,18 @@ inline void CopySlot(const LaneSlots& from, size_t j, LaneSlots* to, size_t l) {
   const float* const wo[3] = {from.ok[0], from.ok[1], from.ok[2]};
   const float* const shear[3] = {from.shear[0], from.shear[1], from.shear[2]};
   const int32_t* const k[3] = {from.k[0], from.k[1], from.k[2]};
-  to->packet_ray[l] = PacketRayFromLanes(o, d, wo, shear, k, j);
+  to->prepared_ray[l] = PreparedRayFromLanes(o, d, wo, shear, k, j);
 }
 
-// The last few leaves looked up, with their packet spans (see the file comment).
+// The last few leaves looked up, with their bundle spans (see the file comment).
 class MicroCache {
  public:
-  MicroCache(const TriPackets& packets, int size) : packets_(packets) {
+  MicroCache(const TriBundles& bundles, int size) : bundles_(bundles) {
     size_ = size < 0 ? 0 : (size > kMaxMicroCache ? kMaxMicroCache : size);
     for (int i = 0; i < kMaxMicroCache; ++i) keys_[i] = -1;
   }
   // True (and the span) if `leaf` is cached; counts a lookup. Off (size 0): always false.
-  bool Probe(int32_t leaf, TriPacketSpan* span) {
+  bool Probe(int32_t leaf, TriBundleSpan* span) {
     if (size_ == 0) return false;
     ++lookups_;
     // all entries in one compare per vector (the paper: 2 x 4 indices on the SPE)
@@ -160,26 +160,26 @@ class MicroCache {
     }
     return false;
   }
-  // The span of `leaf` from the packets, entered in the cache (replacing the oldest entry).
-  TriPacketSpan Insert(int32_t leaf) {
-    const TriPacketSpan span = packets_.Cell(size_t(leaf));
+  // The span of `leaf` from the bundles, entered in the cache (replacing the oldest entry).
+  TriBundleSpan Insert(int32_t leaf) {
+    const TriBundleSpan span = bundles_.Cell(size_t(leaf));
     if (size_ == 0) return span;
     keys_[next_] = leaf;
     spans_[next_] = span;
     next_ = next_ + 1 == size_ ? 0 : next_ + 1;
     return span;
   }
-  TriPacketSpan Lookup(int32_t leaf) {
-    TriPacketSpan span;
+  TriBundleSpan Lookup(int32_t leaf) {
+    TriBundleSpan span;
     return Probe(leaf, &span) ? span : Insert(leaf);
   }
   uint64_t lookups() const { return lookups_; }
   uint64_t hits() const { return hits_; }
 
  private:
-  const TriPackets& packets_;
+  const TriBundles& bundles_;
   HWY_ALIGN int32_t keys_[kMaxMicroCache];
-  TriPacketSpan spans_[kMaxMicroCache];
+  TriBundleSpan spans_[kMaxMicroCache];
   int size_ = 0;
   int next_ = 0;
   uint64_t lookups_ = 0;
@@ -299,25 +299,25 @@ HWY_INLINE uint64_t SetupVector(D d, const Grid& grid, const RayStreamView& rays
   return LaneBits(di, hn::RebindMask(di, valid));
 }
 
-// Tests the packets of one leaf for lane l; true iff the lane found an occluder (any-hit).
+// Tests the bundles of one leaf for lane l; true iff the lane found an occluder (any-hit).
 // Adds the leaf's triangles to *tests unless tests is null.
 template <bool kAny>
-HWY_INLINE bool TestSpan(LaneSlots* ls, size_t l, const PacketRay& ray, const TriPacketSpan& span,
+HWY_INLINE bool TestSpan(LaneSlots* ls, size_t l, const PreparedRay& ray, const TriBundleSpan& span,
                          const StreamOut& out, uint64_t* tests) {
   if (tests != nullptr) *tests += SpanTriangles(span);
   if constexpr (kAny) {
-    if (!PacketsWidth<TriTest::kWatertight, true>(ray, span, ls->tmin[l], ls->tmax[l],
-                                                  PacketWidth::kAuto, nullptr)) {
+    if (!BundlesWidth<TriTest::kWatertight, true>(ray, span, ls->tmin[l], ls->tmax[l],
+                                                  BundleWidth::kAuto, nullptr)) {
       return false;
     }
     out.occluded[ls->ray[l]] = 1;
     return true;
   } else {
-    PacketHit h;
+    ClosestHit h;
     h.t = ls->best[l];
     h.prim = ls->prim[l];
-    if (PacketsWidth<TriTest::kWatertight, false>(ray, span, ls->tmin[l], ls->tmax[l],
-                                                  PacketWidth::kAuto, &h)) {
+    if (BundlesWidth<TriTest::kWatertight, false>(ray, span, ls->tmin[l], ls->tmax[l],
+                                                  BundleWidth::kAuto, &h)) {
       ls->best[l] = h.t;
       ls->prim[l] = h.prim;
       const size_t i = size_t(ls->ray[l]);
@@ -330,24 +330,24 @@ HWY_INLINE bool TestSpan(LaneSlots* ls, size_t l, const PacketRay& ray, const Tr
   }
 }
 
-// Asks the memory system for a leaf's packets (ids and up to 1 KiB of vertices), so that the
+// Asks the memory system for a leaf's bundles (ids and up to 1 KiB of vertices), so that the
 // test one iteration later finds them in cache: the CPU version of the Cell pipeline's
-// asynchronous triangle DMA (section 3.2). The first 256 bytes (a packet is 144) are asked for
+// asynchronous triangle DMA (section 3.2). The first 256 bytes (a bundle is 144) are asked for
 // whatever the span's size: a prefetch never faults, and the lines past a small span hold the
-// next leaves' packets; the loop, whose exit depends on the size (a mispredicted branch per
+// next leaves' bundles; the loop, whose exit depends on the size (a mispredicted branch per
 // visit), runs for larger spans only.
-HWY_INLINE void PrefetchSpan(const TriPacketSpan& span) {
+HWY_INLINE void PrefetchSpan(const TriBundleSpan& span) {
   hwy::Prefetch(span.ids);
-  const char* p = reinterpret_cast<const char*>(span.block);
+  const char* p = reinterpret_cast<const char*>(span.vertices);
   hwy::Prefetch(p);
   hwy::Prefetch(p + 64);
   hwy::Prefetch(p + 128);
   hwy::Prefetch(p + 192);
-  const size_t bytes = span.count * kPacketFloats * sizeof(float);
+  const size_t bytes = span.count * kBundleFloats * sizeof(float);
   for (size_t b = 256; b < bytes && b < 1024; b += 64) hwy::Prefetch(p + b);
 }
 
-// Stage 1 of lane l's visit of an occupied leaf: its packet span is looked up (and entered in
+// Stage 1 of lane l's visit of an occupied leaf: its bundle span is looked up (and entered in
 // the micro-cache) and prefetched.
 HWY_INLINE void RequestLeaf(MicroCache* cache, LaneSlots* ls, size_t l) {
   ls->span[l] = cache->Insert(ls->leaf[l]);
@@ -502,7 +502,7 @@ HWY_NOINLINE void StreamT(const DdaGrid& g, const RayStreamView& rays, const Str
   static_assert(HWY_MAX_BYTES <= kStreamAlign, "stream padding too small");
   const Grid& grid = *g.grid;
   const size_t n = hn::Lanes(d);
-  MicroCache cache(g.packets, options.micro_cache);
+  MicroCache cache(g.bundles, options.micro_cache);
 
   LaneSlots ls{};  // zeroed: free lanes are loaded (never used) by the vector step
   LaneSlots st;     // staging: written a whole vector at a time before any read
@@ -523,7 +523,7 @@ HWY_NOINLINE void StreamT(const DdaGrid& g, const RayStreamView& rays, const Str
   const uint32_t* skip = options.empty_skip ? g.skip.get() : nullptr;
   uint64_t jumps = 0;
   // triangle tests are counted only when asked for (the count reads the ids of the leaf's last
-  // packet, which the any-hit test never needs)
+  // bundle, which the any-hit test never needs)
   uint64_t* count_tests = stats != nullptr ? &tests : nullptr;
 
   for (;;) {
@@ -671,7 +671,7 @@ HWY_NOINLINE void StreamT(const DdaGrid& g, const RayStreamView& rays, const Str
       for (uint64_t lanes = staged & ~stage1; lanes != 0; lanes &= lanes - 1) {
         const size_t l = LowestLane(lanes);
         ls.stage[l] = 0;
-        if (TestSpan<kAny>(&ls, l, ls.packet_ray[l], ls.span[l], out, count_tests)) {
+        if (TestSpan<kAny>(&ls, l, ls.prepared_ray[l], ls.span[l], out, count_tests)) {
           ls.ray[l] = -1;
         }
       }
@@ -699,7 +699,7 @@ HWY_NOINLINE void StreamT(const DdaGrid& g, const RayStreamView& rays, const Str
       }
       ls.stage[l] = 1;
       ls.leaf[l] = leaf;
-      hwy::Prefetch(&g.packets.cell_begin[uint32_t(leaf)]);
+      hwy::Prefetch(&g.bundles.cell_begin[uint32_t(leaf)]);
     }
   }
   if (stats != nullptr) {

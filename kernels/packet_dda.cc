@@ -91,7 +91,7 @@ struct PacketRays {
   int32_t s_start[kPR];  // the slice where the ray's segment starts
   // per vector: the (kx, ky, kz) every live ray shares (k0 | k1 << 2 | k2 << 4), or -1
   int32_t perm[kPR];
-  PacketRay one[kPR];  // the 1-ray x 4-triangle kernels' setup of each valid ray
+  PreparedRay one[kPR];  // the 1-ray x 4-triangle kernels' setup of each valid ray
 };
 
 // Footprint of one slice: the rays in it, per vector the world box of its rays' segments and its
@@ -140,7 +140,7 @@ struct PacketTracer {
   bool starts_ok = false;
   uint64_t cells = 0;
   uint64_t tests = 0;
-  uint64_t one_ready = 0;  // rays whose PacketRay (r.one) is set up
+  uint64_t one_ready = 0;  // rays whose PreparedRay (r.one) is set up
 
   static size_t Lanes() { return hn::Lanes(D()); }
   static uint64_t LaneMask() {
@@ -317,7 +317,7 @@ struct PacketTracer {
       hn::Store(hn::IfThenElse(hn::RebindMask(di, m), hn::Set(di, 1), hn::Load(di, r.prim + i)),
                 di, r.prim + i);
     } else {
-      // the rule of IntersectPackets: t <= best was required; equal t needs a lower id
+      // the rule of IntersectBundles: t <= best was required; equal t needs a lower id
       const VI prim = hn::Load(di, r.prim + i);
       const VI idv = hn::Set(di, id);
       const auto lower_id = hn::Or(hn::Lt(prim, hn::Zero(di)), hn::Lt(idv, prim));
@@ -334,14 +334,14 @@ struct PacketTracer {
     }
   }
 
-  // Triangles [j, j + Lanes(dt)) of a leaf's packets: each against the vectors in `wide` whose
+  // Triangles [j, j + Lanes(dt)) of a leaf's bundles: each against the vectors in `wide` whose
   // slice box meets the triangle's bounding box (SIMD over triangles), then mailboxed per vector.
   template <class DT>
-  HWY_INLINE void CullGroup(DT dt, const TriPacketSpan& span, size_t j, uint64_t wide,
+  HWY_INLINE void CullGroup(DT dt, const TriBundleSpan& span, size_t j, uint64_t wide,
                             const SliceFoot& f) {
     using VT = hn::Vec<DT>;
     const size_t stride = span.stride();
-    const float* b = span.block + j;
+    const float* b = span.vertices + j;
     const VT u0 = hn::LoadU(dt, b + size_t(U) * stride);
     const VT u1 = hn::LoadU(dt, b + size_t(3 + U) * stride);
     const VT u2 = hn::LoadU(dt, b + size_t(6 + U) * stride);
@@ -377,7 +377,7 @@ struct PacketTracer {
       const uint64_t todo = vecs[t] & ~done;
       if (todo == 0) continue;
       float p[9];
-      for (int c = 0; c < 9; ++c) p[c] = span.block[size_t(c) * stride + j + t];
+      for (int c = 0; c < 9; ++c) p[c] = span.vertices[size_t(c) * stride + j + t];
       for (uint64_t wb = todo; wb != 0; wb &= wb - 1) {
         TestVector(hwy::Num0BitsBelowLS1Bit_Nonzero64(wb), p, id);
       }
@@ -387,9 +387,9 @@ struct PacketTracer {
     }
   }
 
-  // Ray l against a leaf's packets with the 1-ray x 4-triangle kernel (no mailbox: a repeated
+  // Ray l against a leaf's bundles with the 1-ray x 4-triangle kernel (no mailbox: a repeated
   // test changes nothing).
-  HWY_INLINE void TestRay(size_t l, const TriPacketSpan& span) {
+  HWY_INLINE void TestRay(size_t l, const TriBundleSpan& span) {
     if (r.live[l] == 0) return;
     tests += span.lanes();
     if ((one_ready >> l & 1) == 0) {  // the 1-ray kernels' setup, from the same lane values
@@ -398,21 +398,21 @@ struct PacketTracer {
       const float* const wo[3] = {r.wo[0], r.wo[1], r.wo[2]};
       const float* const shear[3] = {r.shear[0], r.shear[1], r.shear[2]};
       const int32_t* const k[3] = {r.k[0], r.k[1], r.k[2]};
-      r.one[l] = PacketRayFromLanes(o, dd, wo, shear, k, l);
+      r.one[l] = PreparedRayFromLanes(o, dd, wo, shear, k, l);
       one_ready |= uint64_t{1} << l;
     }
     if constexpr (kAny) {
-      if (PacketsWidth<TriTest::kWatertight, true>(r.one[l], span, r.tmin[l], r.tmax[l],
-                                                   PacketWidth::kAuto, nullptr)) {
+      if (BundlesWidth<TriTest::kWatertight, true>(r.one[l], span, r.tmin[l], r.tmax[l],
+                                                   BundleWidth::kAuto, nullptr)) {
         r.prim[l] = 1;
         r.live[l] = 0;
       }
     } else {
-      PacketHit h;
+      ClosestHit h;
       h.t = r.best[l];
       h.prim = r.prim[l];
-      if (PacketsWidth<TriTest::kWatertight, false>(r.one[l], span, r.tmin[l], r.tmax[l],
-                                                    PacketWidth::kAuto, &h)) {
+      if (BundlesWidth<TriTest::kWatertight, false>(r.one[l], span, r.tmin[l], r.tmax[l],
+                                                    BundleWidth::kAuto, &h)) {
         r.best[l] = h.t;
         r.prim[l] = h.prim;
         r.bu[l] = h.u;
@@ -426,7 +426,7 @@ struct PacketTracer {
   // N rays x 1 triangle, each triangle culled by the vector's box in this slice and mailboxed
   // per vector.
   HWY_INLINE void VisitLeaf(uint32_t leaf, uint64_t rays, const SliceFoot& f) {
-    const TriPacketSpan span = g.packets.Cell(leaf);
+    const TriBundleSpan span = g.bundles.Cell(leaf);
     if (span.count == 0) return;
     const size_t L = Lanes();
     uint64_t wide = 0;

@@ -3,7 +3,8 @@
 // slice by slice along their common major axis, and every triangle of the cells their slice
 // footprint covers is tested against them N rays x 1 triangle. For primary and shadow rays in a
 // coherent order (scanline or tile order) this replaces 64 per-ray cell walks by one walk and
-// the per-ray packet tests by broadcast tests; incoherent packets are left to the stream DDA.
+// the per-ray triangle-bundle tests by broadcast tests; incoherent packets are left to the stream
+// DDA.
 #pragma once
 
 #include <cstddef>

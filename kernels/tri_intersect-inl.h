@@ -1,4 +1,4 @@
-// Per-target ray/triangle kernels over triangle packets (contracts in kernels/tri_intersect.h).
+// Per-target ray/triangle kernels over triangle bundles (contracts in kernels/tri_intersect.h).
 // In an -inl.h so that a SIMD traversal in its own foreach_target file can inline them per cell
 // instead of paying a dynamic dispatch per cell: include it after <hwy/highway.h>.
 #if defined(RS_KERNELS_TRI_INTERSECT_INL_H_) == defined(HWY_TARGET_TOGGLE)
@@ -139,7 +139,7 @@ struct WatertightLanes {
 // kFma fuses the shear and the t products (never the edge functions: U(b, c)
 // must be the exact negation of U(c, b) for the triangle on the other side of an edge).
 // The exported kernels use kFma = false: fusing saved only 4-8% per ray/triangle test on AVX2
-// and AVX3 (bunny cells, 2 packets per vector) and would make t, u, v differ from the scalar
+// and AVX3 (bunny cells, 2 bundles per vector) and would make t, u, v differ from the scalar
 // oracle in the last bits; without it every target is bit-identical to the scalar code.
 template <bool kFma, class D, class Reload, class V = hn::Vec<D>>
 HWY_INLINE hn::Mask<D> WatertightTest(D d, V a0, V a1, V a2, V b0, V b1, V b2, V c0, V c1, V c2,
@@ -250,14 +250,14 @@ HWY_INLINE hn::Mask<D> MollerTest(D d, V p0x, V p0y, V p0z, V e1x, V e1y, V e1z,
 }
 
 // ---------------------------------------------------------------------------------------------
-// 1 ray x packets
+// 1 ray x bundles
 
 // Per-call state of the 1-ray kernels. The watertight test reads the vertex components in the
 // ray's (kx, ky, kz) order: the permutation is pure address arithmetic (axis a of vertex v is
 // at axis[a] + v * vertex_stride), so there are no per-ray copies of the triangles and no
 // shuffles. Three named pointers rather than an array of nine: GCC's SLP vectorizer turned the
 // array's address arithmetic into zmm multiplies (vpmullq) in the AVX3 prologue.
-struct PacketCall {
+struct BundleCall {
   const float* axis0;  // vertex 0, axis kx (Moller-Trumbore: x)
   const float* axis1;  // vertex 0, axis ky (y)
   const float* axis2;  // vertex 0, axis kz (z)
@@ -269,7 +269,7 @@ struct PacketCall {
 
 // True if lane j (t, id) beats the closest hit so far: t < hit.t, or equal t and a lower id
 // (prim -1 = none, counts as +inf through the unsigned compare).
-HWY_INLINE bool Beats(float t, int32_t id, const PacketHit& hit) {
+HWY_INLINE bool Beats(float t, int32_t id, const ClosestHit& hit) {
   return t < hit.t || uint32_t(id) < uint32_t(hit.prim);
 }
 
@@ -277,7 +277,8 @@ HWY_INLINE bool Beats(float t, int32_t id, const PacketHit& hit) {
 // smallest t, then the lowest id, is compared with *hit (Beats); returns true iff *hit changed.
 // Any hit: returns true iff some lane hits.
 template <TriTest kTest, bool kAny, bool kFma, class D>
-HWY_INLINE bool PacketGroup(D d, const PacketRay& ray, PacketCall* call, size_t i, PacketHit* hit) {
+HWY_INLINE bool BundleGroup(D d, const PreparedRay& ray, BundleCall* call, size_t i,
+                            ClosestHit* hit) {
   using V = hn::Vec<D>;
   const float* p0 = call->axis0 + i;
   const float* p1 = call->axis1 + i;
@@ -347,16 +348,16 @@ HWY_INLINE bool PacketGroup(D d, const PacketRay& ray, PacketCall* call, size_t 
   }
 }
 
-// 1 ray x all packets of a span: groups of kMaxLanes triangles (capped to the target's vector
+// 1 ray x all bundles of a span: groups of kMaxLanes triangles (capped to the target's vector
 // width), then 8, then 4 for the rest (1 at a time on the SCALAR target). Returns true iff
 // *hit changed (closest) or some triangle is hit (any; hit may be null).
 template <TriTest kTest, bool kAny, bool kFma, size_t kMaxLanes>
-HWY_INLINE bool PacketsT(const PacketRay& ray, const TriPacketSpan& tris, float tmin, float tmax,
-                         PacketHit* hit) {
+HWY_INLINE bool BundlesT(const PreparedRay& ray, const TriBundleSpan& tris, float tmin, float tmax,
+                         ClosestHit* hit) {
   if (!ray.valid || tris.count == 0) return false;
   // +inf -> FLT_MAX (an overflowed t = inf is never a hit); NaN stays NaN and fails below
   const float tmax_f = tmax > FLT_MAX ? FLT_MAX : tmax;
-  PacketCall call;
+  BundleCall call;
   call.tmin = tmin;
   call.upper = (!kAny && hit->t < tmax_f) ? hit->t : tmax_f;
   if (!(tmin < call.upper)) return false;  // empty (tmin, upper]: no t can pass
@@ -364,61 +365,61 @@ HWY_INLINE bool PacketsT(const PacketRay& ray, const TriPacketSpan& tris, float 
   const size_t stride = tris.stride();
   call.vertex_stride = 3 * stride;
   if constexpr (kTest == TriTest::kWatertight) {
-    call.axis0 = tris.block + size_t(ray.wt.kx) * stride;
-    call.axis1 = tris.block + size_t(ray.wt.ky) * stride;
-    call.axis2 = tris.block + size_t(ray.wt.kz) * stride;
+    call.axis0 = tris.vertices + size_t(ray.wt.kx) * stride;
+    call.axis1 = tris.vertices + size_t(ray.wt.ky) * stride;
+    call.axis2 = tris.vertices + size_t(ray.wt.kz) * stride;
   } else {
-    call.axis0 = tris.block;
-    call.axis1 = tris.block + stride;
-    call.axis2 = tris.block + 2 * stride;
+    call.axis0 = tris.vertices;
+    call.axis1 = tris.vertices + stride;
+    call.axis2 = tris.vertices + 2 * stride;
   }
-  PacketHit dummy;
-  PacketHit* out = kAny ? &dummy : hit;
+  ClosestHit dummy;
+  ClosestHit* out = kAny ? &dummy : hit;
   const size_t lanes = tris.lanes();
   bool found = false;
   size_t i = 0;
   if constexpr (kMaxLanes >= 16) {
     const hn::CappedTag<float, 16> d16;
     for (; i + hn::Lanes(d16) <= lanes; i += hn::Lanes(d16)) {
-      found |= PacketGroup<kTest, kAny, kFma>(d16, ray, &call, i, out);
+      found |= BundleGroup<kTest, kAny, kFma>(d16, ray, &call, i, out);
       if (kAny && found) return true;
     }
   }
   if constexpr (kMaxLanes >= 8) {
     const hn::CappedTag<float, 8> d8;
     for (; i + hn::Lanes(d8) <= lanes; i += hn::Lanes(d8)) {
-      found |= PacketGroup<kTest, kAny, kFma>(d8, ray, &call, i, out);
+      found |= BundleGroup<kTest, kAny, kFma>(d8, ray, &call, i, out);
       if (kAny && found) return true;
     }
   }
   const hn::CappedTag<float, 4> d4;
   for (; i < lanes; i += hn::Lanes(d4)) {
-    found |= PacketGroup<kTest, kAny, kFma>(d4, ray, &call, i, out);
+    found |= BundleGroup<kTest, kAny, kFma>(d4, ray, &call, i, out);
     if (kAny && found) return true;
   }
   return found;
 }
 
-// The width kAuto picks on this target: the widest vector, up to 4 packets. Measured on the
-// bunny's grid cells (warm caches, ns per ray/triangle test, AVX3 / AVX2): 1 packet per vector
-// 1.9 / 2.0, 2 packets 1.3 / 1.3, 4 packets 1.1 / (= 2) in cells of 46 triangles, and
+// The width kAuto picks on this target: the widest vector, up to 4 bundles. Measured on the
+// bunny's grid cells (warm caches, ns per ray/triangle test, AVX3 / AVX2): 1 bundle per vector
+// 1.9 / 2.0, 2 bundles 1.3 / 1.3, 4 bundles 1.1 / (= 2) in cells of 46 triangles, and
 // 3.0 / 3.6, 2.6 / 2.6, 2.5 / (= 2) in cells of 11 (scalar DDA loop: 12-16).
-inline constexpr size_t kAutoPacketLanes = HWY_MAX_BYTES >= 64 ? 16 : HWY_MAX_BYTES >= 32 ? 8 : 4;
+inline constexpr size_t kAutoBundleLanes = HWY_MAX_BYTES >= 64 ? 16 : HWY_MAX_BYTES >= 32 ? 8 : 4;
 
 template <TriTest kTest, bool kAny, bool kFma = false>
-HWY_INLINE bool PacketsWidth(const PacketRay& ray, const TriPacketSpan& tris, float tmin,
-                             float tmax, PacketWidth width, PacketHit* hit) {
+HWY_INLINE bool BundlesWidth(const PreparedRay& ray, const TriBundleSpan& tris, float tmin,
+                             float tmax, BundleWidth width, ClosestHit* hit) {
   switch (width) {
-    case PacketWidth::kOne:
-      return PacketsT<kTest, kAny, kFma, 4>(ray, tris, tmin, tmax, hit);
-    case PacketWidth::kTwo:
-      return PacketsT<kTest, kAny, kFma, 8>(ray, tris, tmin, tmax, hit);
-    case PacketWidth::kFour:
-      return PacketsT<kTest, kAny, kFma, 16>(ray, tris, tmin, tmax, hit);
-    case PacketWidth::kAuto:
+    case BundleWidth::kOne:
+      return BundlesT<kTest, kAny, kFma, 4>(ray, tris, tmin, tmax, hit);
+    case BundleWidth::kTwo:
+      return BundlesT<kTest, kAny, kFma, 8>(ray, tris, tmin, tmax, hit);
+    case BundleWidth::kFour:
+      return BundlesT<kTest, kAny, kFma, 16>(ray, tris, tmin, tmax, hit);
+    case BundleWidth::kAuto:
       break;
   }
-  return PacketsT<kTest, kAny, kFma, kAutoPacketLanes>(ray, tris, tmin, tmax, hit);
+  return BundlesT<kTest, kAny, kFma, kAutoBundleLanes>(ray, tris, tmin, tmax, hit);
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -452,7 +453,7 @@ struct StreamBest {
 };
 
 // Folds one triangle's hit mask into the running best of a vector of rays (the rule of
-// IntersectPackets: t <= best t was already required; equal t needs a lower id).
+// IntersectBundles: t <= best t was already required; equal t needs a lower id).
 template <TriTest kTest, class D>
 HWY_INLINE void StreamUpdate(D d, hn::Mask<D> m, int32_t id, const WatertightLanes<D>& wt,
                              const MollerLanes<D>& mt, StreamBest<D>* best) {
@@ -482,7 +483,7 @@ HWY_INLINE void StreamUpdate(D d, hn::Mask<D> m, int32_t id, const WatertightLan
 // pointers `perm`; otherwise each lane picks its components with 6 blends per vertex.
 template <bool kUniform, bool kFma, class D>
 HWY_INLINE void StreamWatertight(D d, const StreamRays<D>& r, hn::Mask<D> valid, hn::Vec<D> tmin,
-                                 hn::Vec<D> tmax, const TriPacketSpan& tris,
+                                 hn::Vec<D> tmax, const TriBundleSpan& tris,
                                  const float* const perm[9], StreamBest<D>* best) {
   using V = hn::Vec<D>;
   const size_t lanes = tris.lanes();
@@ -520,7 +521,7 @@ HWY_INLINE void StreamWatertight(D d, const StreamRays<D>& r, hn::Mask<D> valid,
 
 // N rays x each triangle of `tris` (see IntersectStream in tri_intersect.h).
 template <TriTest kTest, bool kFma = false>
-HWY_INLINE void StreamT(const RayStreamView& rays, const TriPacketSpan& tris,
+HWY_INLINE void StreamT(const RayStreamView& rays, const TriBundleSpan& tris,
                         const HitStreamView& hits) {
   using D = hn::ScalableTag<float>;
   const D d;

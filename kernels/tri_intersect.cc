@@ -1,4 +1,4 @@
-// SIMD ray/triangle tests over triangle packets (1 ray x packets, N rays x triangles) with
+// SIMD ray/triangle tests over triangle bundles (1 ray x bundles, N rays x triangles) with
 // dynamic dispatch, and their scalar oracles. Per-target code; foreach_target re-includes this
 // file. The kernels themselves are in tri_intersect-inl.h, shared with SIMD traversal code.
 #include "kernels/tri_intersect.h"
@@ -20,44 +20,44 @@ namespace HWY_NAMESPACE {
 // One out-of-line function per (test, any, width), so the exported function is only a switch
 // and each loop is compiled on its own (registers, code layout).
 template <TriTest kTest, bool kAny, size_t kLanes>
-HWY_NOINLINE bool PacketsEntry(const PacketRay& ray, const TriPacketSpan& tris, float tmin,
-                               float tmax, PacketHit* hit) {
-  return PacketsT<kTest, kAny, /*kFma=*/false, kLanes>(ray, tris, tmin, tmax, hit);
+HWY_NOINLINE bool BundlesEntry(const PreparedRay& ray, const TriBundleSpan& tris, float tmin,
+                               float tmax, ClosestHit* hit) {
+  return BundlesT<kTest, kAny, /*kFma=*/false, kLanes>(ray, tris, tmin, tmax, hit);
 }
 
 template <TriTest kTest, bool kAny>
-HWY_INLINE bool PacketsSwitch(const PacketRay& ray, const TriPacketSpan& tris, float tmin,
-                              float tmax, PacketWidth width, PacketHit* hit) {
+HWY_INLINE bool BundlesSwitch(const PreparedRay& ray, const TriBundleSpan& tris, float tmin,
+                              float tmax, BundleWidth width, ClosestHit* hit) {
   switch (width) {
-    case PacketWidth::kOne:
-      return PacketsEntry<kTest, kAny, 4>(ray, tris, tmin, tmax, hit);
-    case PacketWidth::kTwo:
-      return PacketsEntry<kTest, kAny, 8>(ray, tris, tmin, tmax, hit);
-    case PacketWidth::kFour:
-      return PacketsEntry<kTest, kAny, 16>(ray, tris, tmin, tmax, hit);
-    case PacketWidth::kAuto:
+    case BundleWidth::kOne:
+      return BundlesEntry<kTest, kAny, 4>(ray, tris, tmin, tmax, hit);
+    case BundleWidth::kTwo:
+      return BundlesEntry<kTest, kAny, 8>(ray, tris, tmin, tmax, hit);
+    case BundleWidth::kFour:
+      return BundlesEntry<kTest, kAny, 16>(ray, tris, tmin, tmax, hit);
+    case BundleWidth::kAuto:
       break;
   }
-  return PacketsEntry<kTest, kAny, kAutoPacketLanes>(ray, tris, tmin, tmax, hit);
+  return BundlesEntry<kTest, kAny, kAutoBundleLanes>(ray, tris, tmin, tmax, hit);
 }
 
-bool IntersectPackets(const PacketRay& ray, const TriPacketSpan& tris, float tmin, float tmax,
-                      TriTest test, PacketWidth width, PacketHit* hit) {
+bool IntersectBundles(const PreparedRay& ray, const TriBundleSpan& tris, float tmin, float tmax,
+                      TriTest test, BundleWidth width, ClosestHit* hit) {
   if (test == TriTest::kWatertight) {
-    return PacketsSwitch<TriTest::kWatertight, false>(ray, tris, tmin, tmax, width, hit);
+    return BundlesSwitch<TriTest::kWatertight, false>(ray, tris, tmin, tmax, width, hit);
   }
-  return PacketsSwitch<TriTest::kMollerTrumbore, false>(ray, tris, tmin, tmax, width, hit);
+  return BundlesSwitch<TriTest::kMollerTrumbore, false>(ray, tris, tmin, tmax, width, hit);
 }
 
-bool OccludedPackets(const PacketRay& ray, const TriPacketSpan& tris, float tmin, float tmax,
-                     TriTest test, PacketWidth width) {
+bool OccludedBundles(const PreparedRay& ray, const TriBundleSpan& tris, float tmin, float tmax,
+                     TriTest test, BundleWidth width) {
   if (test == TriTest::kWatertight) {
-    return PacketsSwitch<TriTest::kWatertight, true>(ray, tris, tmin, tmax, width, nullptr);
+    return BundlesSwitch<TriTest::kWatertight, true>(ray, tris, tmin, tmax, width, nullptr);
   }
-  return PacketsSwitch<TriTest::kMollerTrumbore, true>(ray, tris, tmin, tmax, width, nullptr);
+  return BundlesSwitch<TriTest::kMollerTrumbore, true>(ray, tris, tmin, tmax, width, nullptr);
 }
 
-void IntersectStream(const RayStreamView& rays, const TriPacketSpan& tris, TriTest test,
+void IntersectStream(const RayStreamView& rays, const TriBundleSpan& tris, TriTest test,
                      const HitStreamView& hits) {
   if (test == TriTest::kWatertight) {
     StreamT<TriTest::kWatertight>(rays, tris, hits);
@@ -73,21 +73,21 @@ HWY_AFTER_NAMESPACE();
 #if HWY_ONCE
 namespace rs {
 
-HWY_EXPORT(IntersectPackets);
-HWY_EXPORT(OccludedPackets);
+HWY_EXPORT(IntersectBundles);
+HWY_EXPORT(OccludedBundles);
 HWY_EXPORT(IntersectStream);
 
-bool IntersectPackets(const PacketRay& ray, const TriPacketSpan& tris, float tmin, float tmax,
-                      TriTest test, PacketWidth width, PacketHit* hit) {
-  return HWY_DYNAMIC_DISPATCH(IntersectPackets)(ray, tris, tmin, tmax, test, width, hit);
+bool IntersectBundles(const PreparedRay& ray, const TriBundleSpan& tris, float tmin, float tmax,
+                      TriTest test, BundleWidth width, ClosestHit* hit) {
+  return HWY_DYNAMIC_DISPATCH(IntersectBundles)(ray, tris, tmin, tmax, test, width, hit);
 }
 
-bool OccludedPackets(const PacketRay& ray, const TriPacketSpan& tris, float tmin, float tmax,
-                     TriTest test, PacketWidth width) {
-  return HWY_DYNAMIC_DISPATCH(OccludedPackets)(ray, tris, tmin, tmax, test, width);
+bool OccludedBundles(const PreparedRay& ray, const TriBundleSpan& tris, float tmin, float tmax,
+                     TriTest test, BundleWidth width) {
+  return HWY_DYNAMIC_DISPATCH(OccludedBundles)(ray, tris, tmin, tmax, test, width);
 }
 
-void IntersectStream(const RayStreamView& rays, const TriPacketSpan& tris, TriTest test,
+void IntersectStream(const RayStreamView& rays, const TriBundleSpan& tris, TriTest test,
                      const HitStreamView& hits) {
   HWY_DYNAMIC_DISPATCH(IntersectStream)(rays, tris, test, hits);
 }
@@ -96,7 +96,7 @@ namespace ref {
 namespace {
 
 // The scalar test of `test` on lane j of the span, t in (tmin, tmax] (tmax finite).
-bool TestLane(const PacketRay& ray, const TriPacketSpan& tris, size_t j, float tmin, float tmax,
+bool TestLane(const PreparedRay& ray, const TriBundleSpan& tris, size_t j, float tmin, float tmax,
               TriTest test, TriHit* th) {
   if (test == TriTest::kWatertight) {
     const WatertightRay& r = ray.wt;
@@ -118,8 +118,8 @@ bool TestLane(const PacketRay& ray, const TriPacketSpan& tris, size_t j, float t
 
 }  // namespace
 
-bool IntersectPackets(const PacketRay& ray, const TriPacketSpan& tris, float tmin, float tmax,
-                      TriTest test, PacketHit* hit) {
+bool IntersectBundles(const PreparedRay& ray, const TriBundleSpan& tris, float tmin, float tmax,
+                      TriTest test, ClosestHit* hit) {
   if (!ray.valid) return false;
   const float tmax_f = tmax > FLT_MAX ? FLT_MAX : tmax;  // NaN stays NaN: no hit
   float upper = hit->t < tmax_f ? hit->t : tmax_f;
@@ -140,7 +140,7 @@ bool IntersectPackets(const PacketRay& ray, const TriPacketSpan& tris, float tmi
   return changed;
 }
 
-bool OccludedPackets(const PacketRay& ray, const TriPacketSpan& tris, float tmin, float tmax,
+bool OccludedBundles(const PreparedRay& ray, const TriBundleSpan& tris, float tmin, float tmax,
                      TriTest test) {
   if (!ray.valid) return false;
   const float tmax_f = tmax > FLT_MAX ? FLT_MAX : tmax;
@@ -151,17 +151,17 @@ bool OccludedPackets(const PacketRay& ray, const TriPacketSpan& tris, float tmin
   return false;
 }
 
-void IntersectStream(const RayStreamView& rays, const TriPacketSpan& tris, TriTest test,
+void IntersectStream(const RayStreamView& rays, const TriBundleSpan& tris, TriTest test,
                      const HitStreamView& hits) {
   for (size_t i = 0; i < rays.size; ++i) {
-    const PacketRay ray =
-        MakePacketRay(rays.ox[i], rays.oy[i], rays.oz[i], rays.dx[i], rays.dy[i], rays.dz[i]);
-    PacketHit h;
+    const PreparedRay ray =
+        PrepareRay(rays.ox[i], rays.oy[i], rays.oz[i], rays.dx[i], rays.dy[i], rays.dz[i]);
+    ClosestHit h;
     h.t = hits.t[i];
     h.u = hits.u[i];
     h.v = hits.v[i];
     h.prim = hits.prim[i];
-    if (!IntersectPackets(ray, tris, rays.tmin[i], rays.tmax[i], test, &h)) continue;
+    if (!IntersectBundles(ray, tris, rays.tmin[i], rays.tmax[i], test, &h)) continue;
     hits.t[i] = h.t;
     hits.u[i] = h.u;
     hits.v[i] = h.v;

@@ -1,6 +1,6 @@
 // Triangle storage for traversal (float vertices in SoA arrays, degenerate flags) and the scalar
 // ray/triangle tests: watertight (Woop, Benthin, Wald, JCGT 2013) and Moller-Trumbore. The
-// scalar tests are inline so the DDA loop inlines them; the SIMD versions over triangle packets
+// scalar tests are inline so the DDA loop inlines them; the SIMD versions over triangle bundles
 // are in kernels/tri_intersect.h.
 #pragma once
 

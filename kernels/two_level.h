@@ -33,7 +33,7 @@ inline constexpr int kSubCells = kSubRes * kSubRes * kSubRes;
 //                    table is needed in the record
 //   parent, refs 8 B the top-level cell, the references in its sub-cells (statistics)
 // All 512 (begin, end) ranges (>= 2 KiB) cannot fit; storing ranks lets the leaf id be computed
-// from the record alone, and the leaf's range (or packet span) is one more read elsewhere.
+// from the record alone, and the leaf's range (or bundle span) is one more read elsewhere.
 // Records are stored 64-B aligned (hwy::AllocateAligned), so each is exactly two cache lines.
 struct SubGridRecord {
   uint64_t bits[8];
@@ -91,10 +91,10 @@ struct TwoLevelGrid {
 // and a refined cell costs, per ray through it, subgrid + 8 steps (sum of the 512 sub-cells'
 // SA over the cell's) + (occupied sub-cells * visit + sub references * triangle) / 64. Rays
 // stopping at their first hit are ignored (as in the SAH), so the figures compare structures
-// rather than predict times. The weights fit the SIMD stream kernel (bench/dda_bench.cc and a
-// lambda sweep over bunny, spherebox, sponza, conference, amphitheater:16, AVX3/AVX2): a lane
-// step costs ~3 cycles, a leaf visit (lookup, packet call, the lane waiting) about as much as
-// 4 steps, and a packet-tested triangle a quarter of a step (8 triangles per vector). Entering
+// rather than predict times. The weights fit the SIMD stream kernel (bench/kernels/dda_bench.cc
+// and a lambda sweep over bunny, spherebox, sponza, conference, amphitheater:16, AVX3/AVX2): a
+// lane step costs ~3 cycles, a leaf visit (lookup, bundle call, the lane waiting) about as much as
+// 4 steps, and a bundle-tested triangle a quarter of a step (8 triangles per vector). Entering
 // a sub-grid (Descend: record read, start cell, saving the top-level state, plus the heavier
 // per-lane geometry of sub-grid steps) is charged 16 steps: with less, sponza and
 // amphitheater:16 were refined for a predicted 2-5 % gain and measured 7-10 % slower. With these

@@ -40,24 +40,24 @@ CellImage::CellImage(const Scene& scene, const Accel& accel) : scene_(&scene), a
   const size_t cells = g.num_cells;
   const size_t leaves = two_level ? lists.num_cells : cells;
   std::vector<CellRecord> leaf(leaves);
-  size_t packets = 0;
+  size_t bundles = 0;
   for (size_t c = 0; c < leaves; ++c) {
     const uint32_t count = lists.cell_begin[c + 1] - lists.cell_begin[c];
-    if (packets > std::numeric_limits<uint32_t>::max()) {
-      throw Error("cell image: more than 2^32 triangle packets");
+    if (bundles > std::numeric_limits<uint32_t>::max()) {
+      throw Error("cell image: more than 2^32 triangle bundles");
     }
-    leaf[c] = CellRecord{static_cast<uint32_t>(packets), count};
-    packets += (count + 3) / 4;
+    leaf[c] = CellRecord{static_cast<uint32_t>(bundles), count};
+    bundles += (count + 3) / 4;
   }
-  num_packets_ = packets;
-  packets_.Resize(std::max<size_t>(packets, 1) * sizeof(TrianglePacket));
-  packets_ea_ = Place(packets_, "triangle packets");
-  TrianglePacket* out = packets_.As<TrianglePacket>();
+  num_bundles_ = bundles;
+  bundles_.Resize(std::max<size_t>(bundles, 1) * sizeof(TriangleBundle));
+  bundles_ea_ = Place(bundles_, "triangle bundles");
+  TriangleBundle* out = bundles_.As<TriangleBundle>();
   const float nan = std::numeric_limits<float>::quiet_NaN();
   for (size_t c = 0; c < leaves; ++c) {
     const uint32_t begin = lists.cell_begin[c], end = lists.cell_begin[c + 1];
     for (uint32_t k = begin; k < end; k += 4) {
-      TrianglePacket& p = out[leaf[c].first_packet + (k - begin) / 4];
+      TriangleBundle& p = out[leaf[c].first_bundle + (k - begin) / 4];
       for (int lane = 0; lane < 4; ++lane) {
         const bool live = k + uint32_t(lane) < end;
         const uint32_t id = live ? lists.tri_ids[k + uint32_t(lane)] : UINT32_MAX;
@@ -193,7 +193,7 @@ void CellImage::Register(MainMemory& memory) const {
 }
 
 size_t CellImage::Bytes() const {
-  size_t b = cell_records_.size() + subgrids_.size() + leaf_records_.size() + packets_.size() +
+  size_t b = cell_records_.size() + subgrids_.size() + leaf_records_.size() + bundles_.size() +
              shading_.size() + materials_.size() + lights_.size() + occupancy_.size();
   for (const AlignedBuffer& t : texels_) b += t.size();
   return b;
@@ -214,7 +214,7 @@ void CellImage::FillConstants(FrameConstants* fc) const {
   fc->cell_records = cell_records_ea_;
   fc->subgrids = subgrids_ea_;
   fc->leaf_records = leaf_records_ea_;
-  fc->packets = packets_ea_;
+  fc->bundles = bundles_ea_;
   fc->shading = shading_ea_;
   fc->materials = materials_ea_;
   fc->lights = lights_ea_;

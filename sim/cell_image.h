@@ -1,5 +1,5 @@
 // The main-memory image the PPE lays out for the SPEs (paper 3.1, 3.4): per-cell records (first
-// packet, triangle count) read with the 128-B "atomic" load, the cells' triangles in packets of 4
+// bundle, triangle count) read with the 128-B "atomic" load, the cells' triangles in bundles of 4
 // (SoA, 160 B, DMA'd into the SPE's triangle buffers), per-triangle shading records (the "hit
 // data"), material records and texels (software cache), lights and the occupancy bits. Built
 // from raystream's own TriangleSoA and uniform grid, so the SPEs test the very same floats.
@@ -21,19 +21,19 @@ namespace rs::sim {
 
 // Four triangles of one cell, SoA: p[vertex][axis][lane] are the TriangleSoA floats; empty lanes
 // have id UINT32_MAX and NaN vertices (never hit).
-struct alignas(16) TrianglePacket {
+struct alignas(16) TriangleBundle {
   float p[3][3][4];
   uint32_t id[4];
 };
-static_assert(sizeof(TrianglePacket) == 160);
+static_assert(sizeof(TriangleBundle) == 160);
 
-// One grid cell or sub-cell (a leaf): its triangles are packets [first_packet, first_packet +
+// One grid cell or sub-cell (a leaf): its triangles are bundles [first_bundle, first_bundle +
 // ceil(count / 4)). 16 records share a 128-B line (one atomic load). A top-level cell refined
-// into an 8x8x8 sub-grid has count = kRefinedCell and first_packet = its SubGridRecord's index
+// into an 8x8x8 sub-grid has count = kRefinedCell and first_bundle = its SubGridRecord's index
 // (kernels/two_level.h: one 128-B record, the second atomic load of paper 3.8); its occupied
 // sub-cells' records are in the leaf-record array at (leaf id - top-level cells).
 struct CellRecord {
-  uint32_t first_packet;
+  uint32_t first_bundle;
   uint32_t count;
 };
 static_assert(sizeof(CellRecord) == 8);
@@ -132,7 +132,7 @@ struct alignas(128) FrameConstants {
   Ea cell_records;
   Ea subgrids;      // SubGridRecord[] (two-level grids)
   Ea leaf_records;  // CellRecord[] of the sub-cell leaves
-  Ea packets;
+  Ea bundles;
   Ea shading;
   Ea materials;
   Ea lights;
@@ -153,7 +153,7 @@ static_assert(sizeof(Tile) == 16);
 class CellImage {
  public:
   // Lays out the arrays above. Throws rs::Error if the scene and the accel disagree (triangle
-  // count) or a packet index would overflow 32 bits.
+  // count) or a bundle index would overflow 32 bits.
   CellImage(const Scene& scene, const Accel& accel);
   CellImage(const CellImage&) = delete;  // the layout points at the members
   CellImage& operator=(const CellImage&) = delete;
@@ -164,7 +164,7 @@ class CellImage {
   void Register(MainMemory& memory) const;
 
   const GridHeader& grid() const { return grid_; }
-  size_t num_packets() const { return num_packets_; }
+  size_t num_bundles() const { return num_bundles_; }
   size_t num_subgrids() const { return num_subgrids_; }
   size_t occupancy_bytes() const { return occupancy_.size(); }
   size_t Bytes() const;
@@ -181,7 +181,7 @@ class CellImage {
   AlignedBuffer cell_records_;
   AlignedBuffer subgrids_;
   AlignedBuffer leaf_records_;
-  AlignedBuffer packets_;
+  AlignedBuffer bundles_;
   AlignedBuffer shading_;
   AlignedBuffer materials_;
   AlignedBuffer lights_;
@@ -196,9 +196,9 @@ class CellImage {
   Ea Place(const AlignedBuffer& buffer, std::string name);
   std::vector<Placed> layout_;
   Ea next_ea_ = MainMemory::kMainMemoryBase;
-  Ea cell_records_ea_ = 0, subgrids_ea_ = 0, leaf_records_ea_ = 0, packets_ea_ = 0;
+  Ea cell_records_ea_ = 0, subgrids_ea_ = 0, leaf_records_ea_ = 0, bundles_ea_ = 0;
   Ea shading_ea_ = 0, materials_ea_ = 0, lights_ea_ = 0, occupancy_ea_ = 0;
-  size_t num_packets_ = 0;
+  size_t num_bundles_ = 0;
   size_t num_subgrids_ = 0;
   double build_seconds_ = 0;
 };

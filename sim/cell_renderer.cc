@@ -405,11 +405,11 @@ std::string FormatCellReport(const CellFrameStats& s, const SimConfig& config) {
   std::snprintf(
       line, sizeof(line),
       "pipeline   %llu rays, %llu cell steps, %llu visits (%.1f %% micro-cache), "
-      "%llu packet tests, %llu tiles (%llu counter retries), %llu rays spilled\n",
+      "%llu bundle tests, %llu tiles (%llu counter retries), %llu rays spilled\n",
       static_cast<unsigned long long>(rays), static_cast<unsigned long long>(c.cell_steps),
       static_cast<unsigned long long>(c.visits),
       c.visits ? 100.0 * double(c.micro_cache_hits) / double(c.visits) : 0.0,
-      static_cast<unsigned long long>(c.packets), static_cast<unsigned long long>(c.tiles),
+      static_cast<unsigned long long>(c.bundles), static_cast<unsigned long long>(c.tiles),
       static_cast<unsigned long long>(retries), static_cast<unsigned long long>(c.spilled_rays));
   out += line;
   const uint64_t secondary = rays - c.rays[static_cast<int>(RayKind::kPrimary)];

@@ -45,8 +45,8 @@ void ValidateConfig(const SimConfig& c) {
           "ring_rays " + std::to_string(c.ring_rays) + " must be 16..4096");
   Require(c.staging_rays >= 8 && c.staging_rays <= 128,
           "staging_rays must be 8..128 (one DMA of at most 16 KiB)");
-  Require(c.triangle_buffer_packets >= 1 && c.triangle_buffer_packets * 160 <= 16384,
-          "triangle_buffer_packets must be 1..102 (one DMA of at most 16 KiB)");
+  Require(c.triangle_buffer_bundles >= 1 && c.triangle_buffer_bundles * 160 <= 16384,
+          "triangle_buffer_bundles must be 1..102 (one DMA of at most 16 KiB)");
   Require(c.pixel_buffer_pixels >= 1, "pixel_buffer_pixels must be >= 1");
   Require(c.max_subtile_rows >= 1 && c.max_subtile_rows <= 2048,
           "max_subtile_rows must be 1..2048 (one DMA list)");

@@ -117,13 +117,13 @@ struct ComputeCosts {
   // Micro-cache lookup (paper 3.5: 2 vectors of 4 cell indices, 2 compares + orx + branch).
   uint32_t micro_cache_lookup = 8;
   // Per visited cell: read the cell record out of the atomic line, permute the ray into the
-  // watertight (kx, ky, kz) order, set up the packet loop.
+  // watertight (kx, ky, kz) order, set up the bundle loop.
   uint32_t visit_setup = 24;
-  // One ray against one packet of 4 triangles (paper 3.6, 1 ray x 4 triangles, two packets per
+  // One ray against one bundle of 4 triangles (paper 3.6, 1 ray x 4 triangles, two bundles per
   // loop iteration): ~48 even-pipe SP/FX instructions for the 4-wide test (edge functions,
   // determinant, t) and the hit selection, loads and shuffles dual issued on the odd pipe; the
   // 2x unroll hides the 6-cycle latencies.
-  uint32_t triangle_packet = 48;
+  uint32_t triangle_bundle = 48;
   // Primary ray generation, per ray (4-wide: pixel -> camera plane, rsqrt normalize, record
   // store).
   uint32_t primary_ray = 24;
@@ -175,9 +175,9 @@ struct SimConfig {
   // Rays that do not fit the ring go to an LS staging block, which is written to main memory
   // with one DMA when full and fetched back when the ring runs low (<= 128 rays = 16 KiB).
   uint32_t staging_rays = 32;
-  // Triangle buffer per ray in flight, in packets of 4 triangles (160 B each). Cells with more
+  // Triangle buffer per ray in flight, in bundles of 4 triangles (160 B each). Cells with more
   // triangles are streamed through the buffer in chunks.
-  uint32_t triangle_buffer_packets = 16;
+  uint32_t triangle_buffer_bundles = 16;
   // Pixel buffers in LS; a tile is rendered in sub-tiles of at most pixel_buffer_pixels pixels
   // and max_subtile_rows rows (paper 3.9: "not possible to use tiles with more than 1280
   // pixels"). A pixel is the framebuffer's three 64-bit fixed-point sums plus a pad word

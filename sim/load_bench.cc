@@ -53,15 +53,15 @@ struct Bench {
 
 }  // namespace
 
-LoadWork LoadWorkOf(const ComputeCosts& costs, double steps_per_visit, double packets_per_visit) {
-  if (!(steps_per_visit >= 0) || !(packets_per_visit >= 0)) {
+LoadWork LoadWorkOf(const ComputeCosts& costs, double steps_per_visit, double bundles_per_visit) {
+  if (!(steps_per_visit >= 0) || !(bundles_per_visit >= 0)) {
     throw Error("load benchmark: counts per visit must be >= 0");
   }
   LoadWork w;
   w.traverse_cycles = static_cast<uint32_t>(
       std::lround(costs.ray_resume + steps_per_visit * costs.dda_step + costs.dda_exit));
   w.visit_cycles = static_cast<uint32_t>(
-      std::lround(costs.visit_setup + packets_per_visit * costs.triangle_packet));
+      std::lround(costs.visit_setup + bundles_per_visit * costs.triangle_bundle));
   return w;
 }
 

@@ -52,13 +52,13 @@ struct LoadBenchOptions {
 };
 
 // Cycles of the pipeline's compute model per visited cell (ComputeCosts): traversal = ray_resume
-// + steps_per_visit x dda_step + dda_exit; visit = visit_setup + packets_per_visit x
-// triangle_packet. The counts come from a render (cell steps / visits, packets / visits).
+// + steps_per_visit x dda_step + dda_exit; visit = visit_setup + bundles_per_visit x
+// triangle_bundle. The counts come from a render (cell steps / visits, bundles / visits).
 struct LoadWork {
   uint32_t traverse_cycles = 0;
   uint32_t visit_cycles = 0;
 };
-LoadWork LoadWorkOf(const ComputeCosts& costs, double steps_per_visit, double packets_per_visit);
+LoadWork LoadWorkOf(const ComputeCosts& costs, double steps_per_visit, double bundles_per_visit);
 
 // Throws rs::Error for bad options (iterations < 1, a table under 4 KiB, a working set outside
 // [128 B, table], zero work) or an invalid config.

@@ -38,7 +38,7 @@ constexpr uint32_t kPixelTagBase = 20;  // + pixel buffer (< 8)
 constexpr int kMaxInFlight = 8;
 static_assert(std::size(SpeCounters{}.iterations_by_rays) == kMaxInFlight + 1);
 constexpr int32_t kShadowKind = static_cast<int32_t>(RayKind::kShadow);
-constexpr uint32_t kPacketBytes = sizeof(TrianglePacket);
+constexpr uint32_t kBundleBytes = sizeof(TriangleBundle);
 
 static_assert(std::is_trivially_copyable_v<FrameConstants>);
 static_assert(std::is_trivially_copyable_v<RayRecord>);
@@ -71,7 +71,7 @@ struct FlightInfo {
   uint32_t record_offset = 0;  // of the record inside its atomic line
   // Owner of a triangle buffer (slot == this ray):
   uint32_t leaf = UINT32_MAX;  // leaf whose triangles are (being) loaded into the buffer
-  uint32_t first_packet = 0;
+  uint32_t first_bundle = 0;
   uint32_t count = 0;
   bool refined_top = false;  // its top-level cell turned out refined (sharers re-resolve)
   Lsa sub_lsa = 0;           // LS line holding the SubGridRecord of the ray's sub-grid
@@ -121,7 +121,7 @@ void SpeCounters::Merge(const SpeCounters& o) {
   occluded += o.occluded;
   cell_steps += o.cell_steps;
   visits += o.visits;
-  packets += o.packets;
+  bundles += o.bundles;
   triangle_tests += o.triangle_tests;
   micro_cache_hits += o.micro_cache_hits;
   cell_loads += o.cell_loads;
@@ -328,7 +328,7 @@ LsLayout LayOut(const SimConfig& config, LocalStore& ls, Mfc& mfc, SpuClock& clo
   l.ring = ls.Allocate("ray ring buffer", uint64_t{config.ring_rays} * 128, 128);
   l.flight = ls.Allocate("rays in flight", uint64_t{rays} * 128, 128);
   l.staging = ls.Allocate("ray staging block", uint64_t{config.staging_rays} * 128, 128);
-  l.tri_slot_bytes = config.triangle_buffer_packets * kPacketBytes;
+  l.tri_slot_bytes = config.triangle_buffer_bundles * kBundleBytes;
   l.tri = ls.Allocate("triangle buffers", uint64_t{rays} * l.tri_slot_bytes, 128);
   l.record = ls.Allocate("cell record lines", uint64_t{rays} * 128, 128);
   if (two_level) l.sub = ls.Allocate("sub-grid record lines", uint64_t{rays} * 128, 128);
@@ -776,12 +776,12 @@ void Spe::Impl::RequestUnit(int r, uint32_t key, bool leaf) {
 void Spe::Impl::LoadTriangles(int q, const CellRecord& cr, uint32_t leaf) {
   FlightInfo& f = flight[q];
   f.leaf = leaf;
-  f.first_packet = cr.first_packet;
+  f.first_bundle = cr.first_bundle;
   f.count = cr.count;
-  const uint32_t packets = std::min((cr.count + 3) / 4, config.triangle_buffer_packets);
-  if (packets > 0) {
+  const uint32_t bundles = std::min((cr.count + 3) / 4, config.triangle_buffer_bundles);
+  if (bundles > 0) {
     mfc.MfcGet(tri_lsa + uint32_t(q) * tri_slot_bytes,
-               fc.packets + uint64_t{cr.first_packet} * kPacketBytes, packets * kPacketBytes,
+               fc.bundles + uint64_t{cr.first_bundle} * kBundleBytes, bundles * kBundleBytes,
                uint32_t(q));
   }
   ++counters.cell_loads;
@@ -802,7 +802,7 @@ void Spe::Impl::CompleteCellLoad(int q) {
     return;
   }
   f.refined_top = true;
-  rec.sub_record = cr.first_packet;
+  rec.sub_record = cr.first_bundle;
   const SubGridRecord& sg = LoadSubGrid(q, rec.sub_record);
   f.sub_lsa = sub_lsa + uint32_t(q) * 128;
   SubInit(sg, rec);
@@ -887,7 +887,7 @@ void Spe::Impl::FinishTraversal(int r) {
   }
 }
 
-// VisitVoxel for one ray: wait for its cell's triangles, 1 ray x 4 triangles per packet, then
+// VisitVoxel for one ray: wait for its cell's triangles, 1 ray x 4 triangles per bundle, then
 // finish the ray or write it back into the ring buffer.
 void Spe::Impl::Visit() {
   while (cursor < n && flight[cursor].status != Flight::kVisit) ++cursor;
@@ -917,33 +917,33 @@ void Spe::Impl::Visit() {
   const WatertightRay wr =
       PrepareWatertightRay(rec.o[0], rec.o[1], rec.o[2], rec.d[0], rec.d[1], rec.d[2]);
   const bool shadow = rec.kind == kShadowKind;
-  const uint32_t packets = (owner.count + 3) / 4;
-  const uint32_t cap = config.triangle_buffer_packets;
+  const uint32_t bundles = (owner.count + 3) / 4;
+  const uint32_t cap = config.triangle_buffer_bundles;
   const Lsa slot_lsa = tri_lsa + uint32_t(s) * tri_slot_bytes;
-  if (config.secondary_at_once && packets <= cap) RegisterLoaded(s, rec, flight[r].sub_lsa);
+  if (config.secondary_at_once && bundles <= cap) RegisterLoaded(s, rec, flight[r].sub_lsa);
   bool found = false;
   uint64_t tested = 0;
-  for (uint32_t p0 = 0; p0 < packets; p0 += cap) {
-    const uint32_t chunk = std::min(cap, packets - p0);
+  for (uint32_t p0 = 0; p0 < bundles; p0 += cap) {
+    const uint32_t chunk = std::min(cap, bundles - p0);
     // A cell larger than the buffer streams through it; only the owner's first chunk came with
     // the asynchronous load (a micro-cache sharer finds the owner's last chunk there).
-    if (packets > cap && !(p0 == 0 && r == s)) {
-      mfc.MfcGet(slot_lsa, fc.packets + uint64_t{owner.first_packet + p0} * kPacketBytes,
-                 chunk * kPacketBytes, kChunkTag);
+    if (bundles > cap && !(p0 == 0 && r == s)) {
+      mfc.MfcGet(slot_lsa, fc.bundles + uint64_t{owner.first_bundle + p0} * kBundleBytes,
+                 chunk * kBundleBytes, kChunkTag);
       mfc.WaitTagsAll(1u << kChunkTag);
       ++counters.chunk_loads;
     }
-    const TrianglePacket* tp = ls.As<const TrianglePacket>(slot_lsa, chunk);
+    const TriangleBundle* tp = ls.As<const TriangleBundle>(slot_lsa, chunk);
     tested += chunk;
     if (shadow) {
-      found = IntersectPackets<true>(wr, tp, chunk, rec, &counters.triangle_tests);
+      found = IntersectBundles<true>(wr, tp, chunk, rec, &counters.triangle_tests);
       if (found) break;
     } else {
-      IntersectPackets<false>(wr, tp, chunk, rec, &counters.triangle_tests);
+      IntersectBundles<false>(wr, tp, chunk, rec, &counters.triangle_tests);
     }
   }
-  Compute(tested * costs.triangle_packet);
-  counters.packets += tested;
+  Compute(tested * costs.triangle_bundle);
+  counters.bundles += tested;
   if (shadow && found) {
     flight[r].status = Flight::kDoneOccluded;
     return;
@@ -1059,18 +1059,18 @@ AtOnce Spe::Impl::TraceAtOnce(RayRecord& rec, bool* tested) {
       wr = PrepareWatertightRay(rec.o[0], rec.o[1], rec.o[2], rec.d[0], rec.d[1], rec.d[2]);
       *tested = true;
     }
-    const uint32_t packets = (u.count + 3) / 4;
-    const TrianglePacket* tp =
-        ls.As<const TrianglePacket>(tri_lsa + uint32_t(u.slot) * tri_slot_bytes, packets);
-    Compute(costs.visit_setup + packets * costs.triangle_packet);
-    counters.packets += packets;
+    const uint32_t bundles = (u.count + 3) / 4;
+    const TriangleBundle* tp =
+        ls.As<const TriangleBundle>(tri_lsa + uint32_t(u.slot) * tri_slot_bytes, bundles);
+    Compute(costs.visit_setup + bundles * costs.triangle_bundle);
+    counters.bundles += bundles;
     ++counters.at_once_visits;
     if (shadow) {
-      if (IntersectPackets<true>(wr, tp, packets, rec, &counters.triangle_tests)) {
+      if (IntersectBundles<true>(wr, tp, bundles, rec, &counters.triangle_tests)) {
         return AtOnce::kOccluded;
       }
     } else {
-      IntersectPackets<false>(wr, tp, packets, rec, &counters.triangle_tests);
+      IntersectBundles<false>(wr, tp, bundles, rec, &counters.triangle_tests);
     }
     if (rec.in_sub != 0) {
       const SubResult res = SubStep(*sg, rec);

@@ -29,7 +29,7 @@ struct SpeCounters {
   uint64_t occluded = 0;              // shadow rays blocked
   uint64_t cell_steps = 0;            // cells examined (same count as the reference DDA)
   uint64_t visits = 0;                // occupied cells intersected (VisitVoxel)
-  uint64_t packets = 0;               // 1 ray x 4 triangle packet tests
+  uint64_t bundles = 0;               // 1 ray x 4 triangle bundle tests
   uint64_t triangle_tests = 0;        // live lanes tested
   uint64_t micro_cache_hits = 0;      // visits that reused a cell loaded in the same iteration
   uint64_t cell_loads = 0;            // cell records fetched (atomic loads) + triangle DMAs
@@ -49,7 +49,7 @@ struct SpeCounters {
   // Secondary rays intersected at once against the triangles still in the triangle buffers
   // (paper 3.7; SimConfig::secondary_at_once): rays that tested at least one loaded cell, rays
   // whose traversal ended there (shadow rays finished, others left only to be shaded), and the
-  // cells so visited (not counted in `visits`; their packets are in `packets`).
+  // cells so visited (not counted in `visits`; their bundles are in `bundles`).
   uint64_t at_once_tested = 0;
   uint64_t at_once_resolved = 0;
   uint64_t at_once_visits = 0;

@@ -3,7 +3,7 @@
 // (kernels/two_level.cc; flat: kernels/dda.cc) operation for operation, so a ray that stops at
 // each occupied cell or sub-cell (to wait for its triangles) and resumes later walks exactly the
 // reference's cells with exactly its floats. The triangle test is raystream's own
-// IntersectWatertightPermuted on packets in local store.
+// IntersectWatertightPermuted on bundles in local store.
 #pragma once
 
 #include <cfloat>
@@ -212,16 +212,16 @@ inline bool DdaAdvance(const GridHeader& grid, const uint64_t* occupancy, RayRec
   }
 }
 
-// Tests ray `r` (prepared as `wr`) against the live lanes of `count` packets. Closest hit: keeps
+// Tests ray `r` (prepared as `wr`) against the live lanes of `count` bundles. Closest hit: keeps
 // the reference's candidate rule (t <= candidate, lower id on ties). Any hit (shadow rays):
 // returns true at the first hit. Returns the number of triangle tests in *tests.
 template <bool kAnyHit>
-inline bool IntersectPackets(const WatertightRay& wr, const TrianglePacket* packets, uint32_t count,
+inline bool IntersectBundles(const WatertightRay& wr, const TriangleBundle* bundles, uint32_t count,
                              RayRecord& r, uint64_t* tests) {
   const int kx = wr.kx, ky = wr.ky, kz = wr.kz;
   bool found = false;
   for (uint32_t k = 0; k < count; ++k) {
-    const TrianglePacket& p = packets[k];
+    const TriangleBundle& p = bundles[k];
     for (int lane = 0; lane < 4; ++lane) {
       const uint32_t id = p.id[lane];
       if (id == UINT32_MAX) continue;

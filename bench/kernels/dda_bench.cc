@@ -37,7 +37,7 @@
 #include "kernels/accel_impl.h"
 #include "kernels/dda_simd.h"
 #include "kernels/grid.h"
-#include "kernels/tri_packets.h"
+#include "kernels/tri_bundles.h"
 #include "kernels/triangle.h"
 #include "kernels/two_level.h"
 #include "scenes/load.h"
@@ -253,7 +253,7 @@ void BM_Scalar(benchmark::State& state, Workload w) {
 
 // Grid build, items = triangles. "grid/lambda:L" = BuildGrid alone on gathered triangles;
 // "accel" = Accel construction with default options (triangle gather, lambda choice, grid,
-// sub-grids if the cost model wants them, packets, occupancy words); "accel-two-level" = the
+// sub-grids if the cost model wants them, bundles, occupancy words); "accel-two-level" = the
 // same with every cell above 32 triangles refined at lambda 4.
 void BM_Build(benchmark::State& state, std::string scene, int what, float lambda) {
   if (!Available(scene)) {
@@ -285,7 +285,7 @@ void BM_Build(benchmark::State& state, std::string scene, int what, float lambda
 // Build phases one at a time, as rs::Accel runs them with default options ("BuildPhase/<scene>/
 // <phase>", items = triangles): soa (gather + degenerate flags), bounds, lambda (the cost model's
 // choice), grid (BuildGrid at that lambda), two-level (BuildTwoLevel, only if kAuto tries it),
-// packets (of the leaves Accel traces), dda (BuildDdaGrid: packets, skip rings, occupancy words).
+// bundles (of the leaves Accel traces), dda (BuildDdaGrid: bundles, skip rings, occupancy words).
 // Each phase's inputs are built once outside the timing loop; the output is rebuilt every time.
 void BM_BuildPhase(benchmark::State& state, std::string scene, int phase) {
   if (!Available(scene)) {
@@ -341,9 +341,9 @@ void BM_BuildPhase(benchmark::State& state, std::string scene, int phase) {
         break;
       }
       case 5: {
-        TriPackets p;
-        BuildTriPackets(two.empty() ? grid : two.leaves, tris, &p);
-        benchmark::DoNotOptimize(p.num_packets);
+        TriBundles p;
+        BuildTriBundles(two.empty() ? grid : two.leaves, tris, &p);
+        benchmark::DoNotOptimize(p.num_bundles);
         break;
       }
       default: {
@@ -429,7 +429,7 @@ void RegisterAll() {
   for (const char* scene : {"bunny", "sponza", "office-graz", "conference", "spherebox"}) {
     if (!Available(scene)) continue;
     static constexpr const char* kPhases[] = {"soa",       "bounds",  "lambda", "grid",
-                                              "two-level", "packets", "dda"};
+                                              "two-level", "bundles", "dda"};
     for (int phase = 0; phase < 7; ++phase) {
       benchmark::RegisterBenchmark(
           (std::string("BuildPhase/") + scene + "/" + kPhases[phase]).c_str(), BM_BuildPhase,

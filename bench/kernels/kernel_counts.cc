@@ -5,7 +5,7 @@
 //
 // Usage: kernel_counts --kernel K [--target T] [--workload W] [--print-toggle | --list-targets]
 //   K: dda (SIMD stream DDA, rs::Accel::Intersect), dda_single (the Cell paper's single-ray form),
-//      tri1x4 (1 ray x 4-wide packets, closest hit), any1x4 (any hit), trinx1 (N rays x 1
+//      tri1x4 (1 ray x 4-wide triangle bundles, closest hit), any1x4 (any hit), trinx1 (N rays x 1
 //      triangle), shade (rs::Shade), packet (coherent 64-ray packets, IntersectCoherent; the
 //      count includes the packets left to the stream DDA). T: a Highway target name (AVX2,
 //      SSE4, ...), "ref" for the scalar oracle, or omitted for dynamic dispatch. W (dda,
@@ -60,8 +60,8 @@ struct Args {
 std::string TogglePattern(const Args& a, const std::string& target) {
   if (a.target == "ref") {
     if (a.kernel == "dda") return "rs::ref::AccelIntersect(*";
-    if (a.kernel == "tri1x4") return "rs::ref::IntersectPackets(*";
-    if (a.kernel == "any1x4") return "rs::ref::OccludedPackets(*";
+    if (a.kernel == "tri1x4") return "rs::ref::IntersectBundles(*";
+    if (a.kernel == "any1x4") return "rs::ref::OccludedBundles(*";
     if (a.kernel == "trinx1") return "rs::ref::IntersectStream(*";
     if (a.kernel == "shade") return "rs::ref::Shade(*";
     return "";
@@ -70,8 +70,8 @@ std::string TogglePattern(const Args& a, const std::string& target) {
   const std::string ns = "rs::N_" + target + "::";
   if (a.kernel == "dda") return ns + "IntersectStreamDda(*";
   if (a.kernel == "dda_single") return ns + "IntersectSingleDda(*";
-  if (a.kernel == "tri1x4") return ns + "IntersectPackets(*";
-  if (a.kernel == "any1x4") return ns + "OccludedPackets(*";
+  if (a.kernel == "tri1x4") return ns + "IntersectBundles(*";
+  if (a.kernel == "any1x4") return ns + "OccludedBundles(*";
   if (a.kernel == "trinx1") return ns + "IntersectStream(*";
   if (a.kernel == "shade") return ns + "ShadeSimd(*";
   return "";
@@ -147,7 +147,7 @@ int RunDda(const Args& a) {
 int RunTri(const Args& a) {
   TriWorkload w;
   MakeTriWorkload(kTriCell, kTriRays, kTriSeed, &w);
-  const TriPacketSpan span = w.span();
+  const TriBundleSpan span = w.span();
   const bool oracle = a.target == "ref";
   size_t hit = 0;
   if (a.kernel == "trinx1") {
@@ -161,17 +161,17 @@ int RunTri(const Args& a) {
     }
     for (size_t i = 0; i < w.rays.size(); ++i) hit += hits.view().prim[i] >= 0 ? 1 : 0;
   } else {
-    for (const PacketRay& r : w.packet_rays) {
+    for (const PreparedRay& r : w.prepared_rays) {
       if (a.kernel == "any1x4") {
         hit += oracle
-                   ? ref::OccludedPackets(r, span, 0.0f, kInf, TriTest::kWatertight)
-                   : OccludedPackets(r, span, 0.0f, kInf, TriTest::kWatertight, PacketWidth::kAuto);
+                   ? ref::OccludedBundles(r, span, 0.0f, kInf, TriTest::kWatertight)
+                   : OccludedBundles(r, span, 0.0f, kInf, TriTest::kWatertight, BundleWidth::kAuto);
       } else {
-        PacketHit h;
+        ClosestHit h;
         if (oracle) {
-          ref::IntersectPackets(r, span, 0.0f, kInf, TriTest::kWatertight, &h);
+          ref::IntersectBundles(r, span, 0.0f, kInf, TriTest::kWatertight, &h);
         } else {
-          IntersectPackets(r, span, 0.0f, kInf, TriTest::kWatertight, PacketWidth::kAuto, &h);
+          IntersectBundles(r, span, 0.0f, kInf, TriTest::kWatertight, BundleWidth::kAuto, &h);
         }
         hit += h.prim >= 0 ? 1 : 0;
       }

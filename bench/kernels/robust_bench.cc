@@ -30,8 +30,8 @@
 #include "kernels/dda_simd.h"
 #include "kernels/grid.h"
 #include "kernels/shade.h"
+#include "kernels/tri_bundles.h"
 #include "kernels/tri_intersect.h"
-#include "kernels/tri_packets.h"
 #include "kernels/triangle.h"
 #include "scenes/scene.h"
 #include "sched/framebuffer.h"
@@ -58,19 +58,19 @@ double Seconds(std::chrono::steady_clock::time_point t0) {
 // ---------------------------------------------------------------------------------------------
 // (1) Watertightness.
 
-// 1 ray x the packets of its cell (scalar oracle if `simd` is false, else the dispatched SIMD
+// 1 ray x the bundles of its cell (scalar oracle if `simd` is false, else the dispatched SIMD
 // kernel at `width`).
-Misses CountPacketMisses(const WatertightSetup& s, TriTest test, bool simd, PacketWidth width) {
+Misses CountBundleMisses(const WatertightSetup& s, TriTest test, bool simd, BundleWidth width) {
   Misses m;
   const RayStreamView r = const_cast<RayStream&>(s.rays).view();
   for (size_t i = 0; i < r.size; ++i) {
-    const PacketRay pr = MakePacketRay(r.ox[i], r.oy[i], r.oz[i], r.dx[i], r.dy[i], r.dz[i]);
-    const TriPacketSpan span = s.packets.Cell(r.pixel[i]);
-    PacketHit h;
+    const PreparedRay pr = PrepareRay(r.ox[i], r.oy[i], r.oz[i], r.dx[i], r.dy[i], r.dz[i]);
+    const TriBundleSpan span = s.bundles.Cell(r.pixel[i]);
+    ClosestHit h;
     if (simd) {
-      IntersectPackets(pr, span, 0.0f, kInf, test, width, &h);
+      IntersectBundles(pr, span, 0.0f, kInf, test, width, &h);
     } else {
-      ref::IntersectPackets(pr, span, 0.0f, kInf, test, &h);
+      ref::IntersectBundles(pr, span, 0.0f, kInf, test, &h);
     }
     if (h.prim < 0) (s.IsVertexRay(i) ? m.vertex : m.edge) += 1;
   }
@@ -89,7 +89,7 @@ Misses CountStreamMisses(const WatertightSetup& s, TriTest test) {
     stream.FillPadding();
     hits.Resize(stream.size());
     hits.Reset();
-    IntersectStream(stream.view(), s.packets.Cell(r.pixel[first]), test, hits.view());
+    IntersectStream(stream.view(), s.bundles.Cell(r.pixel[first]), test, hits.view());
     for (size_t i = first; i < end; ++i) {
       if (hits.view().prim[i - first] < 0) (s.IsVertexRay(i) ? m.vertex : m.edge) += 1;
     }
@@ -137,25 +137,25 @@ size_t RunWatertight(size_t n) {
       "no triangle. Kernel rows test each ray against the triangles around its target (the "
       "vertex fan or the edge's 2 triangles); rs::Accel and Embree trace the whole mesh.\n",
       s.rays.size(), s.ico.tri.size(), s.vertex_rays, s.num_vertex_cells, edge_rays,
-      s.packets.num_cells - s.num_vertex_cells);
+      s.bundles.num_cells - s.num_vertex_cells);
   std::printf("  %-44s %8s %8s %8s\n", "tracer", "vertex", "edge", "total");
   size_t must_be_zero = 0;
   for (const TriTest test : {TriTest::kWatertight, TriTest::kMollerTrumbore}) {
     const bool wt = test == TriTest::kWatertight;
     const std::string name = wt ? "watertight" : "Moller-Trumbore";
-    const Misses scalar = CountPacketMisses(s, test, false, PacketWidth::kAuto);
+    const Misses scalar = CountBundleMisses(s, test, false, BundleWidth::kAuto);
     PrintMisses((name + " scalar (ref::)").c_str(), scalar, s);
     if (wt) must_be_zero += scalar.total();
     for (const int64_t target : hwy::SupportedAndGeneratedTargets()) {
       hwy::SetSupportedTargetsForTest(target);
       const std::string t = hwy::TargetName(target);
-      const Misses packets = CountPacketMisses(s, test, true, PacketWidth::kAuto);
-      const Misses one = CountPacketMisses(s, test, true, PacketWidth::kOne);
+      const Misses bundles = CountBundleMisses(s, test, true, BundleWidth::kAuto);
+      const Misses one = CountBundleMisses(s, test, true, BundleWidth::kOne);
       const Misses stream = CountStreamMisses(s, test);
-      PrintMisses((name + " 1x4 (auto width) " + t).c_str(), packets, s);
-      PrintMisses((name + " 1x4 (one packet) " + t).c_str(), one, s);
+      PrintMisses((name + " 1x4 (auto width) " + t).c_str(), bundles, s);
+      PrintMisses((name + " 1x4 (one bundle) " + t).c_str(), one, s);
       PrintMisses((name + " N x 1 " + t).c_str(), stream, s);
-      if (wt) must_be_zero += packets.total() + one.total() + stream.total();
+      if (wt) must_be_zero += bundles.total() + one.total() + stream.total();
     }
     hwy::SetSupportedTargetsForTest(0);
   }

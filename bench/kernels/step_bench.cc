@@ -8,8 +8,8 @@
 // DdaStep/<target>/<stream|single>, DdaStep/scalar: IntersectStreamDda, IntersectSingleDda and the
 // scalar oracle (ref::AccelIntersect) on the "corners" grid (64^3 cells, empty where the rays go,
 // empty-space skipping off): 1024 rays through the middle of the grid with tmax cut at about 5
-// and about 74 cells. TriTest/<target|ref>/<test>/<1x4|Nx1>: IntersectPackets (kAuto width) per
-// ray, ref::IntersectPackets, and IntersectStream on 1024 rays against one cell of 16 and one of
+// and about 74 cells. TriTest/<target|ref>/<test>/<1x4|Nx1>: IntersectBundles (kAuto width) per
+// ray, ref::IntersectBundles, and IntersectStream on 1024 rays against one cell of 16 and one of
 // 64 triangles (the same 16 and 48 more; bench/kernels/tri_workload.h).
 //
 // Counters: ticks/step, ticks/test = wall-clock rdtsc ticks; cpu_ticks/step, cpu_ticks/test = this
@@ -35,8 +35,8 @@
 #include "include/raystream/raystream.h"
 #include "kernels/accel_impl.h"
 #include "kernels/dda_simd.h"
+#include "kernels/tri_bundles.h"
 #include "kernels/tri_intersect.h"
-#include "kernels/tri_packets.h"
 #include "streams/ray_stream.h"
 
 namespace rs::bench {
@@ -187,7 +187,7 @@ void BM_DdaStep(benchmark::State& state, DdaForm form, int64_t target) {
 
 struct TriData {
   TriWorkload w;       // 64 triangles (Cell(0)) and the rays
-  TriPackets first16;  // the workload's first 16 triangles as one cell
+  TriBundles first16;  // the workload's first 16 triangles as one cell
   HitStream hits;
 };
 
@@ -198,7 +198,7 @@ TriData& GetTri() {
   MakeTriWorkload(64, kRays, 20261122, &data->w);
   std::vector<uint32_t> ids(16);
   for (uint32_t t = 0; t < 16; ++t) ids[t] = t;
-  BuildTriPacketList(data->w.tris, ids.data(), ids.size(), &data->first16);
+  BuildTriBundleList(data->w.tris, ids.data(), ids.size(), &data->first16);
   data->hits.Resize(kRays);
   return *data;
 }
@@ -207,14 +207,14 @@ enum class TriForm { k1x4, kNx1 };
 
 void BM_TriTest(benchmark::State& state, TriForm form, TriTest test, int64_t target) {
   TriData& d = GetTri();
-  const TriPacketSpan spans[2] = {d.first16.Cell(0), d.w.span()};
+  const TriBundleSpan spans[2] = {d.first16.Cell(0), d.w.span()};
   const bool oracle = target == 0;
   if (!oracle) hwy::SetSupportedTargetsForTest(target);
   const HitStreamView hits = d.hits.view();
   RayStreamView rays = d.w.rays.view();
   std::vector<int32_t> prims[2];
   auto run = [&](int k) {
-    const TriPacketSpan& span = spans[k];
+    const TriBundleSpan& span = spans[k];
     if (form == TriForm::kNx1) {
       d.hits.Reset();
       if (oracle) {
@@ -223,12 +223,12 @@ void BM_TriTest(benchmark::State& state, TriForm form, TriTest test, int64_t tar
         IntersectStream(rays, span, test, hits);
       }
     } else {
-      for (size_t i = 0; i < d.w.packet_rays.size(); ++i) {
-        PacketHit hit;
+      for (size_t i = 0; i < d.w.prepared_rays.size(); ++i) {
+        ClosestHit hit;
         if (oracle) {
-          ref::IntersectPackets(d.w.packet_rays[i], span, 0.0f, kInf, test, &hit);
+          ref::IntersectBundles(d.w.prepared_rays[i], span, 0.0f, kInf, test, &hit);
         } else {
-          IntersectPackets(d.w.packet_rays[i], span, 0.0f, kInf, test, PacketWidth::kAuto, &hit);
+          IntersectBundles(d.w.prepared_rays[i], span, 0.0f, kInf, test, BundleWidth::kAuto, &hit);
         }
         hits.prim[i] = hit.prim;
       }
@@ -241,8 +241,8 @@ void BM_TriTest(benchmark::State& state, TriForm form, TriTest test, int64_t tar
     prims[k].assign(hits.prim, hits.prim + kRays);
     std::vector<int32_t> want(kRays);
     for (size_t i = 0; i < kRays; ++i) {
-      PacketHit hit;
-      ref::IntersectPackets(d.w.packet_rays[i], spans[k], 0.0f, kInf, test, &hit);
+      ClosestHit hit;
+      ref::IntersectBundles(d.w.prepared_rays[i], spans[k], 0.0f, kInf, test, &hit);
       want[i] = hit.prim;
     }
     if (want != prims[k]) {

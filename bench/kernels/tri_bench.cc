@@ -1,5 +1,5 @@
-// Ray/triangle test cost per Highway target (kernels/tri_intersect.h): 1 ray x 4-wide packets
-// (each packet width) and N rays x 1 triangle, watertight and Moller-Trumbore, closest and any
+// Ray/triangle test cost per Highway target (kernels/tri_intersect.h): 1 ray x 4-wide bundles
+// (each bundle width) and N rays x 1 triangle, watertight and Moller-Trumbore, closest and any
 // hit, against the scalar oracles, on one cell of 16 or 64 random triangles
 // (bench/kernels/tri_workload.h). Names: "<kernel>/<target|ref>/<test>[/<width>]/tris:<n>"; items
 // are ray/triangle tests.
@@ -45,12 +45,12 @@ TriWorkload& GetWorkload(size_t num_tris) {
 const char* TestName(TriTest test) {
   return test == TriTest::kWatertight ? "watertight" : "moller";
 }
-const char* WidthName(PacketWidth width) {
+const char* WidthName(BundleWidth width) {
   switch (width) {
-    case PacketWidth::kAuto: return "auto";
-    case PacketWidth::kOne: return "x4";
-    case PacketWidth::kTwo: return "x8";
-    case PacketWidth::kFour: return "x16";
+    case BundleWidth::kAuto: return "auto";
+    case BundleWidth::kOne: return "x4";
+    case BundleWidth::kTwo: return "x8";
+    case BundleWidth::kFour: return "x16";
   }
   return "?";
 }
@@ -59,9 +59,9 @@ enum class Kernel { kClosest1x4, kAny1x4, kStreamNx1 };
 
 // One pass over the workload's rays; results into `hits` (closest, 1 x 4 and N x 1) or `any`.
 // target 0 runs the scalar oracle (rs::ref).
-void RunPass(const TriWorkload& w, Kernel kernel, TriTest test, PacketWidth width, bool oracle,
+void RunPass(const TriWorkload& w, Kernel kernel, TriTest test, BundleWidth width, bool oracle,
              HitStream& hits, std::vector<int32_t>& any) {
-  const TriPacketSpan span = w.span();
+  const TriBundleSpan span = w.span();
   if (kernel == Kernel::kStreamNx1) {
     hits.Reset();
     RayStreamView rays = const_cast<RayStream&>(w.rays).view();
@@ -73,17 +73,17 @@ void RunPass(const TriWorkload& w, Kernel kernel, TriTest test, PacketWidth widt
     return;
   }
   const HitStreamView h = hits.view();
-  for (size_t i = 0; i < w.packet_rays.size(); ++i) {
-    const PacketRay& r = w.packet_rays[i];
+  for (size_t i = 0; i < w.prepared_rays.size(); ++i) {
+    const PreparedRay& r = w.prepared_rays[i];
     if (kernel == Kernel::kAny1x4) {
-      any[i] = oracle ? ref::OccludedPackets(r, span, 0.0f, kInf, test)
-                      : OccludedPackets(r, span, 0.0f, kInf, test, width);
+      any[i] = oracle ? ref::OccludedBundles(r, span, 0.0f, kInf, test)
+                      : OccludedBundles(r, span, 0.0f, kInf, test, width);
     } else {
-      PacketHit hit;
+      ClosestHit hit;
       if (oracle) {
-        ref::IntersectPackets(r, span, 0.0f, kInf, test, &hit);
+        ref::IntersectBundles(r, span, 0.0f, kInf, test, &hit);
       } else {
-        IntersectPackets(r, span, 0.0f, kInf, test, width, &hit);
+        IntersectBundles(r, span, 0.0f, kInf, test, width, &hit);
       }
       h.t[i] = hit.t;
       h.u[i] = hit.u;
@@ -94,7 +94,7 @@ void RunPass(const TriWorkload& w, Kernel kernel, TriTest test, PacketWidth widt
 }
 
 void BM_Tri(benchmark::State& state, size_t num_tris, Kernel kernel, TriTest test,
-            PacketWidth width, int64_t target) {
+            BundleWidth width, int64_t target) {
   const TriWorkload& w = GetWorkload(num_tris);
   const size_t n = w.rays.size();
   HitStream want(n), got(n);
@@ -148,22 +148,22 @@ void RegisterAll() {
       for (const TriTest test : {TriTest::kWatertight, TriTest::kMollerTrumbore}) {
         const std::string tn = std::string(TestName(test));
         const bool oracle = target == 0;
-        for (const PacketWidth width :
-             {PacketWidth::kAuto, PacketWidth::kOne, PacketWidth::kTwo, PacketWidth::kFour}) {
-          if (oracle && width != PacketWidth::kAuto) continue;
+        for (const BundleWidth width :
+             {BundleWidth::kAuto, BundleWidth::kOne, BundleWidth::kTwo, BundleWidth::kFour}) {
+          if (oracle && width != BundleWidth::kAuto) continue;
           const std::string wn = oracle ? "" : std::string("/") + WidthName(width);
           benchmark::RegisterBenchmark(("Tri1x4/" + tname + "/" + tn + wn + tris).c_str(), BM_Tri,
                                        num_tris, Kernel::kClosest1x4, test, width, target)
               ->Unit(benchmark::kMicrosecond);
         }
         benchmark::RegisterBenchmark(("TriNx1/" + tname + "/" + tn + tris).c_str(), BM_Tri,
-                                     num_tris, Kernel::kStreamNx1, test, PacketWidth::kAuto, target)
+                                     num_tris, Kernel::kStreamNx1, test, BundleWidth::kAuto, target)
             ->Unit(benchmark::kMicrosecond);
       }
       const std::string wn = target == 0 ? "" : "/auto";
       benchmark::RegisterBenchmark(("TriAny1x4/" + tname + "/watertight" + wn + tris).c_str(),
                                    BM_Tri, num_tris, Kernel::kAny1x4, TriTest::kWatertight,
-                                   PacketWidth::kAuto, target)
+                                   BundleWidth::kAuto, target)
           ->Unit(benchmark::kMicrosecond);
     }
   }

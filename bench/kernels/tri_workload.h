@@ -1,5 +1,5 @@
 // The fixed ray/triangle workload of tri_bench (rdtsc ticks per test) and kernel_counts
-// (callgrind instructions per test): one "cell" of random triangles as 4-wide packets and rays
+// (callgrind instructions per test): one "cell" of random triangles as 4-wide bundles and rays
 // through it, so both benchmarks measure the same work. Deterministic for a fixed seed.
 #pragma once
 
@@ -11,8 +11,8 @@
 #include <vector>
 
 #include "include/raystream/raystream.h"
+#include "kernels/tri_bundles.h"
 #include "kernels/tri_intersect.h"
-#include "kernels/tri_packets.h"
 #include "kernels/triangle.h"
 #include "streams/ray_stream.h"
 
@@ -20,19 +20,19 @@ namespace rs::bench {
 
 // `num_tris` triangles (a multiple of 4: no padding lanes, so every lane is a test) with
 // vertices in the unit cube [0, 1]^3 around random centres, edges up to 0.5, as one cell of
-// packets; `num_rays` rays from random points on the sphere of radius 2 around the cube's centre
+// bundles; `num_rays` rays from random points on the sphere of radius 2 around the cube's centre
 // to random points in the cube (21 % of them hit one of 16 triangles). Rays are kept
-// both as a stream (N x 1 kernel) and as precomputed PacketRays (1 x 4 kernels: in a traversal
+// both as a stream (N x 1 kernel) and as PreparedRays (1 x 4 kernels: in a traversal
 // the per-ray setup is done once per ray, not per cell, so it is left out of the per-test cost).
 struct TriWorkload {
   std::vector<float> positions;
   std::vector<uint32_t> indices;
   TriangleSoA tris;
-  TriPackets packets;  // Cell(0): all triangles in id order
+  TriBundles bundles;  // Cell(0): all triangles in id order
   RayStream rays;
-  std::vector<PacketRay> packet_rays;
+  std::vector<PreparedRay> prepared_rays;
 
-  TriPacketSpan span() const { return packets.Cell(0); }
+  TriBundleSpan span() const { return bundles.Cell(0); }
   size_t tests_per_pass() const { return rays.size() * tris.size; }
 };
 
@@ -57,9 +57,9 @@ inline void MakeTriWorkload(size_t num_tris, size_t num_rays, uint32_t seed, Tri
   BuildTriangleSoA(mesh, &w->tris);
   std::vector<uint32_t> ids(num_tris);
   for (size_t t = 0; t < num_tris; ++t) ids[t] = static_cast<uint32_t>(t);
-  BuildTriPacketList(w->tris, ids.data(), ids.size(), &w->packets);
+  BuildTriBundleList(w->tris, ids.data(), ids.size(), &w->bundles);
   w->rays.Clear();
-  w->packet_rays.clear();
+  w->prepared_rays.clear();
   std::normal_distribution<float> g(0.0f, 1.0f);
   for (size_t i = 0; i < num_rays; ++i) {
     float o[3], len2 = 0.0f;
@@ -78,7 +78,7 @@ inline void MakeTriWorkload(size_t num_tris, size_t num_rays, uint32_t seed, Tri
     }
     w->rays.Push(o[0], o[1], o[2], d[0], d[1], d[2], 0.0f, std::numeric_limits<float>::infinity(),
                  static_cast<uint32_t>(i), 1.0f, 1.0f, 1.0f, 0, RayKind::kPrimary);
-    w->packet_rays.push_back(MakePacketRay(o[0], o[1], o[2], d[0], d[1], d[2]));
+    w->prepared_rays.push_back(PrepareRay(o[0], o[1], o[2], d[0], d[1], d[2]));
   }
   w->rays.FillPadding();
 }

@@ -158,7 +158,7 @@ def step_tables(data, lines, goals):
                  "difference of the thread CPU times (rdtsc ticks) ÷ the difference of the work: "
                  "setup, lane refills, the call and its dispatch drop out. DDA: empty cells of the "
                  "64^3 `corners` grid, no empty-space skipping. Triangles: cells of 16 and 64 "
-                 "random triangles, `auto` packet width for 1x4.\n")
+                 "random triangles, `auto` bundle width for 1x4.\n")
     lines.append("| kernel | form | " + " | ".join(targets) + " | scalar |")
     lines.append("|---|---|" + "---:|" * (len(targets) + 1))
     for form in ["stream", "single"]:
@@ -192,10 +192,10 @@ def tri_tables(data, lines, goals):
         if m and m.group(1) not in targets:
             targets.append(m.group(1))
     lines.append("### Ray/triangle tests: CPU ticks per test, per Highway target (tri_bench)\n")
-    lines.append("One cell of 16 or 64 random triangles (4-wide packets), 4096 rays through it "
+    lines.append("One cell of 16 or 64 random triangles (4-wide triangle bundles), 4096 rays through it "
                  "(21 % hit), per-ray setup excluded; cpu_ticks/test = the pass's CPU time in "
                  "rdtsc ticks (call and dispatch per ray included) ÷ "
-                 "(rays × triangles). 1x4 = one ray against the packets, `auto` width (16 lanes "
+                 "(rays × triangles). 1x4 = one ray against the bundles, `auto` width (16 lanes "
                  "on AVX3, 8 on AVX2, 4 below); N x 1 = rays in lanes, one triangle at a time "
                  "(hit reset included); any = occlusion, which stops at the first hit (the count "
                  "assumes all lanes ran: a lower bound on the real cost per test).\n")

@@ -118,7 +118,7 @@ md=$out/callgrind.md
   echo "procedural spherebox (49,920 triangles, default Accel options); \`bunny\` = 64x64 primary"
   echo "rays of the bunny (shared scene). DDA Ir include the triangle tests run inside the traversal,"
   echo "so on spherebox and bunny Ir/step and Ir/test are the same total divided two ways. \`cell16\`"
-  echo "= 16 random triangles (4 packets) and 4096 rays through them, watertight test, auto packet"
+  echo "= 16 random triangles (4 bundles) and 4096 rays through them, watertight test, auto bundle"
   echo "width (bench/kernels/tri_workload.h; 21 % of the rays hit); tests = rays x 16 lanes (for any1x4 an"
   echo "upper bound: it stops at the first hit). \`shade\` = 64x64 spherebox primary hits (2 lights,"
   echo "shadow + specular + reflection + refraction stages), shaded in streams of 1024; Ir per hit."
@@ -129,8 +129,8 @@ md=$out/callgrind.md
     if ($1 == "dda" && $2 == "corners") printf "- SIMD stream DDA, empty cells: **%s Ir per ray-cell step** (%s Ir per ray)\n", $11, $10
     if ($1 == "dda" && $2 != "corners") printf "- SIMD stream DDA with its triangle tests, %s: %s Ir per ray, %s per step, %s per test\n", $2, $10, $11, $12
     if ($1 == "dda_single") printf "- single-ray DDA (Cell paper form), empty cells: %s Ir per ray-cell step\n", $11
-    if ($1 == "tri1x4") printf "- 1 ray x 4-wide packets, closest hit (watertight): **%s Ir per ray/triangle test**\n", $12
-    if ($1 == "any1x4") printf "- 1 ray x 4-wide packets, any hit: %s Ir per ray/triangle lane\n", $12
+    if ($1 == "tri1x4") printf "- 1 ray x 4-wide triangle bundles, closest hit (watertight): **%s Ir per ray/triangle test**\n", $12
+    if ($1 == "any1x4") printf "- 1 ray x 4-wide triangle bundles, any hit: %s Ir per ray/triangle lane\n", $12
     if ($1 == "trinx1") printf "- N rays x 1 triangle (watertight): **%s Ir per ray/triangle test**\n", $12
     if ($1 == "shade") printf "- shading (SIMD): **%s Ir per shaded hit**\n", $13
   }' "$csv"

@@ -71,7 +71,7 @@ std::vector<Param> Params(const SimConfig& c) {
 struct SceneRow {
   std::string scene;
   double steps_per_visit = 0;
-  double packets_per_visit = 0;
+  double bundles_per_visit = 0;
   sim::LoadWork work;
   sim::LoadCosts costs;
 };
@@ -87,15 +87,15 @@ SceneRow Measure(const std::string& name, int w, int h, const SimConfig& config)
   Framebuffer fb(w, h);
   sim::CellRenderer renderer(config);
   const sim::CellFrameStats s = renderer.Render(ctx, fb);
-  // Cells a traversal steps through per cell it visits, and packets tested per visit (the cells
-  // visited by secondary rays at once included: they count steps and packets too).
+  // Cells a traversal steps through per cell it visits, and bundles tested per visit (the cells
+  // visited by secondary rays at once included: they count steps and bundles too).
   const double visits = double(s.totals.visits + s.totals.at_once_visits);
   if (visits <= 0) throw Error("load_cost_bench: scene " + name + " visits no cell");
   SceneRow r;
   r.scene = name;
   r.steps_per_visit = double(s.totals.cell_steps) / visits;
-  r.packets_per_visit = double(s.totals.packets) / visits;
-  r.work = sim::LoadWorkOf(config.costs, r.steps_per_visit, r.packets_per_visit);
+  r.bundles_per_visit = double(s.totals.bundles) / visits;
+  r.work = sim::LoadWorkOf(config.costs, r.steps_per_visit, r.bundles_per_visit);
   sim::LoadBenchOptions lo;
   lo.traverse_cycles = r.work.traverse_cycles;
   lo.visit_cycles = r.work.visit_cycles;
@@ -146,7 +146,7 @@ int Main(int argc, char** argv) {
   }
   const int w = quick ? 64 : 256, h = quick ? 48 : 192;
   std::string csv =
-      "scene,steps_per_visit,packets_per_visit,traverse_cycles,visit_cycles,method,paper_cycles,"
+      "scene,steps_per_visit,bundles_per_visit,traverse_cycles,visit_cycles,method,paper_cycles,"
       "model_cycles,error_pct\n";
   md += Fmt("\n## Table 1 rows (work per ray from a %.0fx%.0f depth-4 render of each scene)\n\n", w,
             h);
@@ -155,9 +155,9 @@ int Main(int argc, char** argv) {
   double worst_all = 0;
   for (const char* name : {"erw6", "spherebox"}) {
     const SceneRow r = Measure(name, w, h, config);
-    std::printf("\n%s: %.2f cell steps and %.2f packets per visited cell -> traverse %u + visit %u "
+    std::printf("\n%s: %.2f cell steps and %.2f bundles per visited cell -> traverse %u + visit %u "
                 "cycles per ray\n",
-                name, r.steps_per_visit, r.packets_per_visit, r.work.traverse_cycles,
+                name, r.steps_per_visit, r.bundles_per_visit, r.work.traverse_cycles,
                 r.work.visit_cycles);
     std::printf("  %-14s %8s %8s %9s\n", "method", "paper", "model", "error");
     double worst = 0;
@@ -166,7 +166,7 @@ int Main(int argc, char** argv) {
       const double err = ErrorPct(model, paper);
       worst = std::max(worst, std::fabs(err));
       std::printf("  %-14s %8.0f %8.1f %+8.1f %%\n", sim::kLoadCostNames[i], paper, model, err);
-      csv += r.scene + Fmt(",%.3f,%.3f", r.steps_per_visit, r.packets_per_visit) +
+      csv += r.scene + Fmt(",%.3f,%.3f", r.steps_per_visit, r.bundles_per_visit) +
              Fmt(",%.0f,%.0f,", r.work.traverse_cycles, r.work.visit_cycles) +
              sim::kLoadCostNames[i] + Fmt(",%.0f,%.1f,%.1f\n", paper, model, err);
       md += "| " + r.scene +

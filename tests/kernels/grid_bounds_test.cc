@@ -38,7 +38,7 @@ using test::Soup;
 // Bounds every structure must meet (kernels/grid.h): the top-level grid lists at most 8
 // references per non-degenerate triangle plus 65536 (so small scenes are never coarsened), the
 // sub-cells of the second level at most as many again; the whole Accel (triangles, grid, second
-// level, traversal packets) takes at most 1 KiB per triangle plus 16 MiB. Literal here, so a
+// level, triangle bundles) takes at most 1 KiB per triangle plus 16 MiB. Literal here, so a
 // change of the library's constants has to change this contract too.
 constexpr double kRefsPerTriangle = 8.0;
 constexpr double kRefSlack = 65536.0;

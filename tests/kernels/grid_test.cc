@@ -599,8 +599,8 @@ TEST_CASE("threaded build (BuildOptions::build_threads): the same grid and box c
   }
 }
 
-
-TEST_CASE("threaded build: the same triangles, packets, occupancy words and skip rings for 1-4 threads") {
+TEST_CASE(
+    "threaded build: the same triangles, bundles, occupancy words and skip rings for 1-4 threads") {
   Rng rng(73);
   // 20,000 small triangles (several parts of every pass), every 97th degenerate
   Soup soup = test::RandomSoup(rng, 20000, -1.0, 1.0, 0.05);
@@ -626,13 +626,14 @@ TEST_CASE("threaded build: the same triangles, packets, occupancy words and skip
     }
     DdaGrid dda;
     BuildDdaGrid(grid, nullptr, one, &dda, threads);
-    REQUIRE(dda.packets.num_packets == dda_one.packets.num_packets);
-    const TriPackets& p = dda.packets;
-    const TriPackets& q = dda_one.packets;
+    REQUIRE(dda.bundles.num_bundles == dda_one.bundles.num_bundles);
+    const TriBundles& p = dda.bundles;
+    const TriBundles& q = dda_one.bundles;
     CHECK(std::equal(p.cell_begin.get(), p.cell_begin.get() + p.num_cells + 1, q.cell_begin.get()));
-    CHECK(std::equal(p.ids.get(), p.ids.get() + kPacketLanes * p.num_packets, q.ids.get()));
+    CHECK(std::equal(p.ids.get(), p.ids.get() + kBundleLanes * p.num_bundles, q.ids.get()));
     // NaN padding: compare the bits
-    CHECK(std::memcmp(p.data.get(), q.data.get(), kPacketFloats * p.num_packets * sizeof(float)) == 0);
+    CHECK(std::memcmp(p.data.get(), q.data.get(), kBundleFloats * p.num_bundles * sizeof(float)) ==
+          0);
     CHECK(dda.top_words32 == dda_one.top_words32);
     CHECK(std::equal(dda.bits.get(), dda.bits.get() + dda.top_words32, dda_one.bits.get()));
     CHECK(std::equal(dda.skip.get(), dda.skip.get() + (grid.num_cells + 3) / 4, dda_one.skip.get()));

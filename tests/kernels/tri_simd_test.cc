@@ -1,4 +1,4 @@
-// Triangle packets and the SIMD ray/triangle kernels (kernels/tri_intersect.h) on every compiled
+// Triangle bundles and the SIMD ray/triangle kernels (kernels/tri_intersect.h) on every compiled
 // target vs their scalar oracles, bit for bit: random rays at unit, huge-offset and tiny scales,
 // shared edges and vertices, degenerate and padding lanes, NaN/Inf rays, (tmin, tmax] bounds,
 // stream padding sentinels, a watertightness stress on a closed icosphere at 1e5, and no
@@ -20,8 +20,8 @@
 
 #include "include/raystream/raystream.h"
 #include "kernels/grid.h"
+#include "kernels/tri_bundles.h"
 #include "kernels/tri_intersect.h"
-#include "kernels/tri_packets.h"
 #include "kernels/triangle.h"
 #include "streams/ray_stream.h"
 #include "tests/kernels/geometry_util.h"
@@ -39,27 +39,27 @@ using test::Soup;
 using test::kInf;
 using test::kNaN;
 constexpr TriTest kTests[] = {TriTest::kWatertight, TriTest::kMollerTrumbore};
-constexpr PacketWidth kWidths[] = {PacketWidth::kAuto, PacketWidth::kOne, PacketWidth::kTwo,
-                                   PacketWidth::kFour};
+constexpr BundleWidth kWidths[] = {BundleWidth::kAuto, BundleWidth::kOne, BundleWidth::kTwo,
+                                   BundleWidth::kFour};
 
 std::string TestName(TriTest t) { return t == TriTest::kWatertight ? "watertight" : "moller"; }
-int WidthLanes(PacketWidth w) { return w == PacketWidth::kAuto ? 0 : int(w) * 4; }
+int WidthLanes(BundleWidth w) { return w == BundleWidth::kAuto ? 0 : int(w) * 4; }
 
 uint32_t Bits(float x) {
   uint32_t b;
   std::memcpy(&b, &x, sizeof(b));
   return b;
 }
-bool SameHit(const PacketHit& a, const PacketHit& b) {
+bool SameHit(const ClosestHit& a, const ClosestHit& b) {
   return Bits(a.t) == Bits(b.t) && Bits(a.u) == Bits(b.u) && Bits(a.v) == Bits(b.v) &&
          a.prim == b.prim;
 }
-std::string HitString(const PacketHit& h) {
+std::string HitString(const ClosestHit& h) {
   return "{t " + std::to_string(h.t) + " u " + std::to_string(h.u) + " v " + std::to_string(h.v) +
          " prim " + std::to_string(h.prim) + "}";
 }
 
-// A triangle soup gathered into TriangleSoA, with packets for id lists.
+// A triangle soup gathered into TriangleSoA, with bundles for id lists.
 struct Scene {
   Soup soup;
   TriangleSoA tris;
@@ -93,19 +93,19 @@ struct Mismatches {
   }
 };
 
-// Runs IntersectPackets and OccludedPackets with every test and width on the current target and
+// Runs IntersectBundles and OccludedBundles with every test and width on the current target and
 // compares with ref:: bit for bit. Returns the oracle's closest hits (per test) in *want.
-void ComparePackets(const TriPacketSpan& span, const PacketRay& ray, float tmin, float tmax,
-                    const PacketHit& prior, Mismatches* mm, PacketHit want[2] = nullptr) {
+void CompareBundles(const TriBundleSpan& span, const PreparedRay& ray, float tmin, float tmax,
+                    const ClosestHit& prior, Mismatches* mm, ClosestHit want[2] = nullptr) {
   for (const TriTest test : kTests) {
-    PacketHit ref_hit = prior;
-    const bool ref_changed = ref::IntersectPackets(ray, span, tmin, tmax, test, &ref_hit);
-    const bool ref_any = ref::OccludedPackets(ray, span, tmin, tmax, test);
+    ClosestHit ref_hit = prior;
+    const bool ref_changed = ref::IntersectBundles(ray, span, tmin, tmax, test, &ref_hit);
+    const bool ref_any = ref::OccludedBundles(ray, span, tmin, tmax, test);
     if (want != nullptr) want[int(test)] = ref_hit;
-    for (const PacketWidth width : kWidths) {
-      PacketHit got = prior;
-      const bool changed = IntersectPackets(ray, span, tmin, tmax, test, width, &got);
-      const bool any = OccludedPackets(ray, span, tmin, tmax, test, width);
+    for (const BundleWidth width : kWidths) {
+      ClosestHit got = prior;
+      const bool changed = IntersectBundles(ray, span, tmin, tmax, test, width, &got);
+      const bool any = OccludedBundles(ray, span, tmin, tmax, test, width);
       const std::string what =
           std::string(TestName(test)) + " width " + std::to_string(WidthLanes(width)) + " ray o (" +
           std::to_string(ray.o[0]) + ", " + std::to_string(ray.o[1]) + ", " +
@@ -117,8 +117,8 @@ void ComparePackets(const TriPacketSpan& span, const PacketRay& ray, float tmin,
 
 // A random ray through a random point of a random triangle of `s` (origin 0.5..3 sizes
 // before it), or with probability 1/4 a random ray near the triangles.
-PacketRay RandomRay(Rng& rng, const Scene& s, double offset, double scale, float* tmin,
-                    float* tmax) {
+PreparedRay RandomRay(Rng& rng, const Scene& s, double offset, double scale, float* tmin,
+                      float* tmax) {
   float d[3];
   rng.Direction(d);
   double p[3];
@@ -146,14 +146,14 @@ PacketRay RandomRay(Rng& rng, const Scene& s, double offset, double scale, float
   if (kind == 0) *tmin = F(back * rng.Uniform(0.5, 1.5));
   if (kind == 1) *tmax = F(back * rng.Uniform(0.5, 1.5));
   if (kind == 2) *tmin = -kInf;
-  return MakePacketRay(o[0], o[1], o[2], d[0], d[1], d[2]);
+  return PrepareRay(o[0], o[1], o[2], d[0], d[1], d[2]);
 }
 
-TEST_CASE("packets from a grid: per-cell ranges, id order, components, NaN padding lanes") {
+TEST_CASE("bundles from a grid: per-cell ranges, id order, components, NaN padding lanes") {
   Rng rng(3);
   Scene s;
   s.soup = test::RandomSoup(rng, 500, -10, 10, 2.5);
-  // a few degenerate triangles: never binned, so never in a packet
+  // a few degenerate triangles: never binned, so never in a bundle
   const float a[3] = {1, 2, 3}, b[3] = {2, 3, 4}, c[3] = {3, 4, 5};
   s.soup.AddTriangle(a, a, b);
   s.soup.AddTriangle(a, b, c);  // collinear
@@ -161,16 +161,16 @@ TEST_CASE("packets from a grid: per-cell ranges, id order, components, NaN paddi
   REQUIRE(s.tris.num_degenerate == 2);
   Grid grid;
   BuildGrid(s.tris, 2.0f, 64, &grid);
-  TriPackets packets;
-  BuildTriPackets(grid, s.tris, &packets);
-  REQUIRE(packets.num_cells == grid.num_cells);
-  CHECK(packets.num_triangles == grid.num_refs);
+  TriBundles bundles;
+  BuildTriBundles(grid, s.tris, &bundles);
+  REQUIRE(bundles.num_cells == grid.num_cells);
+  CHECK(bundles.num_triangles == grid.num_refs);
   size_t total = 0, bad = 0, padding = 0;
   for (size_t cell = 0; cell < grid.num_cells; ++cell) {
     const size_t n = grid.cell_begin[cell + 1] - grid.cell_begin[cell];
-    const TriPacketSpan span = packets.Cell(cell);
+    const TriBundleSpan span = bundles.Cell(cell);
     bad += span.count != (n + 3) / 4;
-    bad += reinterpret_cast<uintptr_t>(span.block) % 16 != 0;
+    bad += reinterpret_cast<uintptr_t>(span.vertices) % 16 != 0;
     total += span.count;
     for (size_t j = 0; j < span.lanes(); ++j) {
       if (j < n) {
@@ -191,18 +191,18 @@ TEST_CASE("packets from a grid: per-cell ranges, id order, components, NaN paddi
     }
   }
   CHECK(bad == 0);
-  CHECK(total == packets.num_packets);
+  CHECK(total == bundles.num_bundles);
   CHECK(padding > 0);
-  CHECK(packets.cell_begin[grid.num_cells] == packets.num_packets);
+  CHECK(bundles.cell_begin[grid.num_cells] == bundles.num_bundles);
   MESSAGE("grid ", grid.res[0], "x", grid.res[1], "x", grid.res[2], ": ", grid.num_refs,
-          " refs in ", packets.num_packets, " packets (", padding, " padding lanes), ",
-          packets.Bytes(), " B");
+          " refs in ", bundles.num_bundles, " bundles (", padding, " padding lanes), ",
+          bundles.Bytes(), " B");
 
   // a list with degenerate ids: NaN vertices (never hit) but the id is kept; rebuild reuses
   const uint32_t ids[] = {500, 3, 501, 3, 7};
-  BuildTriPacketList(s.tris, ids, 5, &packets);
-  REQUIRE(packets.num_cells == 1);
-  const TriPacketSpan span = packets.Cell(0);
+  BuildTriBundleList(s.tris, ids, 5, &bundles);
+  REQUIRE(bundles.num_cells == 1);
+  const TriBundleSpan span = bundles.Cell(0);
   REQUIRE(span.count == 2);
   CHECK(span.ids[0] == 500);
   CHECK(span.ids[3] == 3);
@@ -221,12 +221,12 @@ TEST_CASE("packets from a grid: per-cell ranges, id order, components, NaN paddi
       const float o[3] = {F(std::round(ray_rng.Uniform(-4, 4) * 64) / 64),
                           F(std::round(ray_rng.Uniform(-4, 4) * 64) / 64), 8.0f};
       const float* target_point = k % 2 ? a : b;
-      const PacketRay ray = MakePacketRay(o[0], o[1], o[2], target_point[0] - o[0],
-                                          target_point[1] - o[1], target_point[2] - o[2]);
+      const PreparedRay ray = PrepareRay(o[0], o[1], o[2], target_point[0] - o[0],
+                                         target_point[1] - o[1], target_point[2] - o[2]);
       for (const TriTest test : kTests) {
-        for (const PacketWidth width : kWidths) {
-          PacketHit h;
-          IntersectPackets(ray, span, -kInf, kInf, test, width, &h);
+        for (const BundleWidth width : kWidths) {
+          ClosestHit h;
+          IntersectBundles(ray, span, -kInf, kInf, test, width, &h);
           bad_hits += h.prim == 500 || h.prim == 501;
         }
       }
@@ -235,25 +235,25 @@ TEST_CASE("packets from a grid: per-cell ranges, id order, components, NaN paddi
   });
   // empty grid and empty list
   Grid empty;
-  BuildTriPackets(empty, s.tris, &packets);
-  CHECK(packets.num_cells == 0);
-  CHECK(packets.num_packets == 0);
-  BuildTriPacketList(s.tris, ids, 0, &packets);
-  CHECK(packets.Cell(0).count == 0);
+  BuildTriBundles(empty, s.tris, &bundles);
+  CHECK(bundles.num_cells == 0);
+  CHECK(bundles.num_bundles == 0);
+  BuildTriBundleList(s.tris, ids, 0, &bundles);
+  CHECK(bundles.Cell(0).count == 0);
   test::ForEachTarget([&](const char* target_name) {
     const std::string target = target_name;
     INFO("target: ", target);
-    PacketHit h;
-    const PacketRay ray = MakePacketRay(0, 0, 0, 1, 0, 0);
-    CHECK_FALSE(IntersectPackets(ray, packets.Cell(0), 0.0f, kInf, TriTest::kWatertight,
-                                 PacketWidth::kAuto, &h));
+    ClosestHit h;
+    const PreparedRay ray = PrepareRay(0, 0, 0, 1, 0, 0);
+    CHECK_FALSE(IntersectBundles(ray, bundles.Cell(0), 0.0f, kInf, TriTest::kWatertight,
+                                 BundleWidth::kAuto, &h));
     CHECK(h.prim == -1);
   });
 }
 
 // Random rays against spans of 1..37 triangles (all step-downs of the wide loops), at unit
 // scale, a 1e5 offset, a 1e-4 scale and a 1e3 scale at -3e4, with fresh and prior hits.
-TEST_CASE("1 ray x packets: random rays and triangles match the scalar tests bit for bit") {
+TEST_CASE("1 ray x bundles: random rays and triangles match the scalar tests bit for bit") {
   struct Config {
     double offset, scale;
   };
@@ -266,14 +266,14 @@ TEST_CASE("1 ray x packets: random rays and triangles match the scalar tests bit
     s.soup = test::RandomSoup(rng, 37, cfg.offset - 2 * cfg.scale, cfg.offset + 2 * cfg.scale,
                               cfg.scale);
     s.Finish();
-    std::vector<TriPackets> spans(std::size(sizes));
+    std::vector<TriBundles> spans(std::size(sizes));
     for (size_t k = 0; k < std::size(sizes); ++k) {
       // ids in a shuffled order (a list may hold any order; ties must still pick the lowest id)
       std::vector<uint32_t> ids(sizes[k]);
       for (size_t j = 0; j < ids.size(); ++j) ids[j] = rng.Below(uint32_t(s.tris.size));
-      BuildTriPacketList(s.tris, ids.data(), ids.size(), &spans[k]);
+      BuildTriBundleList(s.tris, ids.data(), ids.size(), &spans[k]);
     }
-    std::vector<PacketRay> rays;
+    std::vector<PreparedRay> rays;
     std::vector<std::array<float, 2>> bounds;
     size_t zero_edges = 0;
     for (int i = 0; i < 400; ++i) {
@@ -287,19 +287,19 @@ TEST_CASE("1 ray x packets: random rays and triangles match the scalar tests bit
       Mismatches mm;
       size_t hits = 0;
       for (size_t i = 0; i < rays.size(); ++i) {
-        for (const TriPackets& p : spans) {
-          PacketHit want[2];
-          ComparePackets(p.Cell(0), rays[i], bounds[i][0], bounds[i][1], PacketHit{}, &mm, want);
+        for (const TriBundles& p : spans) {
+          ClosestHit want[2];
+          CompareBundles(p.Cell(0), rays[i], bounds[i][0], bounds[i][1], ClosestHit{}, &mm, want);
           hits += want[0].prim >= 0;
           // a prior hit from another cell: exactly tied (the lower id must win), or closer
           if (want[0].prim >= 0) {
-            PacketHit tie = want[0];
+            ClosestHit tie = want[0];
             tie.prim = rng.Below(4) == 0 ? -1 : tie.prim + 1 - int32_t(rng.Below(3));
-            ComparePackets(p.Cell(0), rays[i], bounds[i][0], bounds[i][1], tie, &mm);
-            PacketHit closer = want[0];
+            CompareBundles(p.Cell(0), rays[i], bounds[i][0], bounds[i][1], tie, &mm);
+            ClosestHit closer = want[0];
             closer.t = want[0].t * 0.999f;
             closer.prim = 1000;
-            ComparePackets(p.Cell(0), rays[i], bounds[i][0], bounds[i][1], closer, &mm);
+            CompareBundles(p.Cell(0), rays[i], bounds[i][0], bounds[i][1], closer, &mm);
           }
         }
       }
@@ -324,30 +324,30 @@ TEST_CASE("1 ray x packets: random rays and triangles match the scalar tests bit
 }
 
 // Ties inside one vector: duplicated geometry under several ids, listed in descending order.
-TEST_CASE("1 ray x packets: equal t in several lanes -> the lowest id wins, on every width") {
+TEST_CASE("1 ray x bundles: equal t in several lanes -> the lowest id wins, on every width") {
   Scene s;
   const float p0[3] = {0, 0, 0}, p1[3] = {1, 0, 0}, p2[3] = {0, 1, 0};
   for (int k = 0; k < 12; ++k) s.soup.AddTriangle(p0, p1, p2);
   s.Finish();
   const uint32_t ids[] = {11, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 0};
-  TriPackets packets;
+  TriBundles bundles;
   for (size_t n : {2, 5, 9, 12}) {
-    BuildTriPacketList(s.tris, ids + 12 - n, n, &packets);  // the n lowest ids, descending
-    const PacketRay ray = MakePacketRay(0.25f, 0.25f, 1.0f, 0.0f, 0.0f, -1.0f);
+    BuildTriBundleList(s.tris, ids + 12 - n, n, &bundles);  // the n lowest ids, descending
+    const PreparedRay ray = PrepareRay(0.25f, 0.25f, 1.0f, 0.0f, 0.0f, -1.0f);
     test::ForEachTarget([&](const char* target_name) {
       const std::string target = target_name;
       INFO("target: ", target, " n ", n);
       for (const TriTest test : kTests) {
-        for (const PacketWidth width : kWidths) {
-          PacketHit h;
-          CHECK(IntersectPackets(ray, packets.Cell(0), 0.0f, kInf, test, width, &h));
+        for (const BundleWidth width : kWidths) {
+          ClosestHit h;
+          CHECK(IntersectBundles(ray, bundles.Cell(0), 0.0f, kInf, test, width, &h));
           CHECK(h.prim == 0);
           CHECK(h.t == 1.0f);
           // a prior hit at the same t with a lower id is kept
-          PacketHit prior;
+          ClosestHit prior;
           prior.t = 1.0f;
           prior.prim = 0;
-          CHECK_FALSE(IntersectPackets(ray, packets.Cell(0), 0.0f, kInf, test, width, &prior));
+          CHECK_FALSE(IntersectBundles(ray, bundles.Cell(0), 0.0f, kInf, test, width, &prior));
         }
       }
     });
@@ -357,7 +357,7 @@ TEST_CASE("1 ray x packets: equal t in several lanes -> the lowest id wins, on e
 // Two triangles sharing an edge, a fan sharing a vertex: rays exactly through the shared
 // points. Watertight: some triangle is hit every time (and the hit matches the scalar test,
 // which exercises the double fallback: the edge function of the shared edge is exactly 0).
-TEST_CASE("1 ray x packets: rays through shared edges and vertices never miss (watertight)") {
+TEST_CASE("1 ray x bundles: rays through shared edges and vertices never miss (watertight)") {
   Scene s;
   // quad split along its diagonal, and a 6-triangle fan around (0.5, 0.5, 2)
   const float q0[3] = {0, 0, 0}, q1[3] = {1, 0, 0}, q2[3] = {1, 1, 0}, q3[3] = {0, 1, 0};
@@ -374,11 +374,11 @@ TEST_CASE("1 ray x packets: rays through shared edges and vertices never miss (w
   for (int i = 0; i < 6; ++i) s.soup.AddTriangle(apex, ring[i], ring[(i + 1) % 6]);
   s.Finish();
   const uint32_t quad[] = {0, 1}, fan[] = {2, 3, 4, 5, 6, 7};
-  TriPackets quad_packets, fan_packets;
-  BuildTriPacketList(s.tris, quad, 2, &quad_packets);
-  BuildTriPacketList(s.tris, fan, 6, &fan_packets);
+  TriBundles quad_bundles, fan_bundles;
+  BuildTriBundleList(s.tris, quad, 2, &quad_bundles);
+  BuildTriBundleList(s.tris, fan, 6, &fan_bundles);
   Rng rng(17);
-  std::vector<std::pair<PacketRay, int>> rays;  // ray, 0 = quad diagonal, 1 = fan apex
+  std::vector<std::pair<PreparedRay, int>> rays;  // ray, 0 = quad diagonal, 1 = fan apex
   size_t zero_edges = 0;
   for (int k = 0; k < 300; ++k) {
     // origins on a 2^-8 lattice, targets exact: o + d hits the target exactly
@@ -388,10 +388,10 @@ TEST_CASE("1 ray x packets: rays through shared edges and vertices never miss (w
     const float along = F(std::round(rng.Uniform(0, 1) * 256) / 256);
     const float diag[3] = {along, along, 0.0f};  // on the shared diagonal q0-q2
     const float dd[3] = {diag[0] - o[0], diag[1] - o[1], diag[2] - o[2]};
-    rays.push_back({MakePacketRay(o[0], o[1], o[2], dd[0], dd[1], dd[2]), 0});
+    rays.push_back({PrepareRay(o[0], o[1], o[2], dd[0], dd[1], dd[2]), 0});
     const float oa[3] = {o[0], o[1], o[2] + 2.5f};  // above the fan
     const float da[3] = {apex[0] - oa[0], apex[1] - oa[1], apex[2] - oa[2]};
-    rays.push_back({MakePacketRay(oa[0], oa[1], oa[2], da[0], da[1], da[2]), 1});
+    rays.push_back({PrepareRay(oa[0], oa[1], oa[2], da[0], da[1], da[2]), 1});
   }
   for (const auto& [ray, which] : rays) {
     const auto& list = which == 0 ? quad : fan;
@@ -412,13 +412,13 @@ TEST_CASE("1 ray x packets: rays through shared edges and vertices never miss (w
     Mismatches mm;
     size_t misses = 0, moller_misses = 0;
     for (const auto& [ray, which] : rays) {
-      const TriPacketSpan span = which == 0 ? quad_packets.Cell(0) : fan_packets.Cell(0);
-      PacketHit want[2];
-      ComparePackets(span, ray, 0.0f, kInf, PacketHit{}, &mm, want);
-      for (const PacketWidth width : kWidths) {
-        PacketHit h;
-        misses += !IntersectPackets(ray, span, 0.0f, kInf, TriTest::kWatertight, width, &h);
-        misses += !OccludedPackets(ray, span, 0.0f, kInf, TriTest::kWatertight, width);
+      const TriBundleSpan span = which == 0 ? quad_bundles.Cell(0) : fan_bundles.Cell(0);
+      ClosestHit want[2];
+      CompareBundles(span, ray, 0.0f, kInf, ClosestHit{}, &mm, want);
+      for (const BundleWidth width : kWidths) {
+        ClosestHit h;
+        misses += !IntersectBundles(ray, span, 0.0f, kInf, TriTest::kWatertight, width, &h);
+        misses += !OccludedBundles(ray, span, 0.0f, kInf, TriTest::kWatertight, width);
       }
       moller_misses += want[1].prim < 0;
     }
@@ -430,15 +430,15 @@ TEST_CASE("1 ray x packets: rays through shared edges and vertices never miss (w
   });
 }
 
-TEST_CASE("1 ray x packets: NaN/Inf/zero rays, NaN bounds and (tmin, tmax] limits") {
+TEST_CASE("1 ray x bundles: NaN/Inf/zero rays, NaN bounds and (tmin, tmax] limits") {
   Scene s;
   const float p0[3] = {0, 0, 0}, p1[3] = {1, 0, 0}, p2[3] = {0, 1, 0};
   s.soup.AddTriangle(p0, p1, p2);
   s.Finish();
   const uint32_t id0 = 0;
-  TriPackets packets;
-  BuildTriPacketList(s.tris, &id0, 1, &packets);
-  const TriPacketSpan span = packets.Cell(0);
+  TriBundles bundles;
+  BuildTriBundleList(s.tris, &id0, 1, &bundles);
+  const TriBundleSpan span = bundles.Cell(0);
   // the hit of (0.25, 0.25, 2) + t (0, 0, -1) is t = 2 exactly
   const float two_below = std::nextafter(2.0f, 0.0f);
   struct Case {
@@ -472,17 +472,17 @@ TEST_CASE("1 ray x packets: NaN/Inf/zero rays, NaN bounds and (tmin, tmax] limit
     for (const Case& c : cases) {
       INFO("o ", c.o[0], " ", c.o[1], " ", c.o[2], " d ", c.d[0], " ", c.d[1], " ", c.d[2],
            " tmin ", c.tmin, " tmax ", c.tmax);
-      const PacketRay ray = MakePacketRay(c.o[0], c.o[1], c.o[2], c.d[0], c.d[1], c.d[2]);
+      const PreparedRay ray = PrepareRay(c.o[0], c.o[1], c.o[2], c.d[0], c.d[1], c.d[2]);
       for (const TriTest test : kTests) {
         INFO(TestName(test));
-        for (const PacketWidth width : kWidths) {
-          PacketHit h;
-          CHECK(IntersectPackets(ray, span, c.tmin, c.tmax, test, width, &h) == c.hit);
-          CHECK(OccludedPackets(ray, span, c.tmin, c.tmax, test, width) == c.hit);
+        for (const BundleWidth width : kWidths) {
+          ClosestHit h;
+          CHECK(IntersectBundles(ray, span, c.tmin, c.tmax, test, width, &h) == c.hit);
+          CHECK(OccludedBundles(ray, span, c.tmin, c.tmax, test, width) == c.hit);
           CHECK((h.prim == 0) == c.hit);
         }
-        PacketHit r;
-        CHECK(ref::IntersectPackets(ray, span, c.tmin, c.tmax, test, &r) == c.hit);
+        ClosestHit r;
+        CHECK(ref::IntersectBundles(ray, span, c.tmin, c.tmax, test, &r) == c.hit);
       }
     }
   });
@@ -496,16 +496,16 @@ TEST_CASE("regression: Moller-Trumbore rejects an overflowed det; watertight mat
   s.soup.AddTriangle(p0, p1, p2);
   s.Finish();
   const uint32_t id0 = 0;
-  TriPackets packets;
-  BuildTriPacketList(s.tris, &id0, 1, &packets);
+  TriBundles bundles;
+  BuildTriBundleList(s.tris, &id0, 1, &bundles);
   // pvec = d x e2 = (1e38, 0, 0); det = 100 * 1e38 = inf
-  const PacketRay ray = MakePacketRay(0.5f, 0.0f, 1.0f, 0.0f, 0.0f, -1e37f);
-  PacketHit want_wt;
+  const PreparedRay ray = PrepareRay(0.5f, 0.0f, 1.0f, 0.0f, 0.0f, -1e37f);
+  ClosestHit want_wt;
   const bool wt =
-      ref::IntersectPackets(ray, packets.Cell(0), -kInf, kInf, TriTest::kWatertight, &want_wt);
-  PacketHit want_mt;
+      ref::IntersectBundles(ray, bundles.Cell(0), -kInf, kInf, TriTest::kWatertight, &want_wt);
+  ClosestHit want_mt;
   CHECK_FALSE(
-      ref::IntersectPackets(ray, packets.Cell(0), -kInf, kInf, TriTest::kMollerTrumbore, &want_mt));
+      ref::IntersectBundles(ray, bundles.Cell(0), -kInf, kInf, TriTest::kMollerTrumbore, &want_mt));
   RayStream rays(1);
   rays.Push(0.5f, 0.0f, 1.0f, 0.0f, 0.0f, -1e37f, -kInf, kInf, 0, 1, 1, 1, 0, RayKind::kPrimary);
   HitStream hits(1);
@@ -513,19 +513,19 @@ TEST_CASE("regression: Moller-Trumbore rejects an overflowed det; watertight mat
   test::ForEachTarget([&](const char* target_name) {
     const std::string target = target_name;
     INFO("target: ", target);
-    for (const PacketWidth width : kWidths) {
-      PacketHit h;
+    for (const BundleWidth width : kWidths) {
+      ClosestHit h;
       CHECK_FALSE(
-          IntersectPackets(ray, packets.Cell(0), -kInf, kInf, TriTest::kMollerTrumbore, width, &h));
+          IntersectBundles(ray, bundles.Cell(0), -kInf, kInf, TriTest::kMollerTrumbore, width, &h));
       CHECK_FALSE(
-          OccludedPackets(ray, packets.Cell(0), -kInf, kInf, TriTest::kMollerTrumbore, width));
-      PacketHit hw;
-      CHECK(IntersectPackets(ray, packets.Cell(0), -kInf, kInf, TriTest::kWatertight, width, &hw) ==
+          OccludedBundles(ray, bundles.Cell(0), -kInf, kInf, TriTest::kMollerTrumbore, width));
+      ClosestHit hw;
+      CHECK(IntersectBundles(ray, bundles.Cell(0), -kInf, kInf, TriTest::kWatertight, width, &hw) ==
             wt);
       CHECK(SameHit(hw, want_wt));
     }
     hits.Reset();
-    IntersectStream(rays.view(), packets.Cell(0), TriTest::kMollerTrumbore, hits.view());
+    IntersectStream(rays.view(), bundles.Cell(0), TriTest::kMollerTrumbore, hits.view());
     CHECK(hits.view().prim[0] == -1);
   });
 }
@@ -553,9 +553,9 @@ void MakeStream(Rng& rng, const Scene& s, size_t n, bool coherent, bool prior, S
   c->rays = RayStream(n);
   for (size_t i = 0; i < n; ++i) {
     float tmin, tmax;
-    PacketRay r = RandomRay(rng, s, 0.0, 1.0, &tmin, &tmax);
+    PreparedRay r = RandomRay(rng, s, 0.0, 1.0, &tmin, &tmax);
     if (coherent) {
-      r = MakePacketRay(r.o[0], r.o[1], F(r.o[2] + 3.0), F(0.1 * r.d[0]), F(0.1 * r.d[1]), -1.0f);
+      r = PrepareRay(r.o[0], r.o[1], F(r.o[2] + 3.0), F(0.1 * r.d[0]), F(0.1 * r.d[1]), -1.0f);
     }
     if (rng.Below(16) == 0) r.o[rng.Below(3)] = rng.Below(2) ? kNaN : -kInf;
     if (rng.Below(32) == 0) r.d[0] = r.d[1] = r.d[2] = 0.0f;
@@ -611,11 +611,11 @@ TEST_CASE("N rays x triangles: sizes 1, N-1, N+1, coherent and mixed rays, paddi
   s.Finish();
   std::vector<uint32_t> all(40);
   std::iota(all.begin(), all.end(), 0u);
-  TriPackets one, several, everything;
-  BuildTriPacketList(s.tris, all.data() + 7, 1, &one);
-  BuildTriPacketList(s.tris, all.data() + 3, 6, &several);
-  BuildTriPacketList(s.tris, all.data(), 40, &everything);
-  const TriPackets* spans[] = {&one, &several, &everything};
+  TriBundles one, several, everything;
+  BuildTriBundleList(s.tris, all.data() + 7, 1, &one);
+  BuildTriBundleList(s.tris, all.data() + 3, 6, &several);
+  BuildTriBundleList(s.tris, all.data(), 40, &everything);
+  const TriBundles* spans[] = {&one, &several, &everything};
   // sizes around every vector width (1 lane on SCALAR, 4, 8, 16), and the empty stream
   const size_t sizes[] = {0, 1, 2, 3, 4, 5, 7, 8, 9, 15, 16, 17, 31, 33, 200};
   for (const size_t n : sizes) {
@@ -623,7 +623,7 @@ TEST_CASE("N rays x triangles: sizes 1, N-1, N+1, coherent and mixed rays, paddi
       for (const int prior : {0, 1, 2}) {  // fresh hits, earlier hits, exact ties
         StreamCase c;
         MakeStream(rng, s, n, coherent, prior == 1, &c);
-        for (const TriPackets* p : spans) {
+        for (const TriBundles* p : spans) {
           for (const TriTest test : kTests) {
             const HitStreamView h = c.hits.view();
             if (prior == 2) {
@@ -682,7 +682,7 @@ TEST_CASE("N rays x triangles: sizes 1, N-1, N+1, coherent and mixed rays, paddi
 // Self-hits: the watertight test's t bound (pbrt-v4 6.8.7) on every target and path
 
 // Regression (conference): the literal floor rays (tests/kernels/spawn_util.h) never hit the
-// floor quad on any target: 1 ray x packets at every width (closest and any hit), N rays x 1
+// floor quad on any target: 1 ray x bundles at every width (closest and any hit), N rays x 1
 // triangle (the stream and its broadcast triangle), and the scalar oracle; bit for bit equal
 // to the oracle with tmin < 0 too, where the bound is off and the old false hit shows.
 TEST_CASE("regression: conference floor, rays 3.05e-5 above it pointing away, every target") {
@@ -691,9 +691,9 @@ TEST_CASE("regression: conference floor, rays 3.05e-5 above it pointing away, ev
   s.soup.AddTriangle(test::kFloorB, test::kFloorD, test::kFloorC);  // 60
   s.Finish();
   const uint32_t ids[] = {0, 1};
-  TriPackets packets;
-  BuildTriPacketList(s.tris, ids, 2, &packets);
-  const TriPacketSpan span = packets.Cell(0);
+  TriBundles bundles;
+  BuildTriBundleList(s.tris, ids, 2, &bundles);
+  const TriBundleSpan span = bundles.Cell(0);
   // the literal shadow rays, and the same with unit directions (reflection rays)
   std::vector<std::array<float, 6>> rays;
   for (const test::FloorRay& r : test::kFloorRays) {
@@ -712,12 +712,12 @@ TEST_CASE("regression: conference floor, rays 3.05e-5 above it pointing away, ev
   hits.Resize(rays.size());
   size_t unbounded = 0;
   for (const auto& r : rays) {
-    const PacketRay ray = MakePacketRay(r[0], r[1], r[2], r[3], r[4], r[5]);
-    PacketHit h;
-    CHECK_FALSE(ref::IntersectPackets(ray, span, 0.0f, kInf, TriTest::kWatertight, &h));
-    CHECK_FALSE(ref::OccludedPackets(ray, span, 0.0f, test::kFloorRayTmax, TriTest::kWatertight));
-    PacketHit hb;
-    unbounded += ref::IntersectPackets(ray, span, -1e-30f, kInf, TriTest::kWatertight, &hb);
+    const PreparedRay ray = PrepareRay(r[0], r[1], r[2], r[3], r[4], r[5]);
+    ClosestHit h;
+    CHECK_FALSE(ref::IntersectBundles(ray, span, 0.0f, kInf, TriTest::kWatertight, &h));
+    CHECK_FALSE(ref::OccludedBundles(ray, span, 0.0f, test::kFloorRayTmax, TriTest::kWatertight));
+    ClosestHit hb;
+    unbounded += ref::IntersectBundles(ray, span, -1e-30f, kInf, TriTest::kWatertight, &hb);
   }
   CHECK(unbounded >= std::size(test::kFloorRays));  // the literal rays: the old false hits
   test::ForEachTarget([&](const char* target_name) {
@@ -725,16 +725,16 @@ TEST_CASE("regression: conference floor, rays 3.05e-5 above it pointing away, ev
     INFO("target: ", target);
     Mismatches mm;
     for (const auto& r : rays) {
-      const PacketRay ray = MakePacketRay(r[0], r[1], r[2], r[3], r[4], r[5]);
-      for (const PacketWidth width : kWidths) {
-        PacketHit h;
-        CHECK_FALSE(IntersectPackets(ray, span, 0.0f, kInf, TriTest::kWatertight, width, &h));
+      const PreparedRay ray = PrepareRay(r[0], r[1], r[2], r[3], r[4], r[5]);
+      for (const BundleWidth width : kWidths) {
+        ClosestHit h;
+        CHECK_FALSE(IntersectBundles(ray, span, 0.0f, kInf, TriTest::kWatertight, width, &h));
         CHECK(h.prim == -1);
-        CHECK_FALSE(OccludedPackets(ray, span, 0.0f, test::kFloorRayTmax, TriTest::kWatertight,
-                                    width));
+        CHECK_FALSE(
+            OccludedBundles(ray, span, 0.0f, test::kFloorRayTmax, TriTest::kWatertight, width));
       }
-      ComparePackets(span, ray, 0.0f, test::kFloorRayTmax, PacketHit{}, &mm);
-      ComparePackets(span, ray, -1e-30f, kInf, PacketHit{}, &mm);
+      CompareBundles(span, ray, 0.0f, test::kFloorRayTmax, ClosestHit{}, &mm);
+      CompareBundles(span, ray, -1e-30f, kInf, ClosestHit{}, &mm);
     }
     INFO("first mismatch: ", mm.first);
     CHECK(mm.count == 0);
@@ -746,7 +746,7 @@ TEST_CASE("regression: conference floor, rays 3.05e-5 above it pointing away, ev
 
 // pbrt's Reintersect on every target: per triangle (large: edges 1e3..1e4, centres up to 1e5
 // from the origin; and unit ones), rays spawned from its points with OffsetRayOrigin, pointing
-// away, never hit it: 1 ray x packets (every width, closest and any), N rays x 1 triangle (the
+// away, never hit it: 1 ray x bundles (every width, closest and any), N rays x 1 triangle (the
 // triangle's rays as one stream), all bit for bit equal to the scalar oracle.
 TEST_CASE("no self-hit: spawned rays never hit their large triangle, every target and path") {
   struct Config {
@@ -775,22 +775,21 @@ TEST_CASE("no self-hit: spawned rays never hit their large triangle, every targe
     }
     s.Finish();
     CHECK(skipped <= num_tris * kRaysPerTri / 1000);
-    std::vector<TriPackets> spans(num_tris);
+    std::vector<TriBundles> spans(num_tris);
     std::vector<RayStream> streams(num_tris);
     size_t unbounded = 0;
     for (size_t k = 0; k < num_tris; ++k) {
       const uint32_t id = uint32_t(k);
-      BuildTriPacketList(s.tris, &id, 1, &spans[k]);
+      BuildTriBundleList(s.tris, &id, 1, &spans[k]);
       streams[k] = RayStream(kRaysPerTri);
       for (const test::SpawnedRay& r : rays[k]) {
         streams[k].Push(r.o[0], r.o[1], r.o[2], r.d[0], r.d[1], r.d[2], 0.0f, kInf, 0, 1, 1, 1, 1,
                         RayKind::kShadow);
-        PacketHit hb;
-        unbounded += ref::IntersectPackets(MakePacketRay(r.o[0], r.o[1], r.o[2], r.d[0], r.d[1],
-                                                         r.d[2]),
-                                           spans[k].Cell(0), -1e-30f, kInf, TriTest::kWatertight,
-                                           &hb) &&
-                     hb.t > 0.0f;
+        ClosestHit hb;
+        unbounded +=
+            ref::IntersectBundles(PrepareRay(r.o[0], r.o[1], r.o[2], r.d[0], r.d[1], r.d[2]),
+                                  spans[k].Cell(0), -1e-30f, kInf, TriTest::kWatertight, &hb) &&
+            hb.t > 0.0f;
       }
       streams[k].FillPadding();
     }
@@ -806,16 +805,16 @@ TEST_CASE("no self-hit: spawned rays never hit their large triangle, every targe
       Mismatches mm;
       size_t rehits = 0, stream_rehits = 0;
       for (size_t k = 0; k < num_tris; ++k) {
-        const TriPacketSpan span = spans[k].Cell(0);
+        const TriBundleSpan span = spans[k].Cell(0);
         for (const test::SpawnedRay& r : rays[k]) {
-          const PacketRay ray = MakePacketRay(r.o[0], r.o[1], r.o[2], r.d[0], r.d[1], r.d[2]);
-          for (const PacketWidth width : kWidths) {
-            PacketHit h;
-            rehits += IntersectPackets(ray, span, 0.0f, kInf, TriTest::kWatertight, width, &h);
-            rehits += OccludedPackets(ray, span, 0.0f, kInf, TriTest::kWatertight, width);
+          const PreparedRay ray = PrepareRay(r.o[0], r.o[1], r.o[2], r.d[0], r.d[1], r.d[2]);
+          for (const BundleWidth width : kWidths) {
+            ClosestHit h;
+            rehits += IntersectBundles(ray, span, 0.0f, kInf, TriTest::kWatertight, width, &h);
+            rehits += OccludedBundles(ray, span, 0.0f, kInf, TriTest::kWatertight, width);
           }
-          ComparePackets(span, ray, 0.0f, kInf, PacketHit{}, &mm);
-          ComparePackets(span, ray, -1e-30f, kInf, PacketHit{}, &mm);  // the bound off
+          CompareBundles(span, ray, 0.0f, kInf, ClosestHit{}, &mm);
+          CompareBundles(span, ray, -1e-30f, kInf, ClosestHit{}, &mm);  // the bound off
         }
         hits.Reset();
         IntersectStream(streams[k].view(), span, TriTest::kWatertight, hits.view());
@@ -833,7 +832,7 @@ TEST_CASE("no self-hit: spawned rays never hit their large triangle, every targe
 // Watertightness stress: 1e6 rays (1e5 in debug and sanitizer builds) from
 // inside a closed 81920-triangle icosphere at (1e5, 1e5, 1e5), aimed exactly at its vertices and
 // edge midpoints (tests/support/watertight.h). Each ray is tested against the triangles around
-// its target (the vertex fan or the edge's two triangles) on every target, 1 x packets at each
+// its target (the vertex fan or the edge's two triangles) on every target, 1 x bundles at each
 // width and N x 1; the watertight kernels never miss and agree with the scalar oracle ray by ray;
 // rs::Accel, tracing the whole mesh, never misses either. bench/kernels/robust_bench adds
 // Embree's counts beside ours.
@@ -847,18 +846,18 @@ TEST_CASE(
   REQUIRE(ws.ico.tri.size() == 81920);
   const RayStreamView rv = ws.rays.view();
   REQUIRE(rv.size >= num_rays);
-  auto packet_ray = [&](size_t i) {
-    return MakePacketRay(rv.ox[i], rv.oy[i], rv.oz[i], rv.dx[i], rv.dy[i], rv.dz[i]);
+  auto prepared_ray = [&](size_t i) {
+    return PrepareRay(rv.ox[i], rv.oy[i], rv.oz[i], rv.dx[i], rv.dy[i], rv.dz[i]);
   };
   // the oracle's answers (and Moller-Trumbore's leaks) once
-  std::vector<PacketHit> want[2];
+  std::vector<ClosestHit> want[2];
   size_t ref_leaks = 0, moller_leaks = 0, zero_edges = 0;
   for (size_t i = 0; i < rv.size; ++i) {
-    const PacketRay pr = packet_ray(i);
-    const TriPacketSpan span = ws.packets.Cell(rv.pixel[i]);
+    const PreparedRay pr = prepared_ray(i);
+    const TriBundleSpan span = ws.bundles.Cell(rv.pixel[i]);
     for (const TriTest test : kTests) {
-      PacketHit h;
-      ref::IntersectPackets(pr, span, 0.0f, kInf, test, &h);
+      ClosestHit h;
+      ref::IntersectBundles(pr, span, 0.0f, kInf, test, &h);
       want[int(test)].push_back(h);
     }
     ref_leaks += want[0].back().prim < 0;
@@ -889,15 +888,15 @@ TEST_CASE(
       INFO(TestName(test));
       size_t leaks = 0, bad = 0, bad_stream = 0, stream_leaks = 0, occluded_leaks = 0;
       for (size_t i = 0; i < rv.size; ++i) {
-        const PacketRay pr = packet_ray(i);
-        const TriPacketSpan span = ws.packets.Cell(rv.pixel[i]);
-        for (const PacketWidth width : {PacketWidth::kAuto, PacketWidth::kOne}) {
-          PacketHit h;
-          IntersectPackets(pr, span, 0.0f, kInf, test, width, &h);
+        const PreparedRay pr = prepared_ray(i);
+        const TriBundleSpan span = ws.bundles.Cell(rv.pixel[i]);
+        for (const BundleWidth width : {BundleWidth::kAuto, BundleWidth::kOne}) {
+          ClosestHit h;
+          IntersectBundles(pr, span, 0.0f, kInf, test, width, &h);
           leaks += h.prim < 0;
           bad += !SameHit(h, want[int(test)][i]);
         }
-        occluded_leaks += !OccludedPackets(pr, span, 0.0f, kInf, test, PacketWidth::kAuto);
+        occluded_leaks += !OccludedBundles(pr, span, 0.0f, kInf, test, BundleWidth::kAuto);
       }
       // streams: all rays of a cell as one stream against the cell's triangles
       for (const auto& [first, end] : ws.cell_rays) {
@@ -906,10 +905,10 @@ TEST_CASE(
         stream.FillPadding();
         hits.Resize(stream.size());
         hits.Reset();
-        IntersectStream(stream.view(), ws.packets.Cell(rv.pixel[first]), test, hits.view());
+        IntersectStream(stream.view(), ws.bundles.Cell(rv.pixel[first]), test, hits.view());
         const HitStreamView h = hits.view();
         for (size_t i = first; i < end; ++i) {
-          PacketHit got;
+          ClosestHit got;
           got.t = h.t[i - first];
           got.u = h.u[i - first];
           got.v = h.v[i - first];
@@ -931,7 +930,7 @@ TEST_CASE(
     }
   });
 
-  // the whole mesh through rs::Accel (grid traversal, then the packets of each cell)
+  // the whole mesh through rs::Accel (grid traversal, then the bundles of each cell)
   std::vector<int32_t> occluded(rv.size);
   HitStream accel_hits(rv.size);
   accel_hits.Resize(rv.size);
@@ -950,18 +949,18 @@ TEST_CASE(
     CHECK(occluded_misses == 0);
   });
 
-  // a subset against the whole sphere (all 20480 packets in one span): every width
+  // a subset against the whole sphere (all 20480 bundles in one span): every width
   std::vector<uint32_t> all(ws.ico.tri.size());
   std::iota(all.begin(), all.end(), 0u);
-  TriPackets whole;
-  BuildTriPacketList(ws.tris, all.data(), all.size(), &whole);
+  TriBundles whole;
+  BuildTriBundleList(ws.tris, all.data(), all.size(), &whole);
   std::vector<size_t> subset;
   for (size_t i = 0; i < rv.size; i += rv.size / 150) subset.push_back(i);
-  std::vector<PacketHit> whole_want[2];
+  std::vector<ClosestHit> whole_want[2];
   for (const size_t i : subset) {
     for (const TriTest test : kTests) {
-      PacketHit h;
-      ref::IntersectPackets(packet_ray(i), whole.Cell(0), 0.0f, kInf, test, &h);
+      ClosestHit h;
+      ref::IntersectBundles(prepared_ray(i), whole.Cell(0), 0.0f, kInf, test, &h);
       whole_want[int(test)].push_back(h);
     }
     CHECK(whole_want[0].back().prim >= 0);
@@ -972,11 +971,11 @@ TEST_CASE(
     INFO("target: ", target);
     size_t bad = 0;
     for (size_t k = 0; k < subset.size(); ++k) {
-      const PacketRay pr = packet_ray(subset[k]);
+      const PreparedRay pr = prepared_ray(subset[k]);
       for (const TriTest test : kTests) {
-        for (const PacketWidth width : kWidths) {
-          PacketHit h;
-          IntersectPackets(pr, whole.Cell(0), 0.0f, kInf, test, width, &h);
+        for (const BundleWidth width : kWidths) {
+          ClosestHit h;
+          IntersectBundles(pr, whole.Cell(0), 0.0f, kInf, test, width, &h);
           bad += !SameHit(h, whole_want[int(test)][k]);
         }
       }

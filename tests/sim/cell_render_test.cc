@@ -151,14 +151,14 @@ TEST_CASE("secondary rays intersected at once with the loaded triangles") {
   const FrameContext ctx = Context(scene, accel, 40, 32, 3);
   const Reference ref = RenderReference(ctx);
   SimConfig tight;
-  tight.triangle_buffer_packets = 1;
+  tight.triangle_buffer_bundles = 1;
   tight.ring_rays = 16;
   tight.staging_rays = 8;
   tight.num_spes = 2;
-  const CellFrameStats s = CheckCell(ctx, ref, tight, "two-level, 1-packet buffers, at once");
+  const CellFrameStats s = CheckCell(ctx, ref, tight, "two-level, 1-bundle buffers, at once");
   CHECK(s.totals.at_once_tested > 0);
   tight.micro_cache = false;
-  CheckCell(ctx, ref, tight, "two-level, 1-packet buffers, micro-cache off, at once");
+  CheckCell(ctx, ref, tight, "two-level, 1-bundle buffers, micro-cache off, at once");
   tight.rays_per_iteration = 1;
   CheckCell(ctx, ref, tight, "one ray per iteration, at once");
 }
@@ -196,8 +196,8 @@ TEST_CASE("simulator settings do not change the image") {
   }
   {
     SimConfig c;
-    c.triangle_buffer_packets = 1;
-    const CellFrameStats s = CheckCell(ctx, ref, c, "1-packet triangle buffers: chunked cells");
+    c.triangle_buffer_bundles = 1;
+    const CellFrameStats s = CheckCell(ctx, ref, c, "1-bundle triangle buffers: chunked cells");
     CHECK(s.totals.chunk_loads > 0);
   }
   {
@@ -243,11 +243,11 @@ TEST_CASE("two-level grids: sub-grid records, shared refined cells, chunked leav
     off.micro_cache = false;
     CheckCell(ctx, ref, off, "two-level, micro-cache off");
     SimConfig tight;
-    tight.triangle_buffer_packets = 1;
+    tight.triangle_buffer_bundles = 1;
     tight.ring_rays = 16;
     tight.staging_rays = 8;
     tight.num_spes = 3;
-    CheckCell(ctx, ref, tight, "two-level, 1-packet buffers, tiny ring");
+    CheckCell(ctx, ref, tight, "two-level, 1-bundle buffers, tiny ring");
   }
 }
 

@@ -18,10 +18,10 @@ namespace {
 
 constexpr int kSwCache = 0, kDmaSync = 1, kDmaAsync = 2, kAtomicSync = 3, kAtomicAsync = 4;
 
-// Work per ray from the compute model at 4 cell steps and 2 triangle packets per visit
+// Work per ray from the compute model at 4 cell steps and 2 triangle bundles per visit
 // (132 + 120 cycles): less than a line round trip, so asynchronous loads still wait a little.
-LoadBenchOptions Options(double steps = 4, double packets = 2) {
-  const LoadWork w = LoadWorkOf(ComputeCosts{}, steps, packets);
+LoadBenchOptions Options(double steps = 4, double bundles = 2) {
+  const LoadWork w = LoadWorkOf(ComputeCosts{}, steps, bundles);
   LoadBenchOptions o;
   o.traverse_cycles = w.traverse_cycles;
   o.visit_cycles = w.visit_cycles;
@@ -201,9 +201,9 @@ TEST_CASE("work per visit from the compute model") {
   const ComputeCosts costs;
   const LoadWork w = LoadWorkOf(costs, 4, 2);
   CHECK(w.traverse_cycles == costs.ray_resume + 4 * costs.dda_step + costs.dda_exit);
-  CHECK(w.visit_cycles == costs.visit_setup + 2 * costs.triangle_packet);
+  CHECK(w.visit_cycles == costs.visit_setup + 2 * costs.triangle_bundle);
   CHECK(LoadWorkOf(costs, 5, 2).traverse_cycles == w.traverse_cycles + costs.dda_step);
-  CHECK(LoadWorkOf(costs, 4, 3).visit_cycles == w.visit_cycles + costs.triangle_packet);
+  CHECK(LoadWorkOf(costs, 4, 3).visit_cycles == w.visit_cycles + costs.triangle_bundle);
   CHECK_THROWS_AS(LoadWorkOf(costs, -1, 2), Error);
 }
 

@@ -1,6 +1,6 @@
 // The watertightness workload on a closed icosphere (scenes/icosphere.h): rays from inside aimed
 // exactly at every vertex and edge midpoint, each vertex's fan and each edge's two triangles as
-// hand-made grid cells of triangle packets. Shared by tests/kernels/tri_simd_test.cc and
+// hand-made grid cells of triangle bundles. Shared by tests/kernels/tri_simd_test.cc and
 // bench/kernels/robust_bench.cc (which adds Embree's counts).
 #pragma once
 
@@ -16,7 +16,7 @@
 
 #include "include/raystream/raystream.h"
 #include "kernels/grid.h"
-#include "kernels/tri_packets.h"
+#include "kernels/tri_bundles.h"
 #include "kernels/triangle.h"
 #include "scenes/icosphere.h"
 #include "streams/ray_stream.h"
@@ -35,7 +35,7 @@ struct WatertightSetup {
   std::vector<float> positions;  // xyz, for MeshView
   std::vector<uint32_t> indices;
   TriangleSoA tris;
-  TriPackets packets;  // "cells": each vertex's fan, then the two triangles of each edge
+  TriBundles bundles;  // "cells": each vertex's fan, then the two triangles of each edge
   size_t num_vertex_cells = 0;
   RayStream rays;                                    // in cell order; rays.pixel[i] = cell
   std::vector<std::pair<size_t, size_t>> cell_rays;  // [first, end) per cell
@@ -68,7 +68,7 @@ inline std::string MakeWatertightSetup(int levels, size_t n, WatertightSetup* s)
       edges[std::minmax(ico.tri[t][k], ico.tri[t][(k + 1) % 3])].push_back(t);
     }
   }
-  // Cells as a hand-made Grid (CSR lists only), packed by BuildTriPackets.
+  // Cells as a hand-made Grid (CSR lists only), packed by BuildTriBundles.
   std::vector<std::array<float, 3>> targets;
   Grid grid;
   grid.num_cells = fans.size() + edges.size();
@@ -93,7 +93,7 @@ inline std::string MakeWatertightSetup(int levels, size_t n, WatertightSetup* s)
   grid.num_refs = lists.size();
   grid.tri_ids = hwy::AllocateAligned<uint32_t>(lists.size());
   std::copy(lists.begin(), lists.end(), grid.tri_ids.get());
-  BuildTriPackets(grid, s->tris, &s->packets);
+  BuildTriBundles(grid, s->tris, &s->bundles);
 
   const size_t num_edges = edges.size();
   const size_t per_vertex = (n / 2 + fans.size() - 1) / fans.size();
