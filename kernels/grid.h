@@ -45,7 +45,7 @@ struct Grid {
   }
 };
 
-// Bounds that keep every grid within a fixed factor of its triangle count (issue 13 item 1):
+// Bounds that keep every grid within a fixed factor of its triangle count:
 //  - Cells no smaller than the coordinates allow. The binning margin holds 4 FLT_EPSILON
 //    max|coordinate| (the float DDA's rounding); a cell edge below that separates nothing the
 //    DDA can tell apart, and lists every triangle in ~(1 + 2 margin / cell)^2 cells or more (73

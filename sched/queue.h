@@ -145,8 +145,8 @@ class SpinLock {
 // Clock of the queue-time counters. On x86 it is the time-stamp counter (RDTSC, unserialized:
 // the counters sum many short intervals, so a few cycles of reordering do not matter). It is
 // invariant (constant_tsc, nonstop_tsc) on x86-64 CPUs of the last 15 years and, measured on this
-// KVM guest (bench/queue_bench.cc BM_ClockRdtsc vs BM_ClockSteady), 8 ns per read against 19 ns
-// for steady_clock::now() (vDSO), so a timed queue operation costs ~17 ns instead of ~40 ns.
+// KVM guest (bench/sched/queue_bench.cc BM_ClockRdtsc vs BM_ClockSteady), 8 ns per read against
+// 19 ns for steady_clock::now() (vDSO), so a timed queue operation costs ~17 ns instead of ~40 ns.
 // Elsewhere it is std::chrono::steady_clock in nanoseconds.
 struct QueueClock {
   static uint64_t Now() noexcept {

@@ -31,7 +31,7 @@ namespace rs {
 // Mutex: std::mutex (default) or rs::SpinLock. The queue's critical sections are ~50 ns, and
 // std::mutex (a futex) costs one uncontended CAS to lock and one to unlock, like the spinlock,
 // but sleeps when the holder is preempted, which matters when threads outnumber cores (this
-// machine: 2 cores). bench/queue_bench.cc measures both (LOCK vs LOCK_spin).
+// machine: 2 cores). bench/sched/queue_bench.cc measures both (LOCK vs LOCK_spin).
 template <QueueTask T, class Stats = NoQueueStats, class Mutex = std::mutex>
 class LockQueue {
  public:

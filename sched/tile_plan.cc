@@ -75,8 +75,8 @@ TileWork TileWorkDelta(const FrameStats& after, const FrameStats& before) {
   return w;
 }
 
-// Calibration: `bench/sched_bench --only calibrate` (bench/results/sched/calibrate.txt, one row
-// per tile in calibrate.csv): one render thread of the tiles backend, 16x16 tiles, depth 4,
+// Calibration: `bench/sched/sched_bench --only calibrate` (bench/results/sched/calibrate.txt, one
+// row per tile in calibrate.csv): one render thread of the tiles backend, 16x16 tiles, depth 4,
 // frames 1-3 of the walk-throughs of erw6, cornell, spherebox and amphitheater:4 at 256x256
 // (3072 tiles), release build with the batched frame engine (57fe039), AVX2 target, on the
 // 2-core development machine, shared (load average 9.3: other builds and tests running);

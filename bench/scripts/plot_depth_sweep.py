@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Plots bench/results/depth_sweep.csv (depth_sweep_bench): render time against image error
+"""Plots bench/results/shade/depth_sweep.csv (depth_sweep_bench): render time against image error
 (RMSE vs the depth-16 cutoff-0 reference, log scale), one line per weight cutoff with the maximum
 depth annotated, one panel per scene. Optional: needs matplotlib; never used by the tests.
 usage: plot_depth_sweep.py RESULTS_DIR  (reads depth_sweep.csv, writes depth_sweep.png)"""
