@@ -94,7 +94,7 @@ int main() {
   // SoA stream, padded to rs::PaddedSize and aligned to rs::kStreamAlign.
   constexpr size_t kRays = 4;
   const size_t n = rs::PaddedSize(kRays);
-  auto alloc = [n] {
+  auto alloc = [=] {
     return static_cast<float*>(std::aligned_alloc(rs::kStreamAlign, n * sizeof(float)));
   };
   rs::RayStreamView rays;

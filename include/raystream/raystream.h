@@ -332,7 +332,7 @@ struct GeometryDesc {
 // Instances: rays are moved into object space by the inverse transform (scalar float code, the
 // same on every target); t carries over since directions are not renormalized. Instance hits
 // agree with the geometry pre-transformed into world space within float rounding of the
-// transform (t, u, v within ~1e-5 relative in tests), not bit for bit.
+// transform (in tests: t within 1e-5 relative, u, v within 1e-4), not bit for bit.
 // Equal t (deterministic rule): objects are visited in a fixed order, geometries by ascending
 // geomID, then instances by ascending instID, and a later object replaces a hit only with a
 // strictly smaller t; within one object the lower primID wins. So on a tie the geometry beats
