@@ -607,6 +607,17 @@ Texture ReadImage(const std::string& path, const ImageReadLimits& limits) {
          path, spec.width, spec.height, file_size);
   }
   if (channels > 64) Fail("{}: image has {} channels (at most 64)", path, channels);
+  // OpenImageIO 2.4 reads a TIFF through a buffer of whole strips: RowsPerStrip scanlines, even
+  // when the image has fewer rows (a texture_fuzz finding: a 350-byte 15620x4 TIFF claiming 65312
+  // rows per strip had it allocate 4 GB). libtiff clamps the strip to the image; OIIO does not.
+  const int64_t rows_per_strip = spec.get_int_attribute("tiff:RowsPerStrip", 0);
+  if (spec.tile_width == 0 && rows_per_strip > spec.height &&
+      static_cast<uint64_t>(rows_per_strip) * static_cast<uint64_t>(spec.width) >
+          limits.max_pixels) {
+    Fail("{}: TIFF claims {} rows per strip for a {}x{} image (more than the limit of {} pixels "
+         "for textures in one strip)",
+         path, rows_per_strip, spec.width, spec.height, limits.max_pixels);
+  }
   // Small images: decode on this thread (OIIO would start worker threads for each read).
   if (pixels < (uint64_t{1} << 20)) in->threads(1);
   // Read the colour channels only: rgb directly, or the first channel of grey (+ alpha).

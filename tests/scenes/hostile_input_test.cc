@@ -387,6 +387,23 @@ TEST_CASE("texture: a 16000x16000 header in a small file is refused before any a
                                 std::string(200, '\x0d'));
   ExpectError([&] { ReadImage(exr); },
               {exr, "EXR attribute 'capDate' claims 1701737569 bytes", "corrupt"});
+  // A TIFF of 15620x4 pixels claiming 65312 rows per strip (found by texture_fuzz): OIIO 2.4
+  // would allocate a 4 GB strip buffer for it (under the 1.5 GB limit above: bad_alloc).
+  const std::string tif_hex =
+      "49492a00080000000e000001030001000000043d00000101030001000000040000000201030003000000b600"
+      "00000301030001000000080000000601030001000000020000001101040001000000d6000000120103000100"
+      "000001000100001500030100000003000000160103000100000020fffc001701040001000000880000001c01"
+      "030001000000010000003101020014000000c20000083501030001000000030000005301030003000000bc00"
+      "000000000000200020002000030003000300323032363a31323a303220303a353434323a3000789c63b0b1b5"
+      "65ffffffffffffffffffffffffffffffffff7a6669ffffffffffffffffffffffffffffffffffffffffffffff"
+      "ffffffffffffffffffffffffffffffffffffffffffffffff3838383838383838383838383838383838383838"
+      "38383838383838383838383838383838ffffffffffffffffffffffffffffffffffffffffffffff052cb1";
+  std::string tif_bytes;
+  for (size_t i = 0; i + 1 < tif_hex.size(); i += 2) {
+    tif_bytes.push_back(static_cast<char>(std::stoi(tif_hex.substr(i, 2), nullptr, 16)));
+  }
+  const std::string tif = dir.Write("strip.tif", tif_bytes);
+  ExpectError([&] { ReadImage(tif); }, {tif, "65312 rows per strip", "15620x4"});
   // The configurable limit: a real 64x64 image above a 1000-pixel limit.
   WriteImage(dir.File("small.png"), 64, 64, std::vector<float>(64 * 64 * 3, 0.5f));
   ImageReadLimits limits;
