@@ -69,6 +69,31 @@ for b in "lock --threads 2" "lfree --threads 3" "local --threads 2" "tiles --thr
      && cmp -s "$want" "$tmp/b-$name.png"; then ok "backend $b: same image as serial"
   else bad "backend $b: image differs from serial or render failed"; fi
 done
+# The tiles backend's demand-driven master (--demand, tools/raystream.cc): a free thread asks for
+# the next tile in PBT order (its own lists' first). The serial image with 2 re-tiled frames, as
+# many threads as PBT workers or fewer; every tile rendered once; "demand" in the statistics.
+for d in "--threads 2 --pbt 2" "--threads 3 --pbt 3 --pbt-workers 4 --assign greedy"; do
+  name=$(echo "$d" | tr ' ' '_')
+  # shellcheck disable=SC2086
+  if "$rs" render --scene cornell --width 32 --height 24 --depth 3 --frames 2 --backend tiles $d --demand \
+       --out "$tmp/d$name.png" --stats "$tmp/d$name.json" -q && cmp -s "$tmp/b-serial2.png" "$tmp/d$name.png" \
+     && python3 -c "
+import json, sys
+d = json.load(open('$tmp/d$name.json'))
+o, f = d['options'], d['frames']
+ok = d['backend'] == 'tiles' and o['demand'] is True and o['steal'] is False and len(f) == 2
+ok = ok and all(len(x['tiles']) == o['pbt_workers'] * o['pbt_tiles_per_worker'] for x in f)
+ok = ok and all(sum((t['x1'] - t['x0']) * (t['y1'] - t['y0']) for t in x['tiles']) == 32 * 24 for x in f)
+ok = ok and all(sum(t['rays'] for t in x['tiles']) == sum(x['rays'].values()) for x in f)
+sys.exit(0 if ok else 1)"; then ok "tiles $d --demand, 2 frames: serial image, every tile once, demand in stats"
+  else bad "tiles $d --demand: image differs from serial, render failed or bad stats"; fi
+done
+expect_error "--demand needs PBT" 'error: --demand: needs a PBT' "$rs" render --scene cornell --backend tiles --demand --width 8 --height 8 --out "$tmp/y.png"
+expect_error "--demand on a queue backend" 'error: --demand: .*tiles backend.*not lock' "$rs" render --scene cornell --backend lock --pbt 2 --demand --width 8 --height 8 --out "$tmp/y.png"
+expect_error "--demand on the mpi backend" 'error: --demand: the mpi backend' "$rs" render --scene cornell --backend mpi --pbt 2 --demand --width 8 --height 8 --out "$tmp/y.png"
+expect_error "--demand with --steal" 'error: --demand: with --steal' "$rs" render --scene cornell --backend tiles --pbt 2 --demand --steal --width 8 --height 8 --out "$tmp/y.png"
+expect_error "--demand with --assign counter" 'error: --demand: --assign counter' "$rs" render --scene cornell --backend tiles --pbt 2 --assign counter --demand --width 8 --height 8 --out "$tmp/y.png"
+[ -e "$tmp/y.png" ] && bad "rejected --demand left an image" || ok "rejected --demand options leave no image"
 # PBT tiles feeding the queue backends: the serial image after 3 re-tiled frames; the tiles'
 # costs are their ray counts (--pbt-cost work, the only cost a queue backend has).
 "$rs" render --scene cornell --width 32 --height 24 --depth 3 --frames 3 --out "$tmp/b-serial3.png" -q
