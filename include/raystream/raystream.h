@@ -143,7 +143,7 @@ struct TraceStats {
   uint64_t rays = 0;
   uint64_t cell_steps = 0;      // cells entered (top-level and sub-grid cells; not the empty
                                 // cells that BuildOptions::empty_skip jumps over)
-  uint64_t triangle_tests = 0;  // ray/triangle tests (SIMD: packet lanes holding a triangle)
+  uint64_t triangle_tests = 0;  // ray/triangle tests (SIMD: 4-triangle bundle lanes holding one)
   // The traversal micro-cache (BuildOptions::micro_cache).
   uint64_t cache_lookups = 0;
   uint64_t cache_hits = 0;
