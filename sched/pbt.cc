@@ -6,11 +6,9 @@
 #include <cassert>
 #include <cmath>
 #include <cstdio>
-#include <deque>
 #include <functional>
 #include <limits>
 #include <numeric>
-#include <queue>
 #include <random>
 #include <string>
 #include <utility>
@@ -47,16 +45,29 @@ bool SameTile(const Tile& a, const Tile& b) {
   return a.x0 == b.x0 && a.y0 == b.y0 && a.x1 == b.x1 && a.y1 == b.y1;
 }
 
-Assignment MakeAssignment(int num_workers) {
-  Assignment a;
+// Empties a's lists for num_workers workers, keeping every vector's capacity.
+void ResetAssignment(int num_workers, Assignment& a) {
   a.tiles.resize(static_cast<size_t>(num_workers));
+  for (std::vector<int32_t>& list : a.tiles) list.clear();
   a.predicted_load.assign(static_cast<size_t>(num_workers), 0.0);
-  return a;
 }
 
-void Give(Assignment& a, size_t worker, size_t tile, std::span<const double> estimates) {
+void Give(Assignment& a, size_t worker, size_t tile, double estimate) {
   a.tiles[worker].push_back(static_cast<int32_t>(tile));
-  a.predicted_load[worker] += estimates[tile];
+  a.predicted_load[worker] += estimate;
+}
+
+// sigma^2 of value(0), ..., value(m - 1): two passes in index order.
+template <class Value>
+double TwoPassVariance(size_t m, Value value) {
+  if (m == 0) return 0.0;
+  const double count = static_cast<double>(m);
+  double sum = 0.0;
+  for (size_t i = 0; i < m; ++i) sum += value(i);
+  const double mean = sum / count;
+  double sq = 0.0;
+  for (size_t i = 0; i < m; ++i) sq += (value(i) - mean) * (value(i) - mean);
+  return sq / count;
 }
 
 }  // namespace
@@ -90,7 +101,14 @@ Pbt::Pbt(int width, int height, int num_workers, int tiles_per_worker)
                 std::to_string(height) + " image");
   }
   root_axis_ = width >= height ? PbtAxis::kX : PbtAxis::kY;
-  nodes_.reserve(static_cast<size_t>(2 * m - 1));
+  // Every buffer at its bound: a split-merge frees two nodes and takes them again, so the node
+  // count stays 2m - 1 and Update never allocates.
+  const size_t bound = static_cast<size_t>(2 * m - 1);
+  nodes_.reserve(bound);
+  free_.reserve(2);
+  leaves_.reserve(static_cast<size_t>(m));
+  stack_.reserve(bound);  // each node is pushed once per walk
+  order_.reserve(bound);
   const int32_t root = NewNode();
   nodes_[static_cast<size_t>(root)].tile = Tile{0, 0, width, height};
   Build(root, static_cast<int>(m));
@@ -181,36 +199,35 @@ void Pbt::SplitLeaf(int32_t id) {
 
 void Pbt::RebuildLeafOrder() {
   leaves_.clear();
-  std::vector<int32_t> stack{Root()};
-  while (!stack.empty()) {
-    const int32_t id = stack.back();
-    stack.pop_back();
+  stack_.assign(1, Root());
+  while (!stack_.empty()) {
+    const int32_t id = stack_.back();
+    stack_.pop_back();
     const PbtNode& n = nodes_[static_cast<size_t>(id)];
     if (n.IsLeaf()) {
       leaves_.push_back(id);
     } else {
-      stack.push_back(n.child[1]);
-      stack.push_back(n.child[0]);
+      stack_.push_back(n.child[1]);
+      stack_.push_back(n.child[0]);
     }
   }
 }
 
 void Pbt::RecomputeSums() {
   // Pre-order list, then children before parents by walking it backwards.
-  std::vector<int32_t> order;
-  order.reserve(nodes_.size());
-  std::vector<int32_t> stack{Root()};
-  while (!stack.empty()) {
-    const int32_t id = stack.back();
-    stack.pop_back();
-    order.push_back(id);
+  order_.clear();
+  stack_.assign(1, Root());
+  while (!stack_.empty()) {
+    const int32_t id = stack_.back();
+    stack_.pop_back();
+    order_.push_back(id);
     const PbtNode& n = nodes_[static_cast<size_t>(id)];
     if (!n.IsLeaf()) {
-      stack.push_back(n.child[1]);
-      stack.push_back(n.child[0]);
+      stack_.push_back(n.child[1]);
+      stack_.push_back(n.child[0]);
     }
   }
-  for (auto it = order.rbegin(); it != order.rend(); ++it) {
+  for (auto it = order_.rbegin(); it != order_.rend(); ++it) {
     PbtNode& n = nodes_[static_cast<size_t>(*it)];
     if (n.IsLeaf()) continue;
     const PbtNode& c0 = nodes_[static_cast<size_t>(n.child[0])];
@@ -225,16 +242,24 @@ void Pbt::RecomputeSums() {
 
 std::vector<Tile> Pbt::Tiles() const {
   std::vector<Tile> out;
-  out.reserve(leaves_.size());
-  for (const int32_t id : leaves_) out.push_back(Node(id).tile);
+  Tiles(out);
   return out;
 }
 
 std::vector<double> Pbt::Estimates() const {
   std::vector<double> out;
-  out.reserve(leaves_.size());
-  for (const int32_t id : leaves_) out.push_back(Node(id).estimate);
+  Estimates(out);
   return out;
+}
+
+void Pbt::Tiles(std::vector<Tile>& out) const {
+  out.resize(leaves_.size());
+  for (size_t i = 0; i < leaves_.size(); ++i) out[i] = LeafTile(i);
+}
+
+void Pbt::Estimates(std::vector<double>& out) const {
+  out.resize(leaves_.size());
+  for (size_t i = 0; i < leaves_.size(); ++i) out[i] = LeafEstimate(i);
 }
 
 std::vector<int32_t> Pbt::LeafWorkers() const {
@@ -244,7 +269,9 @@ std::vector<int32_t> Pbt::LeafWorkers() const {
   return out;
 }
 
-double Pbt::Variance() const { return LeafVariance(Estimates()); }
+double Pbt::Variance() const {
+  return TwoPassVariance(leaves_.size(), [&](size_t i) { return LeafEstimate(i); });
+}
 
 // ---------------------------------------------------------------------------------------------
 // PBT-Update.
@@ -419,52 +446,73 @@ double Assignment::PredictedMakespan() const {
 }
 
 Assignment AssignPbtGreedy(const Pbt& pbt) {
-  const std::vector<double> e = pbt.Estimates();
-  Assignment a = MakeAssignment(pbt.num_workers());
-  const auto leaves = pbt.LeafNodes();
-  for (size_t i = 0; i < leaves.size(); ++i) {
-    Give(a, static_cast<size_t>(pbt.Node(leaves[i]).worker), i, e);
-  }
+  Assignment a;
+  AssignPbtGreedy(pbt, a);
   return a;
 }
 
+void AssignPbtGreedy(const Pbt& pbt, Assignment& a) {
+  ResetAssignment(pbt.num_workers(), a);
+  const auto leaves = pbt.LeafNodes();
+  for (size_t i = 0; i < leaves.size(); ++i) {
+    Give(a, static_cast<size_t>(pbt.Node(leaves[i]).worker), i, pbt.LeafEstimate(i));
+  }
+}
+
 Assignment AssignPbtVisit(const Pbt& pbt) {
-  const std::vector<double> e = pbt.Estimates();
+  Assignment a;
+  AssignPbtVisit(pbt, a);
+  return a;
+}
+
+void AssignPbtVisit(const Pbt& pbt, Assignment& a) {
   const size_t n = static_cast<size_t>(pbt.num_workers());
-  const size_t m = e.size();
-  Assignment a = MakeAssignment(pbt.num_workers());
+  const size_t m = pbt.NumLeaves();
+  ResetAssignment(pbt.num_workers(), a);
   double total = 0.0;
-  for (const double x : e) total += x;
+  for (size_t i = 0; i < m; ++i) total += pbt.LeafEstimate(i);
   double prefix = 0.0;
   for (size_t i = 0; i < m; ++i) {
+    const double e = pbt.LeafEstimate(i);
     size_t w;
     if (total > 0.0) {
-      const double mid = (prefix + 0.5 * e[i]) / total;  // in [0, 1], non-decreasing in i
+      const double mid = (prefix + 0.5 * e) / total;  // in [0, 1], non-decreasing in i
       w = std::min(n - 1, static_cast<size_t>(mid * static_cast<double>(n)));
     } else {
       w = i * n / m;
     }
     Give(a, w, i, e);
-    prefix += e[i];
+    prefix += e;
   }
-  return a;
 }
 
 Assignment AssignRandom(std::span<const double> estimates, int num_workers, uint64_t seed) {
+  Assignment a;
+  AssignRandom(estimates, num_workers, seed, a);
+  return a;
+}
+
+void AssignRandom(std::span<const double> estimates, int num_workers, uint64_t seed,
+                  Assignment& a) {
   if (num_workers < 1) throw Error("AssignRandom: num_workers " + std::to_string(num_workers));
   const size_t m = estimates.size();
-  std::vector<size_t> perm(m);
-  std::iota(perm.begin(), perm.end(), size_t{0});
+  const size_t n = static_cast<size_t>(num_workers);
+  // The permutation is dealt round-robin, so it is kept in the lists themselves: position r of
+  // the permutation is a.tiles[r % n][r / n]. Start from the identity.
+  ResetAssignment(num_workers, a);
+  for (size_t r = 0; r < m; ++r) a.tiles[r % n].push_back(static_cast<int32_t>(r));
+  const auto at = [&](size_t r) -> int32_t& { return a.tiles[r % n][r / n]; };
   // Fisher-Yates with a modulo draw: mt19937_64 is specified by the standard, unlike
   // std::shuffle / uniform_int_distribution, so the result is the same everywhere.
   std::mt19937_64 rng(seed);
   for (size_t i = m; i > 1; --i) {
     const size_t j = static_cast<size_t>(rng() % i);
-    std::swap(perm[i - 1], perm[j]);
+    std::swap(at(i - 1), at(j));
   }
-  Assignment a = MakeAssignment(num_workers);
-  for (size_t r = 0; r < m; ++r) Give(a, r % static_cast<size_t>(num_workers), perm[r], estimates);
-  return a;
+  // Each worker's load summed in its list order (the order the tiles were dealt to it).
+  for (size_t w = 0; w < n; ++w) {
+    for (const int32_t t : a.tiles[w]) a.predicted_load[w] += estimates[static_cast<size_t>(t)];
+  }
 }
 
 Assignment AssignPbtRandom(const Pbt& pbt, uint64_t seed) {
@@ -477,69 +525,77 @@ Assignment AssignLpt(std::span<const double> estimates, int num_workers) {
   std::iota(order.begin(), order.end(), size_t{0});
   std::stable_sort(order.begin(), order.end(),
                    [&](size_t x, size_t y) { return estimates[x] > estimates[y]; });
-  Assignment a = MakeAssignment(num_workers);
+  Assignment a;
+  ResetAssignment(num_workers, a);
   for (const size_t i : order) {
     const size_t w =
         static_cast<size_t>(std::min_element(a.predicted_load.begin(), a.predicted_load.end()) -
                             a.predicted_load.begin());
-    Give(a, w, i, estimates);
+    Give(a, w, i, estimates[i]);
   }
   return a;
 }
 
-namespace {
-
 // The §2 frame: n workers free at time 0; the one free first (ties by id) asks next(w, &affine)
-// for a tile (-1: nothing left, the worker is done) and is busy for tile_times[t].
+// for a tile (-1: nothing left, the worker is done) and is busy for tile_times[t]. free_at_ is a
+// min-heap kept as std::priority_queue keeps its vector (push_heap / pop_heap, std::greater).
 template <class NextTile>
-DemandDrivenRun RunDemandDriven(size_t n, std::span<const double> tile_times, NextTile next) {
-  DemandDrivenRun run;
-  run.executed.resize(n);
-  run.finish.assign(n, 0.0);
+void DemandDrivenModel::Run(size_t n, std::span<const double> tile_times, NextTile next) {
   using Event = std::pair<double, size_t>;  // (time the worker becomes free, worker)
-  std::priority_queue<Event, std::vector<Event>, std::greater<Event>> free_at;
-  for (size_t w = 0; w < n; ++w) free_at.push({0.0, w});
-  while (!free_at.empty()) {
-    const auto [now, w] = free_at.top();
-    free_at.pop();
+  const std::greater<Event> later;
+  run_.executed.resize(keep_executed_ ? n : 0);
+  for (std::vector<int32_t>& list : run_.executed) list.clear();
+  run_.finish.assign(n, 0.0);
+  run_.non_affine = 0;
+  free_at_.clear();
+  for (size_t w = 0; w < n; ++w) {
+    free_at_.push_back({0.0, w});
+    std::push_heap(free_at_.begin(), free_at_.end(), later);
+  }
+  while (!free_at_.empty()) {
+    std::pop_heap(free_at_.begin(), free_at_.end(), later);
+    const auto [now, w] = free_at_.back();
+    free_at_.pop_back();
     bool affine = true;
     const int32_t tile = next(w, &affine);
     if (tile < 0) continue;  // nothing left: this worker is done
-    if (!affine) ++run.non_affine;
-    run.executed[w].push_back(tile);
-    run.finish[w] = now + tile_times[static_cast<size_t>(tile)];
-    free_at.push({run.finish[w], w});
+    if (!affine) ++run_.non_affine;
+    if (keep_executed_) run_.executed[w].push_back(tile);
+    run_.finish[w] = now + tile_times[static_cast<size_t>(tile)];
+    free_at_.push_back({run_.finish[w], w});
+    std::push_heap(free_at_.begin(), free_at_.end(), later);
   }
-  return run;
 }
 
-}  // namespace
-
-DemandDrivenRun SimulateDemandDriven(const Assignment& affinity, std::span<const double> estimates,
-                                     std::span<const double> tile_times) {
+const DemandDrivenRun& DemandDrivenModel::Driven(const Assignment& affinity,
+                                                 std::span<const double> estimates,
+                                                 std::span<const double> tile_times) {
   if (estimates.size() != tile_times.size()) {
     throw Error("SimulateDemandDriven: " + std::to_string(estimates.size()) + " estimates for " +
                 std::to_string(tile_times.size()) + " tile times");
   }
   const size_t n = affinity.tiles.size();
-  std::vector<std::deque<int32_t>> waiting(n);
-  std::vector<double> waiting_load(n, 0.0);
+  // Worker w's waiting tiles: affinity.tiles[w][head_[w], tail_[w]); it takes its own from the
+  // front, a thief from the back.
+  head_.assign(n, 0);
+  tail_.resize(n);
+  waiting_load_.assign(n, 0.0);
   for (size_t w = 0; w < n; ++w) {
     for (const int32_t t : affinity.tiles[w]) {
       if (t < 0 || static_cast<size_t>(t) >= tile_times.size()) {
         throw Error("SimulateDemandDriven: worker " + std::to_string(w) + " has tile " +
                     std::to_string(t) + " of " + std::to_string(tile_times.size()));
       }
-      waiting[w].push_back(t);
-      waiting_load[w] += estimates[static_cast<size_t>(t)];
+      waiting_load_[w] += estimates[static_cast<size_t>(t)];
     }
+    tail_[w] = affinity.tiles[w].size();
   }
-  return RunDemandDriven(n, tile_times, [&](size_t w, bool* affine) -> int32_t {
+  Run(n, tile_times, [&](size_t w, bool* affine) -> int32_t {
     size_t donor = w;
-    if (waiting[w].empty()) {
+    if (head_[w] == tail_[w]) {
       donor = n;
       for (size_t v = 0; v < n; ++v) {
-        if (!waiting[v].empty() && (donor == n || waiting_load[v] > waiting_load[donor])) {
+        if (head_[v] != tail_[v] && (donor == n || waiting_load_[v] > waiting_load_[donor])) {
           donor = v;
         }
       }
@@ -547,16 +603,35 @@ DemandDrivenRun SimulateDemandDriven(const Assignment& affinity, std::span<const
     }
     int32_t tile;
     if (donor == w) {
-      tile = waiting[w].front();
-      waiting[w].pop_front();
+      tile = affinity.tiles[w][head_[w]++];
     } else {
-      tile = waiting[donor].back();
-      waiting[donor].pop_back();
+      tile = affinity.tiles[donor][--tail_[donor]];
       *affine = false;
     }
-    waiting_load[donor] -= estimates[static_cast<size_t>(tile)];
+    waiting_load_[donor] -= estimates[static_cast<size_t>(tile)];
     return tile;
   });
+  return run_;
+}
+
+const DemandDrivenRun& DemandDrivenModel::Master(std::span<const int32_t> owner, int requesters,
+                                                 std::span<const double> tile_times) {
+  if (owner.size() != tile_times.size()) {
+    throw Error("SimulateDemandMaster: " + std::to_string(owner.size()) + " tiles for " +
+                std::to_string(tile_times.size()) + " tile times");
+  }
+  master_.Load(owner, requesters);
+  Run(static_cast<size_t>(requesters), tile_times, [&](size_t w, bool* affine) {
+    return master_.Next(static_cast<int>(w), affine);
+  });
+  return run_;
+}
+
+DemandDrivenRun SimulateDemandDriven(const Assignment& affinity, std::span<const double> estimates,
+                                     std::span<const double> tile_times) {
+  DemandDrivenModel model;
+  model.keep_executed_ = true;
+  return model.Driven(affinity, estimates, tile_times);
 }
 
 void DemandMaster::Load(std::span<const int32_t> owner, int requesters) {
@@ -609,29 +684,16 @@ int32_t DemandMaster::Next(int requester, bool* affine) {
 
 DemandDrivenRun SimulateDemandMaster(std::span<const int32_t> owner, int requesters,
                                      std::span<const double> tile_times) {
-  if (owner.size() != tile_times.size()) {
-    throw Error("SimulateDemandMaster: " + std::to_string(owner.size()) + " tiles for " +
-                std::to_string(tile_times.size()) + " tile times");
-  }
-  DemandMaster master;
-  master.Load(owner, requesters);
-  return RunDemandDriven(static_cast<size_t>(requesters), tile_times, [&](size_t w, bool* affine) {
-    return master.Next(static_cast<int>(w), affine);
-  });
+  DemandDrivenModel model;
+  model.keep_executed_ = true;
+  return model.Master(owner, requesters, tile_times);
 }
 
 // ---------------------------------------------------------------------------------------------
 // Measures.
 
 double LeafVariance(std::span<const double> estimates) {
-  if (estimates.empty()) return 0.0;
-  const double m = static_cast<double>(estimates.size());
-  double sum = 0.0;
-  for (const double x : estimates) sum += x;
-  const double mean = sum / m;
-  double sq = 0.0;
-  for (const double x : estimates) sq += (x - mean) * (x - mean);
-  return sq / m;
+  return TwoPassVariance(estimates.size(), [&](size_t i) { return estimates[i]; });
 }
 
 double PredictionError(double predicted, double measured) {

@@ -8,6 +8,7 @@
 #include <cstdint>
 #include <span>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "streams/raygen.h"  // rs::Tile: [x0, x1) x [y0, y1)
@@ -49,7 +50,9 @@ struct PbtUpdateStats {
 // The PBT of §3: a binary tree over a width x height image with exactly m = k * n leaves (n
 // workers, k = tiles_per_worker), every inner node with two children, the leaves partitioning the
 // image. Leaf (tile) index i is the i-th leaf of the in-order (left-to-right) visit; indices are
-// renumbered by every Update. Single-threaded: the master owns the tree.
+// renumbered by every Update. Single-threaded: the master owns the tree. Update, Variance and
+// SetMeasuredTimes allocate nothing (but the message of an rs::Error they throw): the
+// constructor sizes every buffer for the 2m - 1 nodes, and a split-merge keeps the node count.
 //
 // Choices where the paper leaves freedom (documented here once):
 // - Split axes alternate with depth (§3). The paper does not say which axis the root uses; we
@@ -85,6 +88,9 @@ class Pbt {
   std::vector<Tile> Tiles() const;           // per tile index
   std::vector<double> Estimates() const;     // e(l) per tile index: the next frame's prediction
   std::vector<int32_t> LeafWorkers() const;  // PBT-Greedy affinity per tile index
+  // The same into `out` (resized to m; its capacity is kept, so no allocation once it held m).
+  void Tiles(std::vector<Tile>& out) const;
+  void Estimates(std::vector<double>& out) const;
 
   // sigma_T^2 = (1/m) sum_l (e(l) - mu_T)^2 over the leaves (§3).
   double Variance() const;
@@ -125,6 +131,8 @@ class Pbt {
   std::vector<PbtNode> nodes_;  // node 0 is the root; 2m - 1 live nodes
   std::vector<int32_t> free_;   // ids of unused nodes (children removed by a merge)
   std::vector<int32_t> leaves_;
+  std::vector<int32_t> stack_;  // scratch of the tree walks (capacity 2m - 1)
+  std::vector<int32_t> order_;  // scratch of RecomputeSums: pre-order node ids (capacity 2m - 1)
 };
 
 // ---------------------------------------------------------------------------------------------
@@ -143,11 +151,17 @@ struct Assignment {
 // A worker's tiles are listed in in-order (spatial) order.
 Assignment AssignPbtGreedy(const Pbt& pbt);
 
+// Each policy also fills a caller's Assignment: `out` is overwritten (the same result), and its
+// vectors keep their capacity, so a call allocates nothing once each worker's list has held as
+// many tiles as it gets (Greedy: k every frame; Random: floor or ceil(m/n); Visit: varies).
+void AssignPbtGreedy(const Pbt& pbt, Assignment& out);
+
 // PBT-Visit (§4): tiles follow the in-order visit of the tree, cut into n contiguous runs of
 // about equal predicted load (tile i goes to worker floor(n * (P_i + e_i / 2) / E), P_i the sum
 // of the estimates before i, E the total; runs of m / n tiles if E = 0). With balanced leaves
 // this is k tiles per worker, and a worker keeps a spatially compact region frame to frame.
 Assignment AssignPbtVisit(const Pbt& pbt);
+void AssignPbtVisit(const Pbt& pbt, Assignment& out);
 
 // Random assignment: a seeded random permutation of the tiles dealt round-robin (each worker
 // gets floor(m/n) or ceil(m/n) tiles). PBT-Random (§5) calls it each frame on the updated PBT
@@ -155,6 +169,8 @@ Assignment AssignPbtVisit(const Pbt& pbt);
 // updated and calls it with the same seed every frame. Deterministic for a seed on every
 // platform (mt19937_64, own Fisher-Yates). Throws rs::Error if num_workers < 1.
 Assignment AssignRandom(std::span<const double> estimates, int num_workers, uint64_t seed);
+void AssignRandom(std::span<const double> estimates, int num_workers, uint64_t seed,
+                  Assignment& out);
 Assignment AssignPbtRandom(const Pbt& pbt, uint64_t seed);
 
 // Not in the paper, for comparison: longest-processing-time-first list scheduling (tiles by
@@ -206,6 +222,34 @@ class DemandMaster {
 // differ (and as DemandMaster::Load).
 DemandDrivenRun SimulateDemandMaster(std::span<const int32_t> owner, int requesters,
                                      std::span<const double> tile_times);
+
+// Both frame models with their state kept between calls (the tile plan runs one a frame):
+// Driven / Master give the finish times and non_affine of SimulateDemandDriven /
+// SimulateDemandMaster (bit-identical), but not the executed lists (left empty), and allocate
+// only when the worker or tile count grows. The result is valid until the next call. Throws as
+// those.
+class DemandDrivenModel {
+ public:
+  const DemandDrivenRun& Driven(const Assignment& affinity, std::span<const double> estimates,
+                                std::span<const double> tile_times);
+  const DemandDrivenRun& Master(std::span<const int32_t> owner, int requesters,
+                                std::span<const double> tile_times);
+
+ private:
+  friend DemandDrivenRun SimulateDemandDriven(const Assignment&, std::span<const double>,
+                                              std::span<const double>);
+  friend DemandDrivenRun SimulateDemandMaster(std::span<const int32_t>, int,
+                                              std::span<const double>);
+  template <class NextTile>
+  void Run(size_t n, std::span<const double> tile_times, NextTile next);
+
+  bool keep_executed_ = false;  // the Simulate* functions record DemandDrivenRun::executed
+  DemandDrivenRun run_;
+  std::vector<std::pair<double, size_t>> free_at_;  // min-heap: (time a worker is free, worker)
+  std::vector<size_t> head_, tail_;  // Driven: per worker, its waiting tiles in affinity.tiles[w]
+  std::vector<double> waiting_load_;  // Driven: per worker, the estimates of its waiting tiles
+  DemandMaster master_;
+};
 
 // ---------------------------------------------------------------------------------------------
 // Measures.

@@ -173,11 +173,15 @@ TilePlan::TilePlan(int width, int height, const TilePlanOptions& options)
 TilePlan::~TilePlan() = default;
 
 void TilePlan::Plan() {
+  // Every vector is refilled in place, its capacity reused every frame (tile_plan.h).
   TilePlanFrame& f = frame_;
   f.frame = frames_;
-  f.assignment = Assignment{};
   f.owner.clear();
   f.order.clear();
+  if (!pbt_ || options_.assign == PbtAssign::kCounter) {
+    f.assignment.tiles.clear();  // no lists
+    f.assignment.predicted_load.clear();
+  }
   if (!pbt_) {
     // The same tiles as GridTiles, into the frame's vector (its capacity reused every frame).
     ImageTiles(width_, height_, options_.tile_width, options_.tile_height, f.tiles);
@@ -194,35 +198,46 @@ void TilePlan::Plan() {
   const Pbt& pbt = *pbt_;
   const size_t m = pbt.NumLeaves();
   const int n = options_.workers;
-  f.tiles = pbt.Tiles();
+  pbt.Tiles(f.tiles);
   f.has_prediction = frames_ > 0;
   // The prediction a tile is measured against: PBT's estimate, or for the never-updated static
   // tiling the same tile's cost in the previous frame.
-  std::vector<double> known(m, 0.0);  // predictions, 0 before the first
-  if (f.has_prediction) {
-    known = options_.assign == PbtAssign::kStatic ? static_costs_ : pbt.Estimates();
+  std::vector<double>& known = known_;  // predictions, 0 before the first
+  if (!f.has_prediction) {
+    known.assign(m, 0.0);
+  } else if (options_.assign == PbtAssign::kStatic) {
+    known = static_costs_;
+  } else {
+    pbt.Estimates(known);
   }
-  f.predicted = known;
-  if (!f.has_prediction) f.predicted.assign(m, -1.0);
+  if (f.has_prediction) {
+    f.predicted = known;
+  } else {
+    f.predicted.assign(m, -1.0);
+  }
   switch (options_.assign) {
     case PbtAssign::kGreedy:
-      f.assignment = AssignPbtGreedy(pbt);
+      AssignPbtGreedy(pbt, f.assignment);
       break;
     case PbtAssign::kVisit:
-      f.assignment = AssignPbtVisit(pbt);
+      AssignPbtVisit(pbt, f.assignment);
       break;
     case PbtAssign::kStatic:
       // The permutation depends on m and the seed only: the same lists every frame.
-      f.assignment = AssignRandom(known, n, options_.seed);
+      AssignRandom(known, n, options_.seed, f.assignment);
       break;
     case PbtAssign::kRandom:
-      f.assignment = AssignRandom(known, n, PbtRandomSeed(options_.seed, frames_));
+      AssignRandom(known, n, PbtRandomSeed(options_.seed, frames_), f.assignment);
       break;
     case PbtAssign::kCounter: {
+      // Decreasing prediction, ties by tile index: a strict total order (the predictions are
+      // finite), so std::sort gives what a stable sort on the prediction alone gives, without
+      // the stable sort's temporary buffer.
       f.order.resize(m);
       std::iota(f.order.begin(), f.order.end(), int32_t{0});
-      std::stable_sort(f.order.begin(), f.order.end(), [&](int32_t a, int32_t b) {
-        return known[static_cast<size_t>(a)] > known[static_cast<size_t>(b)];
+      std::sort(f.order.begin(), f.order.end(), [&](int32_t a, int32_t b) {
+        const double ka = known[static_cast<size_t>(a)], kb = known[static_cast<size_t>(b)];
+        return ka != kb ? ka > kb : a < b;
       });
       break;
     }
@@ -240,6 +255,19 @@ void TilePlan::Plan() {
   for (size_t i = 0; i < m; ++i) {
     f.weight[i] = f.has_prediction ? known[i] : static_cast<double>(f.tiles[i].NumPixels());
   }
+}
+
+// List scheduling: each tile of `order` to the worker with the least load so far (ties: id),
+// into loads_ (options_.workers of them).
+std::span<const double> TilePlan::ListSchedule(std::span<const int32_t> order,
+                                               std::span<const double> cost) {
+  loads_.assign(static_cast<size_t>(options_.workers), 0.0);
+  for (const int32_t t : order) {
+    const size_t w =
+        static_cast<size_t>(std::min_element(loads_.begin(), loads_.end()) - loads_.begin());
+    loads_[w] += cost[static_cast<size_t>(t)];
+  }
+  return loads_;
 }
 
 const TilePlanFrame& TilePlan::Begin() {
@@ -273,20 +301,14 @@ TilePlanReport TilePlan::End(std::span<const double> costs, std::span<const int3
     if (r.has_prediction) r.accuracy = MeasurePredictionAccuracy(frame_.predicted, costs);
     if (counter || demand) {
       if (counter) {
-        // Demand driven: the next tile of the order to the worker free first (ties: id).
-        std::vector<double> finish(static_cast<size_t>(n), 0.0);
-        for (const int32_t t : frame_.order) {
-          const size_t w =
-              static_cast<size_t>(std::min_element(finish.begin(), finish.end()) - finish.begin());
-          finish[w] += costs[static_cast<size_t>(t)];
-        }
-        r.demand_imbalance = FrameImbalance(finish);
+        r.demand_imbalance = FrameImbalance(ListSchedule(frame_.order, costs));
       } else {
-        r.demand_imbalance = FrameImbalance(SimulateDemandMaster(frame_.owner, n, costs).finish);
+        r.demand_imbalance = FrameImbalance(demand_model_.Master(frame_.owner, n, costs).finish);
       }
       r.worker_imbalance = r.demand_imbalance;
       if (!ran_by.empty()) {  // the workers that really took the tiles
-        std::vector<double> load(static_cast<size_t>(n), 0.0);
+        std::vector<double>& load = loads_;
+        load.assign(static_cast<size_t>(n), 0.0);
         for (size_t i = 0; i < m; ++i) {
           if (ran_by[i] < 0 || ran_by[i] >= n) {
             throw Error(fmt::format("tile plan: tile {} ran on worker {} of {}", i, ran_by[i], n));
@@ -295,16 +317,28 @@ TilePlanReport TilePlan::End(std::span<const double> costs, std::span<const int3
         }
         r.worker_imbalance = FrameImbalance(load);
       }
-      // A shared counter in decreasing order is LPT list scheduling on the predictions; the
-      // demand master's preference is the lists.
+      // A shared counter in decreasing order is LPT list scheduling on the predictions (the
+      // counter's order is AssignLpt's: decreasing prediction, ties by index); the demand
+      // master's preference is the lists.
       if (r.has_prediction) {
-        r.predicted_makespan = counter ? AssignLpt(frame_.predicted, n).PredictedMakespan()
-                                       : frame_.assignment.PredictedMakespan();
+        if (counter) {
+          const std::span<const double> loads = ListSchedule(frame_.order, frame_.predicted);
+          r.predicted_makespan = std::max(0.0, *std::max_element(loads.begin(), loads.end()));
+        } else {
+          r.predicted_makespan = frame_.assignment.PredictedMakespan();
+        }
       }
     } else {
-      r.worker_imbalance = FrameImbalance(WorkerTimes(frame_.assignment, costs));
+      // WorkerTimes(frame_.assignment, costs), into loads_.
+      loads_.assign(frame_.assignment.tiles.size(), 0.0);
+      for (size_t w = 0; w < loads_.size(); ++w) {
+        for (const int32_t t : frame_.assignment.tiles[w]) {
+          loads_[w] += costs[static_cast<size_t>(t)];
+        }
+      }
+      r.worker_imbalance = FrameImbalance(loads_);
       r.demand_imbalance =
-          FrameImbalance(SimulateDemandDriven(frame_.assignment, frame_.weight, costs).finish);
+          FrameImbalance(demand_model_.Driven(frame_.assignment, frame_.weight, costs).finish);
       if (r.has_prediction) r.predicted_makespan = frame_.assignment.PredictedMakespan();
     }
     if (options_.assign == PbtAssign::kStatic) {

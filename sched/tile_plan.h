@@ -143,6 +143,9 @@ struct TilePlanReport {
 };
 
 // Begin / End alternate, once per frame; single-threaded (the master / application thread).
+// Every buffer of the plan (the frame's vectors, PBT-Update's, the frame models') is reused, so
+// after the first frame Begin and End allocate nothing (PBT-Visit: once each worker's list has
+// held its longest run; tests/sched/alloc_test counts it).
 //   TilePlan plan(w, h, options);
 //   for each frame: const TilePlanFrame& f = plan.Begin();  render f.tiles as f says;
 //                   TilePlanReport r = plan.End(measured costs per tile, who ran each tile);
@@ -180,6 +183,8 @@ class TilePlan {
 
  private:
   void Plan();  // frame_ from pbt_ / the grid for the next frame
+  std::span<const double> ListSchedule(std::span<const int32_t> order,
+                                       std::span<const double> cost);
 
   int width_ = 0;
   int height_ = 0;
@@ -187,6 +192,10 @@ class TilePlan {
   std::unique_ptr<Pbt> pbt_;
   std::vector<double> static_costs_;  // static: the previous frame's cost per tile
   TilePlanFrame frame_;
+  // Scratch kept between frames, so Plan and End allocate nothing once sized (pbt.h).
+  std::vector<double> known_;   // Plan: the predictions, 0 before the first
+  std::vector<double> loads_;   // End: per-worker loads
+  DemandDrivenModel demand_model_;
   uint64_t frames_ = 0;
   bool in_frame_ = false;
 };
