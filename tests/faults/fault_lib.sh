@@ -1,5 +1,9 @@
 # Shared by the fault suites (sourced): check counters and the two expectations every case uses.
-fails=0 checks=0
+fails=0 checks=0 skips=0
+# A sanitizer build (RAYSTREAM_SANITIZE from tests/faults/meson.build, get_option('b_sanitize')):
+# cases that need RLIMIT_AS use another limit under ASan, or say why they are skipped.
+case "${RAYSTREAM_SANITIZE:-none}" in *address*) asan=1 ;; *) asan=0 ;; esac
+skip() { skips=$((skips+1)); echo "skip $*"; }
 ok() { checks=$((checks+1)); echo "ok   $*"; }
 bad() { checks=$((checks+1)); fails=$((fails+1)); echo "FAIL $*"; }
 

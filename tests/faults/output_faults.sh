@@ -94,5 +94,5 @@ for opt in "--seed -1:non-negative" "--speed inf:not in range" "--depth 65:not i
 done
 [ -e o.png ] && bad "an image was written despite bad options" || ok "bad options: nothing written"
 
-echo "output_faults: $((checks - fails)) of $checks checks passed"
+echo "output_faults: $((checks - fails)) of $checks checks passed, $skips skipped"
 [ $fails -eq 0 ]
