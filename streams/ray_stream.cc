@@ -1,9 +1,12 @@
 // Owning SoA ray, hit and contribution buffers (see ray_stream.h).
 #include "streams/ray_stream.h"
 
+#include <algorithm>
 #include <cstdio>
+#include <cstring>
 #include <limits>
 #include <string>
+#include <utility>
 
 namespace rs {
 
@@ -72,6 +75,42 @@ size_t RayStream::PushFrom(const RayStreamView& f, size_t i) {
   return j;
 }
 
+void RayStream::Append(const RayStreamView& from, size_t first, size_t n) {
+  const size_t at = size_;
+  Resize(size_ + n);
+  CopyRays(from, first, n, view(), at);
+}
+
+namespace {
+
+template <typename T>
+void CopyArray(const T* from, size_t first, size_t n, T* to, size_t at, T fallback) {
+  if (to == nullptr) return;
+  if (from != nullptr) {
+    std::memcpy(to + at, from + first, n * sizeof(T));
+  } else {
+    std::fill(to + at, to + at + n, fallback);
+  }
+}
+
+}  // namespace
+
+void CopyRays(const RayStreamView& f, size_t first, size_t n, const RayStreamView& t,
+              size_t at) {
+  if (n == 0) return;
+  for (auto [from, to] : {std::pair{f.ox, t.ox}, std::pair{f.oy, t.oy}, std::pair{f.oz, t.oz},
+                          std::pair{f.dx, t.dx}, std::pair{f.dy, t.dy}, std::pair{f.dz, t.dz},
+                          std::pair{f.tmin, t.tmin}, std::pair{f.tmax, t.tmax}}) {
+    std::memcpy(to + at, from + first, n * sizeof(float));
+  }
+  CopyArray<uint32_t>(f.pixel, first, n, t.pixel, at, 0u);
+  CopyArray<float>(f.wr, first, n, t.wr, at, 1.0f);
+  CopyArray<float>(f.wg, first, n, t.wg, at, 1.0f);
+  CopyArray<float>(f.wb, first, n, t.wb, at, 1.0f);
+  CopyArray<int32_t>(f.depth, first, n, t.depth, at, 0);
+  CopyArray<int32_t>(f.kind, first, n, t.kind, at, static_cast<int32_t>(RayKind::kPrimary));
+}
+
 namespace {
 template <typename T>
 T* Offset(T* p, size_t first) {
@@ -105,9 +144,13 @@ HitStreamView SubView(const HitStreamView& h, size_t first, size_t n) {
 }
 
 
-void RayStream::FillPadding() {
+void RayStream::FillPadding() { SealLanes(size_, capacity()); }
+
+void RayStream::SealTail() { SealLanes(size_, std::min(size_ + kStreamPad, capacity())); }
+
+void RayStream::SealLanes(size_t from, size_t end) {
   const float nan = std::numeric_limits<float>::quiet_NaN();
-  for (size_t i = size_; i < capacity(); ++i) {
+  for (size_t i = from; i < end; ++i) {
     ox_[i] = oy_[i] = oz_[i] = nan;
     dx_[i] = dy_[i] = dz_[i] = nan;
     tmin_[i] = 1.0f;

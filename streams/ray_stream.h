@@ -97,6 +97,12 @@ inline void CopyRay(const RayStreamView& f, size_t i, const RayStreamView& t, si
   }
 }
 
+// Rays [first, first + n) of `from` copied to slots [at, at + n) of `to`, one memcpy per array
+// (the bulk form of CopyRay, same defaults where `from` lacks an array that `to` has). The two
+// ranges must not overlap; both views must hold them.
+void CopyRays(const RayStreamView& from, size_t first, size_t n, const RayStreamView& to,
+              size_t at);
+
 // A stream of rays that owns its arrays. view() hands out the SoA view for kernels.
 class RayStream {
  public:
@@ -115,14 +121,22 @@ class RayStream {
               uint32_t pixel, float wr, float wg, float wb, int32_t depth, RayKind kind);
   // Copies ray i of `from` to the end of this stream.
   size_t PushFrom(const RayStreamView& from, size_t i);
+  // Appends rays [first, first + n) of `from` (CopyRays; grows as Resize does). `from` must not
+  // be a view of this stream.
+  void Append(const RayStreamView& from, size_t first, size_t n);
 
   // Padding lanes [size, capacity) are set to a ray that can never hit (NaN origin,
   // tmax < tmin) so that full-vector loads see harmless values.
   void FillPadding();
+  // The same for lanes [size, size + kStreamPad) only (those inside the capacity): all that a
+  // kernel's whole-vector loads past size can reach, at a cost independent of the capacity.
+  void SealTail();
 
   RayStreamView view();
 
  private:
+  void SealLanes(size_t from, size_t end);
+
   AlignedArray<float> ox_, oy_, oz_, dx_, dy_, dz_, tmin_, tmax_, wr_, wg_, wb_;
   AlignedArray<uint32_t> pixel_;
   AlignedArray<int32_t> depth_, kind_;

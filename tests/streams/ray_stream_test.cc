@@ -1,6 +1,6 @@
-// SoA ray streams: push/grow/padding invariants, and stable compaction (sizes 0, 1, N; padding
-// refilled; optional arrays absent); contribution streams: push, growth, no reallocation once
-// reserved.
+// SoA ray streams: push/grow/padding invariants, range copies and the tail seal, and stable
+// compaction (sizes 0, 1, N; padding refilled; optional arrays absent); contribution streams:
+// push, growth, no reallocation once reserved.
 #include "streams/ray_stream.h"
 
 #include <doctest/doctest.h>
@@ -71,6 +71,54 @@ TEST_CASE("RayStream: push, growth keeps contents, alignment, padding sentinel")
   for (int i = 0; i < 100; i += 3) copy.PushFrom(v, static_cast<size_t>(i));
   const RayStreamView cv = copy.view();
   for (size_t j = 0; j < copy.size(); ++j) CheckTagged(cv, j, static_cast<int>(3 * j));
+}
+
+TEST_CASE("RayStream::Append and CopyRays copy ranges array by array; SealTail") {
+  RayStream s;
+  for (int i = 0; i < 100; ++i) PushTagged(s, i);
+  const RayStreamView v = s.view();
+  for (const size_t n : {size_t{0}, size_t{1}, size_t{15}, size_t{17}, size_t{60}}) {
+    INFO("n ", n);
+    RayStream to;
+    PushTagged(to, 500);
+    to.Append(v, 33, n);  // after an existing ray, from an unaligned start
+    REQUIRE(to.size() == 1 + n);
+    const RayStreamView tv = to.view();
+    CheckTagged(tv, 0, 500);
+    for (size_t j = 0; j < n; ++j) CheckTagged(tv, 1 + j, static_cast<int>(33 + j));
+    // SealTail: the next kStreamPad lanes (inside the capacity) become padding rays, the lanes
+    // after them are left alone.
+    RayStream big;
+    big.Reserve(200);
+    for (int i = 0; i < 150; ++i) PushTagged(big, i);
+    big.Resize(n);
+    big.SealTail();
+    const RayStreamView bv = big.view();
+    for (size_t i = n; i < n + kStreamPad; ++i) {
+      INFO("sealed lane ", i);
+      CHECK(std::isnan(bv.ox[i]));
+      CHECK(bv.tmax[i] < bv.tmin[i]);
+      CHECK(bv.wr[i] == 0.0f);
+    }
+    CheckTagged(bv, n + kStreamPad, static_cast<int>(n + kStreamPad));
+  }
+  // A view without the optional arrays: the same defaults as CopyRay (pixel 0, weight 1,
+  // depth 0, primary).
+  RayStreamView bare = v;
+  bare.pixel = nullptr;
+  bare.wr = bare.wg = bare.wb = nullptr;
+  bare.depth = bare.kind = nullptr;
+  RayStream to;
+  to.Append(bare, 7, 3);
+  const RayStreamView tv = to.view();
+  for (size_t j = 0; j < 3; ++j) {
+    CHECK(tv.ox[j] == static_cast<float>(7 + j));
+    CHECK(tv.pixel[j] == 0u);
+    CHECK(tv.wr[j] == 1.0f);
+    CHECK(tv.wb[j] == 1.0f);
+    CHECK(tv.depth[j] == 0);
+    CHECK(tv.kind[j] == static_cast<int32_t>(RayKind::kPrimary));
+  }
 }
 
 TEST_CASE("ContributionStream: push, growth keeps contents, alignment, reserve, clear") {
