@@ -14,7 +14,7 @@
 //      o + t d. If the packet's box lies inside a block of empty cells (DdaGrid::skip rings),
 //      the slices it cannot leave are jumped. Otherwise each vector marks the cells of its box
 //      (a small packet box is taken whole), and every occupied marked cell is visited: its
-//      triangles are culled against the boxes of the vectors that marked it (SIMD over 8
+//      triangles are culled against the boxes of the vectors that marked it (SIMD over 8-16
 //      triangles) and tested N rays x 1 triangle, each vector at most once per triangle (a
 //      direct-mapped mailbox); a vector with only 1 or 2 of its rays there tests them with the
 //      1-ray x 4-triangle kernel instead. Refined cells of a two-level grid are visited the same
@@ -147,7 +147,12 @@ struct PacketTracer {
     return Lanes() >= 64 ? ~uint64_t{0} : (uint64_t{1} << Lanes()) - 1;
   }
 
-  // Cell index of coordinate x on a level's axis a, clamped to [0, res - 1] (NaN -> 0).
+  // Cell index of coordinate x on a level's axis a, clamped to [0, res - 1] (NaN -> 0); CellOf1
+  // is the same for one value.
+  static HWY_INLINE int CellOf1(float x, const Level& lv, int a) {
+    const float f = (x - lv.lo[a]) * lv.inv_cs[a];
+    return f > 0.0f ? (f < float(lv.res[a]) ? int(f) : lv.res[a] - 1) : 0;
+  }
   static HWY_INLINE VI CellOf(D d, V x, const Level& lv, int a) {
     const DI di;
     const V f = hn::Mul(hn::Sub(x, hn::Set(d, lv.lo[a])), hn::Set(d, lv.inv_cs[a]));
@@ -228,11 +233,10 @@ struct PacketTracer {
     if (f->vectors == 0) return;
     int c[4];
     for (int a = 0; a < 2; ++a) {
-      const V lo = hn::MinOfLanes(d, plo[a]), hi = hn::MaxOfLanes(d, phi[a]);
-      f->wlo[a] = hn::GetLane(lo);
-      f->whi[a] = hn::GetLane(hi);
-      c[2 * a] = hn::GetLane(CellOf(d, lo, lv, axes[a]));
-      c[2 * a + 1] = hn::GetLane(CellOf(d, hi, lv, axes[a]));
+      f->wlo[a] = hn::GetLane(hn::MinOfLanes(d, plo[a]));
+      f->whi[a] = hn::GetLane(hn::MaxOfLanes(d, phi[a]));
+      c[2 * a] = CellOf1(f->wlo[a], lv, axes[a]);
+      c[2 * a + 1] = CellOf1(f->whi[a], lv, axes[a]);
     }
     f->u0 = c[0];
     f->u1 = c[1];
@@ -240,22 +244,62 @@ struct PacketTracer {
     f->v1 = c[3];
   }
 
+#if HWY_TARGET == HWY_AVX3 || HWY_TARGET == HWY_AVX3_DL
+  // The least (kMin) or largest lane of each of a, b, c, e (16 lanes each): in 128-bit block 0,
+  // 1, 2, 3 of the result, every lane of the block. The four reductions share their shuffles:
+  // halves, then even / odd lanes, then within blocks; no lane mixes two inputs.
+  template <bool kMin>
+  static HWY_INLINE V Extrema4(D d, V a, V b, V c, V e) {
+    const auto op = [](V x, V y) { return kMin ? hn::Min(x, y) : hn::Max(x, y); };
+    const V ab = op(hn::ConcatLowerLower(d, b, a), hn::ConcatUpperUpper(d, b, a));
+    const V ce = op(hn::ConcatLowerLower(d, e, c), hn::ConcatUpperUpper(d, e, c));
+    const V z = op(hn::ConcatEven(d, ce, ab), hn::ConcatOdd(d, ce, ab));
+    const V y = op(z, hn::Shuffle2301(z));
+    return op(y, hn::Shuffle1032(y));
+  }
+#endif
+
   // The rest of footprint f, needed only where the slice has occupied cells: per vector the box
   // of its rays (triangle culling) and its cell range on level lv.
   HWY_INLINE void Refine(const Level& lv, SliceFoot* f) const {
     const D d;
     const size_t n = Lanes();
     const int axes[2] = {U, W};
+#if HWY_TARGET == HWY_AVX3 || HWY_TARGET == HWY_AVX3_DL
+    if (n * 4 == kPR) {  // the packet's 4 vectors at once (Extrema4)
+      const V big = hn::Set(d, FLT_MAX), nbig = hn::Set(d, -FLT_MAX);
+      const auto get = [&](const float* p, size_t w, V none) {
+        return (f->vectors >> w & 1) != 0 ? hn::Load(d, p + w * n) : none;
+      };
+      HWY_ALIGN float lo[2][16], hi[2][16];
+      for (int a = 0; a < 2; ++a) {
+        hn::Store(Extrema4<true>(d, get(r.flo[a], 0, big), get(r.flo[a], 1, big),
+                                 get(r.flo[a], 2, big), get(r.flo[a], 3, big)),
+                  d, lo[a]);
+        hn::Store(Extrema4<false>(d, get(r.fhi[a], 0, nbig), get(r.fhi[a], 1, nbig),
+                                  get(r.fhi[a], 2, nbig), get(r.fhi[a], 3, nbig)),
+                  d, hi[a]);
+      }
+      for (uint64_t vb = f->vectors; vb != 0; vb &= vb - 1) {
+        const size_t w = hwy::Num0BitsBelowLS1Bit_Nonzero64(vb);
+        for (int a = 0; a < 2; ++a) {
+          f->lo[a][w] = lo[a][4 * w];
+          f->hi[a][w] = hi[a][4 * w];
+          f->c0[a][w] = CellOf1(f->lo[a][w], lv, axes[a]);
+          f->c1[a][w] = CellOf1(f->hi[a][w], lv, axes[a]);
+        }
+      }
+      return;
+    }
+#endif
     for (uint64_t vb = f->vectors; vb != 0; vb &= vb - 1) {
       const size_t w = hwy::Num0BitsBelowLS1Bit_Nonzero64(vb);
       const size_t i = w * n;
       for (int a = 0; a < 2; ++a) {
-        const V lo = hn::MinOfLanes(d, hn::Load(d, r.flo[a] + i));
-        const V hi = hn::MaxOfLanes(d, hn::Load(d, r.fhi[a] + i));
-        f->lo[a][w] = hn::GetLane(lo);
-        f->hi[a][w] = hn::GetLane(hi);
-        f->c0[a][w] = hn::GetLane(CellOf(d, lo, lv, axes[a]));
-        f->c1[a][w] = hn::GetLane(CellOf(d, hi, lv, axes[a]));
+        f->lo[a][w] = hn::GetLane(hn::MinOfLanes(d, hn::Load(d, r.flo[a] + i)));
+        f->hi[a][w] = hn::GetLane(hn::MaxOfLanes(d, hn::Load(d, r.fhi[a] + i)));
+        f->c0[a][w] = CellOf1(f->lo[a][w], lv, axes[a]);
+        f->c1[a][w] = CellOf1(f->hi[a][w], lv, axes[a]);
       }
     }
   }
@@ -444,6 +488,12 @@ struct PacketTracer {
     if (wide == 0) return;
     const size_t lanes = span.lanes();
     size_t j = 0;
+    if constexpr (HWY_MAX_BYTES >= 64) {
+      const hn::CappedTag<float, 16> d16;
+      if (hn::Lanes(d16) == 16) {
+        for (; j + 16 <= lanes; j += 16) CullGroup(d16, span, j, wide, f);
+      }
+    }
     if constexpr (HWY_MAX_BYTES >= 32) {
       const hn::CappedTag<float, 8> d8;
       if (hn::Lanes(d8) == 8) {
@@ -588,19 +638,42 @@ struct PacketTracer {
       const int area = (c1[0] - c0[0] + 1) * (c1[1] - c0[1] + 1);
       if (area > kPredictArea) break;
       const int sl = positive ? s + i : s - i;
-      const size_t row0 = size_t(sl) * stride[K];
-      bool any = false;
-      for (int cv = c0[1]; cv <= c1[1] && !any; ++cv) {
-        for (int cu = c0[0]; cu <= c1[0]; ++cu) {
-          const size_t cell = row0 + size_t(cv) * stride[W] + size_t(cu) * stride[U];
-          any = any || ((occ[cell >> 6] >> (cell & 63)) & 1u) != 0;
-        }
-      }
       cells += uint64_t(area);
-      if (any) break;
+      if (AnyOccupied(occ, size_t(sl) * stride[K], c0[0], c1[0], c0[1], c1[1], stride)) break;
       m = i;
     }
     return m;
+  }
+
+  // Whether a cell (u, v) in [u0, u1] x [v0, v1] of the slice starting at cell row0 is occupied.
+  // Along x (U = 0) a row of cells is a run of occupancy bits: tested a word at a time.
+  HWY_INLINE bool AnyOccupied(const uint64_t* occ, size_t row0, int u0, int u1, int v0, int v1,
+                              const int stride[3]) const {
+    if (U == 0) {
+      for (int cv = v0; cv <= v1; ++cv) {
+        const size_t b0 = row0 + size_t(cv) * stride[W] + size_t(u0);
+        const size_t b1 = b0 + size_t(u1 - u0);  // inclusive
+        const uint64_t head = ~uint64_t{0} << (b0 & 63);
+        const uint64_t tail = ~uint64_t{0} >> (63 - (b1 & 63));
+        const size_t w0 = b0 >> 6, w1 = b1 >> 6;
+        if (w0 == w1) {
+          if ((occ[w0] & head & tail) != 0) return true;
+          continue;
+        }
+        if ((occ[w0] & head) != 0 || (occ[w1] & tail) != 0) return true;
+        for (size_t w = w0 + 1; w < w1; ++w) {
+          if (occ[w] != 0) return true;
+        }
+      }
+      return false;
+    }
+    for (int cv = v0; cv <= v1; ++cv) {
+      for (int cu = u0; cu <= u1; ++cu) {
+        const size_t cell = row0 + size_t(cv) * stride[W] + size_t(cu) * stride[U];
+        if (((occ[cell >> 6] >> (cell & 63)) & 1u) != 0) return true;
+      }
+    }
+    return false;
   }
 
   // The nearest slice after s (in the rays' direction) where a segment starts, or -1.
@@ -820,15 +893,8 @@ struct PacketTracer {
         // cell with all the slice's rays; a larger one: each vector marks the cells of its box
         const int area = (f.u1 - f.u0 + 1) * (f.v1 - f.v0 + 1);
         if (area <= kSmallBox) {
-          bool any = false;
-          for (int cv = f.v0; cv <= f.v1 && !any; ++cv) {
-            for (int cu = f.u0; cu <= f.u1; ++cu) {
-              const size_t cell = row0 + size_t(cv) * stride[W] + size_t(cu) * stride[U];
-              any = any || ((occ[cell >> 6] >> (cell & 63)) & 1u) != 0;
-            }
-          }
           cells += uint64_t(area);
-          if (any) {
+          if (AnyOccupied(occ, row0, f.u0, f.u1, f.v0, f.v1, stride)) {
             Refine(top, &f);
             for (int cv = f.v0; cv <= f.v1; ++cv) {
               for (int cu = f.u0; cu <= f.u1; ++cu) visit(cu, cv, f.in);
