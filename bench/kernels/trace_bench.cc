@@ -5,7 +5,8 @@
 // Defaults: 512x512 ray sets, --benchmark_min_time=0.2, one run (about 2-3 minutes in all).
 // Environment: RS_BENCH_FULL=1 runs the ANCHORS sweep (1024x1024 rays, min time 0.5 s, median
 // of 5); RS_BENCH_SIZE=WxH sets the ray-set image size; RS_BENCH_SCENES=a,b,c picks scenes
-// (default bunny,sponza,office-graz,conference,spherebox; missing shared scenes are skipped).
+// (default bunny,sponza,office-graz,conference,spherebox; missing shared scenes are skipped);
+// RS_BENCH_ISA=avx2 holds both raystream and Embree to AVX2 (bench/common/bench_main.h).
 // Ratios "vs_embree*" are raystream speed / Embree speed (> 1: raystream faster), from CPU time.
 #include <benchmark/benchmark.h>
 #include <unistd.h>
@@ -482,6 +483,7 @@ int Main(int argc, char** argv) {
   for (int i = 1; i < argc; ++i) json = json || std::string(argv[i]) == "--benchmark_format=json";
   std::fprintf(json ? stderr : stdout, "[trace_bench] %s\n", kCycleNote);
   Configure();
+  ApplyIsaEnv();
   const Config& c = Cfg();
   for (const std::string& scene : c.scenes) {
     if (SceneAvailable("trace_bench", scene)) Register(scene);

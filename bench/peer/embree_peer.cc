@@ -7,6 +7,7 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <cstdlib>
 #include <limits>
 #include <mutex>
 #include <string>
@@ -63,7 +64,11 @@ void ThrowIfError(const char* what) {
 // and kept for the life of the process (rtcReleaseDevice at exit would race static dtors).
 RTCDevice Device() {
   static RTCDevice device = [] {
-    RTCDevice d = rtcNewDevice("threads=1,verbose=0");
+    // RS_BENCH_ISA=avx2 (bench/common/bench_main.h) holds Embree to AVX2 as well.
+    const char* isa = std::getenv("RS_BENCH_ISA");
+    const std::string config = std::string("threads=1,verbose=0") +
+                               (isa != nullptr && std::string(isa) == "avx2" ? ",isa=avx2" : "");
+    RTCDevice d = rtcNewDevice(config.c_str());
     if (d == nullptr) {
       throw Error(std::string("embree: rtcNewDevice failed: ") +
                   ErrorName(rtcGetDeviceError(nullptr)));
