@@ -45,25 +45,27 @@ void SealLanes(const RayStreamView& v, size_t from) {
   }
 }
 
-// Appends the rays of `from` that are shadow rays (shadow = true) or not (false) to `to`, whose
-// capacity must hold them (arena: no growth in the steady state), and seals the lanes after it.
-void AppendClass(const RayStreamView& from, bool shadow, RayStream& to) {
-  size_t count = 0;
-  for (size_t i = 0; i < from.size; ++i) count += (from.kind[i] == kShadowKind) == shadow ? 1 : 0;
-  const size_t n0 = to.size();
-  to.Resize(n0 + count);
-  const RayStreamView t = to.view();
-  size_t j = n0;
-  for (size_t i = 0; i < from.size; ++i) {
-    if ((from.kind[i] == kShadowKind) != shadow) continue;
-    CopyRay(from, i, t, j++);
-  }
-  to.Resize(j);
+// Ray i of f to slot j of t, every array (both views have them all: RayStream views).
+inline void CopyWholeRay(const RayStreamView& f, size_t i, const RayStreamView& t, size_t j) {
+  t.ox[j] = f.ox[i];
+  t.oy[j] = f.oy[i];
+  t.oz[j] = f.oz[i];
+  t.dx[j] = f.dx[i];
+  t.dy[j] = f.dy[i];
+  t.dz[j] = f.dz[i];
+  t.tmin[j] = f.tmin[i];
+  t.tmax[j] = f.tmax[i];
+  t.pixel[j] = f.pixel[i];
+  t.wr[j] = f.wr[i];
+  t.wg[j] = f.wg[i];
+  t.wb[j] = f.wb[i];
+  t.depth[j] = f.depth[i];
+  t.kind[j] = f.kind[i];
 }
 
 // Moves rays [from, end) of v to [to, to + end - from), to <= from (memmove order).
 void MoveRays(const RayStreamView& v, size_t from, size_t end, size_t to) {
-  for (size_t i = from; i < end; ++i, ++to) CopyRay(v, i, v, to);
+  for (size_t i = from; i < end; ++i, ++to) CopyWholeRay(v, i, v, to);
 }
 
 // The light a shadow ray runs to: it goes from o to o + d = the light's position (up to
@@ -100,31 +102,44 @@ float NearLight2(std::span<const PointLight> lights) {
   return d2 / 16.0f;
 }
 
-// The shadow rays of `from` appended to `to` grouped by light (stable within a light). Shade
-// emits them light by light per SIMD vector, so a 64-ray run would mix several lights and miss
-// the coherent packets; grouped, each run shares its light. Order never changes the image.
-void AppendShadowByLight(const RayStreamView& from, std::span<const PointLight> lights,
-                         std::vector<uint32_t>& light_of, std::vector<size_t>& start,
-                         RayStream& to) {
-  if (lights.size() <= 1) return AppendClass(from, /*shadow=*/true, to);
+// The rays of `from` (a RayStream's view) appended by class, in one counting and one copying
+// pass: its shadow rays to `shadow_to` grouped by light (stable within a light), the others to
+// `bounce_to` in order. Shade emits shadow rays light by light per SIMD vector, so a 64-ray run
+// would mix several lights and miss the coherent packets; grouped, each run shares its light.
+// The two may be one stream (the shadow rays first). Capacities must hold the rays (arenas: no
+// growth in the steady state). Order never changes the image.
+void Partition(const RayStreamView& from, std::span<const PointLight> lights,
+               std::vector<uint32_t>& light_of, std::vector<size_t>& start, RayStream& shadow_to,
+               RayStream& bounce_to) {
+  const size_t groups = std::max<size_t>(lights.size(), 1);
   light_of.resize(from.size);
-  start.assign(lights.size() + 1, 0);
-  size_t count = 0;
-  const float near2 = NearLight2(lights);
+  start.assign(groups + 1, 0);
+  size_t bounce = 0;
+  const float near2 = lights.size() > 1 ? NearLight2(lights) : 0.0f;
   uint32_t guess = 0;
   for (size_t i = 0; i < from.size; ++i) {
-    if (from.kind[i] != kShadowKind) continue;
-    guess = light_of[i] = LightOf(from, i, lights, guess, near2);
-    ++start[light_of[i] + 1];
-    ++count;
+    if (from.kind[i] != kShadowKind) {
+      ++bounce;
+      continue;
+    }
+    if (lights.size() > 1) guess = LightOf(from, i, lights, guess, near2);
+    light_of[i] = guess;
+    ++start[guess + 1];
   }
-  for (size_t l = 1; l <= lights.size(); ++l) start[l] += start[l - 1];
-  const size_t n0 = to.size();
-  to.Resize(n0 + count);
-  const RayStreamView t = to.view();
+  for (size_t l = 1; l <= groups; ++l) start[l] += start[l - 1];
+  const size_t s0 = shadow_to.size();
+  shadow_to.Resize(s0 + start[groups]);
+  const size_t b0 = bounce_to.size();  // after the shadow rays if it is the same stream
+  bounce_to.Resize(b0 + bounce);
+  const RayStreamView s = shadow_to.view();
+  const RayStreamView b = bounce_to.view();
+  size_t j = b0;
   for (size_t i = 0; i < from.size; ++i) {
-    if (from.kind[i] != kShadowKind) continue;
-    CopyRay(from, i, t, n0 + start[light_of[i]]++);
+    if (from.kind[i] != kShadowKind) {
+      CopyWholeRay(from, i, b, j++);
+    } else {
+      CopyWholeRay(from, i, s, s0 + start[light_of[i]]++);
+    }
   }
 }
 
@@ -192,10 +207,10 @@ void RayEngine::Reserve(const FrameContext& ctx) {
   hits_.Reserve(p.hits);
   occluded_.Reserve(p.shadow);
   contributions_.Reserve(p.contributions);
-  light_of_.reserve(p.spawned);
+  light_of_.reserve(p.shadow);  // Shade output of a sub-chunk, or a mixed generation
   local_sums_.resize(3 * batch_);
   batch_pixels_.resize(batch_);
-  light_start_.reserve(lights_ + 1);
+  light_start_.reserve(lights_ + 2);  // Partition: max(lights, 1) + 1
 }
 
 size_t RayEngine::capacity_rays() const {
@@ -235,7 +250,7 @@ void RayEngine::Occlude(const FrameContext& ctx, const RayStreamView& rays, Fram
 }
 
 void RayEngine::TraceAndShade(const FrameContext& ctx, const RayStreamView& rays,
-                              Framebuffer& fb, RayStream* bounce, RayStream* spawned_out,
+                              Framebuffer& fb, RayStream& bounce, RayStream* shadow_out,
                               FrameStats& stats) {
   const size_t n = rays.size;
   if (n == 0) return;
@@ -269,11 +284,10 @@ void RayEngine::TraceAndShade(const FrameContext& ctx, const RayStreamView& rays
   for (size_t first = 0; first < n; first += chunk) {
     const size_t m = std::min(chunk, n - first);
     const auto s0 = Clock::now();
-    RayStream& out = spawned_out != nullptr ? *spawned_out : spawned_;
-    if (spawned_out == nullptr) spawned_.Clear();
+    spawned_.Clear();
     contributions_.Clear();
     Shade(*ctx.scene, ctx.shade, SubView(rays, first, m), SubView(hits, first, m),
-          contributions_, out, &stats.shade);
+          contributions_, spawned_, &stats.shade);
     stats.shade_seconds += Seconds(s0, Clock::now());
     if (local_) {
       const ContributionView c = contributions_.view();
@@ -281,11 +295,13 @@ void RayEngine::TraceAndShade(const FrameContext& ctx, const RayStreamView& rays
     } else {
       fb.Add(contributions_.view());
     }
-    if (spawned_out != nullptr) continue;
-    shadow_.Clear();
     const RayStreamView spawned = spawned_.view();
-    AppendShadowByLight(spawned, ctx.scene->lights, light_of_, light_start_, shadow_);
-    AppendClass(spawned, /*shadow=*/false, *bounce);
+    if (shadow_out != nullptr) {
+      Partition(spawned, ctx.scene->lights, light_of_, light_start_, *shadow_out, bounce);
+      continue;
+    }
+    shadow_.Clear();
+    Partition(spawned, ctx.scene->lights, light_of_, light_start_, shadow_, bounce);
     SealLanes(shadow_.view(), shadow_.size());
     Occlude(ctx, shadow_.view(), fb, stats);
   }
@@ -319,7 +335,7 @@ void RayEngine::Drain(const FrameContext& ctx, size_t primaries, Framebuffer& fb
     const RayStreamView all = level.view();
     SealLanes(all, s);
     RayStream* children = d < top ? &levels_[d + 1] : &bounce_;
-    TraceAndShade(ctx, SubView(all, start, k), fb, children, nullptr, stats);
+    TraceAndShade(ctx, SubView(all, start, k), fb, *children, nullptr, stats);
     HWY_DASSERT(d < top || bounce_.empty());
     bounce_.Clear();
     MoveRays(all, start + k, s, start);
@@ -358,23 +374,26 @@ void RayEngine::RenderTile(const FrameContext& ctx, const Tile& tile, Framebuffe
   }
 }
 
+void RayEngine::TraceGeneration(const FrameContext& ctx, const RayStreamView& shadow,
+                                const RayStreamView& rays, Framebuffer& fb, RayStream& shadow_out,
+                                RayStream& bounce_out, FrameStats& stats) {
+  Reserve(ctx);
+  local_ = false;  // a generation may hold any pixels another thread also adds to
+  Occlude(ctx, shadow, fb, stats);
+  TraceAndShade(ctx, rays, fb, bounce_out, &shadow_out, stats);
+}
+
 void RayEngine::TraceGeneration(const FrameContext& ctx, const RayStreamView& rays,
                                 Framebuffer& fb, RayStream& spawned, FrameStats& stats) {
   Reserve(ctx);
-  local_ = false;  // a generation may hold any pixels another thread also adds to
-  size_t shadow = 0;
-  for (size_t i = 0; i < rays.size; ++i) shadow += rays.kind[i] == kShadowKind ? 1 : 0;
-  if (shadow == rays.size) return Occlude(ctx, rays, fb, stats);
-  if (shadow == 0) return TraceAndShade(ctx, rays, fb, nullptr, &spawned, stats);
-  // Mixed: split by class (a ray's result does not depend on its neighbours).
+  // Split by class (a ray's result does not depend on its neighbours).
   shadow_.Clear();
   bounce_.Clear();
-  AppendClass(rays, /*shadow=*/true, shadow_);
-  AppendClass(rays, /*shadow=*/false, bounce_);
+  Partition(rays, ctx.scene->lights, light_of_, light_start_, shadow_, bounce_);
   SealLanes(shadow_.view(), shadow_.size());
   SealLanes(bounce_.view(), bounce_.size());
-  Occlude(ctx, shadow_.view(), fb, stats);
-  TraceAndShade(ctx, bounce_.view(), fb, nullptr, &spawned, stats);
+  TraceGeneration(ctx, shadow_.view(), bounce_.view(), fb, spawned, spawned, stats);
+  shadow_.Clear();
   bounce_.Clear();
 }
 

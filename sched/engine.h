@@ -36,10 +36,20 @@ class RayEngine {
   // an overlapping tile or adds to them concurrently; fb may be kResolved.
   void RenderTile(const FrameContext& ctx, const Tile& tile, Framebuffer& fb, FrameStats& stats);
 
-  // One generation of `rays` (padded; any kinds, at most ctx.options.batch rays for bounded
-  // scratch): shadow rays occluded and added to fb, the others intersected and shaded. Their
-  // secondary rays (both classes) are appended to `spawned`, for a backend that schedules them
-  // itself (queue backends). `rays` must not alias `spawned`.
+  // One generation of a backend that schedules the secondary rays itself (queue backends),
+  // already split by class: `shadow` (shadow rays only) occluded and added to fb, `rays` (no
+  // shadow rays; at most ctx.options.batch rays rounded up to whole tasks, for bounded scratch)
+  // intersected and shaded. Their secondary rays are appended: shadow rays to `shadow_out`
+  // grouped by light within each Shade sub-chunk (Shade emits them light by light per SIMD
+  // vector, so ungrouped a 64-ray run would mix lights and miss the coherent packets), the
+  // others to `bounce_out` in Shade's order. Both inputs padded with the lanes after their size
+  // sealed (RayStream::FillPadding or SealTail); they must not alias the outputs. The outputs
+  // may be one stream (each Shade sub-chunk's shadow rays, then its other rays).
+  void TraceGeneration(const FrameContext& ctx, const RayStreamView& shadow,
+                       const RayStreamView& rays, Framebuffer& fb, RayStream& shadow_out,
+                       RayStream& bounce_out, FrameStats& stats);
+  // The same for one generation of any kinds mixed (split by class here, one copy), its
+  // secondary rays appended to `spawned` as above. `rays` must not alias `spawned`.
   void TraceGeneration(const FrameContext& ctx, const RayStreamView& rays, Framebuffer& fb,
                        RayStream& spawned, FrameStats& stats);
 
@@ -47,11 +57,11 @@ class RayEngine {
   size_t capacity_rays() const;
 
  private:
-  // Intersects rays (no shadow rays), shades them in sub-chunks; each sub-chunk's shadow rays
-  // are traced at once, its bounce rays appended to `bounce` (or to `spawned_out` with the
-  // shadow rays when that is non-null).
+  // Intersects rays (no shadow rays), shades them in sub-chunks; each sub-chunk's bounce rays
+  // are appended to `bounce`, its shadow rays grouped by light and traced at once (or, when
+  // shadow_out is non-null, appended to it).
   void TraceAndShade(const FrameContext& ctx, const RayStreamView& rays, Framebuffer& fb,
-                     RayStream* bounce, RayStream* spawned_out, FrameStats& stats);
+                     RayStream& bounce, RayStream* shadow_out, FrameStats& stats);
   void Occlude(const FrameContext& ctx, const RayStreamView& rays, Framebuffer& fb,
                FrameStats& stats);
   void Drain(const FrameContext& ctx, size_t primaries, Framebuffer& fb, FrameStats& stats);

@@ -367,6 +367,49 @@ TEST_CASE("TraceGeneration: a mixed generation equals its classes traced apart")
   CHECK(out_mixed.size() > 0);
 }
 
+// The queue backends' form: shadow rays grouped by light (Shade emits them light by light per
+// SIMD vector; ungrouped, 64-ray runs mix lights and miss the coherent packets), the other
+// secondary rays kept in their own stream.
+TEST_CASE("TraceGeneration split by class: shadow rays grouped by light, the others apart") {
+  const Scene s = test::HandScene();
+  REQUIRE(s.lights.size() == 2);
+  const Accel accel(test::MeshOf(s));
+  RenderOptions opt;
+  opt.width = 16;
+  opt.height = 16;
+  opt.batch = 4096;  // one Shade sub-chunk: one group per light
+  const FrameContext ctx = MakeFrameContext(s, accel, s.camera, opt);
+  RayStream primary;
+  AppendPrimaryRays(ctx.camera, Tile{0, 0, 16, 16}, RayOrder::kScanline, primary);
+  primary.FillPadding();
+  RayEngine engine;
+  Framebuffer fb(16, 16), fb_mixed(16, 16);
+  RayStream shadow_out, bounce_out, mixed_out;
+  FrameStats stats, mixed_stats;
+  engine.TraceGeneration(ctx, RayStreamView{}, primary.view(), fb, shadow_out, bounce_out, stats);
+  engine.TraceGeneration(ctx, primary.view(), fb_mixed, mixed_out, mixed_stats);
+  const int shadow_kind = static_cast<int>(RayKind::kShadow);
+  CHECK(shadow_out.size() == stats.shade.spawned[shadow_kind]);
+  CHECK(shadow_out.size() + bounce_out.size() == mixed_out.size());
+  REQUIRE(shadow_out.size() > 0);
+  REQUIRE(bounce_out.size() > 0);
+  CHECK(std::memcmp(fb.sums(), fb_mixed.sums(), sizeof(int64_t) * 3 * 256) == 0);
+  const RayStreamView sv = shadow_out.view();
+  int changes = 0, previous = -1;
+  for (size_t i = 0; i < sv.size; ++i) {
+    CHECK(sv.kind[i] == shadow_kind);
+    // The light a shadow ray runs to: o + d is its position.
+    const glm::vec3 end(sv.ox[i] + sv.dx[i], sv.oy[i] + sv.dy[i], sv.oz[i] + sv.dz[i]);
+    const glm::vec3 e0 = end - s.lights[0].position, e1 = end - s.lights[1].position;
+    const int light = glm::dot(e0, e0) <= glm::dot(e1, e1) ? 0 : 1;
+    changes += previous >= 0 && light != previous ? 1 : 0;
+    previous = light;
+  }
+  CHECK(changes == 1);  // both lights seen, each in one run
+  const RayStreamView bv = bounce_out.view();
+  for (size_t i = 0; i < bv.size; ++i) CHECK(bv.kind[i] != shadow_kind);
+}
+
 TEST_CASE("ImageTiles") {
   const auto tiles = ImageTiles(10, 7, 4);
   REQUIRE(tiles.size() == 6);
