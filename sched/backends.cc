@@ -281,9 +281,13 @@ class SerialImpl final : public HostRenderer::Impl {
 // A task is a RayStream of at most task_size rays of one class (shadow or not), owned by the
 // backend's TaskArena; the queues carry RayStream* (8 bytes: LFREE keeps it inline in the node
 // and reads it before its CAS). A thread pops up to ceil(batch / task_size) tasks at once and
-// traces them as one stream (RayEngine::TraceGeneration), so the kernels see batches while the
-// task stays the unit of the queues and of their statistics. The secondary rays are cut into
-// tasks and pushed back (LOCAL: to the thread's own queue).
+// traces each class as one stream (RayEngine::TraceGeneration), so the kernels see batches while
+// the task stays the unit of the queues and of their statistics. Each ray is copied once on the
+// way in (a class's tasks gathered array by array; a class of one task is traced in place) and
+// once on the way out (the engine splits Shade's output by class, shadow rays grouped by light,
+// and those streams are cut into tasks array by array); the secondary rays are pushed back
+// (LOCAL: to the thread's own queue). That scheduling work is timed as
+// FrameStats::schedule_seconds, apart from the kernels.
 //
 // Tiles feed the queues: a thread that finds its queue empty takes the next tile (an atomic
 // counter) and pushes its primary tasks, so the tasks in flight are those of about one tile per
@@ -332,17 +336,20 @@ class TaskArena {
     }
     free_.reserve(all_.size());
   }
-  RayStream* Get(size_t task_size) {
+  // n empty streams appended to `out`, under one lock.
+  void Get(size_t n, size_t task_size, std::vector<RayStream*>& out) {
     std::lock_guard<std::mutex> lock(mutex_);
-    if (free_.empty()) {
-      RayStream& s = all_.emplace_back();
-      s.Reserve(task_size);
-      free_.reserve(all_.size());
-      return &s;
+    for (size_t i = 0; i < n; ++i) {
+      if (free_.empty()) {
+        RayStream& s = all_.emplace_back();
+        s.Reserve(task_size);
+        free_.reserve(all_.size());
+        out.push_back(&s);
+        continue;
+      }
+      out.push_back(free_.back());
+      free_.pop_back();
     }
-    RayStream* s = free_.back();
-    free_.pop_back();
-    return s;
   }
   void Put(RayStream* const* tasks, size_t n) {
     std::lock_guard<std::mutex> lock(mutex_);
@@ -574,8 +581,10 @@ class QueueImpl final : public HostRenderer::Impl {
  private:
   struct alignas(kQueueFalseSharing) Worker {
     RayEngine engine;
-    RayStream batch;    // the popped tasks, as one stream
-    RayStream spawned;  // their secondary rays, before cutting
+    RayStream shadow_in;   // the popped shadow tasks, as one stream (two or more of them)
+    RayStream rays_in;     // the popped other tasks, the same
+    RayStream shadow_out;  // their secondary rays by class, before cutting: shadow rays
+    RayStream bounce_out;  // (grouped by light) and the others
     std::vector<RayStream*> popped;
     std::vector<RayStream*> children;
     FrameStats stats;
@@ -670,10 +679,13 @@ class QueueImpl final : public HostRenderer::Impl {
     // bounces), so the threads' streams never grow in the steady state.
     const size_t batch_rays = BatchTasks() * TaskSize() + kStreamPad;
     for (auto& w : workers_) {
-      w->batch.Reserve(batch_rays);
-      w->spawned.Reserve(batch_rays * (ctx_.scene->lights.size() + 2) + kStreamPad);
+      w->shadow_in.Reserve(batch_rays);
+      w->rays_in.Reserve(batch_rays);
+      w->shadow_out.Reserve(batch_rays * std::max<size_t>(lights, 1) + kStreamPad);
+      w->bounce_out.Reserve(2 * batch_rays + kStreamPad);
       w->popped.reserve(BatchTasks());
-      w->children.reserve(std::max(tile_pixels, w->spawned.capacity()) / TaskSize() + 2);
+      const size_t out = w->shadow_out.capacity() + w->bounce_out.capacity();
+      w->children.reserve(std::max(tile_pixels, out) / TaskSize() + 2);
     }
     // Published to the threads by the opening barrier (Release), hence relaxed.
     next_tile_.store(0, std::memory_order_relaxed);
@@ -694,27 +706,42 @@ class QueueImpl final : public HostRenderer::Impl {
     lookup_.Build(*plan_->pbt(), tiles_, ctx_.options.width);
   }
 
-  // Appends rays [0, n) of `from` to `to` (capacity grown only while the arenas warm up).
-  static void Append(const RayStreamView& from, RayStream& to) {
-    for (size_t i = 0; i < from.size; ++i) to.PushFrom(from, i);
+  // Cuts `rays` (one class) into tasks of task_size rays (the last one shorter), copied array
+  // by array, into me.children.
+  void Cut(Worker& me, const RayStreamView& rays) {
+    if (rays.size == 0) return;
+    const size_t ts = TaskSize();
+    size_t c = me.children.size();
+    arena_.Get((rays.size + ts - 1) / ts, ts, me.children);
+    for (size_t f = 0; f < rays.size; f += ts) {
+      RayStream& task = *me.children[c++];
+      task.Append(rays, f, std::min(ts, rays.size - f));
+      task.SealTail();
+    }
   }
 
-  // Cuts `rays` of one class (shadow or not) into tasks of task_size rays, into me.children.
-  void Cut(Worker& me, const RayStreamView& rays, bool shadow) {
-    RayStream* open = nullptr;
-    for (size_t i = 0; i < rays.size; ++i) {
-      if ((rays.kind[i] == static_cast<int32_t>(RayKind::kShadow)) != shadow) continue;
-      if (open == nullptr) {
-        open = arena_.Get(TaskSize());
-        me.children.push_back(open);
-      }
-      open->PushFrom(rays, i);
-      if (open->size() == TaskSize()) {
-        open->FillPadding();
-        open = nullptr;
-      }
+  static bool IsShadowTask(RayStream& task) {
+    return task.view().kind[0] == static_cast<int32_t>(RayKind::kShadow);
+  }
+
+  // The popped tasks of one class as one stream: a lone task is traced in place (tasks are
+  // sealed), two or more are copied into `into` array by array. Empty if the class has none.
+  RayStreamView Gather(Worker& me, bool shadow, RayStream& into) {
+    RayStream* only = nullptr;
+    size_t count = 0;
+    for (RayStream* task : me.popped) {
+      if (IsShadowTask(*task) != shadow) continue;
+      only = task;
+      ++count;
     }
-    if (open != nullptr) open->FillPadding();
+    if (count == 0) return RayStreamView{};
+    if (count == 1) return only->view();
+    into.Clear();
+    for (RayStream* task : me.popped) {
+      if (IsShadowTask(*task) == shadow) into.Append(task->view(), 0, task->size());
+    }
+    into.SealTail();
+    return into.view();
   }
 
   // Pushes the children of one batch (counted first for termination) or of a tile.
@@ -722,10 +749,13 @@ class QueueImpl final : public HostRenderer::Impl {
     if constexpr (kShared) {
       outstanding_.Retire(static_cast<int64_t>(me.children.size()) - retired + 1);
     }
-    for (RayStream* child : me.children) {
-      in_flight_.fetch_add(static_cast<int64_t>(child->size()), std::memory_order_relaxed);
-      queue_.Push(w, std::move(child));
-    }
+    // One add for all of them, before any is pushed: the count never falls below the rays in
+    // queued tasks (a popper subtracts what it took), and the threads share one cache line
+    // per batch instead of per task.
+    int64_t rays = 0;
+    for (const RayStream* child : me.children) rays += static_cast<int64_t>(child->size());
+    in_flight_.fetch_add(rays, std::memory_order_relaxed);
+    for (RayStream* child : me.children) queue_.Push(w, std::move(child));
     me.children.clear();
   }
 
@@ -735,15 +765,17 @@ class QueueImpl final : public HostRenderer::Impl {
     const auto t0 = Clock::now();
     const Tile& tile = tiles_[i];
     const size_t end = first + count;
+    size_t c = me.children.size();
+    const size_t tasks = (count + TaskSize() - 1) / TaskSize();
+    arena_.Get(tasks, TaskSize(), me.children);
     for (size_t f = first; f < end; f += TaskSize()) {
       const size_t n = std::min(TaskSize(), end - f);
-      RayStream* task = arena_.Get(TaskSize());
+      RayStream* task = me.children[c++];
       task->Resize(n);
       GeneratePrimaryRays(ctx_.camera, tile, ctx_.options.order, f, n, task->view(), 0);
-      task->FillPadding();
-      me.children.push_back(task);
+      task->SealTail();
     }
-    me.primary += me.children.size();
+    me.primary += tasks;
     me.stats.generate_seconds += Seconds(t0, Clock::now());
     PushChildren(me, w, /*retired=*/0);
   }
@@ -849,43 +881,39 @@ class QueueImpl final : public HostRenderer::Impl {
     }
   }
 
-  // Up to ceil(batch / task_size) tasks as one stream through the engine; children pushed.
+  // Up to ceil(batch / task_size) tasks through the engine, one stream per class; children
+  // pushed. Everything but the engine's call is scheduling (FrameStats::schedule_seconds).
   void ProcessBatch(Worker& me, int w) {
     const auto t0 = Clock::now();
-    me.batch.Clear();
     int64_t rays = 0;
-    for (RayStream* task : me.popped) {
-      Append(task->view(), me.batch);
-      rays += static_cast<int64_t>(task->size());
-    }
-    me.batch.FillPadding();
-    me.spawned.Clear();
+    for (RayStream* task : me.popped) rays += static_cast<int64_t>(task->size());
+    const RayStreamView shadow = Gather(me, /*shadow=*/true, me.shadow_in);
+    const RayStreamView others = Gather(me, /*shadow=*/false, me.rays_in);
     if (frame_ != nullptr) {
       // PBT's work cost: every ray traced is charged to the tile of its pixel.
-      const RayStreamView b = me.batch.view();
-      for (size_t i = 0; i < b.size; ++i) ++me.tile_rays[lookup_.TileOf(b.pixel[i])];
+      for (size_t i = 0; i < shadow.size; ++i) ++me.tile_rays[lookup_.TileOf(shadow.pixel[i])];
+      for (size_t i = 0; i < others.size; ++i) ++me.tile_rays[lookup_.TileOf(others.pixel[i])];
     }
-    me.stats.shade_seconds += Seconds(t0, Clock::now());
-    const uint64_t tasks0 = me.stats.tasks;
-    me.engine.TraceGeneration(ctx_, me.batch.view(), *fb_, me.spawned, me.stats);
-    me.stats.tasks = tasks0 + me.popped.size();
-    const int64_t now = in_flight_.fetch_sub(rays, std::memory_order_relaxed) - rays;
+    me.shadow_out.Clear();
+    me.bounce_out.Clear();
     const auto t1 = Clock::now();
-    const RayStreamView spawned = me.spawned.view();
-    Cut(me, spawned, /*shadow=*/true);
-    size_t bounce = 0;
-    for (size_t i = 0; i < spawned.size; ++i) {
-      bounce += spawned.kind[i] != static_cast<int32_t>(RayKind::kShadow) ? 1 : 0;
-    }
-    if (now + static_cast<int64_t>(spawned.size) <= cap_) {
-      Cut(me, spawned, /*shadow=*/false);
+    const uint64_t tasks0 = me.stats.tasks;
+    me.engine.TraceGeneration(ctx_, shadow, others, *fb_, me.shadow_out, me.bounce_out,
+                              me.stats);
+    me.stats.tasks = tasks0 + me.popped.size();
+    const auto t2 = Clock::now();
+    const int64_t now = in_flight_.fetch_sub(rays, std::memory_order_relaxed) - rays;
+    const size_t spawned = me.shadow_out.size() + me.bounce_out.size();
+    Cut(me, me.shadow_out.view());
+    if (now + static_cast<int64_t>(spawned) <= cap_) {
+      Cut(me, me.bounce_out.view());
     } else {
-      me.stats.budget_dropped += bounce;  // the cap: only exponential ray trees get here
+      me.stats.budget_dropped += me.bounce_out.size();  // the cap: only exponential trees
     }
-    me.stats.shade_seconds += Seconds(t1, Clock::now());
     PushChildren(me, w, static_cast<int64_t>(me.popped.size()));
     arena_.Put(me.popped.data(), me.popped.size());
     me.popped.clear();
+    me.stats.schedule_seconds += Seconds(t0, t1) + Seconds(t2, Clock::now());
   }
 
   // Listing 2, lines 4-10, on thread w, with batches and tiles feeding the queue.
@@ -1451,6 +1479,7 @@ Json FrameJson(const HostFrameStats& f, const StatsFields& frame_extra,
          {"generate_seconds", s.generate_seconds},
          {"trace_seconds", s.trace_seconds},
          {"shade_seconds", s.shade_seconds},
+         {"schedule_seconds", s.schedule_seconds},
          {"mrays_per_second", s.MraysPerSecond()},
          {"primary_tasks", f.primary_tasks},
          {"idle_seconds", f.IdleSeconds()},
@@ -1473,7 +1502,8 @@ Json FrameJson(const HostFrameStats& f, const StatsFields& frame_extra,
                {"steals", t.steals},
                {"rays", RaysJson(t.work)},
                {"trace_seconds", t.work.trace_seconds},
-               {"shade_seconds", t.work.shade_seconds}};
+               {"shade_seconds", t.work.shade_seconds},
+               {"schedule_seconds", t.work.schedule_seconds}};
     if (w < thread_extra.size()) AddFields(entry, thread_extra[w], "thread");
     threads.push_back(std::move(entry));
   }

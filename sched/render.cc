@@ -85,6 +85,7 @@ void FrameStats::Merge(const FrameStats& o) {
   generate_seconds += o.generate_seconds;
   trace_seconds += o.trace_seconds;
   shade_seconds += o.shade_seconds;
+  schedule_seconds += o.schedule_seconds;
   total_seconds = std::max(total_seconds, o.total_seconds);
 }
 

@@ -60,6 +60,10 @@ struct FrameStats {
   double generate_seconds = 0;       // primary rays (queue backends: and cutting them into tasks)
   double trace_seconds = 0;          // Accel::Intersect + Accel::Occluded
   double shade_seconds = 0;          // the Shade kernel (shadow-ray adds and partitions: neither)
+  // Queue backends: a batch's tasks gathered into streams, its secondary rays cut into tasks,
+  // pushed (their queue operations also in ThreadStats::queue_seconds) and the tasks returned
+  // (0 for serial and tiles, which have no tasks to move).
+  double schedule_seconds = 0;
   double total_seconds = 0;          // frame wall time (set by the backend)
 
   uint64_t TotalRays() const;

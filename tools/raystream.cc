@@ -580,10 +580,15 @@ int RunRender(RenderArgs args) {
                per_call(RayKind::kPrimary), per_call(RayKind::kShadow), args.batch,
                total.trace.rays > 0 ? 100.0 * total.trace.packet_rays / total.trace.rays : 0.0);
   }
-  fmt::print("trace      {:.1f} ms in {} tasks ({:.1f} ms tracing, {:.1f} ms shading), "
+  const std::string scheduling =
+      total.schedule_seconds > 0
+          ? fmt::format(", {:.1f} ms scheduling", 1e3 * total.schedule_seconds)
+          : std::string();
+  fmt::print("trace      {:.1f} ms in {} tasks ({:.1f} ms tracing, {:.1f} ms shading{}), "
              "{:.2f} Mrays/s\n",
              1e3 * total_seconds, total.tasks, 1e3 * total.trace_seconds,
-             1e3 * total.shade_seconds, total_seconds > 0 ? rays / total_seconds * 1e-6 : 0.0);
+             1e3 * total.shade_seconds, scheduling,
+             total_seconds > 0 ? rays / total_seconds * 1e-6 : 0.0);
   fmt::print("{}", backend->Summary(reports));
   fmt::print("wrote      {}\n", FrameFileName(out, last));
   return 0;
