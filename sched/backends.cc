@@ -1116,6 +1116,9 @@ class TilesImpl final : public HostRenderer::Impl {
     if (lists_ && options_.pbt_demand) master_.Load(frame_->owner, options_.threads);
     records_.assign(tiles_.size(), TileRecord{});
     for (auto& w : workers_) {
+      // Arenas sized here, not in the thread's first tile: a thread that took no tile in frame
+      // 0 (another took them all, e.g. stealing on a loaded machine) must not allocate later.
+      w->fifo.engine().Reserve(ctx_);
       w->stats = FrameStats();
       w->ticks = 0;
       w->ops = 0;
