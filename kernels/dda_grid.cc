@@ -4,7 +4,9 @@
 #include "kernels/dda_simd.h"
 
 #include <algorithm>
+#include <bit>
 #include <cstdint>
+#include <memory>
 #include <vector>
 
 #include "kernels/build_threads.h"
@@ -19,21 +21,37 @@ size_t DdaGrid::Bytes() const {
          skip_bytes;
 }
 
+namespace {
+
+// out[i] = min(out[i], max(d, in[i])) for i < n: one offset of the windowed min-max below, over
+// contiguous bytes (the compiler vectorizes it).
+void MinMaxOffset(uint8_t* __restrict out, const uint8_t* __restrict in, size_t n, uint8_t d) {
+  for (size_t i = 0; i < n; ++i) out[i] = std::min(out[i], std::max(d, in[i]));
+}
+
+}  // namespace
+
 void BuildSkipRings(const Grid& grid, uint8_t* skip, int threads) {
   // Chebyshev distance to the nearest occupied cell, capped at kFar, is separable:
   // dist = min_z' max(|dz|, min_y' max(|dy|, min_x' |dx|)) over occupied (x', y', z'). Pass 1
   // takes the 1-D distance along each x row (two sweeps); passes 2 and 3 take windowed min-max
-  // along y and z over whole x rows at once (contiguous bytes: the compiler vectorizes them).
+  // along y and z, out[i] = min over |j - i| <= kFar of max(|j - i|, in[j]), one offset d = j - i
+  // at a time over whole runs of cells (for offset d along y, the d-th row on of each z layer
+  // with the row d before it, (ny - d) nx contiguous bytes; along z, the whole xy range): long
+  // contiguous loops the compiler vectorizes. Offset kFar adds nothing (every value is <= kFar).
   // Threaded: each pass is split where its outputs are independent (rows, z layers, x ranges).
   constexpr int kFar = kMaxSkipRings + 1;
   const size_t nx = size_t(grid.res[0]), ny = size_t(grid.res[1]), nz = size_t(grid.res[2]);
+  const size_t plane = nx * ny;
   const int parts = int(std::min<size_t>(size_t(BuildThreadCount(threads)),
                                          grid.num_cells / 16384 + 1));
-  std::vector<uint8_t> a(grid.num_cells), b(grid.num_cells);
+  // every byte of both is written before it is read: no zero fill
+  const std::unique_ptr<uint8_t[]> a(new uint8_t[grid.num_cells]);
+  const std::unique_ptr<uint8_t[]> b(new uint8_t[grid.num_cells]);
   RunParts(parts, [&](int k) {
     const size_t rows = ny * nz;
     for (size_t row = PartBegin(rows, parts, k, 1); row < PartBegin(rows, parts, k + 1, 1); ++row) {
-      uint8_t* r = a.data() + row * nx;
+      uint8_t* r = a.get() + row * nx;
       int dist = kFar;
       for (size_t x = 0; x < nx; ++x) {
         dist = grid.Occupied(row * nx + x) ? 0 : std::min(dist + 1, kFar);
@@ -46,33 +64,34 @@ void BuildSkipRings(const Grid& grid, uint8_t* skip, int threads) {
       }
     }
   });
-  // out[i] = min over |j - i| <= kFar of max(|j - i|, in[j]), i and j along an axis of `count`
-  // runs of `width` bytes, `pitch` bytes apart, in `blocks` such axes `block_pitch` apart
-  auto window = [&](const uint8_t* in, uint8_t* out, size_t count, size_t width, size_t pitch,
-                    size_t blocks, size_t block_pitch) {
-    for (size_t blk = 0; blk < blocks; ++blk) {
-      for (size_t i = 0; i < count; ++i) {
-        uint8_t* o = out + blk * block_pitch + i * pitch;
-        std::copy_n(in + blk * block_pitch + i * pitch, width, o);
-        const size_t j0 = i >= size_t(kFar) ? i - kFar : 0;
-        const size_t j1 = std::min(count - 1, i + kFar);
-        for (size_t j = j0; j <= j1; ++j) {
-          const uint8_t dj = uint8_t(j > i ? j - i : i - j);
-          const uint8_t* q = in + blk * block_pitch + j * pitch;
-          for (size_t x = 0; x < width; ++x) o[x] = std::min(o[x], std::max(dj, q[x]));
-        }
+  RunParts(parts, [&](int k) {  // along y, per z layer
+    for (size_t z = PartBegin(nz, parts, k, 1); z < PartBegin(nz, parts, k + 1, 1); ++z) {
+      const uint8_t* in = a.get() + z * plane;
+      uint8_t* out = b.get() + z * plane;
+      std::copy_n(in, plane, out);
+      for (size_t d = 1; d < size_t(kFar) && d < ny; ++d) {
+        const size_t n = (ny - d) * nx, shift = d * nx;
+        MinMaxOffset(out, in + shift, n, uint8_t(d));  // j = i + d
+        MinMaxOffset(out + shift, in, n, uint8_t(d));  // j = i - d
       }
     }
-  };
-  RunParts(parts, [&](int k) {  // along y, x rows: z layers apart
-    const size_t z0 = PartBegin(nz, parts, k, 1), z1 = PartBegin(nz, parts, k + 1, 1);
-    window(a.data() + z0 * nx * ny, b.data() + z0 * nx * ny, ny, nx, nx, z1 - z0, nx * ny);
   });
-  RunParts(parts, [&](int k) {  // along z, xy planes: ranges of the plane apart
-    const size_t w0 = PartBegin(nx * ny, parts, k, 64), w1 = PartBegin(nx * ny, parts, k + 1, 64);
-    if (w1 > w0) window(b.data() + w0, a.data() + w0, nz, w1 - w0, nx * ny, 1, 0);
+  RunParts(parts, [&](int k) {  // along z, per range of the xy plane
+    const size_t w0 = PartBegin(plane, parts, k, 64), w1 = PartBegin(plane, parts, k + 1, 64);
+    if (w1 <= w0) return;
+    const size_t width = w1 - w0;
+    for (size_t z = 0; z < nz; ++z) std::copy_n(b.get() + z * plane + w0, width, a.get() + z * plane + w0);
+    for (size_t d = 1; d < size_t(kFar) && d < nz; ++d) {
+      for (size_t z = 0; z + d < nz; ++z) {
+        uint8_t* lo = a.get() + z * plane + w0;
+        uint8_t* hi = a.get() + (z + d) * plane + w0;
+        MinMaxOffset(lo, b.get() + (z + d) * plane + w0, width, uint8_t(d));  // j = i + d
+        MinMaxOffset(hi, b.get() + z * plane + w0, width, uint8_t(d));        // j = i - d
+      }
+    }
   });
-  for (size_t c = 0; c < grid.num_cells; ++c) skip[c] = uint8_t(a[c] == 0 ? 0 : a[c] - 1);
+  // rings = distance - 1 (0 for occupied cells): a saturating decrement
+  for (size_t c = 0; c < grid.num_cells; ++c) skip[c] = uint8_t(a[c] - (a[c] != 0));
 }
 
 void BuildDdaGrid(const Grid& grid, const TwoLevelGrid* two_level, const TriangleSoA& tris,
@@ -98,15 +117,26 @@ void BuildDdaGrid(const Grid& grid, const TwoLevelGrid* two_level, const Triangl
   const size_t total = out->top_words32 + records * (kSubCells / 32);
   out->simd_ok = out->simd_ok && total < size_t{0x7fffffc0};
   {
-    std::vector<uint8_t> rings((grid.num_cells + 3) / 4 * 4, uint8_t{0});
-    BuildSkipRings(grid, rings.data(), threads);
+    // the rings one byte per cell, four to a 32-bit word, low byte first: on a little-endian
+    // machine the words' bytes in memory order, written in place
+    const size_t skip_words = (grid.num_cells + 3) / 4;
+    out->skip = AllocateAlignedOrThrow<uint32_t>(skip_words, "the grid's empty-space rings");
+    std::vector<uint8_t> packed;
+    uint8_t* rings = reinterpret_cast<uint8_t*>(out->skip.get());
+    if constexpr (std::endian::native != std::endian::little) {
+      packed.resize(4 * skip_words);
+      rings = packed.data();
+    }
+    std::fill(rings + grid.num_cells, rings + 4 * skip_words, uint8_t{0});
+    BuildSkipRings(grid, rings, threads);
     size_t blocks = 0;
     for (size_t c = 0; c < grid.num_cells; ++c) blocks += rings[c] >= 2;
     out->empty_block_share = double(blocks) / double(grid.num_cells);
-    out->skip = AllocateAlignedOrThrow<uint32_t>(rings.size() / 4, "the grid's empty-space rings");
-    for (size_t w = 0; w < rings.size() / 4; ++w) {
-      out->skip[w] = uint32_t(rings[4 * w]) | uint32_t(rings[4 * w + 1]) << 8 |
-                     uint32_t(rings[4 * w + 2]) << 16 | uint32_t(rings[4 * w + 3]) << 24;
+    if constexpr (std::endian::native != std::endian::little) {
+      for (size_t w = 0; w < skip_words; ++w) {
+        out->skip[w] = uint32_t(rings[4 * w]) | uint32_t(rings[4 * w + 1]) << 8 |
+                       uint32_t(rings[4 * w + 2]) << 16 | uint32_t(rings[4 * w + 3]) << 24;
+      }
     }
   }
   out->bits = AllocateAlignedOrThrow<uint32_t>(total, "the grid's occupancy bits");
