@@ -280,9 +280,11 @@ class SerialImpl final : public HostRenderer::Impl {
 //
 // A task is a RayStream of at most task_size rays of one class (shadow or not), owned by the
 // backend's TaskArena; the queues carry RayStream* (8 bytes: LFREE keeps it inline in the node
-// and reads it before its CAS). A thread pops up to ceil(batch / task_size) tasks at once and
-// traces each class as one stream (RayEngine::TraceGeneration), so the kernels see batches while
-// the task stays the unit of the queues and of their statistics. Each ray is copied once on the
+// and reads it before its CAS). A thread pops tasks until it holds ceil(batch / task_size) tasks
+// of non-shadow rays or as many shadow rays as one Shade sub-chunk spawns (EngineShadowBatch:
+// what RenderTile traces in one call), and traces each class as one stream
+// (RayEngine::TraceGeneration), so the kernels see batches while the task stays the unit of the
+// queues and of their statistics. Each ray is copied once on the
 // way in (a class's tasks gathered array by array; a class of one task is traced in place) and
 // once on the way out (the engine splits Shade's output by class, shadow rays grouped by light,
 // and those streams are cut into tasks array by array); the secondary rays are pushed back
@@ -625,6 +627,12 @@ class QueueImpl final : public HostRenderer::Impl {
     return std::max<size_t>(
         1, (static_cast<size_t>(ctx_.options.batch) + TaskSize() - 1) / TaskSize());
   }
+  // Shadow tasks a thread gathers into one Occlude call (whole tasks, within the engine's
+  // scratch), at least a batch's.
+  size_t ShadowBatchTasks() const {
+    const size_t rays = EngineShadowBatch(ctx_.options, ctx_.scene->lights.size());
+    return std::max(BatchTasks(), rays / TaskSize());
+  }
 
   int PbtWorkers() const { return rs::PbtWorkers(options_); }
   TilePlanOptions PlanOptions() const { return TilePlanOptionsFor(options_); }
@@ -679,11 +687,11 @@ class QueueImpl final : public HostRenderer::Impl {
     // bounces), so the threads' streams never grow in the steady state.
     const size_t batch_rays = BatchTasks() * TaskSize() + kStreamPad;
     for (auto& w : workers_) {
-      w->shadow_in.Reserve(batch_rays);
+      w->shadow_in.Reserve(ShadowBatchTasks() * TaskSize() + kStreamPad);
       w->rays_in.Reserve(batch_rays);
       w->shadow_out.Reserve(batch_rays * std::max<size_t>(lights, 1) + kStreamPad);
       w->bounce_out.Reserve(2 * batch_rays + kStreamPad);
-      w->popped.reserve(BatchTasks());
+      w->popped.reserve(BatchTasks() + ShadowBatchTasks());
       const size_t out = w->shadow_out.capacity() + w->bounce_out.capacity();
       w->children.reserve(std::max(tile_pixels, out) / TaskSize() + 2);
     }
@@ -920,11 +928,17 @@ class QueueImpl final : public HostRenderer::Impl {
   void Work(int w) {
     Worker& me = *workers_[static_cast<size_t>(w)];
     const size_t batch_tasks = BatchTasks();
+    const size_t shadow_tasks = ShadowBatchTasks();
     const bool pbt = frame_ != nullptr;
     int spins = 0;
     for (;;) {
       RayStream* task = nullptr;
-      while (me.popped.size() < batch_tasks && queue_.TryPop(w, task)) me.popped.push_back(task);
+      size_t shadow = 0;  // of the popped tasks
+      while (me.popped.size() - shadow < batch_tasks && shadow < shadow_tasks &&
+             queue_.TryPop(w, task)) {
+        me.popped.push_back(task);
+        shadow += IsShadowTask(*task) ? 1 : 0;
+      }
       if (!me.popped.empty()) {
         spins = 0;
         try {

@@ -185,6 +185,11 @@ size_t EngineRayBudget(const RenderOptions& o, size_t lights) {
          PaddedSize(p.shadow) + PaddedSize(p.bounce);
 }
 
+size_t EngineShadowBatch(const RenderOptions& o, size_t lights) {
+  const size_t batch = static_cast<size_t>(o.batch);
+  return std::max(batch, ShadeChunk(batch, lights) * lights);  // <= PlanArenas' shadow
+}
+
 void RayEngine::Reserve(const FrameContext& ctx) {
   const size_t batch = static_cast<size_t>(ctx.options.batch);
   const int depth = ctx.options.max_depth;

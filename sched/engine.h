@@ -21,6 +21,11 @@ namespace rs {
 // budget does not depend on the image size.
 size_t EngineRayBudget(const RenderOptions& options, size_t lights);
 
+// Shadow rays one Occlude call of an engine sized for `options` and `lights` takes without
+// growing its scratch: what one Shade sub-chunk spawns (RenderTile traces them in one call), at
+// least a batch. Queue backends gather up to this many popped shadow rays into one call.
+size_t EngineShadowBatch(const RenderOptions& options, size_t lights);
+
 class RayEngine {
  public:
   // Sizes the arenas for ctx (no-op when they are large enough already). Called by RenderTile
