@@ -42,14 +42,15 @@ class RayEngine {
   void RenderTile(const FrameContext& ctx, const Tile& tile, Framebuffer& fb, FrameStats& stats);
 
   // One generation of a backend that schedules the secondary rays itself (queue backends),
-  // already split by class: `shadow` (shadow rays only) occluded and added to fb, `rays` (no
-  // shadow rays; at most ctx.options.batch rays rounded up to whole tasks, for bounded scratch)
-  // intersected and shaded. Their secondary rays are appended: shadow rays to `shadow_out`
-  // grouped by light within each Shade sub-chunk (Shade emits them light by light per SIMD
-  // vector, so ungrouped a 64-ray run would mix lights and miss the coherent packets), the
-  // others to `bounce_out` in Shade's order. Both inputs padded with the lanes after their size
-  // sealed (RayStream::FillPadding or SealTail); they must not alias the outputs. The outputs
-  // may be one stream (each Shade sub-chunk's shadow rays, then its other rays).
+  // already split by class: `shadow` (shadow rays only; up to EngineShadowBatch rays, or a
+  // batch rounded up to whole tasks, without growing the scratch) occluded and added to fb,
+  // `rays` (no shadow rays; at most ctx.options.batch rays rounded up to whole tasks, for
+  // bounded scratch) intersected and shaded. Their secondary rays are appended: shadow rays to
+  // `shadow_out` grouped by light within each Shade sub-chunk (Shade emits them light by light
+  // per SIMD vector, so ungrouped a 64-ray run would mix lights and miss the coherent packets),
+  // the others to `bounce_out` in Shade's order. Both inputs padded with the lanes after their
+  // size sealed (RayStream::FillPadding or SealTail); they must not alias the outputs. The
+  // outputs may be one stream (each Shade sub-chunk's shadow rays, then its other rays).
   void TraceGeneration(const FrameContext& ctx, const RayStreamView& shadow,
                        const RayStreamView& rays, Framebuffer& fb, RayStream& shadow_out,
                        RayStream& bounce_out, FrameStats& stats);
