@@ -26,8 +26,12 @@ inline constexpr size_t kCoherentPacketRays = 64;
 // ray passes (the cells are binned conservatively with a margin larger than the rounding of
 // either walk; see Grid::margin), and ties go to the lower id in both. A packet is abandoned
 // for the stream DDA when its footprint grows too wide to pay (rays that diverge), which only
-// costs time. stats: rays, cell_steps (cells whose occupancy a packet read, plus the stream
-// DDA's steps), triangle_tests (ray lanes tested). Same alignment rules; no allocation.
+// costs time. Refused packets get a second chance: their rays, up to 1024 at a time, are sorted
+// by direction and origin into packets of rays that run together (in grids without dense
+// cells); the order never changes a result. stats: rays, cell_steps (cells whose occupancy a
+// packet read, plus the stream DDA's steps), triangle_tests (ray lanes tested), packets,
+// packets_refused, packets_regrouped, packet_rays. Same alignment rules; no allocation (about
+// 120 KB of stack: PacketScratch and the regrouped rays).
 void IntersectCoherent(const DdaGrid& g, const RayStreamView& rays, const HitStreamView& hits,
                        const DdaOptions& options, TraceStats* stats);
 

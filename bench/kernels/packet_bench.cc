@@ -4,7 +4,7 @@
 // OccludedCoherent, "PerRay/<target>/<scene>/<set>" IntersectStreamDda / OccludedStreamDda on the
 // same structure (rs::Accel's, cost-model grid). Both are validated once against each other
 // (identical hits) before timing. Counters: cpu_ticks/ray (thread CPU time in rdtsc ticks; not core
-// cycles: no hardware counters on these machines), packet_share (packets traced as packets),
+// cycles: no hardware counters on these machines), packet_share (rays traced in packets),
 // cells/ray and tests/ray. Environment: RS_BENCH_SIZE=WxH (default 512x512), RS_BENCH_SCENES=a,b.
 // Under callgrind (bench/scripts/run_callgrind.sh) it gives instructions per ray of both forms.
 #include <benchmark/benchmark.h>
@@ -127,9 +127,7 @@ void BM(benchmark::State& state, const std::string& scene, bool shadow, bool pac
   state.counters["cpu_ticks/ray"] = items > 0 ? cpu * TscGhz() * 1e9 / items : 0;
   state.counters["cells/ray"] = double(st.cell_steps) / double(n);
   state.counters["tests/ray"] = double(st.triangle_tests) / double(n);
-  if (st.packets + st.packets_refused > 0) {
-    state.counters["packet_share"] = double(st.packets) / double(st.packets + st.packets_refused);
-  }
+  if (packets) state.counters["packet_share"] = double(st.packet_rays) / double(st.rays);
   state.SetItemsProcessed(int64_t(items));
   hwy::SetSupportedTargetsForTest(0);
 }

@@ -284,10 +284,10 @@ void BM_Trace(benchmark::State& state, const std::string& scene, RaySet set, int
         static_cast<double>(st.cell_steps) / static_cast<double>(rays.size);
     state.counters["tests/ray"] =
         static_cast<double>(st.triangle_tests) / static_cast<double>(rays.size);
-    // share of the 64-ray packets traced as packets (BuildOptions::packets; the rest per ray)
-    if (st.packets + st.packets_refused > 0) {
+    // share of the rays traced in packets (BuildOptions::packets; the rest per ray)
+    if (st.rays > 0) {
       state.counters["packet_share"] =
-          static_cast<double>(st.packets) / static_cast<double>(st.packets + st.packets_refused);
+          static_cast<double>(st.packet_rays) / static_cast<double>(st.rays);
     }
   }
   state.SetItemsProcessed(state.iterations() * static_cast<int64_t>(rays.size));

@@ -148,17 +148,22 @@ struct TraceStats {
   uint64_t cache_lookups = 0;
   uint64_t cache_hits = 0;
   uint64_t empty_skips = 0;  // jumps over blocks of empty cells (BuildOptions::empty_skip)
-  // 64-ray packets traced together (BuildOptions::packets), and those left to the per-ray walk
-  // (not coherent, or diverging too much).
+  // 64-ray packets traced together (BuildOptions::packets), and the stream's 64-ray runs refused
+  // (not coherent, or diverging too much). The rays of refused runs are regrouped by direction
+  // and origin and tried as packets once more (packets_regrouped of the `packets`); what is
+  // refused again goes to the per-ray walk. packets - packets_regrouped + packets_refused is the
+  // number of 64-ray runs of the streams.
   uint64_t packets = 0;
   uint64_t packets_refused = 0;
   uint64_t packet_rays = 0;  // rays of the packets counted in `packets`
+  uint64_t packets_regrouped = 0;
 };
 
 // The acceleration structure: a uniform grid with an occupancy bit array and CSR cell lists,
 // optionally with 8x8x8 sub-grids in its densest cells (BuildOptions::grid), traced by SIMD
 // stream kernels (Highway dynamic dispatch; results identical on every CPU target).
-// Thread-safe for concurrent Intersect/Occluded calls once built.
+// Thread-safe for concurrent Intersect/Occluded calls once built; a call allocates nothing and
+// uses about 128 KB of the calling thread's stack (packet scratch).
 // Coordinate range: the watertight test multiplies three coordinates relative to the ray
 // origin, so vertices and ray origins must stay within magnitude 2^39 (about 5.5e11) to keep
 // its products finite, and triangles larger than about 2^-40 to keep them from underflowing.

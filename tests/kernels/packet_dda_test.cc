@@ -174,7 +174,7 @@ std::vector<Ray> BoundaryBundles(Rng& rng, const Built& b) {
 // Every target: IntersectCoherent / OccludedCoherent against the oracle, bit for bit; returns
 // the packets traced as packets (dispatch target) and checks that some were.
 struct PacketStats {
-  uint64_t packets = 0, refused = 0;
+  uint64_t packets = 0, refused = 0, regrouped = 0;
 };
 
 PacketStats CheckCoherent(const Built& b, const std::vector<Ray>& rays, const std::string& what) {
@@ -220,15 +220,17 @@ PacketStats CheckCoherent(const Built& b, const std::vector<Ray>& rays, const st
     CHECK(any_bad == 0);
     CHECK(occluded[n] == 77);
     CHECK(sa.rays == n);
-    CHECK(st.packets + st.packets_refused == (n + kCoherentPacketRays - 1) / kCoherentPacketRays *
-                                                 (n >= kCoherentPacketRays ? 1 : 0));
+    CHECK(st.packets - st.packets_regrouped + st.packets_refused ==
+          (n + kCoherentPacketRays - 1) / kCoherentPacketRays * (n >= kCoherentPacketRays ? 1 : 0));
+    CHECK(st.packets_regrouped <= st.packets);
     if (std::string(target) == hwy::TargetName(hwy::SupportedAndGeneratedTargets()[0])) {
       ps.packets = st.packets;
       ps.refused = st.packets_refused;
+      ps.regrouped = st.packets_regrouped;
     }
   });
   MESSAGE(what, ": ", n, " rays, ", o.hits, " hits, ", o.occluded, " occluded; packets ",
-          ps.packets, ", refused ", ps.refused);
+          ps.packets, " (", ps.regrouped, " regrouped), refused ", ps.refused);
   return ps;
 }
 
@@ -382,6 +384,36 @@ TEST_CASE("incoherent rays are refused per packet and traced by the stream DDA")
   const PacketStats pm = CheckCoherent(b, mixed, "mixed");
   CHECK(pm.packets > 0);
   CHECK(pm.refused >= 6);
+}
+
+TEST_CASE("refused packets are regrouped by direction and origin into packets") {
+  // Rows of a wide camera (a 64-ray run spans the whole field of view: refused), and two opposite
+  // cameras interleaved ray by ray (every run goes both ways: refused). Sorted by direction and
+  // origin, their rays form packets again. Results stay the oracle's on every target
+  // (CheckCoherent), whatever the order.
+  Rng rng(12);
+  const Soup soup = test::RandomSoup(rng, 500, -1, 1, 0.3);
+  const Built b(soup.view(), 2.0f, -1);
+  const float eye[3] = {0.1f, 0.2f, 3.0f}, at[3] = {0, 0, 0};
+  const float eye2[3] = {-0.1f, -0.2f, -3.0f};
+  const std::vector<Ray> a = CameraRays(eye, at, 64, 40, false);
+  const std::vector<Ray> c = CameraRays(eye2, at, 64, 40, false);
+  const PacketStats pa = CheckCoherent(b, a, "wide camera rows");
+  CHECK(pa.refused > 0);
+  CHECK(pa.regrouped > 0);
+  std::vector<Ray> mixed;
+  for (size_t i = 0; i < a.size(); ++i) {
+    mixed.push_back(a[i]);
+    mixed.push_back(c[i]);
+  }
+  // 5120 rays: several regroup sets of 1024 rays
+  const PacketStats pm = CheckCoherent(b, mixed, "interleaved cameras");
+  CHECK(pm.refused > 20);
+  CHECK(2 * pm.regrouped >= pm.refused);
+  // a set below two packets goes to the stream DDA as it is
+  const std::vector<Ray> tail(mixed.begin() + 2048, mixed.begin() + 2048 + 100);
+  const PacketStats pt = CheckCoherent(b, tail, "interleaved cameras, 100 rays");
+  CHECK(pt.regrouped == 0);
 }
 
 // Regression (conference): coherent shadow packets leaving the big floor quad from 3.05e-5 above
