@@ -30,6 +30,7 @@ void AddTrace(TraceStats& to, const TraceStats& from) {
   to.packets += from.packets;
   to.packets_refused += from.packets_refused;
   to.packet_rays += from.packet_rays;
+  to.packets_regrouped += from.packets_regrouped;
 }
 
 }  // namespace
