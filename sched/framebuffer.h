@@ -80,8 +80,12 @@ class Framebuffer {
       *clamped = true;
       c = kMaxContribution;
     }
-    // c * 2^32 is exact in float (power-of-two scale, no overflow), then rounded to an integer.
-    return static_cast<int64_t>(std::nearbyint(c * kFixedScale));
+    // c * 2^32 is exact in float (power-of-two scale, no overflow), then rounded to an integer:
+    // at 2^23 and above a float is one already; below, adding and subtracting 2^23 rounds it to
+    // nearest even, as std::nearbyint does in that mode (which is a libm call on baseline x86-64).
+    const float x = c * kFixedScale;
+    constexpr float k2p23 = 8388608.0f;
+    return static_cast<int64_t>(x < k2p23 ? (x + k2p23) - k2p23 : x);
   }
 
   // Adds (r, g, b) to pixel `pixel` (< num_pixels()). Thread-safe and wait-free: three relaxed

@@ -5,6 +5,7 @@
 #include <doctest/doctest.h>
 
 #include <algorithm>
+#include <cmath>
 #include <cstring>
 #include <limits>
 #include <random>
@@ -117,6 +118,37 @@ TEST_CASE("conversion: exact for dyadic values, 2^-32 resolution") {
   // The smallest representable step: 2^-32 rounds to 1, 2^-34 rounds to 0.
   CHECK(Framebuffer::ToFixed(std::ldexp(1.0f, -32), &nan, &clamped) == 1);
   CHECK(Framebuffer::ToFixed(std::ldexp(1.0f, -34), &nan, &clamped) == 0);
+  CHECK_FALSE(nan);
+  CHECK_FALSE(clamped);
+}
+
+TEST_CASE("conversion rounds to nearest even, as std::nearbyint: ties, 2^23 boundary, sweep") {
+  bool nan = false, clamped = false;
+  const auto reference = [](float c) {
+    return static_cast<int64_t>(std::nearbyint(c * 4294967296.0f));
+  };
+  // ties at 2^-33 (0.5 step) and 3 * 2^-33 (1.5 steps): to even
+  CHECK(Framebuffer::ToFixed(std::ldexp(1.0f, -33), &nan, &clamped) == 0);
+  CHECK(Framebuffer::ToFixed(std::ldexp(3.0f, -33), &nan, &clamped) == 2);
+  CHECK(Framebuffer::ToFixed(std::ldexp(5.0f, -33), &nan, &clamped) == 2);
+  // around 2^-9 (c * 2^32 = 2^23, where floats become integers)
+  for (float c = std::ldexp(1.0f, -9); c > std::ldexp(1.0f, -10);) {
+    c = std::nextafter(c, 0.0f);
+    CHECK(Framebuffer::ToFixed(c, &nan, &clamped) == reference(c));
+    if (reference(c) < (int64_t{1} << 23) - 64) break;
+  }
+  for (float c = std::ldexp(1.0f, -9), k = 0; k < 64; ++k, c = std::nextafter(c, 1.0f)) {
+    CHECK(Framebuffer::ToFixed(c, &nan, &clamped) == reference(c));
+  }
+  // a log-uniform sweep over [2^-40, 2^8]
+  std::mt19937 rng(5);
+  std::uniform_real_distribution<float> e(-40.0f, 8.0f);
+  size_t bad = 0;
+  for (int i = 0; i < 200000; ++i) {
+    const float c = std::exp2(e(rng));
+    bad += Framebuffer::ToFixed(c, &nan, &clamped) != reference(c) ? 1 : 0;
+  }
+  CHECK(bad == 0);
   CHECK_FALSE(nan);
   CHECK_FALSE(clamped);
 }
