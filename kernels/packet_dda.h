@@ -31,7 +31,7 @@ inline constexpr size_t kCoherentPacketRays = 64;
 // cells); the order never changes a result. stats: rays, cell_steps (cells whose occupancy a
 // packet read, plus the stream DDA's steps), triangle_tests (ray lanes tested), packets,
 // packets_refused, packets_regrouped, packet_rays. Same alignment rules; no allocation (about
-// 120 KB of stack: PacketScratch and the regrouped rays).
+// 130 KB of stack: PacketScratch, the regrouped rays and one packet's state).
 void IntersectCoherent(const DdaGrid& g, const RayStreamView& rays, const HitStreamView& hits,
                        const DdaOptions& options, TraceStats* stats);
 

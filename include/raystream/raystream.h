@@ -163,7 +163,7 @@ struct TraceStats {
 // optionally with 8x8x8 sub-grids in its densest cells (BuildOptions::grid), traced by SIMD
 // stream kernels (Highway dynamic dispatch; results identical on every CPU target).
 // Thread-safe for concurrent Intersect/Occluded calls once built; a call allocates nothing and
-// uses about 128 KB of the calling thread's stack (packet scratch).
+// uses about 130 KB of the calling thread's stack (packet scratch).
 // Coordinate range: the watertight test multiplies three coordinates relative to the ray
 // origin, so vertices and ray origins must stay within magnitude 2^39 (about 5.5e11) to keep
 // its products finite, and triangles larger than about 2^-40 to keep them from underflowing.
