@@ -1033,7 +1033,7 @@ struct Regroup {
   HWY_ALIGN float f[8][kRegroupRays + kStreamPad];  // ox oy oz dx dy dz tmin tmax, sorted
   HWY_ALIGN float hit_f[3][kRegroupRays + kStreamPad];  // t u v (closest hit)
   HWY_ALIGN int32_t result[kRegroupRays + kStreamPad];  // prim (closest) or occluded (any)
-  uint64_t order[kRegroupRays];  // key << 32 | index into the caller's stream
+  uint64_t order[kRegroupRays];  // sort key << 32 | index into the caller's stream
   size_t size = 0;
   float lo[3], scale[3];  // the grid box, for the origin's Morton code
   bool on = false;
@@ -1072,33 +1072,38 @@ struct Regroup {
   }
 };
 
-// 30-bit key of ray i: the major axis of d, its sign and d's two other components over it (3
-// bits each), then the origin's Morton code in the grid box (7 bits per axis). Non-finite values
-// give some key: the order never changes a result.
-uint32_t RegroupKey(const RayStreamView& rays, size_t i, const Regroup& rg) {
-  const float o[3] = {rays.ox[i], rays.oy[i], rays.oz[i]};
+// The 30-bit sort key of a ray: 9 bits of direction (DirectionKey: the major axis of d, its sign,
+// and d's two other components over it at 3 bits each), then 21 of origin (OriginKey: the Morton
+// code of o in the grid box, 7 bits per axis). Non-finite values give some key: the order never
+// changes a result.
+inline uint32_t Quantize(float x, float levels) {  // x in [0, 1] -> [0, levels - 1]
+  const float c = x * levels;
+  return c > 0.0f ? (c < levels ? uint32_t(c) : uint32_t(levels) - 1) : 0u;
+}
+
+uint32_t DirectionKey(const RayStreamView& rays, size_t i) {
   const float d[3] = {rays.dx[i], rays.dy[i], rays.dz[i]};
   int a = 0;
   for (int k = 1; k < 3; ++k) {
     if (std::abs(d[k]) > std::abs(d[a])) a = k;
   }
   const float inv = d[a] != 0.0f ? 1.0f / std::abs(d[a]) : 0.0f;
-  const auto q = [](float x, float levels) {  // x in [0, 1] -> [0, levels - 1]
-    const float c = x * levels;
-    return c > 0.0f ? (c < levels ? uint32_t(c) : uint32_t(levels) - 1) : 0u;
-  };
   uint32_t key = uint32_t(a) << 7 | (d[a] < 0.0f ? 1u : 0u) << 6;
-  key |= q(0.5f + 0.5f * d[(a + 1) % 3] * inv, 8.0f) << 3;
-  key |= q(0.5f + 0.5f * d[(a + 2) % 3] * inv, 8.0f);
+  key |= Quantize(0.5f + 0.5f * d[(a + 1) % 3] * inv, 8.0f) << 3;
+  return key | Quantize(0.5f + 0.5f * d[(a + 2) % 3] * inv, 8.0f);
+}
+
+uint32_t OriginKey(const RayStreamView& rays, size_t i, const Regroup& rg) {
+  const float o[3] = {rays.ox[i], rays.oy[i], rays.oz[i]};
   uint32_t morton = 0;
   for (int k = 0; k < 3; ++k) {
-    uint32_t c = q((o[k] - rg.lo[k]) * rg.scale[k], 128.0f);
+    uint32_t c = Quantize((o[k] - rg.lo[k]) * rg.scale[k], 128.0f);
     c = (c | c << 8) & 0x00f00fu;  // 7 bits spread to every third position
     c = (c | c << 4) & 0x0c30c3u;
     c = (c | c << 2) & 0x249249u;
     morton |= c << k;
   }
-  return key << 21 | morton;
+  return morton;
 }
 
 // Packets of `rays` (ForPackets); with rg->on, refused runs are regrouped (sorted, gathered,
@@ -1114,6 +1119,27 @@ void TraceWithRegroup(const RayStreamView& rays, const Out& out, Regroup* rg, Ou
   const auto flush = [&] {
     const size_t n = rg->size;
     if (n == 0) return;
+    // Sorting pays only if whole packets can share a direction bin (the key's top 9 bits): with
+    // fewer than two packets' worth of rays in bins of half a packet or more (diffuse rays, say),
+    // the runs go to the stream DDA as they came (rg->order is still in index order).
+    uint16_t bins[512] = {};
+    for (size_t i = 0; i < n; ++i) ++bins[rg->order[i] >> 53];
+    size_t coherent = 0;
+    for (const uint16_t b : bins) coherent += b >= kCoherentPacketRays / 2 ? b : 0;
+    if (coherent < 2 * kCoherentPacketRays) {
+      for (size_t i = 0; i < n;) {
+        const size_t first = uint32_t(rg->order[i]);
+        size_t m = 1;
+        while (i + m < n && uint32_t(rg->order[i + m]) == first + m) ++m;
+        rest(rays, first, m, out);
+        i += m;
+      }
+      rg->size = 0;
+      return;
+    }
+    for (size_t i = 0; i < n; ++i) {
+      rg->order[i] |= uint64_t(OriginKey(rays, uint32_t(rg->order[i]), *rg)) << 32;
+    }
     std::sort(rg->order, rg->order + n);
     const float* src[8] = {rays.ox, rays.oy, rays.oz, rays.dx, rays.dy, rays.dz, rays.tmin,
                            rays.tmax};
@@ -1140,7 +1166,7 @@ void TraceWithRegroup(const RayStreamView& rays, const Out& out, Regroup* rg, Ou
       [&](size_t first, size_t n) {
         if (!rg->on) return rest(rays, first, n, out);
         for (size_t i = first; i < first + n; ++i) {
-          rg->order[rg->size++] = uint64_t(RegroupKey(rays, i, *rg)) << 32 | i;
+          rg->order[rg->size++] = uint64_t(DirectionKey(rays, i)) << 53 | i;
           if (rg->size == kRegroupRays) flush();
         }
       });
