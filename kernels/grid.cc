@@ -150,22 +150,22 @@ bool BinReferences(const TriangleSoA& tris, const Grid& grid, const BinGeometry&
       const int32_t flags = block.flags[j];
       // degenerate, or outside (cannot happen: the bounds contain every triangle)
       if (flags & (kRangeDegenerate | kRangeOutside)) continue;
-      const int c0[3] = {block.c0[0][j], block.c0[1][j], block.c0[2][j]};
-      size_t c = size_t(c0[0]) + stride_y * size_t(c0[1]) + stride_z * size_t(c0[2]);
+      size_t c = block.cell[j];  // the corner's cell index (SIMD pass)
       const int spans_mask = flags & 7;
       if ((spans_mask & (spans_mask - 1)) == 0) {
         // one cell (the common case at low lambda), or a line of cells along one axis: the
         // triangle crosses them all (BinTriangleCells)
         const int a = spans_mask == 4 ? 2 : spans_mask >> 1;  // 0 -> axis 0, a 1-cell range
         const size_t stride = strides[a];
-        const int cells = block.c1[a][j] - c0[a] + 1;
-        for (int k = 0; k < cells; ++k, c += stride) {
+        const size_t cells = size_t(block.box[j]);  // the box is that line
+        for (size_t k = 0; k < cells; ++k, c += stride) {
           cells_out[num_refs++] = uint32_t(c);
           ++begin[c];
         }
-        lines -= size_t(cells);
+        lines -= cells;
         continue;
       }
+      const int c0[3] = {block.c0[0][j], block.c0[1][j], block.c0[2][j]};
       const int c1[3] = {block.c1[0][j], block.c1[1][j], block.c1[2][j]};
       const bool span[3] = {(flags & 1) != 0, (flags & 2) != 0, (flags & 4) != 0};
       const int spans = int(span[0]) + int(span[1]) + int(span[2]);
@@ -307,12 +307,11 @@ size_t MarkGridBoxes(const TriangleSoA& tris, const Grid& geometry, const BinGeo
     SimdTriangleCellRanges(tris, geo, first, count, &block);
     for (size_t j = 0; j < count; ++j) refs += size_t(block.box[j]);
     for (size_t j = 0; j < count; ++j) {
-      const int x0 = block.c0[0][j], y0 = block.c0[1][j], z0 = block.c0[2][j];
-      const int ex = block.c1[0][j] - x0, ey = block.c1[1][j] - y0, ez = block.c1[2][j] - z0;
-      const size_t at = size_t(x0) + stride_y * size_t(y0) + stride_z * size_t(z0);
-      const size_t cell = block.box[j] != 0 ? at : num_cells;
-      if ((ex | ey | ez) <= 1) {
-        const size_t dx = size_t(ex), dy = stride_y * size_t(ey), dz = stride_z * size_t(ez);
+      // the corner's index (num_cells for flagged triangles) and the index steps of the box,
+      // from the SIMD pass
+      const size_t cell = block.cell[j];
+      if (block.flags[j] & kRangeSmall) {
+        const size_t dx = block.step[0][j], dy = block.step[1][j], dz = block.step[2][j];
         mark[cell] = 1;
         mark[cell + dx] = 1;
         mark[cell + dy] = 1;
@@ -323,6 +322,8 @@ size_t MarkGridBoxes(const TriangleSoA& tris, const Grid& geometry, const BinGeo
         mark[cell + dz + dx + dy] = 1;
         continue;
       }
+      const int x0 = block.c0[0][j], y0 = block.c0[1][j], z0 = block.c0[2][j];
+      const int ex = block.c1[0][j] - x0, ey = block.c1[1][j] - y0, ez = block.c1[2][j] - z0;
       if (size_t(block.box[j]) > kBigBox) {
         if (diff->empty()) diff->assign(num_cells, 0);
         // +1 at the low corner, alternating signs at the corners one past the high end (those

@@ -94,15 +94,24 @@ void SimdDegenerateFlags(TriangleSoA* tris, size_t first, size_t last, size_t* d
 // their number.
 void SimdTriangleBounds(const TriangleSoA& tris, float lo[3], float hi[3], size_t* num_valid);
 
-// TriangleCellRange for a block of triangles, a vector at a time, with the same arithmetic.
+// TriangleCellRange for a block of triangles, a vector at a time, with the same arithmetic, and
+// the corner's cell index and the box's index steps (the grid has res[0] res[1] res[2] < 2^32
+// cells, so 32-bit lanes hold them exactly).
 inline constexpr size_t kRangeBlock = 256;
 inline constexpr int32_t kRangeOutside = 8;      // flags bit: misses the grid (no cells)
 inline constexpr int32_t kRangeDegenerate = 16;  // flags bit: degenerate triangle (skip)
+inline constexpr int32_t kRangeSmall = 32;       // flags bit: at most 2 cells on every axis
 struct RangeBlock {
   int32_t c0[3][kRangeBlock];  // [0, 0] for flagged (degenerate or outside) triangles
   int32_t c1[3][kRangeBlock];
   uint32_t box[kRangeBlock];   // cells in the box [c0, c1] (<= num_cells < 2^32), 0 if flagged
-  int32_t flags[kRangeBlock];  // bit a: spans on axis a; kRangeOutside; kRangeDegenerate
+  int32_t flags[kRangeBlock];  // bit a: spans on axis a; kRangeOutside; kRangeDegenerate;
+                               // kRangeSmall
+  // Cell index of the corner c0, c0[0] + res[0] (c0[1] + res[1] c0[2]); for flagged triangles
+  // res[0] res[1] res[2] (one past the last cell).
+  uint32_t cell[kRangeBlock];
+  // (c1[a] - c0[a]) x the cell-index stride of axis a (1, res[0], res[0] res[1]); 0 if flagged.
+  uint32_t step[3][kRangeBlock];
 };
 // Fills out for triangles [first, first + count), count <= kRangeBlock, first + count <= size.
 void SimdTriangleCellRanges(const TriangleSoA& tris, const BinGeometry& g, size_t first,

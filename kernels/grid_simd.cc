@@ -2,9 +2,11 @@
 // bounding-box cell ranges, a vector of triangles at a time; the 2D edge tables of the binning
 // tests, a vector of cells at a time. Per-target code; foreach_target re-includes this file.
 #include <algorithm>
+#include <bit>
 #include <cfloat>
 #include <cstddef>
 #include <cstdint>
+#include <cstring>
 
 #include "kernels/grid_binning.h"
 
@@ -51,6 +53,21 @@ void SimdTriangleBounds(const TriangleSoA& tris, float lo[3], float hi[3], size_
   *num_valid = valid;
 }
 
+// kBadBytes[b]: byte l = 1 - bit l of b (the degenerate flags of 8 lanes from their "ok" bits,
+// little-endian byte order as memcpy stores it).
+constexpr auto kBadBytesTable = [] {
+  struct Table {
+    uint64_t v[256];
+  } t{};
+  for (int b = 0; b < 256; ++b) {
+    uint64_t bytes = 0;
+    for (int l = 0; l < 8; ++l) bytes |= uint64_t(((b >> l) & 1) ^ 1) << (8 * l);
+    t.v[b] = bytes;
+  }
+  return t;
+}();
+HWY_MAYBE_UNUSED constexpr const uint64_t* kBadBytes = kBadBytesTable.v;
+
 // IsDegenerateTriangle a vector of triangles at a time: float -> double is exact and the
 // differences and products below round as the scalar code's (no contraction), so the flags are
 // the same bit for bit.
@@ -84,11 +101,16 @@ void SimdDegenerateFlagsRange(TriangleSoA* tris, size_t first, size_t n, size_t*
     const size_t live = std::min(lanes, n - i);
     uint8_t bits[8] = {};
     hn::StoreMaskBits(dd, ok, bits);
-    for (size_t l = 0; l < live; ++l) {
-      const uint8_t bad = uint8_t(((bits[l >> 3] >> (l & 7)) & 1u) ^ 1u);
-      flags[i + l] = bad;
-      degenerate += bad;
+    if (std::endian::native == std::endian::little && live == lanes && lanes <= 8) {
+      // lane l's flag is byte l of kBadBytes[bits]: one store for the vector
+      const uint64_t bad = kBadBytes[bits[0]];
+      std::memcpy(flags + i, &bad, lanes);
+    } else {
+      for (size_t l = 0; l < live; ++l) {
+        flags[i + l] = uint8_t(((bits[l >> 3] >> (l & 7)) & 1u) ^ 1u);
+      }
     }
+    degenerate += live - hn::CountTrue(dd, ok);  // ok is false past live (FirstN)
     nonfinite += live - hn::CountTrue(dd, finite);
   }
   *degenerate_out = degenerate;
@@ -101,6 +123,9 @@ void SimdTriangleCellRanges(const TriangleSoA& tris, const BinGeometry& g, size_
   const hn::RebindToSigned<decltype(d)> di;
   const auto minus1 = hn::Set(d, -1.0f), one = hn::Set(d, 1.0f);
   const auto one_i = hn::Set(di, 1), zero_i = hn::Zero(di);
+  // cell-index strides (exact in 32 bits: res[0] res[1] res[2] < 2^32)
+  const uint32_t strides[3] = {1u, uint32_t(g.res[0]), uint32_t(g.res[0]) * uint32_t(g.res[1])};
+  const uint32_t num_cells = strides[2] * uint32_t(g.res[2]);
   for (size_t k = 0; k < count; k += hn::Lanes(d)) {
     const size_t i = first + k;
     const auto ok = ValidLanes(d, tris, i);
@@ -132,12 +157,22 @@ void SimdTriangleCellRanges(const TriangleSoA& tris, const BinGeometry& g, size_
     const auto skip = hn::Ne(hn::And(flags, hn::Set(di, kRangeDegenerate | kRangeOutside)), zero_i);
     const hn::RebindToUnsigned<decltype(di)> du;
     auto box = hn::BitCast(du, hn::IfThenZeroElse(skip, one_i));
+    auto cell = hn::Zero(du);
+    auto small = hn::Eq(zero_i, zero_i);  // all lanes
     for (int a = 0; a < 3; ++a) {
       const auto c0 = hn::IfThenZeroElse(skip, c0s[a]), c1 = hn::IfThenZeroElse(skip, c1s[a]);
-      box = hn::Mul(box, hn::BitCast(du, hn::Add(hn::Sub(c1, c0), one_i)));
+      const auto extent = hn::Sub(c1, c0);  // >= 0
+      box = hn::Mul(box, hn::BitCast(du, hn::Add(extent, one_i)));
+      small = hn::And(small, hn::Lt(extent, hn::Set(di, 2)));
+      const auto stride = hn::Set(du, strides[a]);
+      cell = hn::Add(cell, hn::Mul(hn::BitCast(du, c0), stride));
+      hn::StoreU(hn::Mul(hn::BitCast(du, extent), stride), du, out->step[a] + k);
       hn::StoreU(c0, di, out->c0[a] + k);
       hn::StoreU(c1, di, out->c1[a] + k);
     }
+    flags = hn::Or(flags, hn::IfThenElseZero(small, hn::Set(di, kRangeSmall)));
+    cell = hn::IfThenElse(hn::RebindMask(du, skip), hn::Set(du, num_cells), cell);
+    hn::StoreU(cell, du, out->cell + k);
     hn::StoreU(box, du, out->box + k);
     hn::StoreU(flags, di, out->flags + k);
   }
@@ -146,6 +181,33 @@ void SimdTriangleCellRanges(const TriangleSoA& tris, const BinGeometry& g, size_
 void SimdEdgeTable(const EdgeSet& e, int ci0, int ni, int cj0, int nj, uint8_t* out) {
   const hn::ScalableTag<double> dd;
   const int lanes = int(hn::Lanes(dd));
+  if (ni * nj <= lanes) {
+    // The whole table in one vector (most binned triangles cross 2 x 2 cells): lane l is entry l
+    // = cell (ci0 + l % ni, cj0 + l / ni). Per lane the same operations as below, (base +
+    // double(cj) * sj) + double(ci) * si, so the same table bit for bit.
+    HWY_ALIGN double col[HWY_MAX_BYTES / sizeof(double)];
+    HWY_ALIGN double row[HWY_MAX_BYTES / sizeof(double)];
+    for (int l = 0, m = 0, r = 0; l < lanes; ++l) {  // (m, r) = (l % ni, l / ni)
+      col[l] = double(ci0 + m);
+      row[l] = double(cj0 + r);
+      if (++m == ni) {
+        m = 0;
+        ++r;
+      }
+    }
+    const auto ci = hn::Load(dd, col), cj = hn::Load(dd, row);
+    auto ok = hn::FirstN(dd, size_t(ni * nj));
+    for (int k = 0; k < e.n; ++k) {
+      const auto r = hn::Add(hn::Set(dd, e.base[k]), hn::Mul(cj, hn::Set(dd, e.sj[k])));
+      const auto c = hn::Add(r, hn::Mul(ci, hn::Set(dd, e.si[k])));
+      ok = hn::AndNot(hn::Or(hn::Lt(c, hn::Set(dd, e.lo[k])), hn::Gt(c, hn::Set(dd, e.hi[k]))),
+                      ok);
+    }
+    uint8_t bits[8] = {};
+    hn::StoreMaskBits(dd, ok, bits);
+    for (int l = 0; l < ni * nj; ++l) out[l] = uint8_t((bits[l >> 3] >> (l & 7)) & 1u);
+    return;
+  }
   for (int m0 = 0; m0 < ni; m0 += lanes) {
     // double(ci0 + m) * si per edge: Iota is exact (small integers), the product rounds as the
     // scalar one
