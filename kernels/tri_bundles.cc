@@ -41,8 +41,12 @@ void FillBundleCells(const float* const* src, const uint8_t* degenerate, const u
   HWY_ALIGN int32_t tail[HWY_MAX_BYTES / sizeof(int32_t)];
   size_t first = 0;  // bundles written so far
   for (size_t c = 0; c < cells; ++c) {
-    const uint32_t* list = tri_ids + list_begin[c];
     const size_t n = list_begin[c + 1] - list_begin[c];
+    if (n == 0) {  // most cells of a sparse grid: no bundle
+      bundle_begin[c + 1] = uint32_t(first);
+      continue;
+    }
+    const uint32_t* list = tri_ids + list_begin[c];
     const size_t stride = (n + kBundleLanes - 1) / kBundleLanes * kBundleLanes;
     float* block = data + kBundleFloats * first;
     int32_t* block_ids = ids + kBundleLanes * first;

@@ -4,12 +4,14 @@
 #include "kernels/two_level.h"
 
 #include <algorithm>
+#include <atomic>
 #include <cfloat>
 #include <cmath>
 #include <limits>
 #include <string>
 #include <vector>
 
+#include "kernels/build_threads.h"
 #include "kernels/grid_binning.h"
 
 namespace rs {
@@ -79,43 +81,43 @@ double TwoLevelCostBound(const Grid& grid, int threshold, const GridCostModel& m
   return CellAreaRatio(cs, grid.res) * sum;
 }
 
-void BuildTwoLevel(const Grid& grid, const TriangleSoA& tris, int threshold, bool by_cost,
-                   const GridCostModel& model, TwoLevelGrid* out) {
-  *out = TwoLevelGrid();
-  out->threshold = threshold;
-  if (grid.empty()) return;
-  const size_t num_cells = grid.num_cells;
-  const uint32_t* begin = grid.cell_begin.get();
-  const uint32_t* ids = grid.tri_ids.get();
-  double max_abs = 0.0;
-  for (int a = 0; a < 3; ++a) {
-    max_abs = std::max({max_abs, std::fabs(double(grid.lo[a])), std::fabs(double(grid.hi[a]))});
-  }
-  const float* p[3][3];
-  for (int k = 0; k < 3; ++k) {
-    for (int a = 0; a < 3; ++a) p[k][a] = tris.p[k][a].data();
-  }
-  // sub-cells no smaller than the top level's (grid.h: kMinCellMargins), and the sub-cell
-  // references within one more reference budget in all
-  const double min_cell = kMinCellMargins * 4.0 * FLT_EPSILON * max_abs;
-  const size_t budget = GridRefBudget(tris.size - tris.num_degenerate);
+namespace {
 
-  std::vector<SubGridRecord> records;
-  std::vector<uint32_t> sub_begin;  // per occupied sub-cell (all records): start in sub_ids
-  std::vector<uint32_t> sub_ids;
-  std::vector<uint32_t> refined_cells;
-  std::vector<uint16_t> ref_sub;  // scratch: sub-cell of each reference of the current cell
+// One refined cell's sub-grid before it is placed: its record (first_leaf not set), its leaf
+// lists (sorted by sub-cell, ids ascending in each) appended to a caller's id array, and the
+// start of each occupied sub-cell's list in it.
+struct CellRefiner {
+  const Grid& grid;
+  const float* p[3][3];
+  double max_abs;   // largest |bound| of the grid
+  double min_cell;  // smallest sub-cell edge
+  bool by_cost;
+  GridCostModel model;
+  // scratch, reused across cells
+  std::vector<uint16_t> ref_sub;  // sub-cell of each reference of the current cell
   std::vector<uint32_t> ref_tri;
   BinScratch scratch;
-  TriangleSoA cell_tris;  // scratch: the current cell's triangles, for the SIMD cell ranges
+  TriangleSoA cell_tris;  // the current cell's triangles, for the SIMD cell ranges
   RangeBlock block;
   uint32_t counts[kSubCells];
-  uint32_t next_leaf = uint32_t(num_cells);
-  for (size_t cell = 0; cell < num_cells; ++cell) {
+
+  CellRefiner(const Grid& g, const TriangleSoA& tris, double max_abs_bound, double min_cell_size,
+              bool cost, const GridCostModel& m)
+      : grid(g), max_abs(max_abs_bound), min_cell(min_cell_size), by_cost(cost), model(m) {
+    for (int k = 0; k < 3; ++k) {
+      for (int a = 0; a < 3; ++a) p[k][a] = tris.p[k][a].data();
+    }
+  }
+
+  // Refines `cell` if it pays off (by_cost), its sub-cells are not too fine and it makes at
+  // most `room` sub-cell references: fills *rec (all but first_leaf), appends the leaf lists to
+  // *ids and the start of each occupied sub-cell's list (an index into *ids) to *starts, and
+  // returns true; else returns false and leaves *ids and *starts as they were.
+  bool Refine(size_t cell, size_t room, SubGridRecord* out_rec, std::vector<uint32_t>* ids_out,
+              std::vector<uint32_t>* starts) {
+    const uint32_t* begin = grid.cell_begin.get();
+    const uint32_t* ids = grid.tri_ids.get();
     const uint32_t n = begin[cell + 1] - begin[cell];
-    if (n <= uint32_t(std::max(threshold, 0))) continue;
-    // a sub-grid costs at least its entry and 8 steps: skip cells that cannot gain
-    if (by_cost && !(SubGridCost(0, 0, model) < LeafCost(n, model))) continue;
     const int cz = int(cell / (size_t(grid.res[0]) * grid.res[1]));
     const int cy = int(cell / size_t(grid.res[0]) % size_t(grid.res[1]));
     const int cx = int(cell % size_t(grid.res[0]));
@@ -124,8 +126,7 @@ void BuildTwoLevel(const Grid& grid, const TriangleSoA& tris, int threshold, boo
     BinGeometry geo;
     bool too_fine = false;
     for (int a = 0; a < 3; ++a) too_fine |= double(grid.cell_size[a]) / kSubRes < min_cell;
-    if (too_fine) continue;
-    const size_t room = budget - sub_ids.size();  // sub-cell references this cell may add
+    if (too_fine) return false;
     for (int a = 0; a < 3; ++a) {
       // the parent cell's lower corner exactly as the float DDA computes boundaries
       rec.lo[a] = grid.lo[a] + float(c[a]) * grid.cell_size[a];
@@ -141,19 +142,23 @@ void BuildTwoLevel(const Grid& grid, const TriangleSoA& tris, int threshold, boo
     // cell_tris (none is degenerate: the grid lists none), their cell ranges a vector at a time
     // (the arithmetic of TriangleCellRange), then the cells as BinTriangleCells emits them
     const uint32_t* list = ids + begin[cell];
+    // (the gather overwrites [0, n): a grown array need not keep the previous cell's triangles)
     for (auto& vertex : cell_tris.p) {
-      for (auto& axis : vertex) axis.Reserve(n);
+      for (auto& axis : vertex) axis.ReserveForOverwrite(n);
     }
     if (cell_tris.size < n) {
-      cell_tris.degenerate.Reserve(n);
+      cell_tris.degenerate.ReserveForOverwrite(n);
       std::fill(cell_tris.degenerate.data(), cell_tris.degenerate.data() + n, uint8_t{0});
     }
     cell_tris.size = n;
+    float* to[3][3];
     for (int k = 0; k < 3; ++k) {
-      for (int a = 0; a < 3; ++a) {
-        const float* from = p[k][a];
-        float* to = cell_tris.p[k][a].data();
-        for (uint32_t t = 0; t < n; ++t) to[t] = from[list[t]];
+      for (int a = 0; a < 3; ++a) to[k][a] = cell_tris.p[k][a].data();
+    }
+    for (uint32_t t = 0; t < n; ++t) {  // one pass: each id read once
+      const uint32_t id = list[t];
+      for (int k = 0; k < 3; ++k) {
+        for (int a = 0; a < 3; ++a) to[k][a][t] = p[k][a][id];
       }
     }
     std::fill(counts, counts + kSubCells, 0u);
@@ -190,20 +195,20 @@ void BuildTwoLevel(const Grid& grid, const TriangleSoA& tris, int threshold, boo
           ++counts[sc];
         });
       }
-      if (num_sub_refs > room) break;  // over the budget: stays a leaf
+      if (num_sub_refs > room) return false;  // over the budget: stays a leaf
     }
-    if (num_sub_refs > room) continue;
     size_t occupied = 0;
     for (const uint32_t k : counts) occupied += k != 0;
-    if (by_cost && !(SubGridCost(occupied, num_sub_refs, model) < LeafCost(n, model))) continue;
+    if (by_cost && !(SubGridCost(occupied, num_sub_refs, model) < LeafCost(n, model))) {
+      return false;
+    }
 
-    // record: bits, ranks, leaves; leaf lists by a stable counting sort (ids stay ascending)
-    rec.first_leaf = next_leaf;
+    // record: bits, ranks; leaf lists by a stable counting sort (ids stay ascending)
     rec.parent = uint32_t(cell);
     rec.refs = uint32_t(num_sub_refs);
     uint32_t start[kSubCells];
     uint32_t rank = 0;
-    const size_t base = sub_ids.size();
+    const size_t base = ids_out->size();
     uint32_t offset = uint32_t(base);
     for (int z = 0; z < kSubRes; ++z) {
       rec.rank[z] = uint16_t(rank);
@@ -213,21 +218,132 @@ void BuildTwoLevel(const Grid& grid, const TriangleSoA& tris, int threshold, boo
         start[s] = offset;
         if (counts[s] == 0) continue;
         bits |= uint64_t{1} << b;
-        sub_begin.push_back(offset);
+        starts->push_back(offset);
         offset += counts[s];
         ++rank;
       }
       rec.bits[z] = bits;
     }
-    sub_ids.resize(offset);
-    for (size_t r = 0; r < num_sub_refs; ++r) sub_ids[start[ref_sub[r]]++] = ref_tri[r];
-    next_leaf += rank;
+    ids_out->resize(offset);
+    uint32_t* sorted = ids_out->data();
+    for (size_t r = 0; r < num_sub_refs; ++r) sorted[start[ref_sub[r]]++] = ref_tri[r];
+    *out_rec = rec;
+    return true;
+  }
+};
+
+}  // namespace
+
+void BuildTwoLevel(const Grid& grid, const TriangleSoA& tris, int threshold, bool by_cost,
+                   const GridCostModel& model, TwoLevelGrid* out, int threads) {
+  *out = TwoLevelGrid();
+  out->threshold = threshold;
+  if (grid.empty()) return;
+  const size_t num_cells = grid.num_cells;
+  const uint32_t* begin = grid.cell_begin.get();
+  const uint32_t* ids = grid.tri_ids.get();
+  double max_abs = 0.0;
+  for (int a = 0; a < 3; ++a) {
+    max_abs = std::max({max_abs, std::fabs(double(grid.lo[a])), std::fabs(double(grid.hi[a]))});
+  }
+  // sub-cells no smaller than the top level's (grid.h: kMinCellMargins), and the sub-cell
+  // references within one more reference budget in all
+  const double min_cell = kMinCellMargins * 4.0 * FLT_EPSILON * max_abs;
+  const size_t budget = GridRefBudget(tris.size - tris.num_degenerate);
+  // the candidates: more than `threshold` triangles, and (by_cost) a sub-grid that could gain
+  std::vector<uint32_t> candidates;
+  size_t candidate_refs = 0;
+  for (size_t cell = 0; cell < num_cells; ++cell) {
+    const uint32_t n = begin[cell + 1] - begin[cell];
+    if (n <= uint32_t(std::max(threshold, 0))) continue;
+    // a sub-grid costs at least its entry and 8 steps: skip cells that cannot gain
+    if (by_cost && !(SubGridCost(0, 0, model) < LeafCost(n, model))) continue;
+    candidates.push_back(uint32_t(cell));
+    candidate_refs += n;
+  }
+
+  std::vector<SubGridRecord> records;
+  std::vector<uint32_t> sub_begin;  // per occupied sub-cell (all records): start in sub_ids
+  std::vector<uint32_t> sub_ids;
+  std::vector<uint32_t> refined_cells;
+  uint32_t next_leaf = uint32_t(num_cells);
+  // Places a refined cell: its record gets its first leaf; the budget and id checks.
+  const auto place = [&](SubGridRecord rec, size_t leaves) {
+    rec.first_leaf = next_leaf;
+    next_leaf += uint32_t(leaves);
     if (size_t(next_leaf) + 1 >= size_t{UINT32_MAX} || sub_ids.size() >= size_t{UINT32_MAX}) {
       throw Error("two-level grid build: more than 2^32 - 1 leaves or references");
     }
     records.push_back(rec);
-    refined_cells.push_back(uint32_t(cell));
-    out->refined_top_refs += n;
+    refined_cells.push_back(rec.parent);
+    out->refined_top_refs += begin[rec.parent + 1] - begin[rec.parent];
+  };
+  // Threaded when there is enough to share: chunks of the candidates with about equal
+  // references (8 per thread, handed out in turn: the work per reference varies), each refined
+  // with the whole budget as room into its chunk's own lists; then in cell order a cell is kept
+  // iff its references fit the room the cells before it left, as the serial loop decides (a
+  // refinement does not depend on the others), and its lists are appended: the same records,
+  // leaves and lists for any thread count.
+  const int parts = int(std::min<size_t>(size_t(BuildThreadCount(threads)),
+                                         candidate_refs / 4096 + 1));
+  if (parts <= 1) {
+    CellRefiner refiner(grid, tris, max_abs, min_cell, by_cost, model);
+    for (const uint32_t cell : candidates) {
+      SubGridRecord rec;
+      const size_t leaves_before = sub_begin.size();
+      if (!refiner.Refine(cell, budget - sub_ids.size(), &rec, &sub_ids, &sub_begin)) continue;
+      place(rec, sub_begin.size() - leaves_before);
+    }
+  } else {
+    struct Part {
+      std::vector<SubGridRecord> records;
+      std::vector<uint32_t> ids, starts;
+      std::vector<size_t> id_end, start_end;  // per record: its lists' ends in ids / starts
+    };
+    const size_t chunks = std::min(candidates.size(), size_t(8) * size_t(parts));
+    std::vector<Part> part(chunks);
+    std::vector<size_t> first(chunks + 1, candidates.size());
+    {
+      size_t acc = 0, k = 1;
+      first[0] = 0;
+      for (size_t i = 0; i < candidates.size() && k < chunks; ++i) {
+        acc += begin[candidates[i] + 1] - begin[candidates[i]];
+        while (k < chunks && acc * chunks >= candidate_refs * k) first[k++] = i + 1;
+      }
+    }
+    std::atomic<size_t> next_chunk{0};
+    RunParts(parts, [&](int) {
+      CellRefiner refiner(grid, tris, max_abs, min_cell, by_cost, model);
+      // relaxed: the chunks are independent; RunParts' joins publish the results
+      for (size_t k = next_chunk.fetch_add(1, std::memory_order_relaxed); k < chunks;
+           k = next_chunk.fetch_add(1, std::memory_order_relaxed)) {
+        Part& pt = part[k];
+        for (size_t i = first[k]; i < first[k + 1]; ++i) {
+          SubGridRecord rec;
+          if (!refiner.Refine(candidates[i], budget, &rec, &pt.ids, &pt.starts)) continue;
+          pt.records.push_back(rec);
+          pt.id_end.push_back(pt.ids.size());
+          pt.start_end.push_back(pt.starts.size());
+        }
+      }
+    });
+    for (const Part& pt : part) {
+      size_t id0 = 0, start0 = 0;
+      for (size_t r = 0; r < pt.records.size(); ++r) {
+        const size_t refs = pt.id_end[r] - id0, leaves = pt.start_end[r] - start0;
+        if (refs <= budget - sub_ids.size()) {
+          const uint32_t shift = uint32_t(sub_ids.size()) - uint32_t(id0);
+          for (size_t s = start0; s < pt.start_end[r]; ++s) {
+            sub_begin.push_back(pt.starts[s] + shift);
+          }
+          sub_ids.insert(sub_ids.end(), pt.ids.begin() + long(id0),
+                         pt.ids.begin() + long(pt.id_end[r]));
+          place(pt.records[r], leaves);
+        }
+        id0 = pt.id_end[r];
+        start0 = pt.start_end[r];
+      }
+    }
   }
   if (records.empty()) return;
 

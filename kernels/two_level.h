@@ -129,9 +129,10 @@ double TwoLevelCostBound(const Grid& grid, int threshold, const GridCostModel& m
 // would take the sub-cells' total past GridRefBudget(non-degenerate triangles) (cells in index
 // order; such a cell stays a leaf), so sub_refs <= that budget for any input.
 // With no refined cell, `out` is empty (num_records = 0) and the grid is flat. Throws rs::Error
-// if an allocation fails.
+// if an allocation fails. threads (BuildOptions::build_threads): the candidate cells are refined
+// on that many threads (parts of about equal references); the result is the same bit for bit.
 void BuildTwoLevel(const Grid& grid, const TriangleSoA& tris, int threshold, bool by_cost,
-                   const GridCostModel& model, TwoLevelGrid* out);
+                   const GridCostModel& model, TwoLevelGrid* out, int threads = 1);
 
 // The lambda among {0.5, 1, 2, 4, 8} whose flat grid has the lowest cost under `model`, from
 // bounding-box counts (CountGridBoxes: no lists are built; references and occupied cells are
