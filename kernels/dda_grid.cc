@@ -29,9 +29,8 @@ void MinMaxOffset(uint8_t* __restrict out, const uint8_t* __restrict in, size_t 
   for (size_t i = 0; i < n; ++i) out[i] = std::min(out[i], std::max(d, in[i]));
 }
 
-}  // namespace
-
-void BuildSkipRings(const Grid& grid, uint8_t* skip, int threads) {
+// BuildSkipRings with 2 num_cells bytes of scratch (every byte is written before it is read).
+void BuildSkipRings(const Grid& grid, uint8_t* skip, int threads, uint8_t* scratch) {
   // Chebyshev distance to the nearest occupied cell, capped at kFar, is separable:
   // dist = min_z' max(|dz|, min_y' max(|dy|, min_x' |dx|)) over occupied (x', y', z'). Pass 1
   // takes the 1-D distance along each x row (two sweeps); passes 2 and 3 take windowed min-max
@@ -45,13 +44,12 @@ void BuildSkipRings(const Grid& grid, uint8_t* skip, int threads) {
   const size_t plane = nx * ny;
   const int parts = int(std::min<size_t>(size_t(BuildThreadCount(threads)),
                                          grid.num_cells / 16384 + 1));
-  // every byte of both is written before it is read: no zero fill
-  const std::unique_ptr<uint8_t[]> a(new uint8_t[grid.num_cells]);
-  const std::unique_ptr<uint8_t[]> b(new uint8_t[grid.num_cells]);
+  uint8_t* const a = scratch;
+  uint8_t* const b = scratch + grid.num_cells;
   RunParts(parts, [&](int k) {
     const size_t rows = ny * nz;
     for (size_t row = PartBegin(rows, parts, k, 1); row < PartBegin(rows, parts, k + 1, 1); ++row) {
-      uint8_t* r = a.get() + row * nx;
+      uint8_t* r = a + row * nx;
       int dist = kFar;
       for (size_t x = 0; x < nx; ++x) {
         dist = grid.Occupied(row * nx + x) ? 0 : std::min(dist + 1, kFar);
@@ -66,8 +64,8 @@ void BuildSkipRings(const Grid& grid, uint8_t* skip, int threads) {
   });
   RunParts(parts, [&](int k) {  // along y, per z layer
     for (size_t z = PartBegin(nz, parts, k, 1); z < PartBegin(nz, parts, k + 1, 1); ++z) {
-      const uint8_t* in = a.get() + z * plane;
-      uint8_t* out = b.get() + z * plane;
+      const uint8_t* in = a + z * plane;
+      uint8_t* out = b + z * plane;
       std::copy_n(in, plane, out);
       for (size_t d = 1; d < size_t(kFar) && d < ny; ++d) {
         const size_t n = (ny - d) * nx, shift = d * nx;
@@ -80,18 +78,25 @@ void BuildSkipRings(const Grid& grid, uint8_t* skip, int threads) {
     const size_t w0 = PartBegin(plane, parts, k, 64), w1 = PartBegin(plane, parts, k + 1, 64);
     if (w1 <= w0) return;
     const size_t width = w1 - w0;
-    for (size_t z = 0; z < nz; ++z) std::copy_n(b.get() + z * plane + w0, width, a.get() + z * plane + w0);
+    for (size_t z = 0; z < nz; ++z) std::copy_n(b + z * plane + w0, width, a + z * plane + w0);
     for (size_t d = 1; d < size_t(kFar) && d < nz; ++d) {
       for (size_t z = 0; z + d < nz; ++z) {
-        uint8_t* lo = a.get() + z * plane + w0;
-        uint8_t* hi = a.get() + (z + d) * plane + w0;
-        MinMaxOffset(lo, b.get() + (z + d) * plane + w0, width, uint8_t(d));  // j = i + d
-        MinMaxOffset(hi, b.get() + z * plane + w0, width, uint8_t(d));        // j = i - d
+        uint8_t* lo = a + z * plane + w0;
+        uint8_t* hi = a + (z + d) * plane + w0;
+        MinMaxOffset(lo, b + (z + d) * plane + w0, width, uint8_t(d));  // j = i + d
+        MinMaxOffset(hi, b + z * plane + w0, width, uint8_t(d));        // j = i - d
       }
     }
   });
   // rings = distance - 1 (0 for occupied cells): a saturating decrement
   for (size_t c = 0; c < grid.num_cells; ++c) skip[c] = uint8_t(a[c] - (a[c] != 0));
+}
+
+}  // namespace
+
+void BuildSkipRings(const Grid& grid, uint8_t* skip, int threads) {
+  const std::unique_ptr<uint8_t[]> scratch(new uint8_t[2 * grid.num_cells]);
+  BuildSkipRings(grid, skip, threads, scratch.get());
 }
 
 void BuildDdaGrid(const Grid& grid, const TwoLevelGrid* two_level, const TriangleSoA& tris,
@@ -116,6 +121,10 @@ void BuildDdaGrid(const Grid& grid, const TwoLevelGrid* two_level, const Triangl
   out->top_words32 = 2 * words64;
   const size_t total = out->top_words32 + records * (kSubCells / 32);
   out->simd_ok = out->simd_ok && total < size_t{0x7fffffc0};
+  // the rings' scratch first, freed last: a block below the arrays allocated here, so that
+  // freeing it does not hand the top of the heap back to the system (glibc trims a free top
+  // past its threshold), which made every later build fault those pages in again
+  const std::unique_ptr<uint8_t[]> scratch(new uint8_t[2 * grid.num_cells]);
   {
     // the rings one byte per cell, four to a 32-bit word, low byte first: on a little-endian
     // machine the words' bytes in memory order, written in place
@@ -128,7 +137,7 @@ void BuildDdaGrid(const Grid& grid, const TwoLevelGrid* two_level, const Triangl
       rings = packed.data();
     }
     std::fill(rings + grid.num_cells, rings + 4 * skip_words, uint8_t{0});
-    BuildSkipRings(grid, rings, threads);
+    BuildSkipRings(grid, rings, threads, scratch.get());
     size_t blocks = 0;
     for (size_t c = 0; c < grid.num_cells; ++c) blocks += rings[c] >= 2;
     out->empty_block_share = double(blocks) / double(grid.num_cells);
