@@ -9,7 +9,11 @@
 // RS_BENCH_ISA=avx2 holds both raystream and Embree to AVX2 (bench/common/bench_main.h).
 // Ratios "vs_embree*" are raystream speed / Embree speed (> 1: raystream faster), from CPU time.
 #include <benchmark/benchmark.h>
+#include <sys/resource.h>
 #include <unistd.h>
+#ifdef __GLIBC__
+#include <malloc.h>  // malloc_trim (build-cold)
+#endif
 
 #include <algorithm>
 #include <chrono>
@@ -293,9 +297,23 @@ void BM_Trace(benchmark::State& state, const std::string& scene, RaySet set, int
   state.SetItemsProcessed(state.iterations() * static_cast<int64_t>(rays.size));
 }
 
+// Minor page faults of this thread so far (first touches of fresh memory).
+double ThreadMinorFaults() {
+  rusage u{};
+  getrusage(RUSAGE_THREAD, &u);
+  return static_cast<double>(u.ru_minflt);
+}
+
 // "build/<scene>/raystream" (grid) or "build/<scene>/embree" (BVH, robust, medium quality):
-// items are triangles, so items_per_second is triangles/s.
-void BM_Build(benchmark::State& state, const std::string& scene, bool embree) {
+// items are triangles, so items_per_second is triangles/s. Warm: each build reuses the memory
+// the one before freed, as long as the C library keeps it (glibc does for these sizes, but
+// whether it does depends on its trimming heuristics and the order of frees in the build).
+// "build-cold/<scene>/...": the C library's free memory is handed back to the system before
+// each build (malloc_trim(0), not timed), so every build first-touches all its memory, as the
+// one build of the `raystream` command does: the command's `grid build` line reports this
+// build (same options: the defaults, one thread). faults/build counts the minor page faults
+// (each costs a kernel entry and a page zeroed: a large share of a cold build).
+void BM_Build(benchmark::State& state, const std::string& scene, bool embree, bool cold) {
   SceneData& d = GetScene(scene);
   if (!d.load_error.empty()) {
     state.SkipWithError(d.load_error.c_str());
@@ -303,15 +321,29 @@ void BM_Build(benchmark::State& state, const std::string& scene, bool embree) {
   }
   if (embree && !d.rebuild_peer) d.rebuild_peer = std::make_unique<EmbreePeer>(d.mesh);
   const TickMeter meter;
+  double faults = 0;
   for (auto _ : state) {
+    if (cold) {
+      state.PauseTiming();
+#ifdef __GLIBC__
+      malloc_trim(0);
+#endif
+      state.ResumeTiming();
+    }
+    const double faults0 = ThreadMinorFaults();
     if (embree) {
       d.rebuild_peer->Build(d.mesh);
     } else {
       Accel accel(d.mesh);
       benchmark::DoNotOptimize(&accel);
     }
+    faults += ThreadMinorFaults() - faults0;
   }
+  // (build-cold: the tick counters include the untimed trims; items_per_second does not)
   meter.Report(state, d.mesh.num_triangles, "ticks/tri", "cpu_ticks/tri");
+  if (state.iterations() > 0) {
+    state.counters["faults/build"] = faults / static_cast<double>(state.iterations());
+  }
   state.SetItemsProcessed(state.iterations() * static_cast<int64_t>(d.mesh.num_triangles));
 }
 
@@ -407,7 +439,7 @@ class RatioReporter : public Base {
       const auto& tracers = rates_.at(key);
       if (!agg.empty() && agg != "median") continue;
       const bool frame = group.rfind("frame/", 0) == 0;
-      const bool build = group.rfind("build/", 0) == 0;
+      const bool build = group.rfind("build/", 0) == 0 || group.rfind("build-cold/", 0) == 0;
       const auto ours = tracers.find("raystream");
       std::fprintf(out, "%-24s", group.c_str());
       for (const auto& [tracer, rate] : tracers) {
@@ -457,8 +489,12 @@ void Add(const std::string& name, F&& fn) {
 }
 
 void Register(const std::string& scene) {
-  Add("build/" + scene + "/embree", [scene](benchmark::State& s) { BM_Build(s, scene, true); });
-  Add("build/" + scene + "/raystream", [scene](benchmark::State& s) { BM_Build(s, scene, false); });
+  for (const bool cold : {false, true}) {
+    const std::string group = std::string(cold ? "build-cold/" : "build/") + scene;
+    Add(group + "/embree", [scene, cold](benchmark::State& s) { BM_Build(s, scene, true, cold); });
+    Add(group + "/raystream",
+        [scene, cold](benchmark::State& s) { BM_Build(s, scene, false, cold); });
+  }
   for (int si = 0; si < kNumRaySets; ++si) {
     const auto set = static_cast<RaySet>(si);
     const std::string prefix = std::string(RaySetName(set)) + "/" + scene + "/";
