@@ -45,27 +45,9 @@ void SealLanes(const RayStreamView& v, size_t from) {
   }
 }
 
-// Ray i of f to slot j of t, every array (both views have them all: RayStream views).
-inline void CopyWholeRay(const RayStreamView& f, size_t i, const RayStreamView& t, size_t j) {
-  t.ox[j] = f.ox[i];
-  t.oy[j] = f.oy[i];
-  t.oz[j] = f.oz[i];
-  t.dx[j] = f.dx[i];
-  t.dy[j] = f.dy[i];
-  t.dz[j] = f.dz[i];
-  t.tmin[j] = f.tmin[i];
-  t.tmax[j] = f.tmax[i];
-  t.pixel[j] = f.pixel[i];
-  t.wr[j] = f.wr[i];
-  t.wg[j] = f.wg[i];
-  t.wb[j] = f.wb[i];
-  t.depth[j] = f.depth[i];
-  t.kind[j] = f.kind[i];
-}
-
 // Moves rays [from, end) of v to [to, to + end - from), to <= from (memmove order).
 void MoveRays(const RayStreamView& v, size_t from, size_t end, size_t to) {
-  for (size_t i = from; i < end; ++i, ++to) CopyWholeRay(v, i, v, to);
+  for (size_t i = from; i < end; ++i, ++to) CopyRay<true>(v, i, v, to);
 }
 
 // The light a shadow ray runs to: it goes from o to o + d = the light's position (up to
@@ -136,9 +118,9 @@ void Partition(const RayStreamView& from, std::span<const PointLight> lights,
   size_t j = b0;
   for (size_t i = 0; i < from.size; ++i) {
     if (from.kind[i] != kShadowKind) {
-      CopyWholeRay(from, i, b, j++);
+      CopyRay<true>(from, i, b, j++);
     } else {
-      CopyWholeRay(from, i, s, s0 + start[light_of[i]]++);
+      CopyRay<true>(from, i, s, s0 + start[light_of[i]]++);
     }
   }
 }

@@ -76,8 +76,9 @@ HitStreamView SubView(const HitStreamView& hits, size_t first, size_t n);
 
 // Ray i of `from` copied to slot j of `to` (every array both views have; pixel, weights, depth
 // and kind only where `from` has them, else their defaults: pixel 0, weight 1, depth 0,
-// primary).
+// primary). kWhole: both views have every array (RayStream views), copied without the checks.
 // Inline: the frame engine's partitions copy every spawned ray through it.
+template <bool kWhole = false>
 inline void CopyRay(const RayStreamView& f, size_t i, const RayStreamView& t, size_t j) {
   t.ox[j] = f.ox[i];
   t.oy[j] = f.oy[i];
@@ -87,13 +88,22 @@ inline void CopyRay(const RayStreamView& f, size_t i, const RayStreamView& t, si
   t.dz[j] = f.dz[i];
   t.tmin[j] = f.tmin[i];
   t.tmax[j] = f.tmax[i];
-  if (t.pixel != nullptr) t.pixel[j] = f.pixel != nullptr ? f.pixel[i] : 0u;
-  if (t.wr != nullptr) t.wr[j] = f.wr != nullptr ? f.wr[i] : 1.0f;
-  if (t.wg != nullptr) t.wg[j] = f.wg != nullptr ? f.wg[i] : 1.0f;
-  if (t.wb != nullptr) t.wb[j] = f.wb != nullptr ? f.wb[i] : 1.0f;
-  if (t.depth != nullptr) t.depth[j] = f.depth != nullptr ? f.depth[i] : 0;
-  if (t.kind != nullptr) {
-    t.kind[j] = f.kind != nullptr ? f.kind[i] : static_cast<int32_t>(RayKind::kPrimary);
+  if constexpr (kWhole) {
+    t.pixel[j] = f.pixel[i];
+    t.wr[j] = f.wr[i];
+    t.wg[j] = f.wg[i];
+    t.wb[j] = f.wb[i];
+    t.depth[j] = f.depth[i];
+    t.kind[j] = f.kind[i];
+  } else {
+    if (t.pixel != nullptr) t.pixel[j] = f.pixel != nullptr ? f.pixel[i] : 0u;
+    if (t.wr != nullptr) t.wr[j] = f.wr != nullptr ? f.wr[i] : 1.0f;
+    if (t.wg != nullptr) t.wg[j] = f.wg != nullptr ? f.wg[i] : 1.0f;
+    if (t.wb != nullptr) t.wb[j] = f.wb != nullptr ? f.wb[i] : 1.0f;
+    if (t.depth != nullptr) t.depth[j] = f.depth != nullptr ? f.depth[i] : 0;
+    if (t.kind != nullptr) {
+      t.kind[j] = f.kind != nullptr ? f.kind[i] : static_cast<int32_t>(RayKind::kPrimary);
+    }
   }
 }
 
