@@ -593,12 +593,6 @@ struct PacketTracer {
     return m >= 2 ? m : 0;
   }
 
-  // Cell of world coordinate x on the top level's axis a, clamped to [0, res - 1] (CellOf).
-  HWY_INLINE int TopCell(float x, int a) const {
-    const float c = (x - grid.lo[a]) * grid.inv_cell_size[a];
-    return c > 0.0f ? (c < float(grid.res[a]) ? int(c) : grid.res[a] - 1) : 0;
-  }
-
   // Empty slices ahead of slice s without their footprints. After s the rays only retire or
   // shorten, and no ray enters before the next slice where a segment starts (NextStart, as
   // EmptyJump), so a ray in slice s + i (i >= 1, in the rays' direction) passed the far plane of
@@ -611,8 +605,8 @@ struct PacketTracer {
   // there. Results are unchanged: only empty slices are skipped. A skipped slice costs a few
   // occupancy reads instead of a footprint (most of a shadow packet's walk is empty space that
   // EmptyJump's rings, centred on the packet, are too small to jump).
-  HWY_INLINE int PredictEmpty(const SliceFoot& f, int s, int left, const uint64_t* occ,
-                              const int stride[3]) {
+  HWY_INLINE int PredictEmpty(const SliceFoot& f, int s, int left, const Level& top,
+                              const uint64_t* occ, const int stride[3]) {
     if (!starts_ok || left <= 0) return 0;
     const int next = NextStart(s);
     if (next >= 0) left = std::min(left, (positive ? next - s : s - next) - 1);
@@ -632,8 +626,8 @@ struct PacketTracer {
       for (int a = 0; a < 2; ++a) {
         const float lo = std::min(ta * move_lo[a], tb * move_lo[a]);
         const float hi = std::max(ta * move_hi[a], tb * move_hi[a]);
-        c0[a] = TopCell(f.wlo[a] + lo - pad[a], axes[a]);
-        c1[a] = TopCell(f.whi[a] + hi + pad[a], axes[a]);
+        c0[a] = CellOf1(f.wlo[a] + lo - pad[a], top, axes[a]);
+        c1[a] = CellOf1(f.whi[a] + hi + pad[a], top, axes[a]);
       }
       const int area = (c1[0] - c0[0] + 1) * (c1[1] - c0[1] + 1);
       if (area > kPredictArea) break;
@@ -912,7 +906,7 @@ struct PacketTracer {
           if (!ForMarkedCells<kMaxFoot>(f, sc.marks, sc.list, visit)) return false;
         }
         if (cells > budget) return false;
-        step += PredictEmpty(f, s, s_hi - s_lo - step, occ, stride);
+        step += PredictEmpty(f, s, s_hi - s_lo - step, top, occ, stride);
       }
     }
     Write(first, n);
