@@ -32,8 +32,10 @@ struct ContributionOut {
   size_t begin = 0;
 };
 
-// Everything the per-target kernel needs; `out` has room for every ray it may emit (+ one
-// vector of CompressStore slack) from index out_begin on.
+// Everything the per-target kernel needs. The shadow rays toward light l are appended to
+// *shadow[l * shadow_stride] (stride 0: every light to *shadow[0]), the reflection and
+// refraction rays to *bounce; the streams may repeat. Each append grows its stream first when it
+// lacks a vector of CompressStore slack (never, when the caller reserved for every ray).
 struct ShadeArgs {
   const ShadeScene* scene = nullptr;
   const ShadeOptions* options = nullptr;
@@ -41,8 +43,9 @@ struct ShadeArgs {
   HitStreamView hits;
   ContributionOut contrib;
   size_t* contrib_end = nullptr;  // receives the end index of the contributions
-  RayStreamView out;
-  size_t out_begin = 0;
+  RayStream* const* shadow = nullptr;
+  size_t shadow_stride = 0;
+  RayStream* bounce = nullptr;
   uint32_t stages = 0;  // normalized (NormalizeStages)
   ShadeStats* stats = nullptr;
 };
@@ -367,6 +370,16 @@ HWY_INLINE size_t Emit(MF m, const V3& o, const V3& d, VF tmax, hn::Vec<DU> pixe
 #endif
 }
 
+// Emit at the end of `to`, grown first if it lacks room for a vector; returns the rays added.
+HWY_INLINE size_t EmitTo(RayStream& to, MF m, const V3& o, const V3& d, VF tmax,
+                         hn::Vec<DU> pixel, const V3& w, VI depth, VI kind) {
+  const size_t at = to.size();
+  if (at + kStreamPad > to.capacity()) to.Reserve(2 * (at + kStreamPad));
+  const size_t end = Emit(m, o, d, tmax, pixel, w, depth, kind, to.view(), at);
+  to.Resize(end);
+  return end - at;
+}
+
 // ---- textures
 
 // i in [-1, n] wrapped to [0, n): the oracle's ((i % n) + n) % n on that range.
@@ -460,7 +473,7 @@ HWY_INLINE V3 ApplyTextures(const ShadeScene& scene, MF fetch, VI tex, VF uvx, V
 // ---- the kernel, one instantiation per (normalized) stage set
 
 template <uint32_t kStages>
-HWY_NOINLINE size_t ShadeBlocks(const detail::ShadeArgs& a) {
+HWY_NOINLINE void ShadeBlocks(const detail::ShadeArgs& a) {
   constexpr bool kShadow = (kStages & kShadeStageShadow) != 0;
   constexpr bool kSpecular = (kStages & kShadeStageSpecular) != 0;
   constexpr bool kTexture = (kStages & kShadeStageTexture) != 0;
@@ -474,7 +487,6 @@ HWY_NOINLINE size_t ShadeBlocks(const detail::ShadeArgs& a) {
   const RayStreamView& rays = a.rays;
   const HitStreamView& hits = a.hits;
   ShadeStats& s = *a.stats;
-  size_t pos = a.out_begin;
   size_t cpos = a.contrib.begin;
 
   const bool smooth = !scene.normals.empty();
@@ -637,7 +649,8 @@ HWY_NOINLINE size_t ShadeBlocks(const detail::ShadeArgs& a) {
         const V3 view = Neg3(d);
         const VF shadow_tmax = hn::Set(df, kShadowTmax);
         const VI shadow_kind = hn::Set(di, static_cast<int32_t>(RayKind::kShadow));
-        for (const PointLight& light : scene.lights) {
+        for (size_t li = 0; li < scene.lights.size(); ++li) {
+          const PointLight& light = scene.lights[li];
           s.light_tests += lit_count;
           const V3 lpos = Set3(light.position);
           const V3 to_light = Sub3(lpos, p);
@@ -668,10 +681,9 @@ HWY_NOINLINE size_t ShadeBlocks(const detail::ShadeArgs& a) {
           const V3 contrib = Mul3(Scale3(Mul3(c, Set3(light.color)), atten), wl);
           const MF spawn = hn::And(ok, hn::Gt(MaxChannel3(contrib), zero));
           if (hn::AllFalse(df, spawn)) continue;
-          const size_t before = pos;
-          pos = Emit(spawn, front, Sub3(lpos, front), shadow_tmax, pixel_v, contrib, depth,
-                     shadow_kind, a.out, pos);
-          s.spawned[static_cast<int>(RayKind::kShadow)] += pos - before;
+          s.spawned[static_cast<int>(RayKind::kShadow)] +=
+              EmitTo(*a.shadow[li * a.shadow_stride], spawn, front, Sub3(lpos, front),
+                     shadow_tmax, pixel_v, contrib, depth, shadow_kind);
         }
       }
     }
@@ -695,10 +707,9 @@ HWY_NOINLINE size_t ShadeBlocks(const detail::ShadeArgs& a) {
           s.culled += hn::CountTrue(df, hn::AndNot(pass, rl));
           const MF go = hn::And(rl, pass);
           if (!hn::AllFalse(df, go)) {
-            const size_t before = pos;
-            pos = Emit(go, front, mirror(), inf, pixel_v, wr, depth1,
-                       hn::Set(di, static_cast<int32_t>(RayKind::kReflection)), a.out, pos);
-            s.spawned[static_cast<int>(RayKind::kReflection)] += pos - before;
+            s.spawned[static_cast<int>(RayKind::kReflection)] +=
+                EmitTo(*a.bounce, go, front, mirror(), inf, pixel_v, wr, depth1,
+                       hn::Set(di, static_cast<int32_t>(RayKind::kReflection)));
           }
         }
       }
@@ -732,17 +743,16 @@ HWY_NOINLINE size_t ShadeBlocks(const detail::ShadeArgs& a) {
                 hn::CountTrue(df, hn::And(go, through));
             s.spawned[static_cast<int>(RayKind::kReflection)] +=
                 hn::CountTrue(df, hn::AndNot(through, go));
-            pos = Emit(go, origin, dir, inf, pixel_v, wt, depth1, kind, a.out, pos);
+            EmitTo(*a.bounce, go, origin, dir, inf, pixel_v, wt, depth1, kind);
           }
         }
       }
     }
   }
   *a.contrib_end = cpos;
-  return pos;
 }
 
-using ShadeBlocksFn = size_t (*)(const detail::ShadeArgs&);
+using ShadeBlocksFn = void (*)(const detail::ShadeArgs&);
 
 template <size_t... kI>
 constexpr std::array<ShadeBlocksFn, sizeof...(kI)> MakeShadeTable(std::index_sequence<kI...>) {
@@ -750,10 +760,10 @@ constexpr std::array<ShadeBlocksFn, sizeof...(kI)> MakeShadeTable(std::index_seq
 }
 
 // Picks the instantiation for the (normalized) stage set: 24 distinct kernels per target.
-size_t ShadeSimd(const detail::ShadeArgs& a) {
+void ShadeSimd(const detail::ShadeArgs& a) {
   static constexpr std::array<ShadeBlocksFn, kShadeAllStages + 1> kTable =
       MakeShadeTable(std::make_index_sequence<kShadeAllStages + 1>());
-  return kTable[a.stages & kShadeAllStages](a);
+  kTable[a.stages & kShadeAllStages](a);
 }
 
 }  // namespace HWY_NAMESPACE
@@ -1048,9 +1058,12 @@ void Shade(const ShadeScene& scene, const ShadeOptions& options, const RayStream
 
 }  // namespace ref
 
-void Shade(const ShadeScene& scene, const ShadeOptions& options, const RayStreamView& rays,
-           const HitStreamView& hits, ContributionStream& contributions, RayStream& secondary,
-           ShadeStats* stats) {
+namespace {
+
+// Both overloads of rs::Shade: shadow rays to *shadow[l * stride], the others to bounce.
+void ShadeInto(const ShadeScene& scene, const ShadeOptions& options, const RayStreamView& rays,
+               const HitStreamView& hits, ContributionStream& contributions,
+               RayStream* const* shadow, size_t stride, RayStream& bounce, ShadeStats* stats) {
   HWY_DASSERT(hits.size == rays.size);
   const uint32_t stages = EffectiveStages(scene, options);
   ShadeStats s;
@@ -1058,14 +1071,21 @@ void Shade(const ShadeScene& scene, const ShadeOptions& options, const RayStream
   s.stages = stages;
   if (rays.size > 0) {
     // Room for every ray the stages can emit (+ one vector of CompressStore slack), reserved
-    // up front so the kernel never allocates; grown geometrically.
-    size_t per_ray = 0;
-    if ((stages & kShadeStageShadow) != 0) per_ray += scene.lights.size();
-    if ((stages & kShadeStageReflection) != 0) ++per_ray;
-    if ((stages & kShadeStageRefraction) != 0) ++per_ray;
-    const size_t begin = secondary.size();
-    const size_t need = begin + rays.size * per_ray + kStreamPad;
-    if (need > secondary.capacity()) secondary.Reserve(std::max(need, 2 * secondary.capacity()));
+    // up front so the kernel never allocates; grown geometrically. A stream that several
+    // outputs share is reserved for all of them (stride 0), or grown by the kernel.
+    auto reserve = [&](RayStream& to, size_t per_ray) {
+      const size_t need = to.size() + rays.size * per_ray + kStreamPad;
+      if (need > to.capacity()) to.Reserve(std::max(need, 2 * to.capacity()));
+    };
+    const bool shadows = (stages & kShadeStageShadow) != 0 && !scene.lights.empty();
+    const size_t bounces = ((stages & kShadeStageReflection) != 0 ? 1 : 0) +
+                           ((stages & kShadeStageRefraction) != 0 ? 1 : 0);
+    if (shadows && stride == 0) {
+      reserve(*shadow[0], scene.lights.size() + (shadow[0] == &bounce ? bounces : 0));
+    } else if (shadows) {
+      for (size_t l = 0; l < scene.lights.size(); ++l) reserve(*shadow[l * stride], 1);
+    }
+    if (!shadows || stride != 0 || shadow[0] != &bounce) reserve(bounce, bounces);
     // At most one contribution per ray (background or ambient); the rest arrive as shadow rays.
     const size_t cbegin = contributions.size();
     const size_t cneed = cbegin + rays.size + kStreamPad;
@@ -1081,15 +1101,31 @@ void Shade(const ShadeScene& scene, const ShadeOptions& options, const RayStream
     args.contrib = {contributions.pixel_data(), contributions.r_data(), contributions.g_data(),
                     contributions.b_data(), cbegin};
     args.contrib_end = &cend;
-    args.out = secondary.view();
-    args.out_begin = begin;
+    args.shadow = shadow;
+    args.shadow_stride = stride;
+    args.bounce = &bounce;
     args.stages = stages;
     args.stats = &s;
-    const size_t end = HWY_DYNAMIC_DISPATCH(ShadeSimd)(args);
-    secondary.Resize(end);
+    HWY_DYNAMIC_DISPATCH(ShadeSimd)(args);
     contributions.Resize(cend);
   }
   if (stats != nullptr) stats->Merge(s);
+}
+
+}  // namespace
+
+void Shade(const ShadeScene& scene, const ShadeOptions& options, const RayStreamView& rays,
+           const HitStreamView& hits, ContributionStream& contributions, RayStream& secondary,
+           ShadeStats* stats) {
+  RayStream* const one = &secondary;
+  ShadeInto(scene, options, rays, hits, contributions, &one, 0, secondary, stats);
+}
+
+void Shade(const ShadeScene& scene, const ShadeOptions& options, const RayStreamView& rays,
+           const HitStreamView& hits, ContributionStream& contributions,
+           std::span<RayStream* const> shadow, RayStream& bounce, ShadeStats* stats) {
+  HWY_ASSERT(shadow.size() >= scene.lights.size());
+  ShadeInto(scene, options, rays, hits, contributions, shadow.data(), 1, bounce, stats);
 }
 
 }  // namespace rs

@@ -154,6 +154,23 @@ inline void Shade(const Scene& scene, const ShadeOptions& options, const RayStre
   rs::Shade(ShadeSceneOf(scene), options, rays, hits, contributions, secondary, stats);
 }
 
+// The same with the secondary rays split as they are emitted, so that a caller tracing shadow
+// rays as coherent packets needs no partition pass: the shadow rays toward scene.lights[l] are
+// appended to *shadow[l] (shadow.size() >= lights.size()), the reflection and refraction rays
+// to `bounce`. These are the rays of the one-stream overload, in its order within each light
+// and within the bounce rays. The streams may repeat (rays to a shared stream keep the
+// one-stream order); each grows as needed, and one that is not shared is never reallocated
+// when its capacity() >= size() + rays.size + kStreamPad (bounce: that many per bounce stage).
+void Shade(const ShadeScene& scene, const ShadeOptions& options, const RayStreamView& rays,
+           const HitStreamView& hits, ContributionStream& contributions,
+           std::span<RayStream* const> shadow, RayStream& bounce, ShadeStats* stats = nullptr);
+inline void Shade(const Scene& scene, const ShadeOptions& options, const RayStreamView& rays,
+                  const HitStreamView& hits, ContributionStream& contributions,
+                  std::span<RayStream* const> shadow, RayStream& bounce,
+                  ShadeStats* stats = nullptr) {
+  rs::Shade(ShadeSceneOf(scene), options, rays, hits, contributions, shadow, bounce, stats);
+}
+
 // The power of two that brings m (> 0, the largest edge component) into [1, 2): its exponent
 // clamped so that the factor stays a normal float (m of 0, inf or NaN keep their meaning).
 inline float EdgeScale(float m) {

@@ -51,8 +51,8 @@ void MoveRays(const RayStreamView& v, size_t from, size_t end, size_t to) {
 }
 
 // The light a shadow ray runs to: it goes from o to o + d = the light's position (up to
-// rounding), so the nearest light to o + d. Shade emits runs of one light, so `guess` (the
-// previous ray's light) is tried first and taken when o + d lies within `near2` (a quarter of
+// rounding), so the nearest light to o + d. Shadow rays come in runs of one light, so `guess`
+// (the previous ray's light) is tried first and taken when o + d lies within `near2` (a quarter of
 // the smallest distance between two lights, squared) of it.
 uint32_t LightOf(const RayStreamView& r, size_t i, std::span<const PointLight> lights,
                  uint32_t guess, float near2) {
@@ -84,11 +84,11 @@ float NearLight2(std::span<const PointLight> lights) {
   return d2 / 16.0f;
 }
 
-// The rays of `from` (a RayStream's view) appended by class, in one counting and one copying
-// pass: its shadow rays to `shadow_to` grouped by light (stable within a light), the others to
-// `bounce_to` in order. Shade emits shadow rays light by light per SIMD vector, so a 64-ray run
-// would mix several lights and miss the coherent packets; grouped, each run shares its light.
-// The two may be one stream (the shadow rays first). Capacities must hold the rays (arenas: no
+// The rays of `from` (a RayStream's view, a generation of mixed kinds) appended by class, in one
+// counting and one copying pass: its shadow rays to `shadow_to` grouped by light (stable within
+// a light), the others to `bounce_to` in order. Ungrouped, a 64-ray run would mix several
+// lights and miss the coherent packets; grouped, each run shares its light. The two may be one
+// stream (the shadow rays first). Capacities must hold the rays (arenas: no
 // growth in the steady state). Order never changes the image.
 void Partition(const RayStreamView& from, std::span<const PointLight> lights,
                std::vector<uint32_t>& light_of, std::vector<size_t>& start, RayStream& shadow_to,
@@ -138,7 +138,7 @@ namespace {
 // TraceGeneration holds up to ceil(batch / task_size) tasks; every stream keeps kStreamPad lanes
 // after its rays for the seal.
 struct ArenaPlan {
-  size_t primary, level, spawned, shadow, bounce, hits, contributions;
+  size_t primary, level, light, shadow, bounce, hits, contributions;
   size_t levels;
 };
 
@@ -150,9 +150,9 @@ ArenaPlan PlanArenas(size_t batch, int max_depth, int task_size, size_t lights) 
   p.levels = static_cast<size_t>(max_depth) + 1;
   p.primary = batch + kStreamPad;
   p.level = 2 * batch + kStreamPad;
-  p.spawned = chunk * (lights + 2) + kStreamPad;
-  p.shadow = std::max(generation, p.spawned) + kStreamPad;
-  p.bounce = generation + kStreamPad;
+  p.light = chunk + kStreamPad;  // one light's shadow rays of a sub-chunk
+  p.shadow = std::max(generation, chunk * lights) + kStreamPad;
+  p.bounce = std::max(generation, 2 * chunk) + kStreamPad;  // a mixed generation, or Shade's
   p.hits = generation + kStreamPad;
   p.contributions = 2 * chunk + kStreamPad;  // background or ambient, per ray
   return p;
@@ -163,8 +163,9 @@ ArenaPlan PlanArenas(size_t batch, int max_depth, int task_size, size_t lights) 
 size_t EngineRayBudget(const RenderOptions& o, size_t lights) {
   const ArenaPlan p =
       PlanArenas(static_cast<size_t>(o.batch), o.max_depth, o.task_size, lights);
-  return PaddedSize(p.primary) + (p.levels - 1) * PaddedSize(p.level) + PaddedSize(p.spawned) +
-         PaddedSize(p.shadow) + PaddedSize(p.bounce);
+  return PaddedSize(p.primary) + (p.levels - 1) * PaddedSize(p.level) +
+         std::max<size_t>(lights, 1) * PaddedSize(p.light) + PaddedSize(p.shadow) +
+         PaddedSize(p.bounce);
 }
 
 size_t EngineShadowBatch(const RenderOptions& o, size_t lights) {
@@ -188,20 +189,23 @@ void RayEngine::Reserve(const FrameContext& ctx) {
   levels_.resize(p.levels);
   levels_[0].Reserve(p.primary);
   for (size_t d = 1; d < levels_.size(); ++d) levels_[d].Reserve(p.level);
-  spawned_.Reserve(p.spawned);
+  light_rays_.resize(std::max<size_t>(lights_, 1));
+  light_to_.resize(light_rays_.size());
+  for (RayStream& l : light_rays_) l.Reserve(p.light);
   shadow_.Reserve(p.shadow);
   bounce_.Reserve(p.bounce);
   hits_.Reserve(p.hits);
   occluded_.Reserve(p.shadow);
   contributions_.Reserve(p.contributions);
-  light_of_.reserve(p.shadow);  // Shade output of a sub-chunk, or a mixed generation
+  light_of_.reserve(p.shadow);  // a mixed generation
   local_sums_.resize(3 * batch_);
   batch_pixels_.resize(batch_);
   light_start_.reserve(lights_ + 2);  // Partition: max(lights, 1) + 1
 }
 
 size_t RayEngine::capacity_rays() const {
-  size_t n = spawned_.capacity() + shadow_.capacity() + bounce_.capacity();
+  size_t n = shadow_.capacity() + bounce_.capacity();
+  for (const RayStream& l : light_rays_) n += l.capacity();
   for (const RayStream& l : levels_) n += l.capacity();
   return n;
 }
@@ -267,14 +271,25 @@ void RayEngine::TraceAndShade(const FrameContext& ctx, const RayStreamView& rays
   stats.tasks += TasksOf(n, ctx.options.task_size);
   stats.trace_seconds += Seconds(t0, t1);
 
+  // Shade splits its output: bounce rays straight to `bounce`, light 0's shadow rays straight
+  // to their destination (unless it is `bounce` too), the other lights' to scratch streams
+  // appended after them (bulk copies), so each light's rays form one run.
+  const size_t lights = ctx.scene->lights.size();
+  RayStream& shadow = shadow_out != nullptr ? *shadow_out : shadow_;
+  const size_t direct = &shadow == &bounce ? 0 : 1;  // lights written in place
   const size_t chunk = ShadeChunk(batch_, lights_);
   for (size_t first = 0; first < n; first += chunk) {
     const size_t m = std::min(chunk, n - first);
+    if (shadow_out == nullptr) shadow_.Clear();
+    for (size_t l = 0; l < lights; ++l) {
+      light_rays_[l].Clear();
+      light_to_[l] = l < direct ? &shadow : &light_rays_[l];
+    }
     const auto s0 = Clock::now();
-    spawned_.Clear();
     contributions_.Clear();
     Shade(*ctx.scene, ctx.shade, SubView(rays, first, m), SubView(hits, first, m),
-          contributions_, spawned_, &stats.shade);
+          contributions_, std::span<RayStream* const>(light_to_.data(), lights), bounce,
+          &stats.shade);
     stats.shade_seconds += Seconds(s0, Clock::now());
     if (local_) {
       const ContributionView c = contributions_.view();
@@ -282,13 +297,10 @@ void RayEngine::TraceAndShade(const FrameContext& ctx, const RayStreamView& rays
     } else {
       fb.Add(contributions_.view());
     }
-    const RayStreamView spawned = spawned_.view();
-    if (shadow_out != nullptr) {
-      Partition(spawned, ctx.scene->lights, light_of_, light_start_, *shadow_out, bounce);
-      continue;
+    for (size_t l = direct; l < lights; ++l) {
+      shadow.Append(light_rays_[l].view(), 0, light_rays_[l].size());
     }
-    shadow_.Clear();
-    Partition(spawned, ctx.scene->lights, light_of_, light_start_, shadow_, bounce);
+    if (shadow_out != nullptr) continue;
     SealLanes(shadow_.view(), shadow_.size());
     Occlude(ctx, shadow_.view(), fb, stats);
   }

@@ -46,11 +46,12 @@ class RayEngine {
   // batch rounded up to whole tasks, without growing the scratch) occluded and added to fb,
   // `rays` (no shadow rays; at most ctx.options.batch rays rounded up to whole tasks, for
   // bounded scratch) intersected and shaded. Their secondary rays are appended: shadow rays to
-  // `shadow_out` grouped by light within each Shade sub-chunk (Shade emits them light by light
-  // per SIMD vector, so ungrouped a 64-ray run would mix lights and miss the coherent packets),
-  // the others to `bounce_out` in Shade's order. Both inputs padded with the lanes after their
-  // size sealed (RayStream::FillPadding or SealTail); they must not alias the outputs. The
-  // outputs may be one stream (each Shade sub-chunk's shadow rays, then its other rays).
+  // `shadow_out` grouped by light within each Shade sub-chunk (Shade writes each light's rays
+  // to its own stream; interleaved, a 64-ray run would mix lights and miss the coherent
+  // packets), the others to `bounce_out` in Shade's order. Both inputs padded with the lanes
+  // after their size sealed (RayStream::FillPadding or SealTail); they must not alias the
+  // outputs. The outputs may be one stream (each Shade sub-chunk's other rays, then its shadow
+  // rays light by light).
   void TraceGeneration(const FrameContext& ctx, const RayStreamView& shadow,
                        const RayStreamView& rays, Framebuffer& fb, RayStream& shadow_out,
                        RayStream& bounce_out, FrameStats& stats);
@@ -64,7 +65,7 @@ class RayEngine {
 
  private:
   // Intersects rays (no shadow rays), shades them in sub-chunks; each sub-chunk's bounce rays
-  // are appended to `bounce`, its shadow rays grouped by light and traced at once (or, when
+  // are appended to `bounce`, its shadow rays light by light and traced in one call (or, when
   // shadow_out is non-null, appended to it).
   void TraceAndShade(const FrameContext& ctx, const RayStreamView& rays, Framebuffer& fb,
                      RayStream& bounce, RayStream* shadow_out, FrameStats& stats);
@@ -73,7 +74,8 @@ class RayEngine {
   void Drain(const FrameContext& ctx, size_t primaries, Framebuffer& fb, FrameStats& stats);
 
   std::vector<RayStream> levels_;  // pending non-shadow rays by depth (0: primary)
-  RayStream spawned_;              // Shade's output for one sub-chunk
+  std::vector<RayStream> light_rays_;  // Shade's shadow rays of one sub-chunk, per light
+  std::vector<RayStream*> light_to_;   // where Shade writes each light's shadow rays
   RayStream shadow_;               // shadow rays of one sub-chunk, or of a mixed generation
   RayStream bounce_;               // non-shadow rays of a mixed generation
   HitStream hits_;

@@ -174,16 +174,18 @@ uint32_t Bits(float x, bool merge_nan) {
 
 // The rays of `s` from index `first` on, as sorted bit patterns (the SIMD kernel emits them in
 // a different order than the oracle; the multiset must be identical).
+RayKey KeyOf(const RayStreamView& v, size_t i, bool merge_nan = false) {
+  return {Bits(v.ox[i], merge_nan), Bits(v.oy[i], merge_nan), Bits(v.oz[i], merge_nan),
+          Bits(v.dx[i], merge_nan), Bits(v.dy[i], merge_nan), Bits(v.dz[i], merge_nan),
+          Bits(v.tmin[i], merge_nan), Bits(v.tmax[i], merge_nan), v.pixel[i],
+          Bits(v.wr[i], merge_nan), Bits(v.wg[i], merge_nan), Bits(v.wb[i], merge_nan),
+          static_cast<uint32_t>(v.depth[i]), static_cast<uint32_t>(v.kind[i])};
+}
+
 std::vector<RayKey> SortedRays(RayStream& s, size_t first = 0, bool merge_nan = false) {
   const RayStreamView v = s.view();
   std::vector<RayKey> keys;
-  for (size_t i = first; i < s.size(); ++i) {
-    keys.push_back({Bits(v.ox[i], merge_nan), Bits(v.oy[i], merge_nan), Bits(v.oz[i], merge_nan),
-                    Bits(v.dx[i], merge_nan), Bits(v.dy[i], merge_nan), Bits(v.dz[i], merge_nan),
-                    Bits(v.tmin[i], merge_nan), Bits(v.tmax[i], merge_nan), v.pixel[i],
-                    Bits(v.wr[i], merge_nan), Bits(v.wg[i], merge_nan), Bits(v.wb[i], merge_nan),
-                    static_cast<uint32_t>(v.depth[i]), static_cast<uint32_t>(v.kind[i])});
-  }
+  for (size_t i = first; i < s.size(); ++i) keys.push_back(KeyOf(v, i, merge_nan));
   std::sort(keys.begin(), keys.end());
   return keys;
 }
@@ -765,6 +767,82 @@ TEST_CASE("contributions of a scene's primary rays, added to a framebuffer: SIMD
       CHECK(got.clamped() == want.clamped());
       CHECK(SameBits(got.ToRgb(), want.ToRgb()));
     });
+  }
+}
+
+// The split overload writes the one-stream overload's rays, each to its light's stream or to
+// the bounce stream, in the one-stream order within each; streams that repeat get them
+// interleaved exactly as one stream would.
+TEST_CASE("split output: each light's shadow rays and the bounce rays apart, same rays, same order") {
+  const int shadow_kind = static_cast<int>(RayKind::kShadow);
+  for (const uint32_t seed : {5u, 6u}) {
+    const Scene s = RandomScene(seed, SceneOptions{});
+    const size_t lights = s.lights.size();
+    REQUIRE(lights >= 2);
+    ShadeOptions opt;
+    opt.max_depth = 3;
+    for (const size_t n : {size_t{1}, size_t{17}, size_t{1000}}) {
+      Stream st = RandomHits(s, n, seed * 77 + static_cast<uint32_t>(n), opt.max_depth);
+      test::ForEachTarget([&](const char* target) {
+        INFO("target ", target, " seed ", seed, " n ", n);
+        Result one = RunSimd(s, opt, st);
+        // Apart: one stream per light (each holding a ray already, which is kept) and bounce.
+        std::vector<RayStream> per_light(lights);
+        std::vector<RayStream*> to;
+        for (RayStream& l : per_light) {
+          l.Push(1, 2, 3, 4, 5, 6, 0, 1, 7, 1, 1, 1, 0, RayKind::kShadow);
+          to.push_back(&l);
+        }
+        Result apart;
+        Shade(s, opt, st.rays.view(), st.hits.view(), apart.contributions, to, apart.secondary,
+              &apart.stats);
+        CHECK(SortedContributions(apart.contributions) == SortedContributions(one.contributions));
+        CHECK(apart.stats.spawned[shadow_kind] == one.stats.spawned[shadow_kind]);
+        CHECK(apart.stats.light_tests == one.stats.light_tests);
+        // Walk the one-stream output: each ray is the next one of its light or of bounce.
+        std::vector<size_t> next(lights, 1);
+        size_t next_bounce = 0;
+        const RayStreamView ov = one.secondary.view();
+        const RayStreamView bv = apart.secondary.view();
+        bool all_found = true;
+        for (size_t i = 0; i < ov.size; ++i) {
+          if (ov.kind[i] != shadow_kind) {
+            all_found &= next_bounce < bv.size && KeyOf(bv, next_bounce) == KeyOf(ov, i);
+            ++next_bounce;
+            continue;
+          }
+          bool found = false;
+          for (size_t l = 0; l < lights && !found; ++l) {
+            const RayStreamView lv = per_light[l].view();
+            if (next[l] < lv.size && KeyOf(lv, next[l]) == KeyOf(ov, i)) {
+              // It runs to light l: o + d is the light's position.
+              const glm::vec3 end(lv.ox[next[l]] + lv.dx[next[l]], lv.oy[next[l]] + lv.dy[next[l]],
+                                  lv.oz[next[l]] + lv.dz[next[l]]);
+              CHECK(glm::length(end - s.lights[l].position) <= 1e-3f * (1.0f + glm::length(end)));
+              ++next[l];
+              found = true;
+            }
+          }
+          all_found &= found;
+        }
+        CHECK(all_found);
+        CHECK(next_bounce == bv.size);
+        for (size_t l = 0; l < lights; ++l) {
+          CHECK(next[l] == per_light[l].size());
+          CHECK(per_light[l].view().pixel[0] == 7);  // the ray it held
+        }
+        // Shared: every light and bounce to one stream is the one-stream overload, bit for bit.
+        Result shared;
+        std::vector<RayStream*> same(lights, &shared.secondary);
+        Shade(s, opt, st.rays.view(), st.hits.view(), shared.contributions, same,
+              shared.secondary, &shared.stats);
+        REQUIRE(shared.secondary.size() == one.secondary.size());
+        const RayStreamView sv = shared.secondary.view();
+        bool same_order = true;
+        for (size_t i = 0; i < sv.size; ++i) same_order &= KeyOf(sv, i) == KeyOf(ov, i);
+        CHECK(same_order);
+      });
+    }
   }
 }
 
