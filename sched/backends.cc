@@ -324,24 +324,44 @@ size_t QueueRayCap(const RenderOptions& o, size_t lights, size_t tile_pixels, in
   return std::max(EngineRayBudget(o, lights), wide) * static_cast<size_t>(threads);
 }
 
-// Task streams shared by the threads: streams move between threads with the tasks, so one pool
-// (a mutex per Get / Put, far below a task's cost) keeps the total at the peak number of live
-// tasks. Addresses are stable (deque); nothing is allocated once the pool has reached its peak.
+// Task streams, pooled: a shared pool (a mutex per Get / Put that reaches it) behind one free
+// list per thread. A thread reuses the streams it retired itself first, so a task's lines are
+// still in the cache of the core that rewrites them; with one LIFO pool for all, LOCAL's
+// streams (each of its 14 arrays a separate line pair) went to whichever thread asked next and
+// every Cut took them from the other core's cache. A thread's list holds at most `keep`
+// streams (the rest spill to the pool), and the pool holds threads x keep streams on top of the
+// peak of live tasks, so the lists cannot starve it. Addresses are stable (deque); nothing is
+// allocated once the pool has reached its peak.
 class TaskArena {
  public:
-  // At least n streams of task_size rays (application thread, threads parked).
-  void Reserve(size_t n, size_t task_size) {
+  // At least n streams of task_size rays plus `keep` per thread's list (application thread,
+  // threads parked).
+  void Reserve(int threads, size_t n, size_t keep, size_t task_size) {
+    if (lists_ == nullptr || threads_ != threads) {
+      lists_ = std::make_unique<List[]>(static_cast<size_t>(threads));
+      threads_ = threads;
+    }
+    keep_ = keep;
+    n += static_cast<size_t>(threads) * keep;
     while (all_.size() < n) {
       RayStream& s = all_.emplace_back();
       s.Reserve(task_size);
       free_.push_back(&s);
     }
     free_.reserve(all_.size());
+    for (int w = 0; w < threads; ++w) lists_[static_cast<size_t>(w)].free.reserve(keep);
   }
-  // n empty streams appended to `out`, under one lock.
-  void Get(size_t n, size_t task_size, std::vector<RayStream*>& out) {
+  // n empty streams appended to `out` for thread w: its own list first, then the pool under
+  // one lock.
+  void Get(int w, size_t n, size_t task_size, std::vector<RayStream*>& out) {
+    std::vector<RayStream*>& own = lists_[static_cast<size_t>(w)].free;
+    for (; n > 0 && !own.empty(); --n) {
+      out.push_back(own.back());
+      own.pop_back();
+    }
+    if (n == 0) return;
     std::lock_guard<std::mutex> lock(mutex_);
-    for (size_t i = 0; i < n; ++i) {
+    for (; n > 0; --n) {
       if (free_.empty()) {
         RayStream& s = all_.emplace_back();
         s.Reserve(task_size);
@@ -353,15 +373,29 @@ class TaskArena {
       free_.pop_back();
     }
   }
-  void Put(RayStream* const* tasks, size_t n) {
+  // Thread w's retired streams: into its list up to `keep`, the rest into the pool.
+  void Put(int w, RayStream* const* tasks, size_t n) {
+    std::vector<RayStream*>& own = lists_[static_cast<size_t>(w)].free;
+    size_t i = 0;
+    for (; i < n && own.size() < keep_; ++i) {
+      tasks[i]->Clear();
+      own.push_back(tasks[i]);
+    }
+    if (i == n) return;
     std::lock_guard<std::mutex> lock(mutex_);
-    for (size_t i = 0; i < n; ++i) {
+    for (; i < n; ++i) {
       tasks[i]->Clear();
       free_.push_back(tasks[i]);
     }
   }
 
  private:
+  struct alignas(kQueueFalseSharing) List {
+    std::vector<RayStream*> free;
+  };
+  std::unique_ptr<List[]> lists_;
+  int threads_ = 0;
+  size_t keep_ = 0;
   std::mutex mutex_;
   std::deque<RayStream> all_;
   std::vector<RayStream*> free_;
@@ -681,7 +715,8 @@ class QueueImpl final : public HostRenderer::Impl {
     // allocated in the first frame only.
     const size_t ts = TaskSize();
     const size_t tasks = cap / ts + static_cast<size_t>(options_.threads) * (2 * BatchTasks() + 8);
-    arena_.Reserve(tasks, ts);
+    // A thread's own list keeps two batches' worth of popped tasks.
+    arena_.Reserve(options_.threads, tasks, 2 * (BatchTasks() + ShadowBatchTasks()), ts);
     queue_.Reserve(tasks);
     // A batch of popped tasks and everything Shade can spawn from it (one per light, two
     // bounces), so the threads' streams never grow in the steady state.
@@ -716,11 +751,11 @@ class QueueImpl final : public HostRenderer::Impl {
 
   // Cuts `rays` (one class) into tasks of task_size rays (the last one shorter), copied array
   // by array, into me.children.
-  void Cut(Worker& me, const RayStreamView& rays) {
+  void Cut(Worker& me, int w, const RayStreamView& rays) {
     if (rays.size == 0) return;
     const size_t ts = TaskSize();
     size_t c = me.children.size();
-    arena_.Get((rays.size + ts - 1) / ts, ts, me.children);
+    arena_.Get(w, (rays.size + ts - 1) / ts, ts, me.children);
     for (size_t f = 0; f < rays.size; f += ts) {
       RayStream& task = *me.children[c++];
       task.Append(rays, f, std::min(ts, rays.size - f));
@@ -775,7 +810,7 @@ class QueueImpl final : public HostRenderer::Impl {
     const size_t end = first + count;
     size_t c = me.children.size();
     const size_t tasks = (count + TaskSize() - 1) / TaskSize();
-    arena_.Get(tasks, TaskSize(), me.children);
+    arena_.Get(w, tasks, TaskSize(), me.children);
     for (size_t f = first; f < end; f += TaskSize()) {
       const size_t n = std::min(TaskSize(), end - f);
       RayStream* task = me.children[c++];
@@ -912,14 +947,14 @@ class QueueImpl final : public HostRenderer::Impl {
     const auto t2 = Clock::now();
     const int64_t now = in_flight_.fetch_sub(rays, std::memory_order_relaxed) - rays;
     const size_t spawned = me.shadow_out.size() + me.bounce_out.size();
-    Cut(me, me.shadow_out.view());
+    Cut(me, w, me.shadow_out.view());
     if (now + static_cast<int64_t>(spawned) <= cap_) {
-      Cut(me, me.bounce_out.view());
+      Cut(me, w, me.bounce_out.view());
     } else {
       me.stats.budget_dropped += me.bounce_out.size();  // the cap: only exponential trees
     }
     PushChildren(me, w, static_cast<int64_t>(me.popped.size()));
-    arena_.Put(me.popped.data(), me.popped.size());
+    arena_.Put(w, me.popped.data(), me.popped.size());
     me.popped.clear();
     me.stats.schedule_seconds += Seconds(t0, t1) + Seconds(t2, Clock::now());
   }
@@ -946,9 +981,9 @@ class QueueImpl final : public HostRenderer::Impl {
         } catch (...) {
           // Other threads stop polling; the frame is abandoned (End drains the queues).
           abort_.store(true, std::memory_order_relaxed);
-          arena_.Put(me.children.data(), me.children.size());
+          arena_.Put(w, me.children.data(), me.children.size());
           me.children.clear();
-          arena_.Put(me.popped.data(), me.popped.size());
+          arena_.Put(w, me.popped.data(), me.popped.size());
           me.popped.clear();
           throw;
         }
@@ -1003,7 +1038,7 @@ class QueueImpl final : public HostRenderer::Impl {
     const int n = options_.threads;
     RayStream* task = nullptr;
     for (int w = 0; w < n; ++w) {
-      while (queue_.TryPop(w, task)) arena_.Put(&task, 1);
+      while (queue_.TryPop(w, task)) arena_.Put(w, &task, 1);
     }
     outstanding_.Reset(0);
   }
