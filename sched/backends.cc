@@ -337,10 +337,7 @@ class TaskArena {
   // At least n streams of task_size rays plus `keep` per thread's list (application thread,
   // threads parked).
   void Reserve(int threads, size_t n, size_t keep, size_t task_size) {
-    if (lists_ == nullptr || threads_ != threads) {
-      lists_ = std::make_unique<List[]>(static_cast<size_t>(threads));
-      threads_ = threads;
-    }
+    if (lists_ == nullptr) lists_ = std::make_unique<List[]>(static_cast<size_t>(threads));
     keep_ = keep;
     n += static_cast<size_t>(threads) * keep;
     while (all_.size() < n) {
@@ -393,8 +390,7 @@ class TaskArena {
   struct alignas(kQueueFalseSharing) List {
     std::vector<RayStream*> free;
   };
-  std::unique_ptr<List[]> lists_;
-  int threads_ = 0;
+  std::unique_ptr<List[]> lists_;  // one per thread; a backend's thread count is fixed
   size_t keep_ = 0;
   std::mutex mutex_;
   std::deque<RayStream> all_;

@@ -277,14 +277,12 @@ void RayEngine::TraceAndShade(const FrameContext& ctx, const RayStreamView& rays
   const size_t lights = ctx.scene->lights.size();
   RayStream& shadow = shadow_out != nullptr ? *shadow_out : shadow_;
   const size_t direct = &shadow == &bounce ? 0 : 1;  // lights written in place
+  for (size_t l = 0; l < lights; ++l) light_to_[l] = l < direct ? &shadow : &light_rays_[l];
   const size_t chunk = ShadeChunk(batch_, lights_);
   for (size_t first = 0; first < n; first += chunk) {
     const size_t m = std::min(chunk, n - first);
     if (shadow_out == nullptr) shadow_.Clear();
-    for (size_t l = 0; l < lights; ++l) {
-      light_rays_[l].Clear();
-      light_to_[l] = l < direct ? &shadow : &light_rays_[l];
-    }
+    for (size_t l = direct; l < lights; ++l) light_rays_[l].Clear();
     const auto s0 = Clock::now();
     contributions_.Clear();
     Shade(*ctx.scene, ctx.shade, SubView(rays, first, m), SubView(hits, first, m),
