@@ -222,16 +222,12 @@ void RayEngine::Occlude(const FrameContext& ctx, const RayStreamView& rays, Fram
   tracer.Occluded(rays, occluded, &stats.trace);
   const auto t1 = Clock::now();
   uint64_t blocked = 0;
-  for (size_t i = 0; i < n; ++i) {
-    if (occluded[i] != 0) {
-      ++blocked;
-      continue;
-    }
-    if (local_) {
-      AddLocal(rays.pixel[i], rays.wr[i], rays.wg[i], rays.wb[i]);
-    } else {
-      fb.Add(rays.pixel[i], rays.wr[i], rays.wg[i], rays.wb[i]);
-    }
+  for (size_t i = 0; i < n; ++i) blocked += occluded[i] != 0 ? 1 : 0;
+  if (local_) {
+    AddFixedContributions<false>(local_sums_.data(), rays.pixel, rays.wr, rays.wg, rays.wb,
+                                 occluded, n, &local_nan_, &local_clamped_);
+  } else {
+    fb.Add(rays.pixel, rays.wr, rays.wg, rays.wb, occluded, n);
   }
   stats.rays[kShadowKind] += n;
   ++stats.trace_calls[kShadowKind];
@@ -291,7 +287,8 @@ void RayEngine::TraceAndShade(const FrameContext& ctx, const RayStreamView& rays
     stats.shade_seconds += Seconds(s0, Clock::now());
     if (local_) {
       const ContributionView c = contributions_.view();
-      for (size_t i = 0; i < c.size; ++i) AddLocal(c.pixel[i], c.r[i], c.g[i], c.b[i]);
+      AddFixedContributions<false>(local_sums_.data(), c.pixel, c.r, c.g, c.b, nullptr, c.size,
+                                   &local_nan_, &local_clamped_);
     } else {
       fb.Add(contributions_.view());
     }

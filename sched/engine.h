@@ -94,19 +94,6 @@ class RayEngine {
   std::vector<int64_t> local_sums_;     // 3 per primary ray of the batch
   std::vector<uint32_t> batch_pixels_;  // the batch's pixels
   uint64_t local_nan_ = 0, local_clamped_ = 0;
-  void AddLocal(uint32_t i, float r, float g, float b) {
-    int64_t f[3];
-    bool clamped = false;
-    if (!ContributionToFixed(r, g, b, f, &clamped)) {
-      ++local_nan_;
-      return;
-    }
-    local_clamped_ += clamped ? 1 : 0;
-    int64_t* p = &local_sums_[3 * static_cast<size_t>(i)];
-    p[0] += f[0];
-    p[1] += f[1];
-    p[2] += f[2];
-  }
 };
 
 // The serial reference backend: the image's tiles (tile_size x tile_size, row-major) one after

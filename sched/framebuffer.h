@@ -29,6 +29,44 @@ inline constexpr float kMaxContribution = 4096.0f;   // 2^12
 // was clamped.
 inline bool ContributionToFixed(float r, float g, float b, int64_t out[3], bool* clamped);
 
+// The fixed-point channels of contributions [0, n): ContributionToFixed for each, a vector at a
+// time on the best SIMD target, into out_r / out_g / out_b[i]. A lane whose contribution has a
+// NaN channel gets 0 in all three and adds 1 to *nan; a lane with skip[i] != 0 (skip may be
+// null) gets 0 and is not counted; *clamped counts the other lanes with a clamped channel. The
+// same values and counts as the scalar calls, on every target. No alignment required.
+void ContributionsToFixed(const float* r, const float* g, const float* b, const int32_t* skip,
+                          size_t n, int64_t* out_r, int64_t* out_g, int64_t* out_b, uint64_t* nan,
+                          uint64_t* clamped);
+
+// Adds contribution i < n (r[i], g[i], b[i]), unless skip[i] != 0 (skip may be null), to the
+// fixed-point sums[3 * index[i] + channel], as adding them one by one with ContributionToFixed
+// does (NaN contributions dropped and counted in *nan, clamped ones counted in *clamped).
+// kShared: relaxed atomic adds (other threads may add to the same sums); else plain adds.
+template <bool kShared>
+void AddFixedContributions(int64_t* sums, const uint32_t* index, const float* r, const float* g,
+                           const float* b, const int32_t* skip, size_t n, uint64_t* nan,
+                           uint64_t* clamped) {
+  constexpr size_t kBlock = 256;
+  alignas(64) int64_t f[3][kBlock];
+  for (size_t i0 = 0; i0 < n; i0 += kBlock) {
+    const size_t m = n - i0 < kBlock ? n - i0 : kBlock;
+    ContributionsToFixed(r + i0, g + i0, b + i0, skip != nullptr ? skip + i0 : nullptr, m, f[0],
+                         f[1], f[2], nan, clamped);
+    for (size_t k = 0; k < m; ++k) {
+      int64_t* p = sums + 3 * static_cast<size_t>(index[i0 + k]);
+      for (int c = 0; c < 3; ++c) {
+        if constexpr (kShared) {
+          if (f[c][k] != 0) {
+            std::atomic_ref<int64_t>(p[c]).fetch_add(f[c][k], std::memory_order_relaxed);
+          }
+        } else {
+          p[c] += f[c][k];  // 0 for a skipped or dropped lane
+        }
+      }
+    }
+  }
+}
+
 // One fixed-point pixel channel sum as the image's float: sum * 2^-32 (exact in double),
 // rounded once to float.
 inline float FixedToFloat(int64_t sum) {
@@ -96,8 +134,14 @@ class Framebuffer {
   // Add(pixel[i], r[i], g[i], b[i]) for every contribution of `c` (pixels < num_pixels()), in
   // stream order: the same fixed-point sums, NaN drops and clamp counts as adding them one by
   // one. Thread-safe like Add.
-  void Add(const ContributionView& c) {
-    for (size_t i = 0; i < c.size; ++i) AddAs<true>(c.pixel[i], c.r[i], c.g[i], c.b[i]);
+  void Add(const ContributionView& c) { Add(c.pixel, c.r, c.g, c.b, nullptr, c.size); }
+  // The same for the contributions i < n with skip[i] == 0 (skip may be null) of arrays.
+  void Add(const uint32_t* pixel, const float* r, const float* g, const float* b,
+           const int32_t* skip, size_t n) {
+    HWY_DASSERT(storage_ == Storage::kFixed);
+    uint64_t nan = 0, clamped = 0;
+    AddFixedContributions<true>(sums_.data(), pixel, r, g, b, skip, n, &nan, &clamped);
+    AddCounters(nan, clamped);
   }
 
   // Add (shared = true: three relaxed atomic adds) or plain adds (false) to a kFixed buffer.

@@ -14,6 +14,7 @@
 
 #include "include/raystream/raystream.h"
 #include "streams/ray_stream.h"
+#include "tests/test_util.h"
 
 namespace rs {
 namespace {
@@ -214,6 +215,94 @@ TEST_CASE("Add(ContributionView) == Add per contribution: sums, NaN drops and cl
   CHECK(all.clamped() > 0);
   all.Add(ContributionView{});  // empty: nothing
   CHECK(std::memcmp(one.sums(), all.sums(), 12 * 3 * sizeof(int64_t)) == 0);
+}
+
+TEST_CASE("ContributionsToFixed == ContributionToFixed lane by lane, on every SIMD target") {
+  // Every edge of the conversion in every lane position: NaN in one channel, -0, negatives,
+  // infinities, above the clamp, denormals, ties of the rounding, the 2^23 boundary of the float
+  // trick, random values; lengths that end mid-vector; with and without a skip mask.
+  const float nan = std::numeric_limits<float>::quiet_NaN();
+  const float inf = std::numeric_limits<float>::infinity();
+  const std::vector<float> edges = {0.0f, -0.0f, -1.0f, nan, inf, -inf, 1e9f, kMaxContribution,
+                                    std::nextafter(kMaxContribution, inf),
+                                    std::numeric_limits<float>::denorm_min(),
+                                    std::ldexp(1.0f, -33), std::ldexp(3.0f, -33),
+                                    std::ldexp(5.0f, -33), std::ldexp(1.0f, -9),
+                                    std::nextafter(std::ldexp(1.0f, -9), 0.0f), 0.5f, 1.0f};
+  std::mt19937 rng(21);
+  std::uniform_real_distribution<float> e(-40.0f, 13.0f);
+  const size_t n = 1000;
+  std::vector<float> ch[3];
+  std::vector<int32_t> skip(n);
+  for (size_t i = 0; i < n; ++i) {
+    for (int c = 0; c < 3; ++c) {
+      const uint32_t pick = rng() % 4;
+      ch[c].push_back(pick == 0 ? edges[rng() % edges.size()] : std::exp2(e(rng)));
+    }
+    skip[i] = rng() % 5 == 0 ? static_cast<int32_t>(rng() % 3) - 1 : 0;  // -1, 0 or 1
+  }
+  test::ForEachTarget([&](const char* target) {
+    CAPTURE(target);
+    for (const bool masked : {false, true}) {
+      for (const size_t len : {size_t{0}, size_t{1}, size_t{7}, size_t{17}, n}) {
+        CAPTURE(len);
+        std::vector<int64_t> out[3];
+        for (auto& o : out) o.assign(len, -7);
+        uint64_t nans = 3, clamps = 5;  // added to, not reset
+        ContributionsToFixed(ch[0].data(), ch[1].data(), ch[2].data(),
+                             masked ? skip.data() : nullptr, len, out[0].data(), out[1].data(),
+                             out[2].data(), &nans, &clamps);
+        uint64_t want_nans = 3, want_clamps = 5;
+        size_t bad = 0;
+        for (size_t i = 0; i < len; ++i) {
+          int64_t f[3] = {0, 0, 0};
+          if (!masked || skip[i] == 0) {
+            bool clamped = false;
+            if (ContributionToFixed(ch[0][i], ch[1][i], ch[2][i], f, &clamped)) {
+              want_clamps += clamped ? 1 : 0;
+            } else {
+              f[0] = f[1] = f[2] = 0;
+              ++want_nans;
+            }
+          }
+          for (int c = 0; c < 3; ++c) bad += out[c][i] != f[c] ? 1 : 0;
+        }
+        CHECK(bad == 0);
+        CHECK(nans == want_nans);
+        CHECK(clamps == want_clamps);
+        if (len == n) {
+          CHECK(want_nans > 3);
+          CHECK(want_clamps > 5);
+        }
+      }
+    }
+  });
+}
+
+TEST_CASE("Add with a skip mask == Add of the unskipped contributions") {
+  std::mt19937 rng(4);
+  std::uniform_real_distribution<float> unit(0.0f, 3.0f);
+  const size_t n = 777;
+  std::vector<uint32_t> pixel(n);
+  std::vector<float> r(n), g(n), b(n);
+  std::vector<int32_t> skip(n);
+  for (size_t i = 0; i < n; ++i) {
+    pixel[i] = static_cast<uint32_t>(rng() % 10);
+    r[i] = unit(rng);
+    g[i] = i % 50 == 0 ? std::numeric_limits<float>::quiet_NaN() : unit(rng);
+    b[i] = i % 30 == 0 ? 5000.0f : unit(rng);
+    skip[i] = rng() % 3 == 0 ? 1 : 0;
+  }
+  Framebuffer one(5, 2), all(5, 2);
+  for (size_t i = 0; i < n; ++i) {
+    if (skip[i] == 0) one.Add(pixel[i], r[i], g[i], b[i]);
+  }
+  all.Add(pixel.data(), r.data(), g.data(), b.data(), skip.data(), n);
+  CHECK(std::memcmp(one.sums(), all.sums(), 10 * 3 * sizeof(int64_t)) == 0);
+  CHECK(all.dropped_nan() == one.dropped_nan());
+  CHECK(all.clamped() == one.clamped());
+  CHECK(one.dropped_nan() > 0);
+  CHECK(one.clamped() > 0);
 }
 
 TEST_CASE("size checks and moves") {
