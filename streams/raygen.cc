@@ -11,6 +11,7 @@
 #pragma GCC optimize("fp-contract=off")
 #endif
 
+#include <algorithm>
 #include <cmath>
 #include <limits>
 #include <numbers>
@@ -131,25 +132,37 @@ void GeneratePrimaryRays(const CameraBasis& basis, const Tile& tile, RayOrder or
               tile.y1 <= basis.height);
   HWY_DASSERT(first + count <= tile.NumPixels());
   const float inf = std::numeric_limits<float>::infinity();
-  for (size_t k = 0; k < count; ++k) {
-    int x, y;
-    TilePixel(tile, order, first + k, x, y);
-    const glm::vec3 d = PrimaryDirection(basis, x, y);
-    const size_t j = offset + k;
-    out.ox[j] = basis.eye.x;
-    out.oy[j] = basis.eye.y;
-    out.oz[j] = basis.eye.z;
-    out.dx[j] = d.x;
-    out.dy[j] = d.y;
-    out.dz[j] = d.z;
-    out.tmin[j] = 0.0f;
-    out.tmax[j] = inf;
-    out.pixel[j] = static_cast<uint32_t>(y) * static_cast<uint32_t>(basis.width) +
-                   static_cast<uint32_t>(x);
-    out.wr[j] = out.wg[j] = out.wb[j] = 1.0f;
-    out.depth[j] = 0;
-    out.kind[j] = static_cast<int32_t>(RayKind::kPrimary);
+  constexpr size_t kBlock = 256;
+  int32_t xs[kBlock], ys[kBlock];
+  int x = 0, y = 0;
+  if (count > 0) TilePixel(tile, order, first, x, y);
+  for (size_t k0 = 0; k0 < count; k0 += kBlock) {
+    const size_t m = std::min(kBlock, count - k0);
+    const size_t j0 = offset + k0;
+    for (size_t k = 0; k < m; ++k) {
+      if (order != RayOrder::kScanline) TilePixel(tile, order, first + k0 + k, x, y);
+      xs[k] = x;
+      ys[k] = y;
+      out.pixel[j0 + k] = static_cast<uint32_t>(y) * static_cast<uint32_t>(basis.width) +
+                          static_cast<uint32_t>(x);
+      if (++x == tile.x1) {  // scanline: the next pixel (other orders recompute it)
+        x = tile.x0;
+        ++y;
+      }
+    }
+    PrimaryDirections(basis, xs, ys, m, out.dx + j0, out.dy + j0, out.dz + j0);
   }
+  const size_t end = offset + count;
+  std::fill(out.ox + offset, out.ox + end, basis.eye.x);
+  std::fill(out.oy + offset, out.oy + end, basis.eye.y);
+  std::fill(out.oz + offset, out.oz + end, basis.eye.z);
+  std::fill(out.tmin + offset, out.tmin + end, 0.0f);
+  std::fill(out.tmax + offset, out.tmax + end, inf);
+  std::fill(out.wr + offset, out.wr + end, 1.0f);
+  std::fill(out.wg + offset, out.wg + end, 1.0f);
+  std::fill(out.wb + offset, out.wb + end, 1.0f);
+  std::fill(out.depth + offset, out.depth + end, 0);
+  std::fill(out.kind + offset, out.kind + end, static_cast<int32_t>(RayKind::kPrimary));
 }
 
 void AppendPrimaryRays(const CameraBasis& basis, const Tile& tile, RayOrder order,

@@ -59,8 +59,14 @@ struct CameraBasis {
 CameraBasis MakeCameraBasis(const Camera& camera, int width, int height);
 
 // The normalized primary direction through the centre of pixel (x, y). Pure function of
-// (x, y, basis): the single place primary directions are computed.
+// (x, y, basis): the single definition of primary directions (PrimaryDirections is its vector
+// form, bit for bit).
 glm::vec3 PrimaryDirection(const CameraBasis& basis, int x, int y);
+
+// PrimaryDirection(basis, x[i], y[i]) for i < n, bit for bit, a vector of pixels at a time on
+// the best SIMD target, into (dx[i], dy[i], dz[i]). No alignment required.
+void PrimaryDirections(const CameraBasis& basis, const int32_t* x, const int32_t* y, size_t n,
+                       float* dx, float* dy, float* dz);
 
 // The pixel of the i-th ray of `tile` in `order` (0 <= i < tile.NumPixels()), O(1).
 void TilePixel(const Tile& tile, RayOrder order, size_t i, int& x, int& y);
