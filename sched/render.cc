@@ -57,7 +57,8 @@ void ValidateRenderOptions(const RenderOptions& o) {
     fail("weight_cutoff " + std::to_string(o.weight_cutoff) + " must be finite and >= 0");
   }
   if (o.tile_size < 1) fail("tile_size " + std::to_string(o.tile_size) + " must be >= 1");
-  if (o.order != RayOrder::kScanline && o.order != RayOrder::kBlock4x2) {
+  if (o.order != RayOrder::kScanline && o.order != RayOrder::kBlock4x2 &&
+      o.order != RayOrder::kBlock8x8) {
     fail("unknown ray order " + std::to_string(static_cast<int>(o.order)));
   }
 }

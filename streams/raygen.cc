@@ -23,6 +23,7 @@ const char* RayOrderName(RayOrder order) {
   switch (order) {
     case RayOrder::kScanline: return "scanline";
     case RayOrder::kBlock4x2: return "block4x2";
+    case RayOrder::kBlock8x8: return "block8x8";
   }
   return "unknown";
 }
@@ -105,25 +106,40 @@ glm::vec3 PrimaryDirection(const CameraBasis& b, int x, int y) {
   return glm::vec3(dx / len, dy / len, dz / len);
 }
 
-void TilePixel(const Tile& tile, RayOrder order, size_t i, int& x, int& y) {
+namespace {
+
+// Blocks of kW x kH pixels (see RayOrder): every block row but the last is kH high and every
+// block but the last in its row kW wide, so the block and the position inside it follow from
+// two divisions.
+template <size_t kW, size_t kH>
+void BlockPixel(const Tile& tile, size_t i, int& x, int& y) {
   const size_t tw = static_cast<size_t>(tile.Width());
-  if (order == RayOrder::kScanline) {
-    x = tile.x0 + static_cast<int>(i % tw);
-    y = tile.y0 + static_cast<int>(i / tw);
-    return;
-  }
-  // 4x2 blocks: every block row but the last is 2 high; every block but the last in its row
-  // is 4 wide, so the block and the position inside it follow from two divisions.
-  const size_t row = i / (2 * tw);
-  const int row_y = tile.y0 + static_cast<int>(2 * row);
-  const size_t bh = tile.y1 - row_y >= 2 ? 2 : 1;
-  const size_t r = i - row * 2 * tw;
-  const size_t block = r / (4 * bh);
-  const size_t p = r - block * 4 * bh;
-  const int bx = tile.x0 + static_cast<int>(4 * block);
-  const size_t bw = tile.x1 - bx >= 4 ? 4 : static_cast<size_t>(tile.x1 - bx);
+  const size_t row = i / (kH * tw);
+  const int row_y = tile.y0 + static_cast<int>(kH * row);
+  const size_t bh = std::min(kH, static_cast<size_t>(tile.y1 - row_y));
+  const size_t r = i - row * kH * tw;
+  const size_t block = r / (kW * bh);
+  const size_t p = r - block * kW * bh;
+  const int bx = tile.x0 + static_cast<int>(kW * block);
+  const size_t bw = std::min(kW, static_cast<size_t>(tile.x1 - bx));
   x = bx + static_cast<int>(p % bw);
   y = row_y + static_cast<int>(p / bw);
+}
+
+}  // namespace
+
+void TilePixel(const Tile& tile, RayOrder order, size_t i, int& x, int& y) {
+  switch (order) {
+    case RayOrder::kScanline: {
+      const size_t tw = static_cast<size_t>(tile.Width());
+      x = tile.x0 + static_cast<int>(i % tw);
+      y = tile.y0 + static_cast<int>(i / tw);
+      return;
+    }
+    case RayOrder::kBlock4x2: return BlockPixel<4, 2>(tile, i, x, y);
+    case RayOrder::kBlock8x8: return BlockPixel<8, 8>(tile, i, x, y);
+  }
+  HWY_ABORT("unknown ray order %d", static_cast<int>(order));
 }
 
 void GeneratePrimaryRays(const CameraBasis& basis, const Tile& tile, RayOrder order,

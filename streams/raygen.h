@@ -20,6 +20,8 @@ enum class RayOrder : int {
   kBlock4x2 = 1,  // blocks of 4 wide x 2 high in scanline order of blocks (x fastest inside a
                   // block); blocks start at the tile's (x0, y0), partial blocks at the right
                   // and bottom tile edges hold the remaining 1..3 columns / 1 row
+  kBlock8x8 = 2,  // the same with blocks of 8 x 8: a 64-ray packet is a square of pixels, not
+                  // two rows of a tile, so its footprint in the grid is smallest
 };
 const char* RayOrderName(RayOrder order);
 

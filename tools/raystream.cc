@@ -169,7 +169,7 @@ struct RenderArgs {
   int task_size = RenderOptions{}.task_size;
   int batch = RenderOptions{}.batch;
   int ray_budget = RenderOptions{}.ray_budget;
-  std::string order = "scanline";
+  std::string order;  // empty: RenderOptions' default (block8x8)
   float cutoff = RenderOptions{}.weight_cutoff;
   float lambda = 0.0f;  // 0: chosen by the grid cost model
   std::string stats;
@@ -347,7 +347,7 @@ void CheckBackendOptions(const RenderArgs& args) {
       fail(fmt::format("--ray-budget {}", args.ray_budget),
            "the cell backend's SPEs bound their rays in flight by the local store");
     }
-    if (args.order != "scanline") {
+    if (!args.order.empty()) {
       fail("--order " + args.order,
            "the cell backend's SPEs generate primary rays in their own sub-tile order");
     }
@@ -453,7 +453,9 @@ int RunRender(RenderArgs args) {
   options.batch = args.batch;
   options.ray_budget = args.ray_budget;
   options.weight_cutoff = args.cutoff;
-  options.order = args.order == "block" ? RayOrder::kBlock4x2 : RayOrder::kScanline;
+  if (args.order == "scanline") options.order = RayOrder::kScanline;
+  if (args.order == "block4x2" || args.order == "block") options.order = RayOrder::kBlock4x2;
+  if (args.order == "block8x8") options.order = RayOrder::kBlock8x8;
   const std::string out = args.out.empty() ? args.scene + ".png" : args.out;
   const bool tty = isatty(fileno(stderr)) != 0;
   // Every output can be written (folder exists, writable, a known image format) before any work.
@@ -725,9 +727,11 @@ int Main(int argc, char** argv) {
                      "dropped with a warning: the guard against exponential ray trees")
       ->check(CLI::Range(1, 1 << 30))
       ->capture_default_str();
-  render->add_option("--order", r.order, "primary ray order")
-      ->check(CLI::IsMember({"scanline", "block"}))
-      ->capture_default_str();
+  render->add_option("--order", r.order,
+                     "primary ray order inside a tile: block8x8 (the default: each 64-ray packet "
+                     "is an 8x8 square of pixels, the smallest footprint), block4x2 (or block), "
+                     "scanline")
+      ->check(CLI::IsMember({"scanline", "block", "block4x2", "block8x8"}));
   render->add_option("--cutoff", r.cutoff, "drop secondary rays whose weight is below this")
       ->capture_default_str();
   render->add_option("--lambda", r.lambda, "grid density: cells per triangle (0: chosen by the grid cost model)")

@@ -301,7 +301,7 @@ TEST_CASE("bit-identical images: repeated runs, task sizes 1/7/20/1000, orders, 
     }
   }
   for (const int task_size : {1, 7, 20, 1000}) {
-    for (const RayOrder order : {RayOrder::kScanline, RayOrder::kBlock4x2}) {
+    for (const RayOrder order : {RayOrder::kScanline, RayOrder::kBlock4x2, RayOrder::kBlock8x8}) {
       for (const int tile : {5, 32, 4096}) {
         INFO("task_size ", task_size, " order ", RayOrderName(order), " tile ", tile);
         RenderOptions o = base;
@@ -483,7 +483,7 @@ void CheckProceduralScene(const std::string& name) {
   CHECK(ref.stats.hits > 0);
   if (s.features.lights) CHECK(ref.stats.rays[static_cast<int>(RayKind::kShadow)] > 0);
   for (const int task_size : {1, 7, 1000}) {
-    for (const RayOrder order : {RayOrder::kScanline, RayOrder::kBlock4x2}) {
+    for (const RayOrder order : {RayOrder::kScanline, RayOrder::kBlock4x2, RayOrder::kBlock8x8}) {
       INFO(name, " task_size ", task_size, " order ", RayOrderName(order));
       RenderOptions o = base;
       o.task_size = task_size;

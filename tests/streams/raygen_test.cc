@@ -40,7 +40,7 @@ std::vector<std::pair<int, int>> Pixels(const Tile& tile, RayOrder order, int wi
 
 TEST_CASE("tile coverage: every pixel exactly once, both orders, odd tiles") {
   const int width = 23;
-  for (const RayOrder order : {RayOrder::kScanline, RayOrder::kBlock4x2}) {
+  for (const RayOrder order : {RayOrder::kScanline, RayOrder::kBlock4x2, RayOrder::kBlock8x8}) {
     for (int x0 : {0, 3}) {
       for (int y0 : {0, 5}) {
         for (int tw = 0; tw <= 11; ++tw) {
@@ -87,6 +87,24 @@ TEST_CASE("4x2 block order with partial blocks at the right and bottom edges") {
                                                         {1, 1}, {2, 1}, {0, 2}, {1, 2},
                                                         {2, 2}, {0, 3}, {1, 3}, {2, 3}};
   CHECK(narrow == want_narrow);
+}
+
+TEST_CASE("8x8 block order: full blocks, then the partial ones at the right and bottom edges") {
+  // Tile 11 x 10 at (2, 3): block row 0 = [2,10)x[3,11) (64 rays) then [10,13)x[3,11) (3 wide);
+  // block row 1 (2 high) = [2,10)x[11,13) then [10,13)x[11,13).
+  const auto px = Pixels(Tile{2, 3, 13, 13}, RayOrder::kBlock8x8, 14);
+  REQUIRE(px.size() == 110);
+  std::vector<std::pair<int, int>> want;
+  auto block = [&](int x0, int y0, int x1, int y1) {
+    for (int y = y0; y < y1; ++y) {
+      for (int x = x0; x < x1; ++x) want.emplace_back(x, y);
+    }
+  };
+  block(2, 3, 10, 11);
+  block(10, 3, 13, 11);
+  block(2, 11, 10, 13);
+  block(10, 11, 13, 13);
+  CHECK(px == want);
 }
 
 TEST_CASE("ray fields: origin, normalized direction, tmin, tmax, pixel id, weight, kind") {
@@ -162,7 +180,7 @@ TEST_CASE("rays are bit-identical whatever the tile split and order") {
     for (size_t i = 0; i < v.size; ++i) whole[v.pixel[i]] = key(v, i);
   }
   REQUIRE(whole.size() == static_cast<size_t>(w * h));
-  for (const RayOrder order : {RayOrder::kScanline, RayOrder::kBlock4x2}) {
+  for (const RayOrder order : {RayOrder::kScanline, RayOrder::kBlock4x2, RayOrder::kBlock8x8}) {
     for (const int ts : {1, 3, 4, 7, 16}) {
       INFO("order ", RayOrderName(order), " tile size ", ts);
       RayStream s;
