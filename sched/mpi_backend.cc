@@ -411,6 +411,8 @@ class Master {
     p.seed = c.host.seed;
     p.steal = c.host.pbt_tiles_per_worker > 0 && c.host.assign != PbtAssign::kCounter;  // lists
     p.cost = c.host.pbt_cost;
+    p.predict = c.host.pbt_predict;
+    p.cost_block = c.host.pbt_cost_block;
     plan_ = std::make_unique<TilePlan>(c.render.width, c.render.height, p);
   }
 

@@ -59,6 +59,7 @@ CellFrameStats CellRenderer::Render(const FrameContext& ctx, Framebuffer& fb) {
     p.workers = plan_options_.pbt_workers > 0 ? plan_options_.pbt_workers : config_.num_spes;
     p.assign = plan_options_.assign;
     p.seed = plan_options_.seed;
+    p.predict = plan_options_.predict;
     p.cost = PbtCost::kWork;  // the simulated tile cycles: deterministic
     plan_.reset();
     plan_ = std::make_unique<TilePlan>(w, h, p);
