@@ -107,6 +107,8 @@ ok = ok and all(sum(t['rays'] for t in x['tiles']) == sum(x['rays'].values()) fo
 ok = ok and all(t['predicted_seconds'] > 0 and t['work'] > 0 for t in f[2]['tiles'])
 sys.exit(0 if ok else 1)"; then ok "local --pbt 2 --assign greedy, 3 frames: serial image, per-tile work stats"
 else bad "local --pbt 2 --assign greedy: image differs from serial, render failed or bad stats"; fi
+expect_error "--pbt-predict unknown" 'error: --pbt-predict costmapp: expected paper or costmap' "$rs" render --scene cornell --backend tiles --pbt 2 --pbt-predict costmapp --width 8 --height 8 --out "$tmp/y.png"
+expect_error "--pbt-predict needs PBT" 'error: --pbt-predict paper: needs --pbt k' "$rs" render --scene cornell --backend tiles --pbt-predict paper --width 8 --height 8 --out "$tmp/y.png"
 expect_error "queue backend: --pbt-cost wall" 'pbt-cost wall.*lock backend.*no wall or CPU time' "$rs" render --scene cornell --backend lock --pbt 2 --pbt-cost wall --width 8 --height 8 --out "$tmp/y.png"
 if "$rs" render --scene erw6 --width 24 --height 24 --backend lfree --threads 2 --frames 2 --out "$tmp/l.png" \
      --stats "$tmp/l.json" >"$tmp/out" 2>&1 \
