@@ -103,7 +103,7 @@ void ValidateBackendOptions(const BackendOptions& o) {
                      o.pbt_workers));
   }
   const int assign = static_cast<int>(o.assign);
-  if (assign < 0 || assign > static_cast<int>(PbtAssign::kCounter)) {
+  if (assign < 0 || assign > static_cast<int>(PbtAssign::kLpt)) {
     fail(fmt::format("unknown PBT assignment {}", assign));
   }
   const int cost = static_cast<int>(o.pbt_cost);

@@ -213,7 +213,7 @@ void ValidateConfig(const BackendConfig& c, int ranks) {
         fmt::format("--pbt-cost {}: needs a PBT tiling (--pbt k)", PbtCostName(h.pbt_cost)));
   }
   const int assign = static_cast<int>(h.assign);
-  if (assign < 0 || assign > static_cast<int>(PbtAssign::kCounter)) {
+  if (assign < 0 || assign > static_cast<int>(PbtAssign::kLpt)) {
     throw Error(fmt::format("--assign {}: unknown", assign));
   }
 }

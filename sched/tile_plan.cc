@@ -27,13 +27,15 @@ const char* PbtAssignName(PbtAssign assign) {
       return "static";
     case PbtAssign::kCounter:
       return "counter";
+    case PbtAssign::kLpt:
+      return "lpt";
   }
   return "?";
 }
 
 bool ParsePbtAssign(std::string_view name, PbtAssign* assign) {
   for (const PbtAssign a : {PbtAssign::kRandom, PbtAssign::kGreedy, PbtAssign::kVisit,
-                            PbtAssign::kStatic, PbtAssign::kCounter}) {
+                            PbtAssign::kStatic, PbtAssign::kCounter, PbtAssign::kLpt}) {
     if (name == PbtAssignName(a)) {
       *assign = a;
       return true;
@@ -150,7 +152,7 @@ void ValidateTilePlanOptions(const TilePlanOptions& o) {
     fail(fmt::format("workers {} must be in [1, 65536]", o.workers));
   }
   const int assign = static_cast<int>(o.assign);
-  if (assign < 0 || assign > static_cast<int>(PbtAssign::kCounter)) {
+  if (assign < 0 || assign > static_cast<int>(PbtAssign::kLpt)) {
     fail(fmt::format("unknown PBT assignment {}", assign));
   }
   const int cost = static_cast<int>(o.cost);
@@ -198,6 +200,15 @@ TilePlan::TilePlan(int width, int height, const TilePlanOptions& options)
   if (uses_pbt()) {
     // End's LPT model runs from the second frame on: its buffers sized now.
     lpt_order_.reserve(pbt_->NumLeaves());
+    if (options_.assign == PbtAssign::kLpt) {
+      // LPT lists vary in length from frame to frame: room for 4 k + 16 tiles each (more only
+      // when one worker gets that many tiny tiles).
+      const size_t room = 4 * static_cast<size_t>(options_.pbt_tiles_per_worker) + 16;
+      frame_.assignment.tiles.resize(static_cast<size_t>(options_.workers));
+      for (std::vector<int32_t>& list : frame_.assignment.tiles) {
+        list.reserve(std::min(room, pbt_->NumLeaves()));
+      }
+    }
     lpt_predicted_.reserve(static_cast<size_t>(options_.workers));
     loads_.reserve(static_cast<size_t>(options_.workers));
   }
@@ -271,6 +282,20 @@ void TilePlan::Plan() {
       break;
     case PbtAssign::kRandom:
       AssignRandom(known, n, PbtRandomSeed(options_.seed, frames_), f.assignment);
+      break;
+    case PbtAssign::kLpt:
+      // Before the first prediction the tiles' pixels stand in (equal zeros would give every
+      // tile to worker 0).
+      if (f.has_prediction) {
+        AssignLpt(known, n, f.assignment, lpt_order_);
+      } else {
+        lpt_known_.resize(m);
+        for (size_t i = 0; i < m; ++i) {
+          lpt_known_[i] = static_cast<double>(f.tiles[i].NumPixels());
+        }
+        AssignLpt(lpt_known_, n, f.assignment, lpt_order_);
+        f.assignment.predicted_load.assign(static_cast<size_t>(n), 0.0);  // no prediction yet
+      }
       break;
     case PbtAssign::kCounter: {
       // Decreasing prediction, ties by tile index: a strict total order (the predictions are

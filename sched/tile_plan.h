@@ -31,8 +31,11 @@ enum class PbtAssign : int {
                  // (ties: tile order) through one shared tile counter (demand driven, longest
                  // first; what the cell backend's atomic tile counter does by default). The n
                  // workers size the PBT (m = k n) and the demand-driven model.
+  kLpt = 5,      // not in the paper: PBT updated, per-worker lists by LPT over the predictions
+                 // (AssignLpt: costliest first, each to the least predicted load; the tiles'
+                 // pixels before the first prediction), each list costliest first
 };
-// "random" "greedy" "visit" "static" "counter". Parse returns false for anything else and leaves
+// "random" "greedy" "visit" "static" "counter" "lpt". Parse returns false for anything else and leaves
 // *assign unchanged.
 const char* PbtAssignName(PbtAssign assign);
 bool ParsePbtAssign(std::string_view name, PbtAssign* assign);
@@ -131,7 +134,7 @@ struct TilePlanFrame {
   // Per tile, the cost the plan predicts (units of End's costs; -1: none): the PBT's estimate
   // e(l), or for static (never re-tiled) the same tile's cost in the previous frame.
   std::vector<double> predicted;
-  // PBT with per-worker lists (random, greedy, visit, static): per worker the tiles in
+  // PBT with per-worker lists (random, greedy, visit, static, lpt): per worker the tiles in
   // processing order, and their predicted loads (0 before the first prediction). Empty for
   // fixed tiles and kCounter.
   Assignment assignment;
@@ -240,6 +243,7 @@ class TilePlan {
   TilePlanFrame frame_;
   // Scratch kept between frames, so Plan and End allocate nothing once sized (pbt.h).
   std::vector<double> known_;   // Plan: the predictions, 0 before the first
+  std::vector<double> lpt_known_;  // Plan (lpt): the predictions, the pixels before the first
   std::vector<double> loads_;   // End: per-worker loads
   std::vector<int32_t> lpt_order_;     // End: tiles in LPT order
   std::vector<double> lpt_predicted_;  // End: per worker, the LPT lists' predicted loads

@@ -37,7 +37,7 @@ CellRenderer::CellRenderer(const SimConfig& config, const CellPlanOptions& plan)
     : config_(config), plan_options_(plan) {
   ValidateConfig(config_);
   const int assign = static_cast<int>(plan.assign);
-  if (assign < 0 || assign > static_cast<int>(PbtAssign::kCounter)) {
+  if (assign < 0 || assign > static_cast<int>(PbtAssign::kLpt)) {
     throw Error("cell backend: unknown PBT assignment " + std::to_string(assign));
   }
   if (plan.pbt_workers < 0 || plan.pbt_workers > 65536) {

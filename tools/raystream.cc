@@ -213,7 +213,7 @@ void ParseTileShape(const std::string& text, int& width, int& height) {
 PbtAssign PbtAssignFor(const RenderArgs& args) {
   PbtAssign assign = args.backend == "cell" ? PbtAssign::kCounter : PbtAssign::kRandom;
   if (!args.assign.empty() && !ParsePbtAssign(args.assign, &assign)) {
-    throw Error(fmt::format("--assign {}: expected random, greedy, visit, static or counter",
+    throw Error(fmt::format("--assign {}: expected random, greedy, visit, static, counter or lpt",
                             args.assign));
   }
   return assign;
@@ -705,7 +705,8 @@ int Main(int argc, char** argv) {
       ->check(CLI::Range(0, 65536))
       ->capture_default_str();
   render->add_option("--assign", r.assign,
-                     "PBT tile assignment: random, greedy, visit, static, counter (default "
+                     "PBT tile assignment: random, greedy, visit, static, counter, lpt (lists by "
+                     "longest predicted tile first onto the least loaded worker; default "
                      "random; cell: counter)");
   render->add_option("--pbt-cost,--pbt-time", r.pbt_cost,
                      "tile cost fed to PBT-Update: wall (default), cpu, or work (deterministic "

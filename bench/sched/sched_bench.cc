@@ -51,7 +51,7 @@ struct Args {
   bool pbt_reproject = true;  // --pbt-reproject 0: no next camera (the map is not moved)
   // --pbt-assigns: the assignments of the work and cpu rows (default all five).
   std::vector<PbtAssign> pbt_assigns = {PbtAssign::kStatic, PbtAssign::kRandom, PbtAssign::kGreedy,
-                                        PbtAssign::kVisit, PbtAssign::kCounter};
+                                        PbtAssign::kVisit, PbtAssign::kCounter, PbtAssign::kLpt};
 };
 
 bool Want(const Args& a, const std::string& part) { return a.only.empty() || a.only.count(part); }
@@ -705,7 +705,7 @@ int Main(int argc, char** argv) {
         if (!ParsePbtAssign(item, &assign)) {
           fmt::print(stderr,
                      "sched_bench: --pbt-assigns {}: expected static, random, greedy, visit, "
-                     "counter\n",
+                     "counter, lpt\n",
                      item);
           return 2;
         }
@@ -741,7 +741,7 @@ int Main(int argc, char** argv) {
                  "usage: sched_bench [--out DIR] [--quick] [--only scaling,tiles,pbt,amphitheater,"
                  "calibrate] [--pbt-costs work,cpu,wall] [--pbt-batches 1024,20] [--pbt-size 512] "
                  "[--pbt-predict paper,costmap] [--pbt-block 4] [--pbt-reproject 1] "
-                 "[--pbt-assigns static,random,greedy,visit,counter]\n");
+                 "[--pbt-assigns static,random,greedy,visit,counter,lpt]\n");
       return 2;
     }
   }

@@ -151,7 +151,9 @@ TEST_CASE("no heap allocation in a later PBT frame on any thread, queue and tile
                         {"tiles", PbtAssign::kCounter, false, false},
                         {"tiles", PbtAssign::kRandom, false, false},
                         {"tiles", PbtAssign::kStatic, false, false},
-                        {"tiles", PbtAssign::kVisit, false, false}};
+                        {"tiles", PbtAssign::kVisit, false, false},
+                        {"tiles", PbtAssign::kLpt, false, false},
+                        {"local", PbtAssign::kLpt, false, false}};
   for (const Mode& mode : modes) {
     INFO("backend ", std::string(mode.name), " assign ", std::string(PbtAssignName(mode.assign)),
          " steal ", mode.steal, " demand ", mode.demand);

@@ -45,13 +45,13 @@ std::vector<double> Costs(const std::vector<Tile>& tiles, double skew) {
 
 TEST_CASE("names of assignments and costs") {
   for (const PbtAssign a : {PbtAssign::kRandom, PbtAssign::kGreedy, PbtAssign::kVisit,
-                            PbtAssign::kStatic, PbtAssign::kCounter}) {
+                            PbtAssign::kStatic, PbtAssign::kCounter, PbtAssign::kLpt}) {
     PbtAssign b = PbtAssign::kRandom;
     CHECK(ParsePbtAssign(PbtAssignName(a), &b));
     CHECK(b == a);
   }
   PbtAssign keep = PbtAssign::kVisit;
-  CHECK_FALSE(ParsePbtAssign("lpt", &keep));
+  CHECK_FALSE(ParsePbtAssign("sjf", &keep));
   CHECK(keep == PbtAssign::kVisit);
   for (const PbtCost c : {PbtCost::kWall, PbtCost::kCpu, PbtCost::kWork}) {
     PbtCost d = PbtCost::kWall;
@@ -144,8 +144,9 @@ TEST_CASE("PBT: the plan runs Algorithm 1 and the assignments as a hand-driven m
   const int w = 64, h = 48, n = 5, k = 3;
   for (const PbtPredict predict : {PbtPredict::kPaper, PbtPredict::kCostMap})
   for (const PbtAssign assign : {PbtAssign::kRandom, PbtAssign::kGreedy, PbtAssign::kVisit,
-                                 PbtAssign::kStatic, PbtAssign::kCounter}) {
-    INFO("assign ", std::string(PbtAssignName(assign)), " predict ", PbtPredictName(predict));
+                                 PbtAssign::kStatic, PbtAssign::kCounter, PbtAssign::kLpt}) {
+    INFO("assign ", std::string(PbtAssignName(assign)), " predict ",
+         std::string(PbtPredictName(predict)));
     TilePlanOptions o;
     o.pbt_tiles_per_worker = k;
     o.workers = n;
@@ -187,6 +188,15 @@ TEST_CASE("PBT: the plan runs Algorithm 1 and the assignments as a hand-driven m
           break;
         case PbtAssign::kCounter:
           break;
+        case PbtAssign::kLpt: {
+          // Before the first prediction by the tiles' pixels.
+          std::vector<double> by = known;
+          if (f == 0) {
+            for (size_t i = 0; i < m; ++i) by[i] = static_cast<double>(frame.tiles[i].NumPixels());
+          }
+          want = AssignLpt(by, n);
+          break;
+        }
       }
       CHECK(frame.assignment.tiles == want.tiles);
       if (assign == PbtAssign::kCounter) {
