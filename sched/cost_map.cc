@@ -59,8 +59,9 @@ void CostMap::Resize(int width, int height, int block) {
   blocks_y_ = CeilDiv(height, block);
   const size_t n = static_cast<size_t>(blocks_x_) * static_cast<size_t>(blocks_y_);
   cost_.assign(n, 0.0);
-  landed_.assign(n, 0.0);
-  landed_cost_.assign(n, 0.0);
+  const size_t pixels = static_cast<size_t>(width) * static_cast<size_t>(height);
+  z_.assign(pixels, 0.0f);
+  density_.assign(pixels, 0.0f);
 }
 
 Tile CostMap::BlockTile(int bx, int by) const {
@@ -124,33 +125,53 @@ double CostMap::Predict(const Tile& tile) const {
 }
 
 // Forward mapping of cost per pixel (not cost): content that the next camera sees larger
-// (moving closer) covers more pixels and so more rays, each as costly as before.
+// (moving closer) covers more pixels and so more rays, each as costly as before. A z-buffer per
+// pixel keeps the nearest content where several samples land (the foreground hides what moved
+// behind it).
 void CostMap::Reproject(const CameraBasis& from, const CameraBasis& to,
                         std::span<const float> depth) {
   assert(depth.size() == static_cast<size_t>(width_) * static_cast<size_t>(height_));
   assert(from.width == width_ && from.height == height_);
   assert(to.width == width_ && to.height == height_);
   if (SameCamera(from, to)) return;
-  std::fill(landed_.begin(), landed_.end(), 0.0);
-  std::fill(landed_cost_.begin(), landed_cost_.end(), 0.0);
+  const float inf = std::numeric_limits<float>::infinity();
+  const float nan = std::numeric_limits<float>::quiet_NaN();
+  std::fill(z_.begin(), z_.end(), inf);
+  std::fill(density_.begin(), density_.end(), nan);  // NaN: nothing landed
   const int step = ReprojectStep();
   const double half_w = 0.5 * to.width, half_h = 0.5 * to.height;
+  // Every pixel whose centre lies in [x0, x1) x [y0, y1) gets `rho` unless it holds nearer
+  // content (at infinity: only where nothing landed).
+  auto land = [&](double x0, double x1, double y0, double y1, float z, float rho) {
+    const int px0 = std::max(0, static_cast<int>(std::ceil(x0 - 0.5)));
+    const int px1 = std::min(width_, static_cast<int>(std::ceil(x1 - 0.5)));
+    const int py0 = std::max(0, static_cast<int>(std::ceil(y0 - 0.5)));
+    const int py1 = std::min(height_, static_cast<int>(std::ceil(y1 - 0.5)));
+    for (int qy = py0; qy < py1; ++qy) {
+      for (int qx = px0; qx < px1; ++qx) {
+        const size_t q = static_cast<size_t>(qy) * static_cast<size_t>(width_) +
+                         static_cast<size_t>(qx);
+        if (z < z_[q] || std::isnan(density_[q])) {  // nothing there yet: z_[q] is +inf
+          z_[q] = z;
+          density_[q] = rho;
+        }
+      }
+    }
+  };
   for (int by = 0; by < blocks_y_; ++by) {
     for (int bx = 0; bx < blocks_x_; ++bx) {
       const size_t i = Index(bx, by);
       const Tile b = BlockTile(bx, by);
-      const double rho = cost_[i] / static_cast<double>(b.NumPixels());
+      const float rho = static_cast<float>(cost_[i] / static_cast<double>(b.NumPixels()));
       for (int y = b.y0; y < b.y1; y += step) {
         const int h = std::min(step, b.y1 - y);
         for (int x = b.x0; x < b.x1; x += step) {
           const int w = std::min(step, b.x1 - x);
-          const double pixels = static_cast<double>(w * h);
           const int ix = x + w / 2, iy = y + h / 2;  // the pixel whose depth the sample takes
           const float t =
               depth[static_cast<size_t>(iy) * static_cast<size_t>(width_) + static_cast<size_t>(ix)];
-          if (std::isnan(t)) {  // unknown depth: stays in its block
-            landed_[i] += pixels;
-            landed_cost_[i] += rho * pixels;
+          if (std::isnan(t)) {  // unknown depth: stays where it is, behind everything
+            land(x, x + w, y, y + h, inf, rho);
             continue;
           }
           // The primary ray of that pixel (its centre, continuous pixel coordinates), the ray
@@ -182,44 +203,39 @@ void CostMap::Reproject(const CameraBasis& from, const CameraBasis& to,
           const double px = (xr / z / to.tan_half_x + 1.0) * half_w;
           const double py = (1.0 - yu / z / to.tan_half_y) * half_h;
           // The sample's footprint: its pixels scaled by the depth ratio (content that comes
-          // closer covers more pixels), clamped so one sample never covers more than a few
-          // blocks.
+          // closer covers more pixels; clamped), at least a pixel wide so zooming out leaves
+          // no holes, centred where the sample's centre lands (it lies x + w / 2 - cx pixels
+          // from the pixel's).
           const double z_from = static_cast<double>(t) / len;  // t * dot(d, forward)
           const double scale = at_infinity ? 1.0 : std::clamp(z_from / z, 0.25, 4.0);
-          // The footprint's centre: the sample's centre, which lies (x + w / 2 - cx) pixels
-          // from the pixel's, at the landing point's scale.
-          const double fcx = px + scale * (x + 0.5 * w - cx), fcy = py + scale * (y + 0.5 * h - cy);
-          const double hw = 0.5 * w * scale, hh = 0.5 * h * scale;
-          const double fx0 = std::max(0.0, fcx - hw), fx1 = std::min<double>(width_, fcx + hw);
-          const double fy0 = std::max(0.0, fcy - hh), fy1 = std::min<double>(height_, fcy + hh);
-          if (!(fx0 < fx1 && fy0 < fy1)) continue;  // outside the image: dropped
-          const int tx0 = static_cast<int>(fx0) / block_;
-          const int tx1 = std::min(blocks_x_ - 1, static_cast<int>(fx1) / block_);
-          const int ty0 = static_cast<int>(fy0) / block_;
-          const int ty1 = std::min(blocks_y_ - 1, static_cast<int>(fy1) / block_);
-          for (int ty = ty0; ty <= ty1; ++ty) {
-            const double oy = std::min(fy1, static_cast<double>((ty + 1) * block_)) -
-                              std::max(fy0, static_cast<double>(ty * block_));
-            if (oy <= 0.0) continue;
-            for (int tx = tx0; tx <= tx1; ++tx) {
-              const double ox = std::min(fx1, static_cast<double>((tx + 1) * block_)) -
-                                std::max(fx0, static_cast<double>(tx * block_));
-              if (ox <= 0.0) continue;
-              landed_[Index(tx, ty)] += ox * oy;
-              landed_cost_[Index(tx, ty)] += rho * ox * oy;  // a ray costs what it cost
-            }
+          const double fcx = px + scale * (x + 0.5 * w - cx);
+          const double fcy = py + scale * (y + 0.5 * h - cy);
+          const double hw = std::max(0.5 * w * scale, 0.5);
+          const double hh = std::max(0.5 * h * scale, 0.5);
+          if (!(fcx + hw > 0.0 && fcx - hw < width_ && fcy + hh > 0.0 && fcy - hh < height_)) {
+            continue;  // outside the image: dropped
           }
+          land(fcx - hw, fcx + hw, fcy - hh, fcy + hh, at_infinity ? inf : static_cast<float>(z),
+               rho);
         }
       }
     }
   }
+  // A block's new cost: what landed on its pixels, its old cost per pixel where nothing did.
   for (int by = 0; by < blocks_y_; ++by) {
     for (int bx = 0; bx < blocks_x_; ++bx) {
       const size_t i = Index(bx, by);
-      const double a = static_cast<double>(BlockTile(bx, by).NumPixels());
-      const double landed = landed_[i];
-      cost_[i] = landed >= a ? landed_cost_[i] * (a / landed)
-                             : landed_cost_[i] + (a - landed) * (cost_[i] / a);
+      const Tile b = BlockTile(bx, by);
+      const double old = cost_[i] / static_cast<double>(b.NumPixels());
+      double sum = 0.0;
+      for (int y = b.y0; y < b.y1; ++y) {
+        for (int x = b.x0; x < b.x1; ++x) {
+          const float r = density_[static_cast<size_t>(y) * static_cast<size_t>(width_) +
+                                   static_cast<size_t>(x)];
+          sum += std::isnan(r) ? old : static_cast<double>(r);
+        }
+      }
+      cost_[i] = sum;
     }
   }
 }

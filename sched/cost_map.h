@@ -90,10 +90,11 @@ class CostMap final : public PbtPredictor {
   // with camera `from` (+inf: at infinity, only the direction counts; NaN: unknown, the sample
   // stays where it is), projected with camera `to`. The sample lands as a rectangle around the
   // projected point, its size scaled by the ratio of its depth along the old and the new view
-  // axis (content that comes closer covers more pixels; clamped to [1/4, 4]), carrying its
-  // block's cost per pixel, and is cut by the blocks it overlaps. A block's new cost per pixel is
-  // the area-weighted mean of what landed on it, the pixels nothing landed on (disocclusions,
-  // content entering at the image edges) at its own old cost per pixel. Content behind the new camera or outside the
+  // axis (content that comes closer covers more pixels; clamped to [1/4, 4], at least a pixel),
+  // carrying its block's cost per pixel onto the pixels whose centres it covers; a per-pixel
+  // z-buffer keeps the nearest content. A block's new cost is the sum over its pixels of what
+  // landed there, its own old cost per pixel where nothing did (disocclusions, content
+  // entering at the image edges). Content behind the new camera or outside the
   // image is dropped. Cameras that are bit-identical leave the map unchanged. depth.size() must
   // be width x height and both cameras of this map's image (asserted).
   int ReprojectStep() const { return block_ >= 4 ? block_ / 4 : 1; }
@@ -109,8 +110,10 @@ class CostMap final : public PbtPredictor {
   int blocks_x_ = 0;
   int blocks_y_ = 0;
   std::vector<double> cost_;
-  std::vector<double> landed_;       // Reproject's scratch: pixels landed per block
-  std::vector<double> landed_cost_;  // Reproject's scratch: their cost
+  // Reproject's per-pixel scratch (8 bytes a pixel, sized by Resize): the nearest content's
+  // distance along the new view axis and its cost per pixel.
+  std::vector<float> z_;
+  std::vector<float> density_;
 };
 
 }  // namespace rs

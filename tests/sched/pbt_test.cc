@@ -1044,6 +1044,18 @@ TEST_CASE("cost map: reprojection moves a sliding camera's costs by the expected
   map.Reproject(from, to, depth);
   for (int bx = 0; bx < 7; ++bx) CHECK(map.Cost(bx, 3) == doctest::Approx(old.Cost(bx + 1, 3)));
   CHECK(map.Cost(7, 3) == doctest::Approx(old.Cost(7, 3)));
+  // Occlusion: block (3, 3) is a near object (at 4) in front of the wall at 8. It moves two
+  // blocks, the wall one: on block (1, 3) the object hides the wall that moved there too.
+  for (int y = 24; y < 32; ++y) {
+    for (int x = 24; x < 32; ++x) depth[static_cast<size_t>(y * w + x)] *= 0.5f;
+  }
+  map = fresh();
+  map.Cost(3, 3) = 100.0;
+  map.Reproject(from, to, depth);
+  CHECK(map.Cost(1, 3) == doctest::Approx(100.0).epsilon(1e-6));  // not a mean with the wall
+  // Disoccluded: what the object hid was never seen; the block keeps its own old estimate.
+  CHECK(map.Cost(2, 3) == doctest::Approx(old.Cost(2, 3)).epsilon(1e-6));
+  CHECK(map.Cost(0, 3) == doctest::Approx(old.Cost(1, 3)).epsilon(1e-6));
   // At infinity a sideways move changes nothing; the same camera leaves the map as it is.
   std::fill(depth.begin(), depth.end(), std::numeric_limits<float>::infinity());
   map = fresh();
