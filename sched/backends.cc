@@ -1170,7 +1170,7 @@ class TilesImpl final : public HostRenderer::Impl {
     if (frame_ != nullptr) tiles_ = frame_->tiles;
     const bool cost_map = frame_ != nullptr && plan_->uses_cost_map();
     if (cost_map) {
-      // Sized in the first frame, cleared after; distances in a unit of the scene's size.
+      // Sized in the first frame, cleared after (the hit distances are all overwritten).
       const int width = ctx_.options.width, height = ctx_.options.height;
       const int block = plan_->options().cost_block;
       if (!blocks_.Matches(width, height, block)) blocks_.Resize(width, height, block);
