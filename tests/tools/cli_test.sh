@@ -130,7 +130,7 @@ expect_error "bad tile shape" 'tile.*WIDTHxHEIGHT|--tile' "$rs" render --scene c
 expect_error "zero tile size" '\-\-tile 0x4' "$rs" render --scene cornell --backend tiles --tile 0x4 --width 8 --height 8 --out "$tmp/y.png"
 expect_error "PBT needs a parallel backend" 'pbt.*serial' "$rs" render --scene cornell --backend serial --pbt 2 --width 8 --height 8 --out "$tmp/y.png"
 expect_error "--steal needs PBT" 'steal' "$rs" render --scene cornell --backend tiles --steal --width 8 --height 8 --out "$tmp/y.png"
-expect_error "unknown PBT assignment" 'assign' "$rs" render --scene cornell --backend tiles --pbt 1 --assign lpt --width 8 --height 8 --out "$tmp/y.png"
+expect_error "unknown PBT assignment" 'assign' "$rs" render --scene cornell --backend tiles --pbt 1 --assign sjf --width 8 --height 8 --out "$tmp/y.png"
 expect_error "serial with threads" 'threads' "$rs" render --scene cornell --backend serial --threads 2 --width 8 --height 8 --out "$tmp/y.png"
 expect_error "more PBT tiles than pixels" '(tile|pixel)' "$rs" render --scene cornell --backend tiles --threads 2 --pbt 64 --width 8 --height 8 --out "$tmp/y.png"
 expect_error "stats file extension" 'stats.*(json|csv)' "$rs" render --scene cornell --width 8 --height 8 --stats "$tmp/s.txt" --out "$tmp/y2.png"
