@@ -103,12 +103,19 @@ void ValidateBackendOptions(const BackendOptions& o) {
                      o.pbt_workers));
   }
   const int assign = static_cast<int>(o.assign);
-  if (assign < 0 || assign > static_cast<int>(PbtAssign::kCounter)) {
+  if (assign < 0 || assign > static_cast<int>(PbtAssign::kLpt)) {
     fail(fmt::format("unknown PBT assignment {}", assign));
   }
   const int cost = static_cast<int>(o.pbt_cost);
   if (cost < 0 || cost > static_cast<int>(PbtCost::kWork)) {
     fail(fmt::format("unknown PBT cost {}", cost));
+  }
+  const int predict = static_cast<int>(o.pbt_predict);
+  if (predict < 0 || predict > static_cast<int>(PbtPredict::kCostMap)) {
+    fail(fmt::format("unknown PBT predictor {}", predict));
+  }
+  if (o.pbt_cost_block < 1 || o.pbt_cost_block > 256) {
+    fail(fmt::format("pbt_cost_block {} must be in [1, 256] pixels", o.pbt_cost_block));
   }
   if (o.pbt_cost != PbtCost::kWall && o.pbt_tiles_per_worker == 0) {
     fail(fmt::format("pbt_cost {} needs a PBT tiling (pbt_tiles_per_worker > 0)",
@@ -149,6 +156,8 @@ TilePlanOptions TilePlanOptionsFor(const BackendOptions& o) {
   p.steal = o.pbt_steal;
   p.demand = o.pbt_demand;
   p.cost = o.pbt_cost;
+  p.predict = o.pbt_predict;
+  p.cost_block = o.pbt_cost_block;
   return p;
 }
 
@@ -163,6 +172,7 @@ void ApplyPlanReport(const TilePlanReport& report, HostFrameStats& s) {
   s.accuracy = report.accuracy;
   s.worker_imbalance = report.worker_imbalance;
   s.demand_imbalance = report.demand_imbalance;
+  s.lpt_imbalance = report.lpt_imbalance;
   s.predicted_makespan = report.predicted_makespan;
   s.update = report.update;
 }
@@ -1152,11 +1162,30 @@ class TilesImpl final : public HostRenderer::Impl {
     uint64_t ops = 0;
     uint64_t tiles = 0;
     uint64_t steals = 0;
+    BlockWork blocks;  // PBT cost map: what this thread's engine charged to each block
   };
 
   // The frame's tiles, steal ranges, records and worker counters (application thread).
   void Load() {
     if (frame_ != nullptr) tiles_ = frame_->tiles;
+    const bool cost_map = frame_ != nullptr && plan_->uses_cost_map();
+    if (cost_map) {
+      // Sized in the first frame, cleared after (the hit distances are all overwritten).
+      const int width = ctx_.options.width, height = ctx_.options.height;
+      const int block = plan_->options().cost_block;
+      if (!blocks_.Matches(width, height, block)) blocks_.Resize(width, height, block);
+      const size_t pixels = static_cast<size_t>(width) * static_cast<size_t>(height);
+      if (pixel_depth_.size() != pixels) pixel_depth_.resize(pixels);
+      for (auto& w : workers_) {
+        if (!w->blocks.Matches(width, height, block)) {
+          w->blocks.Resize(width, height, block);
+        } else {
+          w->blocks.Clear();
+        }
+        w->blocks.pixel_depth = pixel_depth_.data();  // one writer per pixel (a tile's thread)
+      }
+    }
+    for (auto& w : workers_) w->fifo.engine().SetBlockWork(cost_map ? &w->blocks : nullptr);
     if (lists_ && options_.pbt_steal) ranges_.Load(frame_->assignment);
     if (lists_ && options_.pbt_demand) master_.Load(frame_->owner, options_.threads);
     records_.assign(tiles_.size(), TileRecord{});
@@ -1272,7 +1301,17 @@ class TilesImpl final : public HostRenderer::Impl {
     }
     // Counter: the threads are the workers only when there are as many (else a model of n).
     if (PbtWorkers() != options_.threads) ran_by.clear();
-    const TilePlanReport report = plan_->End(costs, ran_by);
+    TilePlanMeasure measure;
+    if (plan_->uses_cost_map()) {
+      // Integer sums: the same map whichever thread ran which tile.
+      blocks_.Clear();
+      for (const auto& w : workers_) blocks_.Add(w->blocks);
+      measure.blocks = &blocks_;
+      measure.pixel_depth = pixel_depth_;
+      measure.camera = &ctx_.camera;
+      measure.next_camera = ctx_.has_next_camera ? &ctx_.next_camera : nullptr;
+    }
+    const TilePlanReport report = plan_->End(costs, ran_by, measure);
     frame_ = nullptr;
     if (!report.pbt) return;
     ApplyPlanReport(report, stats_);
@@ -1288,6 +1327,8 @@ class TilesImpl final : public HostRenderer::Impl {
   std::vector<TileRecord> records_;
   std::vector<double> costs_;     // FinishPlan's scratch
   std::vector<int32_t> ran_by_;
+  BlockWork blocks_;              // PBT cost map: the workers' block work summed
+  std::vector<float> pixel_depth_;  // PBT cost map: per pixel its primary hit distance
   alignas(kQueueFalseSharing) std::atomic<size_t> next_{0};
   PbtListRanges ranges_;     // pbt_steal: per list {head, tail}
   std::mutex master_mutex_;  // pbt_demand: the render threads' requests, one at a time

@@ -77,6 +77,13 @@ struct BackendOptions {
   // CPU seconds (steadier when threads outnumber cores), or the deterministic work count
   // (TileWorkCost: the same in every run, whatever the machine's load or the threads).
   PbtCost pbt_cost = PbtCost::kWall;
+  // What PBT-Update predicts the next frame's tiles with (tile_plan.h): the paper's (split halves
+  // e(a) / 2) or the cost map (default). With kCostMap the tiles backend's engines charge every
+  // trace call's work to pixel blocks of pbt_cost_block x pbt_cost_block and the map is moved
+  // to the next camera (FrameContext::next_camera); the other backends give the plan only the
+  // tile costs (spread evenly over each tile). The image does not change.
+  PbtPredict pbt_predict = PbtPredict::kCostMap;
+  int pbt_cost_block = 4;
   // Time queue operations (LOCK/LFREE/LOCAL) and tile-counter accesses (tiles), the paper's
   // Fig. 7. Costs two time-stamp reads per operation.
   bool queue_stats = true;
@@ -141,6 +148,7 @@ struct HostFrameStats {
   PredictionAccuracy accuracy;    // predicted vs measured tile times (if has_prediction)
   double worker_imbalance = 1.0;  // FrameImbalance(WorkerTimes(assignment, tile costs))
   double demand_imbalance = 1.0;  // TilePlanReport::demand_imbalance (the paper's master-worker)
+  double lpt_imbalance = 1.0;     // TilePlanReport::lpt_imbalance (LPT lists on the predictions)
   double predicted_makespan = 0;  // the assignment's predicted max worker load
   PbtUpdateStats update;          // the PBT-Update run after this frame (not for static)
 

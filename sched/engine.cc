@@ -4,8 +4,11 @@
 
 #include <algorithm>
 #include <chrono>
+#include <cmath>
 #include <limits>
 #include <span>
+
+#include "sched/tile_plan.h"  // TileWorkCost
 
 namespace rs {
 
@@ -210,6 +213,24 @@ size_t RayEngine::capacity_rays() const {
   return n;
 }
 
+void RayEngine::ChargeBlocks(const RayStreamView& rays, uint64_t cell_steps,
+                             uint64_t triangle_tests) {
+  const size_t n = rays.size;
+  TileWork w;
+  w.rays = n;
+  w.cell_steps = cell_steps;
+  w.triangle_tests = triangle_tests;
+  // Fixed point: every ray gets units / n, the first units % n one more, so the call's units
+  // are charged exactly and the sums do not depend on the order of the calls.
+  const uint64_t units = static_cast<uint64_t>(std::llround(TileWorkCost(w) / kBlockWorkUnit));
+  const uint64_t share = units / n;
+  const uint64_t extra = units - share * n;
+  BlockWork& b = *block_work_;
+  for (size_t i = 0; i < n; ++i) {
+    b.work[b.BlockOf(PixelOf(rays, i))] += static_cast<int64_t>(share + (i < extra ? 1 : 0));
+  }
+}
+
 void RayEngine::Occlude(const FrameContext& ctx, const RayStreamView& rays, Framebuffer& fb,
                         FrameStats& stats) {
   const size_t n = rays.size;
@@ -218,9 +239,13 @@ void RayEngine::Occlude(const FrameContext& ctx, const RayStreamView& rays, Fram
   int32_t* occluded = occluded_.data();
   const AccelTracer accel(*ctx.accel);
   const Tracer& tracer = ctx.tracer != nullptr ? *ctx.tracer : accel;
+  const uint64_t steps0 = stats.trace.cell_steps, tests0 = stats.trace.triangle_tests;
   const auto t0 = Clock::now();
   tracer.Occluded(rays, occluded, &stats.trace);
   const auto t1 = Clock::now();
+  if (block_work_ != nullptr) {
+    ChargeBlocks(rays, stats.trace.cell_steps - steps0, stats.trace.triangle_tests - tests0);
+  }
   uint64_t blocked = 0;
   for (size_t i = 0; i < n; ++i) blocked += occluded[i] != 0 ? 1 : 0;
   if (local_) {
@@ -245,9 +270,20 @@ void RayEngine::TraceAndShade(const FrameContext& ctx, const RayStreamView& rays
   const HitStreamView hits = hits_.view();
   const AccelTracer accel(*ctx.accel);
   const Tracer& tracer = ctx.tracer != nullptr ? *ctx.tracer : accel;
+  const uint64_t steps0 = stats.trace.cell_steps, tests0 = stats.trace.triangle_tests;
   const auto t0 = Clock::now();
   tracer.Intersect(rays, hits, &stats.trace);
   const auto t1 = Clock::now();
+  if (block_work_ != nullptr) {
+    ChargeBlocks(rays, stats.trace.cell_steps - steps0, stats.trace.triangle_tests - tests0);
+    if (float* depth = block_work_->pixel_depth; depth != nullptr) {
+      const float inf = std::numeric_limits<float>::infinity();
+      for (size_t i = 0; i < n; ++i) {
+        if (rays.kind[i] != static_cast<int32_t>(RayKind::kPrimary)) continue;
+        depth[PixelOf(rays, i)] = hits.prim[i] >= 0 ? hits.t[i] : inf;
+      }
+    }
+  }
   // Lanes past n: misses (Shade may load them; stale prims could index another scene).
   for (size_t i = n; i < PaddedSize(n); ++i) {
     hits.t[i] = std::numeric_limits<float>::infinity();

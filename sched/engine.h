@@ -9,6 +9,7 @@
 #include <cstdint>
 #include <vector>
 
+#include "sched/cost_map.h"
 #include "sched/framebuffer.h"
 #include "sched/render.h"
 #include "streams/ray_stream.h"
@@ -63,6 +64,14 @@ class RayEngine {
   // Rays the arenas can hold (for tests of the memory bound).
   size_t capacity_rays() const;
 
+  // The cost-map predictor's record (cost_map.h): with a sink, every trace call's work
+  // (TileWorkCost of its rays, cell steps and triangle tests) is charged to the blocks of its
+  // rays' pixels in equal shares, and each primary ray's hit distance (+inf: a miss) is stored
+  // at its pixel in sink->pixel_depth (if not null). The sink must be sized for ctx's image (BlockWork::Resize) and is only
+  // added to (the caller clears it per frame); nullptr (the default) records nothing. Costs one
+  // pass over each call's rays; the image and the counters do not change.
+  void SetBlockWork(BlockWork* sink) { block_work_ = sink; }
+
  private:
   // Intersects rays (no shadow rays), shades them in sub-chunks; each sub-chunk's bounce rays
   // are appended to `bounce`, its shadow rays light by light and traced in one call (or, when
@@ -72,6 +81,13 @@ class RayEngine {
   void Occlude(const FrameContext& ctx, const RayStreamView& rays, Framebuffer& fb,
                FrameStats& stats);
   void Drain(const FrameContext& ctx, size_t primaries, Framebuffer& fb, FrameStats& stats);
+  // Charges one trace call of `rays` (its counter deltas) to block_work_.
+  void ChargeBlocks(const RayStreamView& rays, uint64_t cell_steps, uint64_t triangle_tests);
+  uint32_t PixelOf(const RayStreamView& rays, size_t i) const {
+    return local_ ? batch_pixels_[rays.pixel[i]] : rays.pixel[i];
+  }
+
+  BlockWork* block_work_ = nullptr;
 
   std::vector<RayStream> levels_;  // pending non-shadow rays by depth (0: primary)
   std::vector<RayStream> light_rays_;  // Shade's shadow rays of one sub-chunk, per light

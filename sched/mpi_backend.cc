@@ -213,7 +213,7 @@ void ValidateConfig(const BackendConfig& c, int ranks) {
         fmt::format("--pbt-cost {}: needs a PBT tiling (--pbt k)", PbtCostName(h.pbt_cost)));
   }
   const int assign = static_cast<int>(h.assign);
-  if (assign < 0 || assign > static_cast<int>(PbtAssign::kCounter)) {
+  if (assign < 0 || assign > static_cast<int>(PbtAssign::kLpt)) {
     throw Error(fmt::format("--assign {}: unknown", assign));
   }
 }
@@ -411,6 +411,8 @@ class Master {
     p.seed = c.host.seed;
     p.steal = c.host.pbt_tiles_per_worker > 0 && c.host.assign != PbtAssign::kCounter;  // lists
     p.cost = c.host.pbt_cost;
+    p.predict = c.host.pbt_predict;
+    p.cost_block = c.host.pbt_cost_block;
     plan_ = std::make_unique<TilePlan>(c.render.width, c.render.height, p);
   }
 

@@ -174,27 +174,36 @@ PbtAxis Pbt::SplitAxis(const PbtNode& node) const {
   return Extent(node.tile, preferred) >= 2 ? preferred : Other(preferred);
 }
 
-// Algorithm 1, lines 11-13: a leaf becomes inner; each half predicts e(a) / 2.
-void Pbt::SplitLeaf(int32_t id) {
+void Pbt::SplitTiles(const PbtNode& node, Tile& t0, Tile& t1) const {
+  const PbtAxis axis = SplitAxis(node);
+  Cut(node.tile, axis, Extent(node.tile, axis) / 2, t0, t1);
+}
+
+// Algorithm 1, lines 11-13: a leaf becomes inner; each half predicts e(a) / 2 (the paper), or
+// e0 and e1 (a predictor's).
+void Pbt::SplitLeaf(int32_t id, double e0, double e1) {
   const PbtNode node = nodes_[static_cast<size_t>(id)];
   const PbtAxis axis = SplitAxis(node);
   Tile t0, t1;
-  Cut(node.tile, axis, Extent(node.tile, axis) / 2, t0, t1);
+  SplitTiles(node, t0, t1);
   const int32_t c0 = NewNode();
   const int32_t c1 = NewNode();
   PbtNode& n = nodes_[static_cast<size_t>(id)];
   n.axis = axis;
   n.child[0] = c0;
   n.child[1] = c1;
+  const bool halves = e0 < 0.0 || e1 < 0.0;
   for (int s = 0; s < 2; ++s) {
     PbtNode& c = nodes_[static_cast<size_t>(n.child[s])];
     c.tile = s == 0 ? t0 : t1;
     c.parent = id;
     c.depth = n.depth + 1;
-    c.estimate = n.estimate * 0.5;  // exact in binary floating point (barring subnormals)
+    // e(a) / 2 is exact in binary floating point (barring subnormals).
+    c.estimate = halves ? n.estimate * 0.5 : (s == 0 ? e0 : e1);
     c.measured = n.measured * 0.5;
     c.worker = n.worker;  // the caller sets the §4 affinities
   }
+  if (!halves) n.estimate = e0 + e1;
 }
 
 void Pbt::RebuildLeafOrder() {
@@ -302,6 +311,19 @@ PbtUpdateStats Pbt::Update(std::span<const double> times, const PbtUpdateOptions
   return Update(options);
 }
 
+PbtUpdateStats Pbt::Update(std::span<const double> times, const PbtPredictor& predictor,
+                           const PbtUpdateOptions& options) {
+  SetMeasuredTimes(times);
+  for (const int32_t id : leaves_) {
+    PbtNode& n = nodes_[static_cast<size_t>(id)];
+    n.estimate = predictor.Predict(n.tile);
+  }
+  RecomputeSums();
+  return Run(options, &predictor);
+}
+
+PbtUpdateStats Pbt::Update(const PbtUpdateOptions& options) { return Run(options, nullptr); }
+
 // Algorithm 1 (§3), lines 5-17. Each split-merge replaces (a, b1, b2) by (a/2, a/2, b1 + b2):
 // the sum and m are unchanged, and sum e^2 drops by (e(a)^2 - 4 e(b1) e(b2)) / 2, so m sigma^2
 // drops by the same amount; the loop runs only while that is > 0, so the variance strictly
@@ -313,7 +335,9 @@ PbtUpdateStats Pbt::Update(std::span<const double> times, const PbtUpdateOptions
 //    tile). With no such pair (m <= 2, or the only pair contains a) the tree is final.
 // Ties go to the first leaf / pair in in-order. The §4 PBT-Greedy affinities follow the paper:
 // a1 <- worker(a), a2 <- worker(b1), b <- worker(b2), so every worker keeps k leaves.
-PbtUpdateStats Pbt::Update(const PbtUpdateOptions& options) {
+// With a predictor the halves are predicted and the stopping test is the exact variance drop
+// (pbt.h); the termination argument is the same.
+PbtUpdateStats Pbt::Run(const PbtUpdateOptions& options, const PbtPredictor* predictor) {
   if (options.max_steps < 0) {
     throw Error("Pbt::Update: max_steps " + std::to_string(options.max_steps) + " < 0");
   }
@@ -347,9 +371,19 @@ PbtUpdateStats Pbt::Update(const PbtUpdateOptions& options) {
       }
     }
     if (pair_parent < 0) break;
-    // Line 8: stop when e(a)^2 <= 4 e(b1) e(b2) (true for e(a) = 0, and for overflow to inf).
-    const double ea = Node(a).estimate;
-    if (ea * ea <= 4.0 * best) break;
+    // Line 8: stop when e(a)^2 <= 4 e(b1) e(b2) (true for e(a) = 0, and for overflow to inf);
+    // with a predictor when e(a1) e(a2) <= e(b1) e(b2).
+    double e0 = -1.0, e1 = -1.0;
+    if (predictor != nullptr) {
+      Tile t0, t1;
+      SplitTiles(Node(a), t0, t1);
+      e0 = predictor->Predict(t0);
+      e1 = predictor->Predict(t1);
+      if (e0 * e1 <= best) break;
+    } else {
+      const double ea = Node(a).estimate;
+      if (ea * ea <= 4.0 * best) break;
+    }
     if (stats.steps >= max_steps) {
       stats.hit_step_bound = true;
       break;
@@ -365,8 +399,8 @@ PbtUpdateStats Pbt::Update(const PbtUpdateOptions& options) {
     b.estimate = b1.estimate + b2.estimate;
     b.measured = b1.measured + b2.measured;
     b.worker = b2.worker;
-    // Lines 11-13: split a into a1, a2 with e(a) / 2 each.
-    SplitLeaf(a);
+    // Lines 11-13: split a into a1, a2 with e(a) / 2 each (or their predictions).
+    SplitLeaf(a, e0, e1);
     const PbtNode& an = Node(a);
     nodes_[static_cast<size_t>(an.child[0])].worker = an.worker;
     nodes_[static_cast<size_t>(an.child[1])].worker = b1.worker;
@@ -520,20 +554,31 @@ Assignment AssignPbtRandom(const Pbt& pbt, uint64_t seed) {
 }
 
 Assignment AssignLpt(std::span<const double> estimates, int num_workers) {
-  if (num_workers < 1) throw Error("AssignLpt: num_workers " + std::to_string(num_workers));
-  std::vector<size_t> order(estimates.size());
-  std::iota(order.begin(), order.end(), size_t{0});
-  std::stable_sort(order.begin(), order.end(),
-                   [&](size_t x, size_t y) { return estimates[x] > estimates[y]; });
   Assignment a;
+  std::vector<int32_t> order;
+  AssignLpt(estimates, num_workers, a, order);
+  return a;
+}
+
+void AssignLpt(std::span<const double> estimates, int num_workers, Assignment& a,
+               std::vector<int32_t>& order) {
+  if (num_workers < 1) throw Error("AssignLpt: num_workers " + std::to_string(num_workers));
+  order.resize(estimates.size());
+  std::iota(order.begin(), order.end(), int32_t{0});
+  // Decreasing estimate, ties by index: a strict total order, so std::sort gives what a stable
+  // sort on the estimate alone gives, without its temporary buffer.
+  std::sort(order.begin(), order.end(), [&](int32_t x, int32_t y) {
+    const double ex = estimates[static_cast<size_t>(x)], ey = estimates[static_cast<size_t>(y)];
+    return ex != ey ? ex > ey : x < y;
+  });
   ResetAssignment(num_workers, a);
-  for (const size_t i : order) {
+  for (const int32_t t : order) {
+    const size_t i = static_cast<size_t>(t);
     const size_t w =
         static_cast<size_t>(std::min_element(a.predicted_load.begin(), a.predicted_load.end()) -
                             a.predicted_load.begin());
     Give(a, w, i, estimates[i]);
   }
-  return a;
 }
 
 // The §2 frame: n workers free at time 0; the one free first (ties by id) asks next(w, &affine)

@@ -47,6 +47,18 @@ struct PbtUpdateStats {
   double variance_after = 0.0;   // sigma_T^2 of the leaf estimates of the returned tree
 };
 
+// What PBT-Update predicts a rectangle's cost with, instead of the paper's e(a) / 2 for split
+// halves and sums of the last estimates (e.g. CostMap, sched/cost_map.h). Predict must be
+// non-negative and finite, and additive up to rounding (a rectangle's prediction = the sum of
+// its two halves'), so the tree's inner sums stay consistent.
+class PbtPredictor {
+ public:
+  virtual double Predict(const Tile& tile) const = 0;
+
+ protected:
+  ~PbtPredictor() = default;
+};
+
 // The PBT of §3: a binary tree over a width x height image with exactly m = k * n leaves (n
 // workers, k = tiles_per_worker), every inner node with two children, the leaves partitioning the
 // image. Leaf (tile) index i is the i-th leaf of the in-order (left-to-right) visit; indices are
@@ -110,6 +122,17 @@ class Pbt {
   // SetMeasuredTimes(times) then Update(options): what the master runs after each frame.
   PbtUpdateStats Update(std::span<const double> times, const PbtUpdateOptions& options = {});
 
+  // PBT-Update with a predictor (the cost map of the frame, reprojected to the next camera):
+  // SetMeasuredTimes(times), then every leaf's estimate e(l) <- predictor.Predict(l's tile),
+  // then the split-merge loop of Update where a split's halves get predictor.Predict of their
+  // tiles (not e(a) / 2) and a merge gets e(b1) + e(b2). The stopping test is the exact
+  // variance drop of the step: replacing (a, b1, b2) by (a1, a2, b1 + b2) lowers sum e^2 by
+  // 2 (e(a1) e(a2) - e(b1) e(b2)), so the loop runs while e(a1) e(a2) > e(b1) e(b2) (with
+  // halves e(a) / 2 this is the paper's e(a)^2 > 4 e(b1) e(b2)); the variance strictly drops,
+  // so the loop ends. Allocates nothing, as Update.
+  PbtUpdateStats Update(std::span<const double> times, const PbtPredictor& predictor,
+                        const PbtUpdateOptions& options = {});
+
   // Structural self-check (for tests): root covers the image, children partition their parent
   // along the stored axis, parent links, m leaves, inner estimates = sums (1e-9 relative), each
   // worker holds k leaves. Returns "" if consistent, else a description of the first problem.
@@ -119,7 +142,10 @@ class Pbt {
   int32_t NewNode();
   void Build(int32_t id, int num_leaves);
   PbtAxis SplitAxis(const PbtNode& node) const;  // axis for halving a leaf (assumes >= 2 px)
-  void SplitLeaf(int32_t id);                    // halves a leaf into two new leaves
+  void SplitTiles(const PbtNode& node, Tile& t0, Tile& t1) const;  // the halves SplitLeaf makes
+  // Halves a leaf into two new leaves, estimates e0 and e1 (< 0: e(a) / 2 each, the paper's).
+  void SplitLeaf(int32_t id, double e0 = -1.0, double e1 = -1.0);
+  PbtUpdateStats Run(const PbtUpdateOptions& options, const PbtPredictor* predictor);
   void RebuildLeafOrder();
   void RecomputeSums();
 
@@ -176,6 +202,10 @@ Assignment AssignPbtRandom(const Pbt& pbt, uint64_t seed);
 // Not in the paper, for comparison: longest-processing-time-first list scheduling (tiles by
 // decreasing estimate, ties by index, each onto the least-loaded worker, ties by id).
 Assignment AssignLpt(std::span<const double> estimates, int num_workers);
+// The same into `out`, with `order` as the sort's scratch: allocates nothing once out's lists
+// and order have held as many tiles.
+void AssignLpt(std::span<const double> estimates, int num_workers, Assignment& out,
+               std::vector<int32_t>& order);
 
 // The §2 master-worker execution, demand driven, with the §4 affinity as preference (a model of
 // the frame, not a scheduler): all workers start at time 0; a worker that becomes free (earliest

@@ -105,6 +105,11 @@ FrameContext MakeFrameContext(const Scene& scene, const Accel& accel, const Came
   return ctx;
 }
 
+void SetNextCamera(FrameContext& ctx, const Camera& next) {
+  ctx.next_camera = MakeCameraBasis(next, ctx.options.width, ctx.options.height);
+  ctx.has_next_camera = true;
+}
+
 void ImageTiles(int width, int height, int tile_width, int tile_height, std::vector<Tile>& out) {
   out.clear();
   if (width < 1 || height < 1 || tile_width < 1 || tile_height < 1) return;

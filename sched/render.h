@@ -85,6 +85,11 @@ struct FrameContext {
   // any Tracer that returns the same hits.
   const Tracer* tracer = nullptr;
   CameraBasis camera;
+  // The next frame's camera, when the frame loop knows it (a camera path): PBT's cost-map
+  // predictor moves this frame's costs to where their content lands in the next frame. Only
+  // the tiling of the next frame depends on it, never this frame's image.
+  bool has_next_camera = false;
+  CameraBasis next_camera;
   RenderOptions options;
   ShadeOptions shade;
 };
@@ -93,6 +98,10 @@ struct FrameContext {
 // The scene must have its features computed (ComputeFeatures) and outlive the context.
 FrameContext MakeFrameContext(const Scene& scene, const Accel& accel, const Camera& camera,
                               const RenderOptions& options);
+
+// Sets ctx.next_camera (and has_next_camera) to `next` for ctx's image. Throws as
+// MakeCameraBasis.
+void SetNextCamera(FrameContext& ctx, const Camera& next);
 
 // The image split into tile_size x tile_size tiles (partial at the right and bottom), in
 // row-major order.

@@ -6,6 +6,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 #include <numeric>
 #include <string>
 
@@ -26,13 +27,15 @@ const char* PbtAssignName(PbtAssign assign) {
       return "static";
     case PbtAssign::kCounter:
       return "counter";
+    case PbtAssign::kLpt:
+      return "lpt";
   }
   return "?";
 }
 
 bool ParsePbtAssign(std::string_view name, PbtAssign* assign) {
   for (const PbtAssign a : {PbtAssign::kRandom, PbtAssign::kGreedy, PbtAssign::kVisit,
-                            PbtAssign::kStatic, PbtAssign::kCounter}) {
+                            PbtAssign::kStatic, PbtAssign::kCounter, PbtAssign::kLpt}) {
     if (name == PbtAssignName(a)) {
       *assign = a;
       return true;
@@ -57,6 +60,26 @@ bool ParsePbtCost(std::string_view name, PbtCost* cost) {
   for (const PbtCost c : {PbtCost::kWall, PbtCost::kCpu, PbtCost::kWork}) {
     if (name == PbtCostName(c)) {
       *cost = c;
+      return true;
+    }
+  }
+  return false;
+}
+
+const char* PbtPredictName(PbtPredict predict) {
+  switch (predict) {
+    case PbtPredict::kPaper:
+      return "paper";
+    case PbtPredict::kCostMap:
+      return "costmap";
+  }
+  return "?";
+}
+
+bool ParsePbtPredict(std::string_view name, PbtPredict* predict) {
+  for (const PbtPredict p : {PbtPredict::kPaper, PbtPredict::kCostMap}) {
+    if (name == PbtPredictName(p)) {
+      *predict = p;
       return true;
     }
   }
@@ -129,12 +152,19 @@ void ValidateTilePlanOptions(const TilePlanOptions& o) {
     fail(fmt::format("workers {} must be in [1, 65536]", o.workers));
   }
   const int assign = static_cast<int>(o.assign);
-  if (assign < 0 || assign > static_cast<int>(PbtAssign::kCounter)) {
+  if (assign < 0 || assign > static_cast<int>(PbtAssign::kLpt)) {
     fail(fmt::format("unknown PBT assignment {}", assign));
   }
   const int cost = static_cast<int>(o.cost);
   if (cost < 0 || cost > static_cast<int>(PbtCost::kWork)) {
     fail(fmt::format("unknown PBT cost {}", cost));
+  }
+  const int predict = static_cast<int>(o.predict);
+  if (predict < 0 || predict > static_cast<int>(PbtPredict::kCostMap)) {
+    fail(fmt::format("unknown PBT predictor {}", predict));
+  }
+  if (o.cost_block < 1 || o.cost_block > 256) {
+    fail(fmt::format("cost map block {} must be in [1, 256] pixels", o.cost_block));
   }
   if (o.steal && o.pbt_tiles_per_worker == 0) {
     fail("stealing needs a PBT tiling (pbt tiles per worker > 0)");
@@ -167,7 +197,31 @@ TilePlan::TilePlan(int width, int height, const TilePlanOptions& options)
   if (uses_pbt()) {
     pbt_ = std::make_unique<Pbt>(width, height, options_.workers, options_.pbt_tiles_per_worker);
   }
+  if (uses_pbt()) {
+    // End's LPT model runs from the second frame on: its buffers sized now.
+    lpt_order_.reserve(pbt_->NumLeaves());
+    if (options_.assign == PbtAssign::kLpt) {
+      // LPT lists vary in length from frame to frame: room for 4 k + 16 tiles each (more only
+      // when one worker gets that many tiny tiles).
+      const size_t room = 4 * static_cast<size_t>(options_.pbt_tiles_per_worker) + 16;
+      frame_.assignment.tiles.resize(static_cast<size_t>(options_.workers));
+      for (std::vector<int32_t>& list : frame_.assignment.tiles) {
+        list.reserve(std::min(room, pbt_->NumLeaves()));
+      }
+    }
+    lpt_predicted_.reserve(static_cast<size_t>(options_.workers));
+    loads_.reserve(static_cast<size_t>(options_.workers));
+  }
+  if (uses_cost_map()) {
+    // Sized once: End fills them in place every frame.
+    map_.Resize(width, height, options_.cost_block);
+  }
   Plan();
+}
+
+bool TilePlan::uses_cost_map() const {
+  return uses_pbt() && options_.predict == PbtPredict::kCostMap &&
+         options_.assign != PbtAssign::kStatic;
 }
 
 TilePlan::~TilePlan() = default;
@@ -229,6 +283,20 @@ void TilePlan::Plan() {
     case PbtAssign::kRandom:
       AssignRandom(known, n, PbtRandomSeed(options_.seed, frames_), f.assignment);
       break;
+    case PbtAssign::kLpt:
+      // Before the first prediction the tiles' pixels stand in (equal zeros would give every
+      // tile to worker 0).
+      if (f.has_prediction) {
+        AssignLpt(known, n, f.assignment, lpt_order_);
+      } else {
+        lpt_known_.resize(m);
+        for (size_t i = 0; i < m; ++i) {
+          lpt_known_[i] = static_cast<double>(f.tiles[i].NumPixels());
+        }
+        AssignLpt(lpt_known_, n, f.assignment, lpt_order_);
+        f.assignment.predicted_load.assign(static_cast<size_t>(n), 0.0);  // no prediction yet
+      }
+      break;
     case PbtAssign::kCounter: {
       // Decreasing prediction, ties by tile index: a strict total order (the predictions are
       // finite), so std::sort gives what a stable sort on the prediction alone gives, without
@@ -276,7 +344,8 @@ const TilePlanFrame& TilePlan::Begin() {
   return frame_;
 }
 
-TilePlanReport TilePlan::End(std::span<const double> costs, std::span<const int32_t> ran_by) {
+TilePlanReport TilePlan::End(std::span<const double> costs, std::span<const int32_t> ran_by,
+                             const TilePlanMeasure& measure) {
   if (!in_frame_) throw Error("tile plan: End without Begin");
   const size_t m = frame_.tiles.size();
   if (costs.size() != m) {
@@ -341,8 +410,32 @@ TilePlanReport TilePlan::End(std::span<const double> costs, std::span<const int3
           FrameImbalance(demand_model_.Driven(frame_.assignment, frame_.weight, costs).finish);
       if (r.has_prediction) r.predicted_makespan = frame_.assignment.PredictedMakespan();
     }
+    if (r.has_prediction) {
+      // AssignLpt's lists (decreasing prediction, ties by index, each to the least predicted
+      // load, ties by id), kept as loads only: no per-worker lists to size.
+      const std::vector<double>& p = frame_.predicted;
+      lpt_order_.resize(m);
+      std::iota(lpt_order_.begin(), lpt_order_.end(), int32_t{0});
+      std::sort(lpt_order_.begin(), lpt_order_.end(), [&](int32_t a, int32_t b) {
+        const double pa = p[static_cast<size_t>(a)], pb = p[static_cast<size_t>(b)];
+        return pa != pb ? pa > pb : a < b;
+      });
+      lpt_predicted_.assign(static_cast<size_t>(n), 0.0);
+      loads_.assign(static_cast<size_t>(n), 0.0);
+      for (const int32_t t : lpt_order_) {
+        const size_t w = static_cast<size_t>(
+            std::min_element(lpt_predicted_.begin(), lpt_predicted_.end()) -
+            lpt_predicted_.begin());
+        lpt_predicted_[w] += p[static_cast<size_t>(t)];
+        loads_[w] += costs[static_cast<size_t>(t)];
+      }
+      r.lpt_imbalance = FrameImbalance(loads_);
+    }
     if (options_.assign == PbtAssign::kStatic) {
       static_costs_.assign(costs.begin(), costs.end());  // tiling and lists stay as they are
+    } else if (uses_cost_map()) {
+      BuildCostMap(costs, measure);
+      r.update = pbt_->Update(costs, map_);  // Algorithm 1 with the cost-map predictor
     } else {
       r.update = pbt_->Update(costs);  // Algorithm 1 between frames
     }
@@ -351,6 +444,35 @@ TilePlanReport TilePlan::End(std::span<const double> costs, std::span<const int3
   in_frame_ = false;
   Plan();
   return r;
+}
+
+// The frame's cost map: the backend's block work (scaled to the tiles' total cost) or each
+// tile's cost spread over its pixels; then moved to the next camera (cost_map.h).
+void TilePlan::BuildCostMap(std::span<const double> costs, const TilePlanMeasure& measure) {
+  const BlockWork* blocks = measure.blocks;
+  if (blocks != nullptr && !blocks->Matches(width_, height_, options_.cost_block)) {
+    throw Error(fmt::format("tile plan: block work of {}x{} in {}-pixel blocks for a {}x{} plan "
+                            "in {}-pixel blocks",
+                            blocks->width, blocks->height, blocks->block, width_, height_,
+                            options_.cost_block));
+  }
+  double total = 0.0;
+  for (const double c : costs) total += c;
+  int64_t work = 0;
+  if (blocks != nullptr) {
+    for (const int64_t w : blocks->work) work += w;
+  }
+  if (blocks != nullptr && work > 0) {
+    map_.SetFromWork(*blocks, total / (static_cast<double>(work) * kBlockWorkUnit));
+  } else {
+    map_.Clear();
+    for (size_t i = 0; i < frame_.tiles.size(); ++i) map_.AddTile(frame_.tiles[i], costs[i]);
+  }
+  if (measure.camera == nullptr || measure.next_camera == nullptr) return;
+  if (measure.pixel_depth.size() != static_cast<size_t>(width_) * static_cast<size_t>(height_)) {
+    return;
+  }
+  map_.Reproject(*measure.camera, *measure.next_camera, measure.pixel_depth);
 }
 
 }  // namespace rs

@@ -11,8 +11,9 @@
 #include <string_view>
 #include <vector>
 
+#include "sched/cost_map.h"
 #include "sched/pbt.h"
-#include "streams/raygen.h"  // rs::Tile
+#include "streams/raygen.h"  // rs::Tile, rs::CameraBasis
 
 namespace rs {
 
@@ -30,8 +31,11 @@ enum class PbtAssign : int {
                  // (ties: tile order) through one shared tile counter (demand driven, longest
                  // first; what the cell backend's atomic tile counter does by default). The n
                  // workers size the PBT (m = k n) and the demand-driven model.
+  kLpt = 5,      // not in the paper: PBT updated, per-worker lists by LPT over the predictions
+                 // (AssignLpt: costliest first, each to the least predicted load; the tiles'
+                 // pixels before the first prediction), each list costliest first
 };
-// "random" "greedy" "visit" "static" "counter". Parse returns false for anything else and leaves
+// "random" "greedy" "visit" "static" "counter" "lpt". Parse returns false for anything else and leaves
 // *assign unchanged.
 const char* PbtAssignName(PbtAssign assign);
 bool ParsePbtAssign(std::string_view name, PbtAssign* assign);
@@ -45,6 +49,17 @@ enum class PbtCost : int {
 // "wall" "cpu" "work"; Parse as ParsePbtAssign.
 const char* PbtCostName(PbtCost cost);
 bool ParsePbtCost(std::string_view name, PbtCost* cost);
+
+// What PBT-Update predicts the next frame's tiles with.
+enum class PbtPredict : int {
+  kPaper = 0,    // the paper's Algorithm 1: e(l) <- t(l), split halves e(a) / 2, merges the sum
+  kCostMap = 1,  // the frame's per-block cost map (cost_map.h), reprojected to the next camera
+                 // when the backend gives the cameras and the blocks' hit distances: every tile,
+                 // split half and merged pair is predicted as the sum of the blocks it covers
+};
+// "paper" "costmap"; Parse as ParsePbtAssign.
+const char* PbtPredictName(PbtPredict predict);
+bool ParsePbtPredict(std::string_view name, PbtPredict* predict);
 
 // The deterministic work of one tile: counters of its whole ray tree (primary rays and every
 // ray they spawn). The same tile of the same frame gives the same counts on any thread, any
@@ -99,11 +114,16 @@ struct TilePlanOptions {
   bool demand = false;
   // What End's costs are (recorded for the statistics; the backend measures them).
   PbtCost cost = PbtCost::kWall;
+  // The predictor of PBT-Update (not used by static, which predicts a tile by its own last
+  // cost). kCostMap with cost_block x cost_block pixel blocks: the plan's cost map and the
+  // backend's BlockWork (TilePlanMeasure) are sized once, for the image.
+  PbtPredict predict = PbtPredict::kCostMap;
+  int cost_block = 4;
 };
 
 // Throws rs::Error naming the field: tile sizes < 1, pbt_tiles_per_worker outside [0, 4096],
-// workers outside [1, 65536], unknown assign / cost, steal or demand with kCounter or without
-// PBT, steal with demand.
+// workers outside [1, 65536], unknown assign / cost / predict, cost_block outside [1, 256], steal
+// or demand with kCounter or without PBT, steal with demand.
 void ValidateTilePlanOptions(const TilePlanOptions& options);
 
 // What a frame is rendered with (TilePlan::Begin).
@@ -114,7 +134,7 @@ struct TilePlanFrame {
   // Per tile, the cost the plan predicts (units of End's costs; -1: none): the PBT's estimate
   // e(l), or for static (never re-tiled) the same tile's cost in the previous frame.
   std::vector<double> predicted;
-  // PBT with per-worker lists (random, greedy, visit, static): per worker the tiles in
+  // PBT with per-worker lists (random, greedy, visit, static, lpt): per worker the tiles in
   // processing order, and their predicted loads (0 before the first prediction). Empty for
   // fixed tiles and kCounter.
   Assignment assignment;
@@ -139,7 +159,26 @@ struct TilePlanReport {
   // finish time. What a cluster of n workers that asks the master for tiles would have had.
   double demand_imbalance = 1.0;
   double predicted_makespan = 0;  // the largest predicted worker load (if has_prediction)
+  // Not in the paper, a model like demand_imbalance: static lists by LPT over this frame's
+  // predictions (AssignLpt, no stealing), charged the measured costs (if has_prediction; 1
+  // otherwise). What list scheduling on the predictions alone achieves.
+  double lpt_imbalance = 1.0;
   PbtUpdateStats update;          // the PBT-Update run after this frame (not for static)
+};
+
+// What a backend measured beyond the tile costs, for the cost-map predictor (all optional).
+// Without `blocks` the map spreads each tile's cost evenly over its pixels; without both
+// cameras or the pixels' hit distances it is not reprojected.
+struct TilePlanMeasure {
+  // The frame's per-block work, summed over the workers (the plan's block_work() layout). Its
+  // total is scaled to the tiles' total cost (1 up to rounding for the work cost), so wall or
+  // cpu costs give a map in seconds.
+  const BlockWork* blocks = nullptr;
+  // Per pixel the primary hit distance (+inf: a miss; NaN: unknown), width x height, for the
+  // reprojection (empty: not reprojected).
+  std::span<const float> pixel_depth;
+  const CameraBasis* camera = nullptr;       // the frame's camera
+  const CameraBasis* next_camera = nullptr;  // the next frame's (FrameContext::next_camera)
 };
 
 // Begin / End alternate, once per frame; single-threaded (the master / application thread).
@@ -176,13 +215,22 @@ class TilePlan {
   // Computes the Table 1 accuracy, the worker imbalance and the predicted makespan,
   // then PBT-Update (not for static) and the next frame's assignment. Fixed tiles: the report
   // only says pbt = false. Throws rs::Error (no Begin, sizes, bad costs or workers).
-  TilePlanReport End(std::span<const double> costs, std::span<const int32_t> ran_by = {});
+  // measure: the cost-map predictor's inputs (ignored by kPaper and static).
+  TilePlanReport End(std::span<const double> costs, std::span<const int32_t> ran_by = {},
+                     const TilePlanMeasure& measure = {});
+  // The cost-map predictor's block layout: width x height in options().cost_block blocks, or
+  // block == 0 if the plan does not use one (fixed tiles, kPaper, static). A backend sizes its
+  // engines' BlockWork like this (BlockWork::Resize) and passes their sum to End.
+  bool uses_cost_map() const;
+  // The map PBT-Update last predicted with (after End; empty before the first).
+  const CostMap& cost_map() const { return map_; }
   // Ends a frame that failed (no measurements): the plan is unchanged, the next Begin gives the
   // same tiles and lists again. No-op outside a frame.
   void Cancel() { in_frame_ = false; }
 
  private:
   void Plan();  // frame_ from pbt_ / the grid for the next frame
+  void BuildCostMap(std::span<const double> costs, const TilePlanMeasure& measure);
   std::span<const double> ListSchedule(std::span<const int32_t> order,
                                        std::span<const double> cost);
 
@@ -191,10 +239,14 @@ class TilePlan {
   TilePlanOptions options_;
   std::unique_ptr<Pbt> pbt_;
   std::vector<double> static_costs_;  // static: the previous frame's cost per tile
+  CostMap map_;                       // kCostMap: this frame's costs, reprojected
   TilePlanFrame frame_;
   // Scratch kept between frames, so Plan and End allocate nothing once sized (pbt.h).
   std::vector<double> known_;   // Plan: the predictions, 0 before the first
+  std::vector<double> lpt_known_;  // Plan (lpt): the predictions, the pixels before the first
   std::vector<double> loads_;   // End: per-worker loads
+  std::vector<int32_t> lpt_order_;     // End: tiles in LPT order
+  std::vector<double> lpt_predicted_;  // End: per worker, the LPT lists' predicted loads
   DemandDrivenModel demand_model_;
   uint64_t frames_ = 0;
   bool in_frame_ = false;

@@ -93,6 +93,7 @@ class CellBackend final : public Backend {
     plan.assign = c.host.assign;
     plan.seed = c.host.seed;
     plan.pbt_workers = c.host.pbt_workers;
+    plan.predict = c.host.pbt_predict;
     return plan;
   }
 

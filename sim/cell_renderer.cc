@@ -37,7 +37,7 @@ CellRenderer::CellRenderer(const SimConfig& config, const CellPlanOptions& plan)
     : config_(config), plan_options_(plan) {
   ValidateConfig(config_);
   const int assign = static_cast<int>(plan.assign);
-  if (assign < 0 || assign > static_cast<int>(PbtAssign::kCounter)) {
+  if (assign < 0 || assign > static_cast<int>(PbtAssign::kLpt)) {
     throw Error("cell backend: unknown PBT assignment " + std::to_string(assign));
   }
   if (plan.pbt_workers < 0 || plan.pbt_workers > 65536) {
@@ -59,6 +59,7 @@ CellFrameStats CellRenderer::Render(const FrameContext& ctx, Framebuffer& fb) {
     p.workers = plan_options_.pbt_workers > 0 ? plan_options_.pbt_workers : config_.num_spes;
     p.assign = plan_options_.assign;
     p.seed = plan_options_.seed;
+    p.predict = plan_options_.predict;
     p.cost = PbtCost::kWork;  // the simulated tile cycles: deterministic
     plan_.reset();
     plan_ = std::make_unique<TilePlan>(w, h, p);

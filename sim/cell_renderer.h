@@ -82,6 +82,9 @@ struct CellPlanOptions {
   PbtAssign assign = PbtAssign::kCounter;
   uint64_t seed = 1;    // PBT-Random / static
   int pbt_workers = 0;  // PBT workers n (0: config.num_spes); m = k n tiles
+  // PBT-Update's predictor (tile_plan.h); the cost map gets the SPEs' tile cycles spread evenly
+  // over each tile (no per-block record in the simulator).
+  PbtPredict predict = PbtPredict::kCostMap;
 };
 
 class CellRenderer {

@@ -181,6 +181,7 @@ struct RenderArgs {
   int pbt_workers = 0;
   std::string assign;    // empty: the backend's default (PbtAssignFor)
   std::string pbt_cost;  // empty: the backend's default (wall; cell: its simulated cycles)
+  std::string pbt_predict;  // empty: the default (costmap)
   uint64_t seed = 1;
   bool steal = false;
   bool demand = false;
@@ -212,7 +213,7 @@ void ParseTileShape(const std::string& text, int& width, int& height) {
 PbtAssign PbtAssignFor(const RenderArgs& args) {
   PbtAssign assign = args.backend == "cell" ? PbtAssign::kCounter : PbtAssign::kRandom;
   if (!args.assign.empty() && !ParsePbtAssign(args.assign, &assign)) {
-    throw Error(fmt::format("--assign {}: expected random, greedy, visit, static or counter",
+    throw Error(fmt::format("--assign {}: expected random, greedy, visit, static, counter or lpt",
                             args.assign));
   }
   return assign;
@@ -230,6 +231,15 @@ PbtCost PbtCostFor(const RenderArgs& args) {
     throw Error(fmt::format("--pbt-cost {}: expected wall, cpu or work", args.pbt_cost));
   }
   return cost;
+}
+
+// --pbt-predict: costmap (the default) or paper. Throws rs::Error naming the option.
+PbtPredict PbtPredictFor(const RenderArgs& args) {
+  PbtPredict predict = PbtPredict::kCostMap;
+  if (!args.pbt_predict.empty() && !ParsePbtPredict(args.pbt_predict, &predict)) {
+    throw Error(fmt::format("--pbt-predict {}: expected paper or costmap", args.pbt_predict));
+  }
+  return predict;
 }
 
 // Every option a backend cannot honour is an error naming the option and the backend (checked
@@ -275,7 +285,9 @@ void CheckBackendOptions(const RenderArgs& args) {
     if (args.steal) fail("--steal", "needs a PBT tiling (--backend tiles --pbt k)");
     if (args.demand) fail("--demand", "needs a PBT tiling (--backend tiles --pbt k)");
     if (pbt_cost_given) fail("--pbt-cost " + args.pbt_cost, "needs --pbt k");
+    if (!args.pbt_predict.empty()) fail("--pbt-predict " + args.pbt_predict, "needs --pbt k");
   } else {
+    PbtPredictFor(args);  // a bad value is an error before anything is loaded
     const PbtAssign assign = PbtAssignFor(args);
     const PbtCost cost = PbtCostFor(args);
     if (seed_given && assign != PbtAssign::kRandom && assign != PbtAssign::kStatic) {
@@ -366,6 +378,7 @@ BackendOptions MakeBackendOptions(const RenderArgs& args) {
   o.pbt_workers = args.pbt_workers;
   o.assign = PbtAssignFor(args);
   o.pbt_cost = PbtCostFor(args);
+  o.pbt_predict = PbtPredictFor(args);
   o.seed = args.seed;
   o.pbt_steal = args.steal;
   o.pbt_demand = args.demand;
@@ -412,6 +425,7 @@ BackendConfig MakeBackendConfig(const RenderArgs& args, const RenderOptions& opt
     c.host.pbt_workers = args.pbt_workers;
     c.host.assign = PbtAssignFor(args);
     c.host.pbt_cost = PbtCostFor(args);
+    c.host.pbt_predict = PbtPredictFor(args);
     c.host.seed = args.seed;
     c.host.pbt_steal = args.steal;
     c.host.queue_stats = args.queue_stats;
@@ -517,6 +531,8 @@ int RunRender(RenderArgs args) {
     FrameContext ctx;
     try {
       ctx = MakeFrameContext(*scene, *accel, camera, options);
+      // PBT's cost map moves this frame's costs to the next frame's view.
+      if (frame < last) SetNextCamera(ctx, scene->path.At(frame + 1, args.speed, scene->camera));
     } catch (const Error& e) {
       throw Error(fmt::format("{}: camera path frame {}: {}", scene->source, frame, e.what()));
     }
@@ -691,12 +707,18 @@ int Main(int argc, char** argv) {
       ->check(CLI::Range(0, 65536))
       ->capture_default_str();
   render->add_option("--assign", r.assign,
-                     "PBT tile assignment: random, greedy, visit, static, counter (default "
+                     "PBT tile assignment: random, greedy, visit, static, counter, lpt (lists by "
+                     "longest predicted tile first onto the least loaded worker; default "
                      "random; cell: counter)");
   render->add_option("--pbt-cost,--pbt-time", r.pbt_cost,
                      "tile cost fed to PBT-Update: wall (default), cpu, or work (deterministic "
                      "counts; cell: its simulated cycles; lock, lfree, local: work only)")
       ->check(CLI::IsMember({"wall", "cpu", "work"}));
+  render->add_option("--pbt-predict", r.pbt_predict,
+                     "PBT-Update's predictor: costmap (default: the frame's per-block cost map, "
+                     "moved to the next camera; each tile, split half and merged pair predicted "
+                     "as the sum of its blocks) or paper (split halves e/2, Algorithm 1 as "
+                     "published)");
   render->add_option("--seed", r.seed, "seed of PBT-Random and static assignments")
       ->check(CLI::Validator(
           [](std::string& v) {

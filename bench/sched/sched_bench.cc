@@ -44,6 +44,14 @@ struct Args {
   std::vector<PbtCost> pbt_costs = {PbtCost::kWork, PbtCost::kCpu, PbtCost::kWall};
   std::vector<int> pbt_batches = {RenderOptions{}.batch, 20};
   int pbt_size = 512;  // --pbt-size: the image's width and height (the PBT paper's 512x512)
+  // --pbt-predict paper,costmap: PBT-Update's predictors (tile_plan.h PbtPredict); the paper's
+  // is the Table 1 row as published, the cost map the default of the renderer.
+  std::vector<PbtPredict> pbt_predicts = {PbtPredict::kPaper, PbtPredict::kCostMap};
+  int pbt_block = BackendOptions{}.pbt_cost_block;  // --pbt-block: the cost map's block
+  bool pbt_reproject = true;  // --pbt-reproject 0: no next camera (the map is not moved)
+  // --pbt-assigns: the assignments of the work and cpu rows (default all five).
+  std::vector<PbtAssign> pbt_assigns = {PbtAssign::kStatic, PbtAssign::kRandom, PbtAssign::kGreedy,
+                                        PbtAssign::kVisit, PbtAssign::kCounter, PbtAssign::kLpt};
 };
 
 bool Want(const Args& a, const std::string& part) { return a.only.empty() || a.only.count(part); }
@@ -334,25 +342,29 @@ void PbtAccuracy(const Args& a, const std::filesystem::path& dir) {
   Csv table(dir / "pbt.csv",
             "scene,size,batch,clock,assign,k,speed,workers,threads,frames,within5,within10,"
             "within15,worker_imbalance,demand_imbalance,thread_imbalance,median_ms,update_steps,"
-            "load_avg");
+            "load_avg,predict,block,lpt_imbalance");
   Csv per_frame(dir / "pbt_frames.csv",
                 "batch,clock,assign,k,speed,frame,within5,within10,within15,worker_imbalance,"
-                "demand_imbalance,variance_before,variance_after,steps,ms");
+                "demand_imbalance,variance_before,variance_after,steps,ms,predict,lpt_imbalance");
   fmt::print("PBT {} {}x{}, n = {} workers on 2 threads, {} frames (load {})\n", name, size, size,
              workers, frames, LoadAverage());
   struct Run {
     PbtCost cost;
     PbtAssign assign;
+    PbtPredict predict;
   };
   std::vector<Run> runs;
-  for (const PbtCost cost : a.pbt_costs) {
-    if (cost == PbtCost::kWall) {
-      runs.push_back({cost, PbtAssign::kRandom});  // noisy on a shared machine: one assignment
-      continue;
-    }
-    for (const PbtAssign as : {PbtAssign::kStatic, PbtAssign::kRandom, PbtAssign::kGreedy,
-                               PbtAssign::kVisit, PbtAssign::kCounter}) {
-      runs.push_back({cost, as});
+  for (const PbtPredict predict : a.pbt_predicts) {
+    for (const PbtCost cost : a.pbt_costs) {
+      if (cost == PbtCost::kWall) {
+        runs.push_back({cost, PbtAssign::kRandom, predict});  // noisy: one assignment
+        continue;
+      }
+      for (const PbtAssign as : a.pbt_assigns) {
+        // static is never updated: it has no predictor, one run is enough.
+        if (as == PbtAssign::kStatic && predict != a.pbt_predicts.front()) continue;
+        runs.push_back({cost, as, predict});
+      }
     }
   }
   for (const int batch : a.pbt_batches) {
@@ -366,23 +378,28 @@ void PbtAccuracy(const Args& a, const std::filesystem::path& dir) {
           o.pbt_workers = workers;
           o.assign = run.assign;
           o.pbt_cost = run.cost;
+          o.pbt_predict = run.predict;
+          o.pbt_cost_block = a.pbt_block;
           o.seed = 12345;
           HostRenderer r(o);
           Framebuffer fb(size, size);
           RenderOptions ro = Options(size, size);
           ro.batch = batch;
-          std::vector<double> w5, w10, w15, wimb, dimb, timb, ms, steps;
+          std::vector<double> w5, w10, w15, wimb, dimb, timb, ms, steps, limb;
           for (int f = 0; f < frames; ++f) {
             const Camera cam = l.scene.path.At(f, speed, l.scene.camera);
             fb.Clear();
-            const HostFrameStats& s =
-                r.RenderFrame(MakeFrameContext(l.scene, *l.accel, cam, ro), fb);
+            FrameContext ctx = MakeFrameContext(l.scene, *l.accel, cam, ro);
+            if (a.pbt_reproject && f + 1 < frames) SetNextCamera(ctx, l.scene.path.At(f + 1, speed, l.scene.camera));
+            const HostFrameStats& s = r.RenderFrame(ctx, fb);
             per_frame.Row(
-                "{},{},{},{},{},{},{:.4f},{:.4f},{:.4f},{:.4f},{:.4f},{:.6g},{:.6g},{},{:.3f}",
+                "{},{},{},{},{},{},{:.4f},{:.4f},{:.4f},{:.4f},{:.4f},{:.6g},{:.6g},{},{:.3f},{},"
+                "{:.4f}",
                 batch, PbtCostName(run.cost), PbtAssignName(run.assign), k, speed, f,
                 s.accuracy.within5, s.accuracy.within10, s.accuracy.within15, s.worker_imbalance,
                 s.demand_imbalance, s.update.variance_before, s.update.variance_after,
-                s.update.steps, 1e3 * s.total.total_seconds);
+                s.update.steps, 1e3 * s.total.total_seconds, PbtPredictName(run.predict),
+                s.lpt_imbalance);
             if (f == 0) continue;  // no prediction yet; and warm-up
             w5.push_back(s.accuracy.within5);
             w10.push_back(s.accuracy.within10);
@@ -392,18 +409,21 @@ void PbtAccuracy(const Args& a, const std::filesystem::path& dir) {
             timb.push_back(s.imbalance);
             ms.push_back(s.total.total_seconds);
             steps.push_back(s.update.steps);
+            limb.push_back(s.lpt_imbalance);
           }
           table.Row(
               "{},{},{},{},{},{},{},{},{},{},{:.4f},{:.4f},{:.4f},{:.4f},{:.4f},{:.4f},{:.3f},{:."
-              "2f},{}",
+              "2f},{},{},{},{:.4f}",
               name, size, batch, PbtCostName(run.cost), PbtAssignName(run.assign), k, speed,
               workers, o.threads, frames - 1, Mean(w5), Mean(w10), Mean(w15), Mean(wimb),
-              Mean(dimb), Mean(timb), 1e3 * Median(ms), Mean(steps), LoadAverage());
+              Mean(dimb), Mean(timb), 1e3 * Median(ms), Mean(steps), LoadAverage(),
+              PbtPredictName(run.predict), a.pbt_block, Mean(limb));
           fmt::print(
-              "  batch {:4} {:4} {:7} k={} x{}: within 5/10/15 % = {:.1f} / {:.1f} / {:.1f} %, "
-              "imbalance worker {:.3f} demand {:.3f}\n",
-              batch, PbtCostName(run.cost), PbtAssignName(run.assign), k, speed, 100 * Mean(w5),
-              100 * Mean(w10), 100 * Mean(w15), Mean(wimb), Mean(dimb));
+              "  batch {:4} {:4} {:7} {:7} k={} x{}: within 5/10/15 % = {:.1f} / {:.1f} / {:.1f} "
+              "%, imbalance worker {:.3f} demand {:.3f} lpt {:.3f}\n",
+              batch, PbtCostName(run.cost), PbtPredictName(run.predict),
+              PbtAssignName(run.assign), k, speed, 100 * Mean(w5), 100 * Mean(w10),
+              100 * Mean(w15), Mean(wimb), Mean(dimb), Mean(limb));
         }
       }
     }
@@ -659,6 +679,45 @@ int Main(int argc, char** argv) {
         if (comma == std::string::npos) break;
         start = comma + 1;
       }
+    } else if (arg == "--pbt-predict" && i + 1 < argc) {
+      a.pbt_predicts.clear();
+      const std::string list = argv[++i];
+      for (size_t start = 0; start <= list.size();) {
+        const size_t comma = std::min(list.find(',', start), list.size());
+        const std::string item = list.substr(start, comma - start);
+        PbtPredict predict;
+        if (!ParsePbtPredict(item, &predict)) {
+          fmt::print(stderr, "sched_bench: --pbt-predict {}: expected paper, costmap\n", item);
+          return 2;
+        }
+        a.pbt_predicts.push_back(predict);
+        start = comma + 1;
+      }
+    } else if (arg == "--pbt-reproject" && i + 1 < argc) {
+      a.pbt_reproject = std::string(argv[++i]) != "0";
+    } else if (arg == "--pbt-assigns" && i + 1 < argc) {
+      a.pbt_assigns.clear();
+      const std::string list = argv[++i];
+      for (size_t start = 0; start <= list.size();) {
+        const size_t comma = std::min(list.find(',', start), list.size());
+        const std::string item = list.substr(start, comma - start);
+        PbtAssign assign;
+        if (!ParsePbtAssign(item, &assign)) {
+          fmt::print(stderr,
+                     "sched_bench: --pbt-assigns {}: expected static, random, greedy, visit, "
+                     "counter, lpt\n",
+                     item);
+          return 2;
+        }
+        a.pbt_assigns.push_back(assign);
+        start = comma + 1;
+      }
+    } else if (arg == "--pbt-block" && i + 1 < argc) {
+      a.pbt_block = std::atoi(argv[++i]);
+      if (a.pbt_block < 1 || a.pbt_block > 256) {
+        fmt::print(stderr, "sched_bench: --pbt-block {}: expected 1 .. 256\n", argv[i]);
+        return 2;
+      }
     } else if (arg == "--pbt-size" && i + 1 < argc) {
       a.pbt_size = std::atoi(argv[++i]);
       if (a.pbt_size < 16 || a.pbt_size > 4096) {
@@ -680,7 +739,9 @@ int Main(int argc, char** argv) {
     } else {
       fmt::print(stderr,
                  "usage: sched_bench [--out DIR] [--quick] [--only scaling,tiles,pbt,amphitheater,"
-                 "calibrate] [--pbt-costs work,cpu,wall] [--pbt-batches 1024,20] [--pbt-size 512]\n");
+                 "calibrate] [--pbt-costs work,cpu,wall] [--pbt-batches 1024,20] [--pbt-size 512] "
+                 "[--pbt-predict paper,costmap] [--pbt-block 4] [--pbt-reproject 1] "
+                 "[--pbt-assigns static,random,greedy,visit,counter,lpt]\n");
       return 2;
     }
   }

@@ -216,9 +216,17 @@ def main():
 
         batches = list(dict.fromkeys(r.get("batch", "1024") for r in pbt))
 
-        def pick(cost, assign, k, speed, batch):
+        # PBT-Update's predictor (--pbt-predict; older tables have the paper's only). static is never
+        # updated: its row is whichever predictor ran it.
+        predicts = list(dict.fromkeys(r.get("predict") or "paper" for r in pbt))
+        best = "costmap" if "costmap" in predicts else predicts[0]
+
+        def pick(cost, assign, k, speed, batch, predict=None):
+            if predict is None and assign != "static":
+                predict = best
             m = [r for r in pbt if r["clock"] == cost and r["assign"] == assign and r["k"] == k
-                 and r["speed"].rstrip("0").rstrip(".") == speed and r.get("batch", "1024") == batch]
+                 and r["speed"].rstrip("0").rstrip(".") == speed and r.get("batch", "1024") == batch
+                 and (predict is None or (r.get("predict") or "paper") == predict)]
             return m[0] if m else None
 
         md.append("batch = rays per kernel call (--batch): the default 1024 traces coherent 64-ray packets, "
@@ -235,10 +243,14 @@ def main():
                                                           100 * num(r, "within15")) if r else "-")
                 r = pick("work", "static", k, speed, batch)
                 row.append("%.1f %%" % (100 * num(r, "within10")) if r else "-")
+                r = pick("work", "random", k, speed, batch, "paper") if best != "paper" else None
+                row.append("%.1f / %.1f / %.1f %%" % (100 * num(r, "within5"), 100 * num(r, "within10"),
+                                                      100 * num(r, "within15")) if r else "-")
                 rows.append(row)
-        md.append("Within 5 / 10 / 15 % (PBT-Random; the paper's rows 95th / 90th / 85th percentile):\n\n")
-        md.append(md_table(["batch", "config", "paper", "work", "cpu", "wall", "work, static tiling (10 %)"],
-                           rows))
+        md.append("Within 5 / 10 / 15 %% (PBT-Random, predictor %s; the paper's rows 95th / 90th / 85th "
+                  "percentile; last column: the paper's predictor, split halves e/2):\n\n" % best)
+        md.append(md_table(["batch", "config", "paper", "work", "cpu", "wall", "work, static tiling (10 %)",
+                            "work, paper's predictor"], rows))
         imb = []
         for batch in batches:
             for assign in ("static", "random", "greedy", "visit", "counter"):
@@ -246,24 +258,28 @@ def main():
                 for speed in ("1", "2"):
                     r = pick("work", assign, "4", speed, batch)
                     row += ["%.3f" % num(r, "worker_imbalance") if r else "-",
-                            "%.3f" % num(r, "demand_imbalance") if r else "-"]
+                            "%.3f" % num(r, "demand_imbalance") if r else "-",
+                            "%.3f" % num(r, "lpt_imbalance") if r and r.get("lpt_imbalance") else "-"]
                 imb.append(row)
         md.append("\nImbalance with k = 4, work cost (slowest / mean of the 32 workers' measured costs): lists = "
                   "each worker renders its own list (no stealing); demand = the paper's demand-driven "
                   "master-worker (§2, with the §4 affinity: a worker done with its list takes the last waiting "
                   "tile of the most loaded one) on the same costs; counter (not in the paper) = no lists, "
-                  "the workers take the tiles costliest-predicted first.\n\n")
-        md.append(md_table(["batch", "assign", "x1 lists", "x1 demand", "x2 lists", "x2 demand"], imb))
+                  "the workers take the tiles costliest-predicted first; lpt (not in the paper, a model) = "
+                  "static lists by LPT over the frame's predictions, no stealing, charged the measured "
+                  "costs.\n\n")
+        md.append(md_table(["batch", "assign", "x1 lists", "x1 demand", "x1 lpt", "x2 lists", "x2 demand",
+                            "x2 lpt"], imb))
         rows = []
         for r in pbt:
-            rows.append([r.get("batch", ""), r["clock"], r["assign"], r["k"],
+            rows.append([r.get("batch", ""), r["clock"], r.get("predict") or "paper", r["assign"], r["k"],
                          "x" + r["speed"].rstrip("0").rstrip("."),
                          "%.1f %%" % (100 * num(r, "within5")), "%.1f %%" % (100 * num(r, "within10")),
                          "%.1f %%" % (100 * num(r, "within15")), "%.3f" % num(r, "worker_imbalance"),
                          "%.3f" % num(r, "demand_imbalance"), "%.1f" % num(r, "update_steps"),
                          r.get("load_avg", "")])
         md.append("\nAll runs:\n\n")
-        md.append(md_table(["batch", "cost", "assign", "k", "speed", "within 5 %", "within 10 %", "within 15 %",
+        md.append(md_table(["batch", "cost", "predict", "assign", "k", "speed", "within 5 %", "within 10 %", "within 15 %",
                             "imbalance lists", "imbalance demand", "split-merge steps", "load"], rows))
         if plt:
             fig, axes = plt.subplots(1, 2, figsize=(11, 4))

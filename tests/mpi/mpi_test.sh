@@ -8,10 +8,12 @@
 # format (same JSON keys and CSV columns as the tiles backend, the cluster's after them) with the
 # serial render's ray counts; every PBT run's tiles and per-tile owners equal a replay of the
 # master's PBT from the run's own tile times (pbt_check.py: re-tiling between frames, PBT-Greedy
-# and PBT-Visit affinity as sched/pbt.h defines them).
+# and PBT-Visit affinity as sched/pbt.h defines them). The replay is the paper's Algorithm 1, so
+# those runs take --pbt-predict paper (the default cost map is checked by the host tests).
 # usage: mpi_test.sh RAYSTREAM_BINARY MPIRUN   (env CI=true: a missing shared scene is a FAIL)
 set -uo pipefail
 rs=$1
+paper=(--pbt-predict paper)  # what pbt_check.py replays
 mpirun=$2
 check_pbt="$(dirname "$0")/pbt_check.py"
 tmp=$(mktemp -d)
@@ -70,10 +72,10 @@ for scene in "${scenes[@]}"; do
   # Rotate the tilings over the scenes so each one runs somewhere with 3 and with 5 ranks, and
   # every PBT assignment on the procedural scenes.
   case $((i % 4)) in
-    0) t3=(--pbt 2 --assign random)                t5=(--pbt 2 --assign greedy) ;;
-    1) t3=(--pbt 3 --assign visit)                 t5=(--pbt 1 --assign static) ;;
-    2) t3=(--pbt 4 --assign random --pbt-time cpu) t5=(--pbt 2 --assign visit --pbt-time cpu) ;;
-    3) t3=(--pbt 2 --assign greedy)                t5=(--tile 40x24 --threads 3) ;;
+    0) t3=(--pbt 2 --assign random "${paper[@]}")                t5=(--pbt 2 --assign greedy "${paper[@]}") ;;
+    1) t3=(--pbt 3 --assign visit "${paper[@]}")                 t5=(--pbt 1 --assign static "${paper[@]}") ;;
+    2) t3=(--pbt 4 --assign random --pbt-time cpu "${paper[@]}") t5=(--pbt 2 --assign visit --pbt-time cpu "${paper[@]}") ;;
+    3) t3=(--pbt 2 --assign greedy "${paper[@]}")                t5=(--tile 40x24 --threads 3) ;;
   esac
   i=$((i+1))
   for np in 3 5; do
@@ -121,7 +123,7 @@ if "$rs" render --backend serial "${usize[@]}" --out "$u/serial/i#.png" --dump-r
     read -r np k assign extra <<<"$run"
     d="$u/np$np"; mkdir -p "$d"
     # shellcheck disable=SC2086  # $extra: zero or two words
-    if run_mpi "$np" "$rs" render --backend mpi "${usize[@]}" --pbt "$k" --assign "$assign" $extra \
+    if run_mpi "$np" "$rs" render --backend mpi "${usize[@]}" --pbt "$k" --assign "$assign" "${paper[@]}" $extra \
         --out "$d/i#.png" --dump-raw "$d/r#.raw" --stats "$d/s.json" >"$d/log" 2>&1; then
       compare "uneven -np $np --pbt $k --assign $assign${extra:+ $extra}" "$u/serial" "$d"
       if python3 "$check_pbt" "$d/s.json" --expect-retile >"$d/pbt.log" 2>&1; then

@@ -123,7 +123,8 @@ TEST_CASE("no heap allocation while a later frame renders, on every host backend
 // between frames (TilePlan::End: the Table 1 measures, the frame models, PBT-Update; Plan: the
 // next tiles, predictions and lists), which reuses buffers sized in frame 0 (pbt.h, tile_plan.h).
 // Frame 0 is the warm-up: the render threads' counters, feed slots, steal ranges, the master's
-// state and the pixel -> tile lookup, and the plan's buffers, are sized there.
+// state and the pixel -> tile lookup, the cost map's block records and hit distances, and the
+// plan's buffers, are sized there.
 TEST_CASE("no heap allocation in a later PBT frame on any thread, queue and tiles") {
   const Scene s = test::HandScene();
   const Accel accel(test::MeshOf(s));
@@ -150,7 +151,9 @@ TEST_CASE("no heap allocation in a later PBT frame on any thread, queue and tile
                         {"tiles", PbtAssign::kCounter, false, false},
                         {"tiles", PbtAssign::kRandom, false, false},
                         {"tiles", PbtAssign::kStatic, false, false},
-                        {"tiles", PbtAssign::kVisit, false, false}};
+                        {"tiles", PbtAssign::kVisit, false, false},
+                        {"tiles", PbtAssign::kLpt, false, false},
+                        {"local", PbtAssign::kLpt, false, false}};
   for (const Mode& mode : modes) {
     INFO("backend ", std::string(mode.name), " assign ", std::string(PbtAssignName(mode.assign)),
          " steal ", mode.steal, " demand ", mode.demand);
@@ -165,7 +168,14 @@ TEST_CASE("no heap allocation in a later PBT frame on any thread, queue and tile
     b.pbt_demand = mode.demand;
     HostRenderer r(b);
     Framebuffer fb(o.width, o.height);
-    CHECK(LaterFrameAllocations(r, MakeFrameContext(s, accel, s.camera, o), fb, 4) == 0);
+    // A known next camera, moved a little: the cost map (the default predictor) is reprojected
+    // in every frame's End.
+    FrameContext ctx = MakeFrameContext(s, accel, s.camera, o);
+    Camera next = s.camera;
+    next.eye.x += 0.05f;
+    next.look_at.x += 0.05f;
+    SetNextCamera(ctx, next);
+    CHECK(LaterFrameAllocations(r, ctx, fb, 4) == 0);
   }
 }
 

@@ -452,7 +452,7 @@ void CheckAllBackends(const std::string& scene_name, int size, const std::vector
       // PBT tiles feeding the queues, every assignment, re-tiled over the walk-through.
       for (const int k : all_shapes ? std::vector<int>{2, 4} : std::vector<int>{2}) {
         for (const PbtAssign a : {PbtAssign::kRandom, PbtAssign::kGreedy, PbtAssign::kVisit,
-                                  PbtAssign::kStatic, PbtAssign::kCounter}) {
+                                  PbtAssign::kStatic, PbtAssign::kCounter, PbtAssign::kLpt}) {
           CheckBackend(l, ro, refs, QueuePbt(kind, n, k, a), 3, 2.0f);
         }
       }
@@ -469,7 +469,7 @@ void CheckAllBackends(const std::string& scene_name, int size, const std::vector
     for (const auto& [tw, th] : shapes) CheckBackend(l, ro, refs, TilesBackend(n, tw, th), 1);
     // PBT re-tiling over a few frames of the walk-through (camera speed 2).
     for (const PbtAssign a : {PbtAssign::kRandom, PbtAssign::kGreedy, PbtAssign::kVisit,
-                              PbtAssign::kStatic, PbtAssign::kCounter}) {
+                              PbtAssign::kStatic, PbtAssign::kCounter, PbtAssign::kLpt}) {
       CheckBackend(l, ro, refs, PbtBackend(n, all_shapes ? 4 : 2, a), 3, 2.0f);
     }
     // The deterministic work cost, and the counter with more (model) workers than threads.
@@ -1121,7 +1121,9 @@ TEST_CASE("renderer misuse and bad options are rs::Error") {
   PbtAssign assign = PbtAssign::kRandom;
   CHECK(ParsePbtAssign("visit", &assign));
   CHECK(assign == PbtAssign::kVisit);
-  CHECK_FALSE(ParsePbtAssign("lpt", &assign));
+  CHECK(ParsePbtAssign("lpt", &assign));
+  CHECK(assign == PbtAssign::kLpt);
+  CHECK_FALSE(ParsePbtAssign("sjf", &assign));
 }
 
 TEST_CASE("statistics export: JSON and CSV by extension") {

@@ -1,6 +1,7 @@
 // Prediction Binary Tree tests: the leaves partition the image after construction and after many
 // updates, PBT-Update (Algorithm 1) never raises the variance and always terminates, the
-// assignments cover every tile once, the accuracy helpers, and a moving-blob demonstration.
+// assignments cover every tile once, the accuracy helpers, and a moving-blob demonstration; the
+// cost-map predictor: exact rectangle sums, exact uneven splits, reprojection.
 #include "sched/pbt.h"
 
 #include <doctest/doctest.h>
@@ -17,6 +18,8 @@
 #include <vector>
 
 #include "include/raystream/raystream.h"
+#include "sched/cost_map.h"
+#include "streams/raygen.h"
 
 namespace rs {
 namespace {
@@ -886,6 +889,203 @@ TEST_CASE("demonstration: moving blob, PBT balances where a static tiling does n
   // Temporal coherence: most estimates are accurate (cf. Table 1).
   CHECK(k4.within15 > 0.8);
   CHECK(k1.within15 > 0.8);
+}
+
+// ---------------------------------------------------------------------------------------------
+// The cost-map predictor (sched/cost_map.h).
+
+TEST_CASE("cost map: a rectangle on block boundaries is exactly the sum of its blocks") {
+  CostMap map;
+  map.Resize(37, 29, 4);  // partial blocks at the right (1 px) and the bottom (1 px)
+  REQUIRE(map.blocks_x() == 10);
+  REQUIRE(map.blocks_y() == 8);
+  std::mt19937_64 rng(7);
+  std::uniform_real_distribution<double> u(0.0, 3.0);
+  for (double& c : map.costs()) c = u(rng);
+  std::uniform_int_distribution<int> bx(0, 10), by(0, 8);
+  auto edge = [](int b, int last) { return std::min(4 * b, last); };
+  for (int trial = 0; trial < 500; ++trial) {
+    int x0 = bx(rng), x1 = bx(rng), y0 = by(rng), y1 = by(rng);
+    if (x0 > x1) std::swap(x0, x1);
+    if (y0 > y1) std::swap(y0, y1);
+    if (x0 == x1 || y0 == y1) continue;
+    const Tile t{edge(x0, 37), edge(y0, 29), edge(x1, 37), edge(y1, 29)};
+    double sum = 0.0;  // row-major, as Predict sums
+    for (int y = y0; y < y1; ++y) {
+      for (int x = x0; x < x1; ++x) sum += map.Cost(x, y);
+    }
+    INFO("tile ", t.x0, ",", t.y0, " - ", t.x1, ",", t.y1);
+    CHECK(map.Predict(t) == sum);
+  }
+  // The whole image: the total; a part of a block: its share of the block's pixels.
+  CHECK(map.Predict(Tile{0, 0, 37, 29}) == doctest::Approx(map.Total()).epsilon(1e-12));
+  CHECK(map.Predict(Tile{1, 0, 3, 4}) == doctest::Approx(map.Cost(0, 0) * 8.0 / 16.0));
+  CHECK(map.Predict(Tile{36, 28, 37, 29}) == map.Cost(9, 7));  // the 1x1 corner block
+  // AddTile spreads a cost over a tile's pixels: a tile across four blocks.
+  map.Clear();
+  map.AddTile(Tile{2, 2, 6, 6}, 16.0);
+  CHECK(map.Cost(0, 0) == 4.0);
+  CHECK(map.Cost(1, 1) == 4.0);
+  CHECK(map.Total() == 16.0);
+  CHECK(map.Predict(Tile{0, 0, 8, 8}) == 16.0);
+  CHECK(map.Predict(Tile{2, 2, 6, 6}) == 4.0);  // a block's cost is taken as even over it
+  CHECK_THROWS_AS(map.Resize(0, 4, 4), Error);
+}
+
+// An uneven tile: its cost is in its left half. PBT-Update with the cost map splits it into
+// halves predicted exactly (120 and 10); the paper's Algorithm 1 predicts e(a) / 2 = 65 each.
+TEST_CASE("cost map: the split of an uneven tile is predicted exactly, where e/2 is wrong") {
+  // 32x16, m = 4: leaves [0,16)x[0,8), [0,16)x[8,16), [16,32)x[0,8), [16,32)x[8,16).
+  CostMap map;
+  map.Resize(32, 16, 4);
+  for (double& c : map.costs()) c = 2.5;  // a 16x8 leaf: 8 blocks, 20
+  for (int by = 0; by < 2; ++by) {
+    for (int bx = 0; bx < 2; ++bx) map.Cost(bx, by) = 30.0;  // [0,8)x[0,8): 120
+  }
+  Pbt pbt(32, 16, 4, 1);
+  REQUIRE(pbt.LeafTile(0).x1 == 16);
+  REQUIRE(pbt.LeafTile(0).y1 == 8);
+  std::vector<double> times;
+  for (size_t i = 0; i < pbt.NumLeaves(); ++i) times.push_back(map.Predict(pbt.LeafTile(i)));
+  CHECK(times == std::vector<double>{130.0, 20.0, 20.0, 20.0});
+  Pbt paper = pbt;
+  const PbtUpdateStats s = pbt.Update(times, map);
+  CHECK(pbt.Validate() == "");
+  CHECK(s.steps == 1);  // split the costly tile, merge the right half's two
+  CHECK(s.variance_after < s.variance_before);
+  // The halves of [0,16)x[0,8) along x: [0,8)x[0,8) and [8,16)x[0,8).
+  REQUIRE(pbt.NumLeaves() == 4);
+  const Tile left = pbt.LeafTile(0), right = pbt.LeafTile(1);
+  CHECK((left.x0 == 0 && left.x1 == 8 && left.y0 == 0 && left.y1 == 8));
+  CHECK((right.x0 == 8 && right.x1 == 16 && right.y0 == 0 && right.y1 == 8));
+  CHECK(pbt.LeafEstimate(0) == 120.0);  // exactly the blocks' sum
+  CHECK(pbt.LeafEstimate(1) == 10.0);
+  CHECK(pbt.LeafEstimate(3) == 40.0);   // the merged pair [16,32)x[0,16)
+  for (size_t i = 0; i < pbt.NumLeaves(); ++i) {
+    CHECK(pbt.LeafEstimate(i) == map.Predict(pbt.LeafTile(i)));
+  }
+  // The paper's Update makes the same first step with e(a) / 2 for both halves.
+  paper.Update(times);
+  CHECK(paper.Validate() == "");
+  bool halves = false;
+  for (size_t i = 0; i < paper.NumLeaves(); ++i) {
+    const Tile t = paper.LeafTile(i);
+    if (t.x0 == 0 && t.x1 == 8 && t.y0 == 0 && t.y1 == 8) {
+      CHECK(paper.LeafEstimate(i) == 65.0);  // e/2, off by 55 from the 120 it costs
+      halves = true;
+    }
+  }
+  CHECK(halves);
+  // A tile whose halves would not lower the variance is not split (e(a1) e(a2) <= e(b1) e(b2)):
+  // all of [0,16)x[0,8)'s cost in its left half. The paper's e(a) / 2 splits it anyway.
+  CostMap skewed;
+  skewed.Resize(32, 16, 4);
+  for (double& c : skewed.costs()) c = 2.5;
+  for (int by = 0; by < 2; ++by) {
+    for (int bx = 2; bx < 4; ++bx) skewed.Cost(bx, by) = 0.0;  // [8,16)x[0,8): 0
+  }
+  skewed.Cost(0, 0) = 112.5;  // [0,8)x[0,8): 120
+  Pbt still(32, 16, 4, 1);
+  std::vector<double> t2;
+  for (size_t i = 0; i < still.NumLeaves(); ++i) t2.push_back(skewed.Predict(still.LeafTile(i)));
+  CHECK(t2 == std::vector<double>{120.0, 20.0, 20.0, 20.0});
+  Pbt still_paper = still;
+  CHECK(still.Update(t2, skewed).steps == 0);
+  CHECK(still_paper.Update(t2).steps >= 1);
+}
+
+// A synthetic camera slides sideways in front of a wall: content moves by exactly two blocks.
+TEST_CASE("cost map: reprojection moves a sliding camera's costs by the expected blocks") {
+  const int w = 64, h = 64, block = 8;
+  Camera c0;
+  c0.eye = glm::vec3(0.0f, 0.0f, 0.0f);
+  c0.look_at = glm::vec3(0.0f, 0.0f, -1.0f);
+  c0.up = glm::vec3(0.0f, 1.0f, 0.0f);
+  c0.fov_y_deg = 90.0f;  // tan(45 deg) = 1: 32 pixels per unit of x / z
+  const CameraBasis from = MakeCameraBasis(c0, w, h);
+  // A wall at z = -4: each pixel's hit distance along its primary ray.
+  std::vector<float> depth(static_cast<size_t>(w * h));
+  for (int y = 0; y < h; ++y) {
+    for (int x = 0; x < w; ++x) {
+      const glm::vec3 d = PrimaryDirection(from, x, y);
+      depth[static_cast<size_t>(y * w + x)] = 4.0f / -d.z;
+    }
+  }
+  auto fresh = [&] {
+    CostMap map;
+    map.Resize(w, h, block);
+    for (int by = 0; by < 8; ++by) {
+      for (int bx = 0; bx < 8; ++bx) map.Cost(bx, by) = 1.0 + bx + 10.0 * by;
+    }
+    return map;
+  };
+  // The eye moves 2 to the right: x' = (x - 2) / 4 in view units, 16 pixels = 2 blocks left.
+  Camera c1 = c0;
+  c1.eye.x += 2.0f;
+  c1.look_at.x += 2.0f;
+  const CameraBasis to = MakeCameraBasis(c1, w, h);
+  CostMap map = fresh();
+  const CostMap old = fresh();
+  map.Reproject(from, to, depth);
+  int moved = 0;
+  for (int by = 0; by < 8; ++by) {
+    for (int bx = 0; bx < 8; ++bx) {
+      INFO("block ", bx, ",", by);
+      // Blocks 0..5 show what blocks 2..7 showed; 6 and 7 see new content: their old estimate.
+      const double want = bx + 2 < 8 ? old.Cost(bx + 2, by) : old.Cost(bx, by);
+      CHECK(map.Cost(bx, by) == doctest::Approx(want).epsilon(1e-6));  // float depths
+      moved += bx + 2 < 8 ? 1 : 0;
+    }
+  }
+  CHECK(moved == 48);
+  // Twice as far (the wall at 8): the same motion moves it one block.
+  for (float& t : depth) t *= 2.0f;
+  map = fresh();
+  map.Reproject(from, to, depth);
+  for (int bx = 0; bx < 7; ++bx) CHECK(map.Cost(bx, 3) == doctest::Approx(old.Cost(bx + 1, 3)));
+  CHECK(map.Cost(7, 3) == doctest::Approx(old.Cost(7, 3)));
+  // Occlusion: block (3, 3) is a near object (at 4) in front of the wall at 8. It moves two
+  // blocks, the wall one: on block (1, 3) the object hides the wall that moved there too.
+  for (int y = 24; y < 32; ++y) {
+    for (int x = 24; x < 32; ++x) depth[static_cast<size_t>(y * w + x)] *= 0.5f;
+  }
+  map = fresh();
+  map.Cost(3, 3) = 100.0;
+  map.Reproject(from, to, depth);
+  CHECK(map.Cost(1, 3) == doctest::Approx(100.0).epsilon(1e-6));  // not a mean with the wall
+  // Disoccluded: what the object hid was never seen; the block keeps its own old estimate.
+  CHECK(map.Cost(2, 3) == doctest::Approx(old.Cost(2, 3)).epsilon(1e-6));
+  CHECK(map.Cost(0, 3) == doctest::Approx(old.Cost(1, 3)).epsilon(1e-6));
+  // At infinity a sideways move changes nothing; the same camera leaves the map as it is.
+  std::fill(depth.begin(), depth.end(), std::numeric_limits<float>::infinity());
+  map = fresh();
+  map.Reproject(from, to, depth);
+  for (int i = 0; i < 64; ++i) CHECK(map.costs()[i] == doctest::Approx(old.costs()[i]));
+  map.Reproject(from, from, depth);
+  for (int i = 0; i < 64; ++i) CHECK(map.costs()[i] == doctest::Approx(old.costs()[i]));
+  // Moving towards the wall (it looks twice as large): the centre's cost per pixel spreads out,
+  // the total grows (more pixels see the costly centre), no block is negative.
+  for (int y = 0; y < h; ++y) {
+    for (int x = 0; x < w; ++x) {
+      depth[static_cast<size_t>(y * w + x)] = 4.0f / -PrimaryDirection(from, x, y).z;
+    }
+  }
+  CostMap centre;
+  centre.Resize(w, h, block);
+  for (double& c : centre.costs()) c = 1.0;
+  for (int by = 3; by < 5; ++by) {
+    for (int bx = 3; bx < 5; ++bx) centre.Cost(bx, by) = 9.0;
+  }
+  Camera c2 = c0;
+  c2.eye.z -= 2.0f;
+  c2.look_at.z -= 2.0f;
+  const double before = centre.Total();
+  centre.Reproject(from, MakeCameraBasis(c2, w, h), depth);
+  CHECK(centre.Total() > before);
+  for (int by = 2; by < 6; ++by) {
+    for (int bx = 2; bx < 6; ++bx) CHECK(centre.Cost(bx, by) == doctest::Approx(9.0));
+  }
+  for (const double c : centre.costs()) CHECK(c >= 1.0 - 1e-12);
 }
 
 }  // namespace

@@ -18,6 +18,7 @@
 #include "include/raystream/raystream.h"
 #include "scenes/load.h"
 #include "sched/backends.h"
+#include "sched/engine.h"
 #include "sched/render.h"
 
 namespace rs {
@@ -44,13 +45,13 @@ std::vector<double> Costs(const std::vector<Tile>& tiles, double skew) {
 
 TEST_CASE("names of assignments and costs") {
   for (const PbtAssign a : {PbtAssign::kRandom, PbtAssign::kGreedy, PbtAssign::kVisit,
-                            PbtAssign::kStatic, PbtAssign::kCounter}) {
+                            PbtAssign::kStatic, PbtAssign::kCounter, PbtAssign::kLpt}) {
     PbtAssign b = PbtAssign::kRandom;
     CHECK(ParsePbtAssign(PbtAssignName(a), &b));
     CHECK(b == a);
   }
   PbtAssign keep = PbtAssign::kVisit;
-  CHECK_FALSE(ParsePbtAssign("lpt", &keep));
+  CHECK_FALSE(ParsePbtAssign("sjf", &keep));
   CHECK(keep == PbtAssign::kVisit);
   for (const PbtCost c : {PbtCost::kWall, PbtCost::kCpu, PbtCost::kWork}) {
     PbtCost d = PbtCost::kWall;
@@ -60,6 +61,16 @@ TEST_CASE("names of assignments and costs") {
   PbtCost cost = PbtCost::kCpu;
   CHECK_FALSE(ParsePbtCost("cycles", &cost));
   CHECK(cost == PbtCost::kCpu);
+  for (const PbtPredict p : {PbtPredict::kPaper, PbtPredict::kCostMap}) {
+    PbtPredict q = PbtPredict::kPaper;
+    CHECK(ParsePbtPredict(PbtPredictName(p), &q));
+    CHECK(q == p);
+  }
+  PbtPredict predict = PbtPredict::kPaper;
+  CHECK_FALSE(ParsePbtPredict("cost-map", &predict));  // an unknown value is refused
+  CHECK_FALSE(ParsePbtPredict("", &predict));
+  CHECK(predict == PbtPredict::kPaper);
+  CHECK(TilePlanOptions{}.predict == PbtPredict::kCostMap);  // the default
 }
 
 TEST_CASE("GridTiles: row-major, partial at the edges, clamped, covering every pixel once") {
@@ -131,13 +142,16 @@ TEST_CASE("fixed tiles: the grid in row-major order every frame, no PBT report")
 // lists, update steps and measures must agree frame by frame for every assignment.
 TEST_CASE("PBT: the plan runs Algorithm 1 and the assignments as a hand-driven mirror does") {
   const int w = 64, h = 48, n = 5, k = 3;
+  for (const PbtPredict predict : {PbtPredict::kPaper, PbtPredict::kCostMap})
   for (const PbtAssign assign : {PbtAssign::kRandom, PbtAssign::kGreedy, PbtAssign::kVisit,
-                                 PbtAssign::kStatic, PbtAssign::kCounter}) {
-    INFO("assign ", std::string(PbtAssignName(assign)));
+                                 PbtAssign::kStatic, PbtAssign::kCounter, PbtAssign::kLpt}) {
+    INFO("assign ", std::string(PbtAssignName(assign)), " predict ",
+         std::string(PbtPredictName(predict)));
     TilePlanOptions o;
     o.pbt_tiles_per_worker = k;
     o.workers = n;
     o.assign = assign;
+    o.predict = predict;
     o.seed = 99;
     o.steal = assign != PbtAssign::kCounter;
     TilePlan plan(w, h, o);
@@ -174,6 +188,15 @@ TEST_CASE("PBT: the plan runs Algorithm 1 and the assignments as a hand-driven m
           break;
         case PbtAssign::kCounter:
           break;
+        case PbtAssign::kLpt: {
+          // Before the first prediction by the tiles' pixels.
+          std::vector<double> by = known;
+          if (f == 0) {
+            for (size_t i = 0; i < m; ++i) by[i] = static_cast<double>(frame.tiles[i].NumPixels());
+          }
+          want = AssignLpt(by, n);
+          break;
+        }
       }
       CHECK(frame.assignment.tiles == want.tiles);
       if (assign == PbtAssign::kCounter) {
@@ -196,6 +219,10 @@ TEST_CASE("PBT: the plan runs Algorithm 1 and the assignments as a hand-driven m
       std::vector<int32_t> ran_by(m);
       for (size_t i = 0; i < m; ++i) ran_by[i] = static_cast<int32_t>(i % n);
       const std::vector<double> weight = frame.weight;  // End re-plans `frame`
+      // The cost map without block work: each tile's cost spread over its pixels.
+      CostMap map;
+      map.Resize(w, h, o.cost_block);
+      for (size_t i = 0; i < m; ++i) map.AddTile(frame.tiles[i], costs[i]);
       const TilePlanReport r = plan.End(costs, ran_by);
       CHECK(r.pbt);
       CHECK(r.has_prediction == (f > 0));
@@ -219,7 +246,8 @@ TEST_CASE("PBT: the plan runs Algorithm 1 and the assignments as a hand-driven m
         CHECK(r.update.steps == 0);
         previous = costs;
       } else {
-        const PbtUpdateStats u = mirror.Update(costs);
+        const PbtUpdateStats u = predict == PbtPredict::kPaper ? mirror.Update(costs)
+                                                               : mirror.Update(costs, map);
         CHECK(r.update.steps == u.steps);
       }
       REQUIRE(plan.pbt() != nullptr);
@@ -334,6 +362,12 @@ TEST_CASE("misuse: Begin twice, End without Begin, bad costs, bad options; Cance
   b = TilePlanOptions{};
   b.cost = static_cast<PbtCost>(7);
   bad(b);
+  b = TilePlanOptions{};
+  b.predict = static_cast<PbtPredict>(7);
+  CHECK_THROWS_WITH_AS(ValidateTilePlanOptions(b), "tile plan: unknown PBT predictor 7", Error);
+  b = TilePlanOptions{};
+  b.cost_block = 0;
+  bad(b);
   CHECK_THROWS_AS(TilePlan(4, 4, TilePlanOptions{.pbt_tiles_per_worker = 5, .workers = 4}),
                   Error);  // 20 tiles > 16 pixels
 }
@@ -370,8 +404,9 @@ TEST_CASE("work cost: a walk-through's prediction accuracy is reproducible, what
     Run run;
     for (int f = 0; f < frames; ++f) {
       fb.Clear();
-      const FrameContext ctx =
-          MakeFrameContext(scene, accel, scene.path.At(f, 2.0f, scene.camera), ro);
+      FrameContext ctx = MakeFrameContext(scene, accel, scene.path.At(f, 2.0f, scene.camera), ro);
+      // The cost map (the default predictor) is moved to the next camera.
+      if (f + 1 < frames) SetNextCamera(ctx, scene.path.At(f + 1, 2.0f, scene.camera));
       const HostFrameStats& s = r.RenderFrame(ctx, fb);
       run.accuracy.push_back(s.accuracy);
       run.steps.push_back(s.update.steps);
@@ -410,6 +445,100 @@ TEST_CASE("work cost: a walk-through's prediction accuracy is reproducible, what
   MESSAGE("mean share of predictions within 10 %: ", within10, ", update steps ", moved);
   CHECK(moved > 0);        // the walk-through re-tiles
   CHECK(within10 >= 0.6);  // a modest bound (64x64, camera speed 2, 16 tiles; 0.80 measured)
+}
+
+}  // namespace
+}  // namespace rs
+
+namespace rs {
+namespace {
+
+// The engine's block record: a tile's work lands in the blocks of its pixels, in total the
+// tile's work cost (up to the fixed point's rounding), none outside; every pixel of the tile
+// gets its primary hit distance.
+TEST_CASE("cost map: the engine charges a tile's work to its blocks and stores hit distances") {
+  const Scene scene = LoadScene("erw6");
+  const Accel accel(scene.mesh());
+  RenderOptions ro;
+  ro.width = 48;
+  ro.height = 40;
+  ro.max_depth = 3;
+  ro.batch = 20;
+  const FrameContext ctx = MakeFrameContext(scene, accel, scene.camera, ro);
+  BlockWork blocks;
+  blocks.Resize(ro.width, ro.height, 8);
+  CHECK(blocks.NumBlocks() == 6 * 5);
+  std::vector<float> depth(static_cast<size_t>(ro.width * ro.height), -1.0f);
+  blocks.pixel_depth = depth.data();
+  SerialRenderer renderer;
+  renderer.engine().SetBlockWork(&blocks);
+  Framebuffer fb(ro.width, ro.height);
+  const Tile tile{5, 3, 29, 21};  // not on block boundaries
+  FrameStats stats;
+  renderer.RenderTiles(ctx, &tile, 1, fb, stats);
+  const double cost = TileWorkCost(TileWorkDelta(stats, FrameStats()));
+  double charged = 0.0;
+  for (int by = 0; by < blocks.blocks_y; ++by) {
+    for (int bx = 0; bx < blocks.blocks_x; ++bx) {
+      const int64_t w = blocks.work[static_cast<size_t>(by * blocks.blocks_x + bx)];
+      const bool overlaps = bx * 8 < tile.x1 && (bx + 1) * 8 > tile.x0 && by * 8 < tile.y1 &&
+                            (by + 1) * 8 > tile.y0;
+      INFO("block ", bx, ",", by);
+      CHECK((overlaps ? w > 0 : w == 0));
+      charged += static_cast<double>(w) * kBlockWorkUnit;
+    }
+  }
+  CHECK(charged == doctest::Approx(cost).epsilon(1e-9));
+  for (int y = 0; y < ro.height; ++y) {
+    for (int x = 0; x < ro.width; ++x) {
+      const float t = depth[static_cast<size_t>(y * ro.width + x)];
+      const bool inside = x >= tile.x0 && x < tile.x1 && y >= tile.y0 && y < tile.y1;
+      CHECK((inside ? t > 0.0f : t == -1.0f));  // erw6 is a closed room: every ray hits
+    }
+  }
+  // A plan fed this record predicts the tile's own rectangle as its cost (scaled to the
+  // tiles' total: here the whole frame's work is this tile's).
+  TilePlanOptions o;
+  o.pbt_tiles_per_worker = 1;
+  o.workers = 2;
+  o.cost_block = 8;
+  TilePlan plan(ro.width, ro.height, o);
+  REQUIRE(plan.uses_cost_map());
+  const std::vector<Tile> tiles = plan.Begin().tiles;
+  std::vector<double> costs(tiles.size(), 0.0);
+  for (size_t i = 0; i < tiles.size(); ++i) costs[i] = plan.cost_map().Predict(tiles[i]);
+  costs[0] = cost;  // all of it in the first tile's list of costs: only the total matters
+  TilePlanMeasure measure;
+  measure.blocks = &blocks;
+  plan.End(costs, {}, measure);
+  CHECK(plan.cost_map().Total() == doctest::Approx(cost).epsilon(1e-12));
+  double sum_blocks = 0.0;
+  for (const int64_t w : blocks.work) sum_blocks += static_cast<double>(w) * kBlockWorkUnit;
+  const CostMap& map = plan.cost_map();
+  CHECK(map.Cost(1, 1) == doctest::Approx(static_cast<double>(blocks.work[1 * 6 + 1]) *
+                                          kBlockWorkUnit * cost / sum_blocks));
+  // Block work of another layout is refused.
+  BlockWork other;
+  other.Resize(ro.width, ro.height, 4);
+  plan.Begin();
+  measure.blocks = &other;
+  CHECK_THROWS_AS(plan.End(costs, {}, measure), Error);
+}
+
+// Options: an unknown --pbt-predict value is an error that names it (the backend's check).
+TEST_CASE("cost map: backend options refuse an unknown predictor and a bad block") {
+  BackendOptions o;
+  o.kind = BackendKind::kTiles;
+  o.threads = 2;
+  o.pbt_tiles_per_worker = 2;
+  CHECK(o.pbt_predict == PbtPredict::kCostMap);
+  CHECK_NOTHROW(ValidateBackendOptions(o));
+  o.pbt_predict = static_cast<PbtPredict>(9);
+  CHECK_THROWS_WITH_AS(ValidateBackendOptions(o), "backend options: unknown PBT predictor 9",
+                       Error);
+  o.pbt_predict = PbtPredict::kPaper;
+  o.pbt_cost_block = 0;
+  CHECK_THROWS_AS(ValidateBackendOptions(o), Error);
 }
 
 }  // namespace

@@ -14,8 +14,10 @@
 #include <vector>
 
 #include "scenes/load.h"
+#include "sched/cost_map.h"
 #include "sched/pbt.h"
 #include "sched/render.h"
+#include "sched/tile_plan.h"
 #include "sim/cell_renderer.h"
 #include "tests/test_util.h"
 
@@ -433,74 +435,84 @@ TEST_CASE("PBT lists: each SPE runs its own workers' lists through a counter of 
 // among its rays' tiles. Every busy cycle of an SPE (its clock when its program ends) lies in
 // an iteration, its program start or its tail (SpeCounters), so the tile times add up to the
 // SPEs' busy cycles less start and tail. A second PBT updated with exactly those times gives
-// the next frame's tiles and predictions; PBT-Update only halves and sums estimates, so the
-// predictions add up to the measured total.
+// the next frame's tiles and predictions; PBT-Update only halves and sums estimates (the paper's
+// predictor) or sums a cost map of the tiles' cycles spread over their pixels (the default: the
+// simulator records no blocks), so the predictions add up to the measured total.
 TEST_CASE("PBT is fed the simulated tile cycles and re-tiles between frames") {
   const Scene scene = LoadScene("cornell");  // glass and mirror: uneven cost over the image
   const Accel accel(scene.mesh());
   const FrameContext ctx = Context(scene, accel, 64, 48, 6);
   const Reference ref = RenderReference(ctx);
-  SimConfig c;
-  c.pbt_tiles_per_spe = 2;
-  CellRenderer r(c);
-  Pbt mirror(64, 48, c.num_spes, c.pbt_tiles_per_spe);
-  std::vector<Tile> first_tiles;
-  for (int frame = 0; frame < 4; ++frame) {
-    INFO("frame ", frame);
-    const std::vector<Tile> tiles = mirror.Tiles();
-    const std::vector<double> estimates = mirror.Estimates();
-    Framebuffer fb(64, 48);
-    const CellFrameStats s = r.Render(ctx, fb);
-    CHECK(DifferingPixels(ref.fb, fb) == 0);
-    REQUIRE(s.tiles.size() == tiles.size());
-    std::vector<double> measured;
-    double tile_sum = 0, busy = 0, overhead = 0, predicted = 0;
-    for (size_t i = 0; i < tiles.size(); ++i) {
-      const sim::CellTileRecord& t = s.tiles[i];
-      CHECK(t.tile.x0 == tiles[i].x0);
-      CHECK(t.tile.y0 == tiles[i].y0);
-      CHECK(t.tile.x1 == tiles[i].x1);
-      CHECK(t.tile.y1 == tiles[i].y1);
-      CHECK(t.spe >= 0);
-      CHECK(t.cycles > 0);
-      if (frame > 0) CHECK(t.predicted == estimates[i]);
-      measured.push_back(t.cycles);
-      tile_sum += t.cycles;
-      predicted += t.predicted;
-    }
-    for (const auto& spe : s.spes) {
-      CHECK(spe.finish == spe.cycles.Total() - spe.cycles[sim::Cost::kIdle]);
-      busy += double(spe.finish);
-      overhead += double(spe.counters.startup_cycles + spe.counters.tail_cycles);
-    }
-    CHECK(tile_sum == doctest::Approx(busy - overhead).epsilon(1e-12));
-    CHECK(overhead < 0.2 * busy);  // start (grid bits into LS) and tail are short
-    if (frame > 0) {
-      double last = 0;
-      for (const double e : estimates) last += e;
-      CHECK(predicted == doctest::Approx(last).epsilon(1e-12));
-    }
-    const PbtUpdateStats u = mirror.Update(measured);
-    CHECK(u.steps == s.update.steps);
-    CHECK(r.pbt()->Estimates() == mirror.Estimates());
-    if (frame == 0) {
-      CHECK(s.update.steps > 0);  // uneven cost: PBT-Update splits and merges
-      first_tiles = tiles;
-    }
-    if (frame == 1) {
-      size_t moved = 0;  // tiles of this frame that the first frame did not have
-      for (const Tile& a : tiles) {
-        bool found = false;
-        for (const Tile& b : first_tiles) {
-          found |= a.x0 == b.x0 && a.y0 == b.y0 && a.x1 == b.x1 && a.y1 == b.y1;
-        }
-        moved += found ? 0 : 1;
+  for (const PbtPredict predict : {PbtPredict::kPaper, PbtPredict::kCostMap}) {
+    INFO("predict ", std::string(PbtPredictName(predict)));
+    SimConfig c;
+    c.pbt_tiles_per_spe = 2;
+    CellPlanOptions plan;
+    plan.predict = predict;
+    CellRenderer r(c, plan);
+    Pbt mirror(64, 48, c.num_spes, c.pbt_tiles_per_spe);
+    std::vector<Tile> first_tiles;
+    for (int frame = 0; frame < 4; ++frame) {
+      INFO("frame ", frame);
+      const std::vector<Tile> tiles = mirror.Tiles();
+      const std::vector<double> estimates = mirror.Estimates();
+      Framebuffer fb(64, 48);
+      const CellFrameStats s = r.Render(ctx, fb);
+      CHECK(DifferingPixels(ref.fb, fb) == 0);
+      REQUIRE(s.tiles.size() == tiles.size());
+      std::vector<double> measured;
+      double tile_sum = 0, busy = 0, overhead = 0, predicted = 0;
+      for (size_t i = 0; i < tiles.size(); ++i) {
+        const sim::CellTileRecord& t = s.tiles[i];
+        CHECK(t.tile.x0 == tiles[i].x0);
+        CHECK(t.tile.y0 == tiles[i].y0);
+        CHECK(t.tile.x1 == tiles[i].x1);
+        CHECK(t.tile.y1 == tiles[i].y1);
+        CHECK(t.spe >= 0);
+        CHECK(t.cycles > 0);
+        if (frame > 0) CHECK(t.predicted == estimates[i]);
+        measured.push_back(t.cycles);
+        tile_sum += t.cycles;
+        predicted += t.predicted;
       }
-      MESSAGE(moved, " of ", tiles.size(), " tiles are new after the first frame");
-      CHECK(moved > 0);  // re-tiled
+      for (const auto& spe : s.spes) {
+        CHECK(spe.finish == spe.cycles.Total() - spe.cycles[sim::Cost::kIdle]);
+        busy += double(spe.finish);
+        overhead += double(spe.counters.startup_cycles + spe.counters.tail_cycles);
+      }
+      CHECK(tile_sum == doctest::Approx(busy - overhead).epsilon(1e-12));
+      CHECK(overhead < 0.2 * busy);  // start (grid bits into LS) and tail are short
+      if (frame > 0) {
+        double last = 0;
+        for (const double e : estimates) last += e;
+        CHECK(predicted == doctest::Approx(last).epsilon(1e-12));
+      }
+      CostMap map;
+      map.Resize(64, 48, TilePlanOptions{}.cost_block);
+      for (size_t i = 0; i < tiles.size(); ++i) map.AddTile(tiles[i], measured[i]);
+      const PbtUpdateStats u =
+          predict == PbtPredict::kPaper ? mirror.Update(measured) : mirror.Update(measured, map);
+      CHECK(u.steps == s.update.steps);
+      CHECK(r.pbt()->Estimates() == mirror.Estimates());
+      if (frame == 0) {
+        CHECK(s.update.steps > 0);  // uneven cost: PBT-Update splits and merges
+        first_tiles = tiles;
+      }
+      if (frame == 1) {
+        size_t moved = 0;  // tiles of this frame that the first frame did not have
+        for (const Tile& a : tiles) {
+          bool found = false;
+          for (const Tile& b : first_tiles) {
+            found |= a.x0 == b.x0 && a.y0 == b.y0 && a.x1 == b.x1 && a.y1 == b.y1;
+          }
+          moved += found ? 0 : 1;
+        }
+        MESSAGE(moved, " of ", tiles.size(), " tiles are new after the first frame");
+        CHECK(moved > 0);  // re-tiled
+      }
     }
+    CHECK(r.pbt()->Validate().empty());
   }
-  CHECK(r.pbt()->Validate().empty());
 }
 
 // Contributions beyond the framebuffer's range are clamped and counted on the SPE (shader

@@ -107,6 +107,8 @@ ok = ok and all(sum(t['rays'] for t in x['tiles']) == sum(x['rays'].values()) fo
 ok = ok and all(t['predicted_seconds'] > 0 and t['work'] > 0 for t in f[2]['tiles'])
 sys.exit(0 if ok else 1)"; then ok "local --pbt 2 --assign greedy, 3 frames: serial image, per-tile work stats"
 else bad "local --pbt 2 --assign greedy: image differs from serial, render failed or bad stats"; fi
+expect_error "--pbt-predict unknown" 'error: --pbt-predict costmapp: expected paper or costmap' "$rs" render --scene cornell --backend tiles --pbt 2 --pbt-predict costmapp --width 8 --height 8 --out "$tmp/y.png"
+expect_error "--pbt-predict needs PBT" 'error: --pbt-predict paper: needs --pbt k' "$rs" render --scene cornell --backend tiles --pbt-predict paper --width 8 --height 8 --out "$tmp/y.png"
 expect_error "queue backend: --pbt-cost wall" 'pbt-cost wall.*lock backend.*no wall or CPU time' "$rs" render --scene cornell --backend lock --pbt 2 --pbt-cost wall --width 8 --height 8 --out "$tmp/y.png"
 if "$rs" render --scene erw6 --width 24 --height 24 --backend lfree --threads 2 --frames 2 --out "$tmp/l.png" \
      --stats "$tmp/l.json" >"$tmp/out" 2>&1 \
@@ -128,7 +130,7 @@ expect_error "bad tile shape" 'tile.*WIDTHxHEIGHT|--tile' "$rs" render --scene c
 expect_error "zero tile size" '\-\-tile 0x4' "$rs" render --scene cornell --backend tiles --tile 0x4 --width 8 --height 8 --out "$tmp/y.png"
 expect_error "PBT needs a parallel backend" 'pbt.*serial' "$rs" render --scene cornell --backend serial --pbt 2 --width 8 --height 8 --out "$tmp/y.png"
 expect_error "--steal needs PBT" 'steal' "$rs" render --scene cornell --backend tiles --steal --width 8 --height 8 --out "$tmp/y.png"
-expect_error "unknown PBT assignment" 'assign' "$rs" render --scene cornell --backend tiles --pbt 1 --assign lpt --width 8 --height 8 --out "$tmp/y.png"
+expect_error "unknown PBT assignment" 'assign' "$rs" render --scene cornell --backend tiles --pbt 1 --assign sjf --width 8 --height 8 --out "$tmp/y.png"
 expect_error "serial with threads" 'threads' "$rs" render --scene cornell --backend serial --threads 2 --width 8 --height 8 --out "$tmp/y.png"
 expect_error "more PBT tiles than pixels" '(tile|pixel)' "$rs" render --scene cornell --backend tiles --threads 2 --pbt 64 --width 8 --height 8 --out "$tmp/y.png"
 expect_error "stats file extension" 'stats.*(json|csv)' "$rs" render --scene cornell --width 8 --height 8 --stats "$tmp/s.txt" --out "$tmp/y2.png"
