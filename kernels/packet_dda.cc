@@ -15,17 +15,22 @@
 //      the slices it cannot leave are jumped. Otherwise each vector marks the cells of its box
 //      (a small packet box is taken whole), and every occupied marked cell is visited: its
 //      triangles are culled against the boxes of the vectors that marked it (SIMD over 8-16
-//      triangles) and tested N rays x 1 triangle, each vector at most once per triangle (a
-//      direct-mapped mailbox); a vector with only 1 or 2 of its rays there tests them with the
-//      1-ray x 4-triangle kernel instead. Refined cells of a two-level grid are visited the same
-//      way, one sub-slice at a time. A packet whose vectors' boxes cover more than ~2 cells per
-//      ray, or whose footprint outgrows 64 x 64 cells, is abandoned for the stream DDA.
+//      triangles; any hit: also against the K range of each vector's segments, so the surface
+//      a shadow ray leaves is not tested when it lies across K) and tested N rays x 1
+//      triangle, each vector at most once per triangle (a direct-mapped mailbox); a vector with
+//      only 1 or 2 of its rays there tests them with the 1-ray x 4-triangle kernel instead.
+//      Refined cells of a two-level grid are visited the same way, one sub-slice at a time. A
+//      packet whose vectors' boxes cover more than ~2 cells per ray, or whose footprint
+//      outgrows 64 x 64 cells, is abandoned for the stream DDA.
 // Why the result is the per-ray walk's: both return the closest watertight hit (ties: lower id)
 // over the triangles listed in the cells their walk covers, and every triangle whose hit could
 // win is listed in a covered cell: hit points lie inside the cells of the ray's path up to the
 // rounding of the walk, which Grid::margin (1e-3 cell plus coordinate ulps) covers. The packet
 // covers a superset of each ray's cells up to its termination, and a triangle outside a ray's
-// own path cannot beat that ray's true closest hit (it would then be on the path).
+// own path cannot beat that ray's true closest hit (it would then be on the path). The culls
+// drop a (triangle, vector) pair only if the triangle's bounding box misses the box of the
+// vector's segment points (U, W in the slice; K over [t0, t1]) widened by the rounding of
+// o + t d, so no lane can hit it there; a dropped pair is not mailboxed.
 #include "kernels/packet_dda.h"
 
 #include <cfloat>
@@ -91,6 +96,10 @@ struct PacketRays {
   int32_t s_start[kPR];  // the slice where the ray's segment starts
   // per vector: the (kx, ky, kz) every live ray shares (k0 | k1 << 2 | k2 << 4), or -1
   int32_t perm[kPR];
+  // per vector (any hit): the range along K of its live rays' segments [t0, t1], widened by the
+  // rounding err[K] (the third axis of CullGroup's box test; the slice boxes give U and W)
+  float k_lo[kPR];
+  float k_hi[kPR];
   PreparedRay one[kPR];  // the 1-ray x 4-triangle kernels' setup of each valid ray
 };
 
@@ -297,7 +306,8 @@ struct PacketTracer {
                 hn::ConcatUpperUpper(d, v[2 * k + 1], v[2 * k]));
     }
     for (int k = 0; k < 2; ++k) {
-      q[k] = op(hn::ConcatEven(d, p[2 * k + 1], p[2 * k]), hn::ConcatOdd(d, p[2 * k + 1], p[2 * k]));
+      q[k] = op(hn::ConcatEven(d, p[2 * k + 1], p[2 * k]),
+                hn::ConcatOdd(d, p[2 * k + 1], p[2 * k]));
     }
     return op(hn::ConcatEven(d, q[1], q[0]), hn::ConcatOdd(d, q[1], q[0]));
   }
@@ -470,13 +480,26 @@ struct PacketTracer {
     // NaN vertices (padding, degenerate) fail every compare: never tested
     const VT ulo = hn::Min(u0, hn::Min(u1, u2)), uhi = hn::Max(u0, hn::Max(u1, u2));
     const VT vlo = hn::Min(v0, hn::Min(v1, v2)), vhi = hn::Max(v0, hn::Max(v1, v2));
+    // any hit: K too (PacketRays::k_lo / k_hi: the vector's segments, not only this slice)
+    [[maybe_unused]] VT klo = ulo, khi = uhi;
+    if constexpr (kAny) {
+      const VT k0 = hn::LoadU(dt, b + size_t(K) * stride);
+      const VT k1 = hn::LoadU(dt, b + size_t(3 + K) * stride);
+      const VT k2 = hn::LoadU(dt, b + size_t(6 + K) * stride);
+      klo = hn::Min(k0, hn::Min(k1, k2));
+      khi = hn::Max(k0, hn::Max(k1, k2));
+    }
     uint64_t vecs[16] = {};  // per triangle of the group: vectors to test (bit w)
     bool any = false;
     for (uint64_t wb = wide; wb != 0; wb &= wb - 1) {
       const size_t w = hwy::Num0BitsBelowLS1Bit_Nonzero64(wb);
-      const auto m = hn::And(
+      auto m = hn::And(
           hn::And(hn::Le(ulo, hn::Set(dt, f.hi[0][w])), hn::Ge(uhi, hn::Set(dt, f.lo[0][w]))),
           hn::And(hn::Le(vlo, hn::Set(dt, f.hi[1][w])), hn::Ge(vhi, hn::Set(dt, f.lo[1][w]))));
+      if constexpr (kAny) {
+        m = hn::And(m, hn::And(hn::Le(klo, hn::Set(dt, r.k_hi[w])),
+                               hn::Ge(khi, hn::Set(dt, r.k_lo[w]))));
+      }
       if (hn::AllFalse(dt, m)) continue;
       any = true;
       uint8_t bits[8] = {};
@@ -930,6 +953,23 @@ struct PacketTracer {
       const float scale = omaxs[a] + t_far * hn::GetLane(hn::MaxOfLanes(d, dmax[a])) +
                           std::max(std::abs(grid.lo[a]), std::abs(grid.hi[a]));
       err[a] = 4e-7f * scale + 1e-4f * grid.cell_size[a];
+    }
+    if constexpr (kAny) {
+      // each vector's K range: o + t d at t0 and t1 (the segment a lane's hit lies on; o + t d
+      // rounds within err[K], as the U and W boxes). Shadow rays leave surfaces: a surface
+      // across K (a floor below a light) lies outside its rays' K range and is never tested
+      const V ek = hn::Set(d, err[K]);
+      for (size_t w = 0; w < nv; ++w) {
+        const size_t i = w * L;
+        const M valid = hn::RebindMask(d, hn::Ne(hn::Load(di, r.live + i), hn::Zero(di)));
+        const V ok = hn::Load(d, r.o[K] + i), dk = hn::Load(d, r.d[K] + i);
+        const V ka = hn::Add(ok, hn::Mul(hn::Load(d, r.t0 + i), dk));
+        const V kb = hn::Add(ok, hn::Mul(hn::Load(d, r.t1 + i), dk));
+        const V lo = hn::IfThenElse(valid, hn::Sub(hn::Min(ka, kb), ek), hn::Set(d, FLT_MAX));
+        const V hi = hn::IfThenElse(valid, hn::Add(hn::Max(ka, kb), ek), hn::Set(d, -FLT_MAX));
+        r.k_lo[w] = hn::GetLane(hn::MinOfLanes(d, lo));
+        r.k_hi[w] = hn::GetLane(hn::MaxOfLanes(d, hi));
+      }
     }
     // slices along K covered by some segment, +-1 for the rounding of the entry cells
     int s_lo = hn::GetLane(hn::MinOfLanes(di, s_min));
