@@ -15,17 +15,22 @@
 //      the slices it cannot leave are jumped. Otherwise each vector marks the cells of its box
 //      (a small packet box is taken whole), and every occupied marked cell is visited: its
 //      triangles are culled against the boxes of the vectors that marked it (SIMD over 8-16
-//      triangles) and tested N rays x 1 triangle, each vector at most once per triangle (a
-//      direct-mapped mailbox); a vector with only 1 or 2 of its rays there tests them with the
-//      1-ray x 4-triangle kernel instead. Refined cells of a two-level grid are visited the same
-//      way, one sub-slice at a time. A packet whose vectors' boxes cover more than ~2 cells per
-//      ray, or whose footprint outgrows 64 x 64 cells, is abandoned for the stream DDA.
+//      triangles; any hit: also against the K range of each vector's segments, so the surface
+//      a shadow ray leaves is not tested when it lies across K) and tested N rays x 1
+//      triangle, each vector at most once per triangle (a direct-mapped mailbox); a vector with
+//      only 1 or 2 of its rays there tests them with the 1-ray x 4-triangle kernel instead.
+//      Refined cells of a two-level grid are visited the same way, one sub-slice at a time. A
+//      packet whose vectors' boxes cover more than ~2 cells per ray, or whose footprint
+//      outgrows 64 x 64 cells, is abandoned for the stream DDA.
 // Why the result is the per-ray walk's: both return the closest watertight hit (ties: lower id)
 // over the triangles listed in the cells their walk covers, and every triangle whose hit could
 // win is listed in a covered cell: hit points lie inside the cells of the ray's path up to the
 // rounding of the walk, which Grid::margin (1e-3 cell plus coordinate ulps) covers. The packet
 // covers a superset of each ray's cells up to its termination, and a triangle outside a ray's
-// own path cannot beat that ray's true closest hit (it would then be on the path).
+// own path cannot beat that ray's true closest hit (it would then be on the path). The culls
+// drop a (triangle, vector) pair only if the triangle's bounding box misses the box of the
+// vector's segment points (U, W in the slice; K over [t0, t1]) widened by the rounding of
+// o + t d, so no lane can hit it there; a dropped pair is not mailboxed.
 #include "kernels/packet_dda.h"
 
 #include <cfloat>
@@ -59,9 +64,12 @@ inline constexpr int kPredictArea = 24;
 // by kDenseCell / (triangles per occupied cell) in grids with denser cells: the wider the
 // vectors' boxes, the fewer triangles the culling removes, and in dense cells the per-ray walk's
 // 1-ray x 4-triangle tests win (bunny shadow rays: 0.6x the per-ray walk at 0.5, 1.1x at 0.25;
-// room scenes prefer 0.5-1).
+// room scenes prefer 0.5-1). Any hit scales by 2 kDenseCell: with the K cull (CullGroup) its
+// packets test fewer triangles (bunny shadow rays, callgrind AVX2: 1506 -> 1359 Ir per ray, the
+// other scenes unchanged; 0.75 instead of 0.5 cost sponza 4 %).
 inline constexpr float kMaxSpread = 0.5f;
 inline constexpr float kDenseCell = 16.0f;
+inline constexpr float kAnyDenseScale = 2.0f;
 // A vector with at most Lanes / kOneRayShare of its rays in a leaf tests them one by one with the
 // 1-ray x 4-triangle kernel (SIMD over the leaf's triangles) instead of N rays x 1 triangle.
 inline constexpr size_t kOneRayShare = 4;
@@ -91,6 +99,10 @@ struct PacketRays {
   int32_t s_start[kPR];  // the slice where the ray's segment starts
   // per vector: the (kx, ky, kz) every live ray shares (k0 | k1 << 2 | k2 << 4), or -1
   int32_t perm[kPR];
+  // per vector (any hit): the range along K of its live rays' segments [t0, t1], widened by the
+  // rounding err[K] (the third axis of CullGroup's box test; the slice boxes give U and W)
+  float k_lo[kPR];
+  float k_hi[kPR];
   PreparedRay one[kPR];  // the 1-ray x 4-triangle kernels' setup of each valid ray
 };
 
@@ -141,6 +153,7 @@ struct PacketTracer {
   uint64_t cells = 0;
   uint64_t tests = 0;
   uint64_t one_ready = 0;  // rays whose PreparedRay (r.one) is set up
+  const uint32_t* skip_rings = nullptr;  // DdaGrid::skip (null: none)
 
   static size_t Lanes() { return hn::Lanes(D()); }
   static uint64_t LaneMask() {
@@ -151,7 +164,12 @@ struct PacketTracer {
   // is the same for one value.
   static HWY_INLINE int CellOf1(float x, const Level& lv, int a) {
     const float f = (x - lv.lo[a]) * lv.inv_cs[a];
-    return f > 0.0f ? (f < float(lv.res[a]) ? int(f) : lv.res[a] - 1) : 0;
+    // clamped in float, then truncated: the same cell as f > 0 ? (f < res ? int(f) : res - 1)
+    // : 0 (res - 1 < 2^24 is exact; for f in [res - 1, res) both give res - 1), without the
+    // branches (maxss / minss; 4 cells per vector and slice in Refine)
+    const float lo = f > 0.0f ? f : 0.0f;  // NaN -> 0
+    const float hi = float(lv.res[a] - 1);
+    return int(lo < hi ? lo : hi);
   }
   static HWY_INLINE VI CellOf(D d, V x, const Level& lv, int a) {
     const DI di;
@@ -162,6 +180,16 @@ struct PacketTracer {
         hn::IfThenElse(hn::RebindMask(di, hn::Lt(f, hn::Set(d, float(lv.res[a])))),
                        hn::ConvertTo(di, f), res_m1),
         hn::Zero(di));
+  }
+
+  // Where the segments of rays [i, i + Lanes) end: t1, or the candidate if closer. Any hit: the
+  // candidate stays tmax >= t1 (an occluded ray is retired instead), so t1 alone.
+  HWY_INLINE V SegmentEnd(D d, size_t i) const {
+    if constexpr (kAny) {
+      return hn::Load(d, r.t1 + i);
+    } else {
+      return hn::Min(hn::Load(d, r.best + i), hn::Load(d, r.t1 + i));
+    }
   }
 
   // The footprint of the live rays among `filter` whose segment has K in [p0, p1] (p0 < p1),
@@ -177,25 +205,37 @@ struct PacketTracer {
     const size_t n = Lanes();
     const V big = hn::Set(d, FLT_MAX), nbig = hn::Set(d, -FLT_MAX);
     V plo[2] = {big, big}, phi[2] = {nbig, nbig};
-    f->in = 0;
-    f->vectors = 0;
-    const int axes[2] = {U, W};
+    // the slice's planes in the rays' direction (entry, exit), the rounding pads and the arrays,
+    // hoisted: locals the compiler need not reload after the stores below
+    const V p_entry = hn::Set(d, positive ? p0 : p1), p_exit = hn::Set(d, positive ? p1 : p0);
+    const V near_v = hn::Set(d, near);
+    const V e[2] = {hn::Set(d, err[U]), hn::Set(d, err[W])};
+    int32_t* const live_p = r.live;
+    const float* const ok_p = r.o[K];
+    const float* const inv_p = r.inv_k;
+    const float* const t0_p = r.t0;
+    const float* const o_p[2] = {r.o[U], r.o[W]};
+    const float* const d_p[2] = {r.d[U], r.d[W]};
+    float* const flo_p[2] = {r.flo[0], r.flo[1]};
+    float* const fhi_p[2] = {r.fhi[0], r.fhi[1]};
+    uint64_t in_bits = 0, vector_bits = 0;
+    size_t live_count = 0;
     for (size_t w = 0; w < nv; ++w) {
       const uint64_t want = (filter >> (w * n)) & LaneMask();
       if (want == 0) continue;
       const size_t i = w * n;
-      M live = hn::RebindMask(d, hn::Ne(hn::Load(di, r.live + i), hn::Zero(di)));
+      M live = hn::RebindMask(d, hn::Ne(hn::Load(di, live_p + i), hn::Zero(di)));
+      if (hn::AllFalse(d, live)) continue;
+      const V ok = hn::Load(d, ok_p + i), inv = hn::Load(d, inv_p + i);
+      const V end = SegmentEnd(d, i);
       if constexpr (kTerminate) {
-        if (hn::AllFalse(d, live)) continue;
-        const V t_near = hn::Mul(hn::Sub(hn::Set(d, near), hn::Load(d, r.o[K] + i)),
-                                 hn::Load(d, r.inv_k + i));
-        const V end = hn::Min(hn::Load(d, r.best + i), hn::Load(d, r.t1 + i));
+        const V t_near = hn::Mul(hn::Sub(near_v, ok), inv);
         const M done = hn::And(live, hn::Le(end, t_near));
         if (!hn::AllFalse(d, done)) {
           live = hn::AndNot(done, live);
-          hn::Store(hn::VecFromMask(di, hn::RebindMask(di, live)), di, r.live + i);
+          hn::Store(hn::VecFromMask(di, hn::RebindMask(di, live)), di, live_p + i);
         }
-        *live_rays += hn::CountTrue(d, live);
+        live_count += hn::CountTrue(d, live);
       }
       if (want != LaneMask()) {
         uint8_t want_bytes[8];
@@ -203,33 +243,31 @@ struct PacketTracer {
         live = hn::And(live, hn::LoadMaskBits(d, want_bytes));
       }
       if (hn::AllFalse(d, live)) continue;
-      const V ok = hn::Load(d, r.o[K] + i), inv = hn::Load(d, r.inv_k + i);
-      const V ta = hn::Mul(hn::Sub(hn::Set(d, p0), ok), inv);
-      const V tb = hn::Mul(hn::Sub(hn::Set(d, p1), ok), inv);
-      const V t_in = hn::Max(positive ? ta : tb, hn::Load(d, r.t0 + i));
-      const V t_out = hn::Min(positive ? tb : ta,
-                              hn::Min(hn::Load(d, r.t1 + i), hn::Load(d, r.best + i)));
+      const V t_in = hn::Max(hn::Mul(hn::Sub(p_entry, ok), inv), hn::Load(d, t0_p + i));
+      const V t_out = hn::Min(hn::Mul(hn::Sub(p_exit, ok), inv), end);
       const M in = hn::And(live, hn::Le(t_in, t_out));
       if (hn::AllFalse(d, in)) continue;
       uint8_t bytes[8] = {};
       hn::StoreMaskBits(d, in, bytes);
       uint64_t bits = 0;
       std::memcpy(&bits, bytes, sizeof bits);
-      f->in |= (bits & LaneMask()) << i;
-      f->vectors |= uint64_t{1} << w;
+      in_bits |= (bits & LaneMask()) << i;
+      vector_bits |= uint64_t{1} << w;
       for (int a = 0; a < 2; ++a) {
-        const int ax = axes[a];
-        const V o = hn::Load(d, r.o[ax] + i), dir = hn::Load(d, r.d[ax] + i);
+        const V o = hn::Load(d, o_p[a] + i), dir = hn::Load(d, d_p[a] + i);
         const V pa = hn::Add(o, hn::Mul(t_in, dir)), pb = hn::Add(o, hn::Mul(t_out, dir));
-        const V e = hn::Set(d, err[ax]);
-        const V lo = hn::IfThenElse(in, hn::Sub(hn::Min(pa, pb), e), big);
-        const V hi = hn::IfThenElse(in, hn::Add(hn::Max(pa, pb), e), nbig);
-        hn::Store(lo, d, r.flo[a] + i);
-        hn::Store(hi, d, r.fhi[a] + i);
+        const V lo = hn::IfThenElse(in, hn::Sub(hn::Min(pa, pb), e[a]), big);
+        const V hi = hn::IfThenElse(in, hn::Add(hn::Max(pa, pb), e[a]), nbig);
+        hn::Store(lo, d, flo_p[a] + i);
+        hn::Store(hi, d, fhi_p[a] + i);
         plo[a] = hn::Min(plo[a], lo);
         phi[a] = hn::Max(phi[a], hi);
       }
     }
+    f->in = in_bits;
+    f->vectors = vector_bits;
+    if constexpr (kTerminate) *live_rays += live_count;
+    const int axes[2] = {U, W};
     if (f->vectors == 0) return;
     int c[4];
     for (int a = 0; a < 2; ++a) {
@@ -258,6 +296,25 @@ struct PacketTracer {
     return op(y, hn::Shuffle1032(y));
   }
 #endif
+#if HWY_TARGET == HWY_AVX2
+  // The least (kMin) or largest lane of each of v[0..7] (8 lanes each), in lane w of the result:
+  // 128-bit halves, then even / odd lanes twice, the eight reductions sharing their shuffles
+  // (15 shuffles and 7 min / max instead of 8 MinOfLanes); no lane mixes two inputs.
+  template <bool kMin>
+  static HWY_INLINE V Extrema8(D d, const V* v) {
+    const auto op = [](V x, V y) { return kMin ? hn::Min(x, y) : hn::Max(x, y); };
+    V p[4], q[2];
+    for (int k = 0; k < 4; ++k) {
+      p[k] = op(hn::ConcatLowerLower(d, v[2 * k + 1], v[2 * k]),
+                hn::ConcatUpperUpper(d, v[2 * k + 1], v[2 * k]));
+    }
+    for (int k = 0; k < 2; ++k) {
+      q[k] = op(hn::ConcatEven(d, p[2 * k + 1], p[2 * k]),
+                hn::ConcatOdd(d, p[2 * k + 1], p[2 * k]));
+    }
+    return op(hn::ConcatEven(d, q[1], q[0]), hn::ConcatOdd(d, q[1], q[0]));
+  }
+#endif
 
   // The rest of footprint f, needed only where the slice has occupied cells: per vector the box
   // of its rays (triangle culling) and its cell range on level lv.
@@ -267,27 +324,54 @@ struct PacketTracer {
     const int axes[2] = {U, W};
 #if HWY_TARGET == HWY_AVX3 || HWY_TARGET == HWY_AVX3_DL
     if (n * 4 == kPR) {  // the packet's 4 vectors at once (Extrema4)
+      const DI di;
       const V big = hn::Set(d, FLT_MAX), nbig = hn::Set(d, -FLT_MAX);
       const auto get = [&](const float* p, size_t w, V none) {
         return (f->vectors >> w & 1) != 0 ? hn::Load(d, p + w * n) : none;
       };
       HWY_ALIGN float lo[2][16], hi[2][16];
+      HWY_ALIGN int32_t c0[2][16], c1[2][16];
       for (int a = 0; a < 2; ++a) {
-        hn::Store(Extrema4<true>(d, get(r.flo[a], 0, big), get(r.flo[a], 1, big),
-                                 get(r.flo[a], 2, big), get(r.flo[a], 3, big)),
-                  d, lo[a]);
-        hn::Store(Extrema4<false>(d, get(r.fhi[a], 0, nbig), get(r.fhi[a], 1, nbig),
-                                  get(r.fhi[a], 2, nbig), get(r.fhi[a], 3, nbig)),
-                  d, hi[a]);
+        const V vlo = Extrema4<true>(d, get(r.flo[a], 0, big), get(r.flo[a], 1, big),
+                                     get(r.flo[a], 2, big), get(r.flo[a], 3, big));
+        const V vhi = Extrema4<false>(d, get(r.fhi[a], 0, nbig), get(r.fhi[a], 1, nbig),
+                                      get(r.fhi[a], 2, nbig), get(r.fhi[a], 3, nbig));
+        hn::Store(vlo, d, lo[a]);
+        hn::Store(vhi, d, hi[a]);
+        // the cells of all boxes at once (CellOf: the same cells as CellOf1)
+        hn::Store(CellOf(d, vlo, lv, axes[a]), di, c0[a]);
+        hn::Store(CellOf(d, vhi, lv, axes[a]), di, c1[a]);
       }
       for (uint64_t vb = f->vectors; vb != 0; vb &= vb - 1) {
         const size_t w = hwy::Num0BitsBelowLS1Bit_Nonzero64(vb);
         for (int a = 0; a < 2; ++a) {
           f->lo[a][w] = lo[a][4 * w];
           f->hi[a][w] = hi[a][4 * w];
-          f->c0[a][w] = CellOf1(f->lo[a][w], lv, axes[a]);
-          f->c1[a][w] = CellOf1(f->hi[a][w], lv, axes[a]);
+          f->c0[a][w] = c0[a][4 * w];
+          f->c1[a][w] = c1[a][4 * w];
         }
+      }
+      return;
+    }
+#endif
+#if HWY_TARGET == HWY_AVX2
+    // the packet's 8 vectors at once (Extrema8, vector w in lane w), where 3 or more have rays
+    // in the slice (fewer: sub-slices of a sub-grid, say, are cheaper one by one)
+    if (n * 8 == kPR && hwy::PopCount(f->vectors) >= 3) {
+      const DI di;
+      const V big = hn::Set(d, FLT_MAX), nbig = hn::Set(d, -FLT_MAX);
+      for (int a = 0; a < 2; ++a) {
+        V lo[8], hi[8];
+        for (size_t w = 0; w < 8; ++w) {
+          const bool in = (f->vectors >> w & 1) != 0;
+          lo[w] = in ? hn::Load(d, r.flo[a] + w * n) : big;
+          hi[w] = in ? hn::Load(d, r.fhi[a] + w * n) : nbig;
+        }
+        const V vlo = Extrema8<true>(d, lo), vhi = Extrema8<false>(d, hi);
+        hn::StoreU(vlo, d, f->lo[a]);
+        hn::StoreU(vhi, d, f->hi[a]);
+        hn::StoreU(CellOf(d, vlo, lv, axes[a]), di, f->c0[a]);
+        hn::StoreU(CellOf(d, vhi, lv, axes[a]), di, f->c1[a]);
       }
       return;
     }
@@ -304,9 +388,10 @@ struct PacketTracer {
     }
   }
 
-  // Vector w against one triangle (9 floats, x y z per vertex): broadcast in the vector's
-  // permutation if its rays share one, otherwise each lane picks its own axes.
-  HWY_INLINE void TestVector(size_t w, const float* p, int32_t id) {
+  // Vector w against one triangle (9 floats, x y z per vertex, component c at p[c * stride]:
+  // read in place from the leaf's bundles, broadcast straight from memory): broadcast in the
+  // vector's permutation if its rays share one, otherwise each lane picks its own axes.
+  HWY_INLINE void TestVector(size_t w, const float* p, size_t stride, int32_t id) {
     const D d;
     const DI di;
     const size_t i = w * Lanes();
@@ -314,14 +399,16 @@ struct PacketTracer {
     if (kAny && hn::AllFalse(d, live)) return;  // every ray of the vector is occluded
     // the triangle's components in each lane's (kx, ky, kz) order; a function, so that the
     // test's rare near-origin path can recompute them instead of keeping them live
-    const auto load = [this, p, w](V* c) {
+    const auto load = [this, p, stride, w](V* c) {
       const D d;
       const DI di;
       const size_t i = w * Lanes();
       if (r.perm[w] >= 0) {
         const int k[3] = {r.perm[w] & 3, (r.perm[w] >> 2) & 3, (r.perm[w] >> 4) & 3};
         for (int vtx = 0; vtx < 3; ++vtx) {
-          for (int a = 0; a < 3; ++a) c[3 * vtx + a] = hn::Set(d, p[3 * vtx + k[a]]);
+          for (int a = 0; a < 3; ++a) {
+            c[3 * vtx + a] = hn::Set(d, p[size_t(3 * vtx + k[a]) * stride]);
+          }
         }
       } else {
         const VI kx = hn::Load(di, r.k[0] + i), ky = hn::Load(di, r.k[1] + i);
@@ -334,8 +421,9 @@ struct PacketTracer {
         const M kz0 = hn::RebindMask(d, hn::Eq(kz, hn::Zero(di)));
         const M kz1 = hn::RebindMask(d, hn::Eq(kz, one));
         for (int vtx = 0; vtx < 3; ++vtx) {
-          const V x = hn::Set(d, p[3 * vtx]), y = hn::Set(d, p[3 * vtx + 1]);
-          const V z = hn::Set(d, p[3 * vtx + 2]);
+          const V x = hn::Set(d, p[size_t(3 * vtx) * stride]);
+          const V y = hn::Set(d, p[size_t(3 * vtx + 1) * stride]);
+          const V z = hn::Set(d, p[size_t(3 * vtx + 2) * stride]);
           c[3 * vtx + 0] = PickAxis(kx0, kx1, x, y, z);
           c[3 * vtx + 1] = PickAxis(ky0, ky1, x, y, z);
           c[3 * vtx + 2] = PickAxis(kz0, kz1, x, y, z);
@@ -395,13 +483,26 @@ struct PacketTracer {
     // NaN vertices (padding, degenerate) fail every compare: never tested
     const VT ulo = hn::Min(u0, hn::Min(u1, u2)), uhi = hn::Max(u0, hn::Max(u1, u2));
     const VT vlo = hn::Min(v0, hn::Min(v1, v2)), vhi = hn::Max(v0, hn::Max(v1, v2));
+    // any hit: K too (PacketRays::k_lo / k_hi: the vector's segments, not only this slice)
+    [[maybe_unused]] VT klo = ulo, khi = uhi;
+    if constexpr (kAny) {
+      const VT k0 = hn::LoadU(dt, b + size_t(K) * stride);
+      const VT k1 = hn::LoadU(dt, b + size_t(3 + K) * stride);
+      const VT k2 = hn::LoadU(dt, b + size_t(6 + K) * stride);
+      klo = hn::Min(k0, hn::Min(k1, k2));
+      khi = hn::Max(k0, hn::Max(k1, k2));
+    }
     uint64_t vecs[16] = {};  // per triangle of the group: vectors to test (bit w)
     bool any = false;
     for (uint64_t wb = wide; wb != 0; wb &= wb - 1) {
       const size_t w = hwy::Num0BitsBelowLS1Bit_Nonzero64(wb);
-      const auto m = hn::And(
+      auto m = hn::And(
           hn::And(hn::Le(ulo, hn::Set(dt, f.hi[0][w])), hn::Ge(uhi, hn::Set(dt, f.lo[0][w]))),
           hn::And(hn::Le(vlo, hn::Set(dt, f.hi[1][w])), hn::Ge(vhi, hn::Set(dt, f.lo[1][w]))));
+      if constexpr (kAny) {
+        m = hn::And(m, hn::And(hn::Le(klo, hn::Set(dt, r.k_hi[w])),
+                               hn::Ge(khi, hn::Set(dt, r.k_lo[w]))));
+      }
       if (hn::AllFalse(dt, m)) continue;
       any = true;
       uint8_t bits[8] = {};
@@ -420,10 +521,9 @@ struct PacketTracer {
       const uint64_t done = mine ? sc.mb_tested[slot] : 0;
       const uint64_t todo = vecs[t] & ~done;
       if (todo == 0) continue;
-      float p[9];
-      for (int c = 0; c < 9; ++c) p[c] = span.vertices[size_t(c) * stride + j + t];
+      const float* p = span.vertices + j + t;
       for (uint64_t wb = todo; wb != 0; wb &= wb - 1) {
-        TestVector(hwy::Num0BitsBelowLS1Bit_Nonzero64(wb), p, id);
+        TestVector(hwy::Num0BitsBelowLS1Bit_Nonzero64(wb), p, stride, id);
       }
       sc.mb_id[slot] = id;
       sc.mb_stamp[slot] = sc.serial;
@@ -600,9 +700,10 @@ struct PacketTracer {
   // i slices (widened by the err[K] of both footprints) beyond P: at P + t * slope * cell_size[K]
   // along U and W, t in [i - 1, i], slope within [move_lo, move_hi]. So f's box moved by those
   // bounds, widened by the rounding of o + t d in both footprints (2 err) and a margin, holds
-  // them. Returns m: slices s + 1 .. s + m (m <= left) whose predicted boxes (at most
-  // kPredictArea cells) hold no occupied cell, i.e. no triangle a ray of the packet could meet
-  // there. Results are unchanged: only empty slices are skipped. A skipped slice costs a few
+  // them. Returns m: slices s + 1 .. s + m (m <= left) whose predicted boxes hold no occupied
+  // cell, i.e. no triangle a ray of the packet could meet there: the box's skip rings show it
+  // empty (RingsEmpty: one byte, any area), or it has at most kPredictArea cells and none is
+  // occupied. Results are unchanged: only empty slices are skipped. A skipped slice costs a few
   // occupancy reads instead of a footprint (most of a shadow packet's walk is empty space that
   // EmptyJump's rings, centred on the packet, are too small to jump).
   HWY_INLINE int PredictEmpty(const SliceFoot& f, int s, int left, const Level& top,
@@ -629,14 +730,35 @@ struct PacketTracer {
         c0[a] = CellOf1(f.wlo[a] + lo - pad[a], top, axes[a]);
         c1[a] = CellOf1(f.whi[a] + hi + pad[a], top, axes[a]);
       }
-      const int area = (c1[0] - c0[0] + 1) * (c1[1] - c0[1] + 1);
-      if (area > kPredictArea) break;
       const int sl = positive ? s + i : s - i;
-      cells += uint64_t(area);
-      if (AnyOccupied(occ, size_t(sl) * stride[K], c0[0], c1[0], c0[1], c1[1], stride)) break;
+      const size_t row0 = size_t(sl) * stride[K];
+      // the skip rings of the box's centre cell first: one byte instead of the box's bits, and
+      // no area limit where they cover the box
+      if (!RingsEmpty(row0, c0[0], c1[0], c0[1], c1[1], stride)) {
+        const int area = (c1[0] - c0[0] + 1) * (c1[1] - c0[1] + 1);
+        if (area > kPredictArea) break;
+        cells += uint64_t(area);
+        if (AnyOccupied(occ, row0, c0[0], c1[0], c0[1], c1[1], stride)) break;
+      } else {
+        ++cells;
+      }
       m = i;
     }
     return m;
+  }
+
+  // Whether the skip rings (DdaGrid::skip) show every cell (u, v) in [u0, u1] x [v0, v1] of the
+  // slice starting at cell row0 empty: k >= 1 rings around the box's centre cell mean that every
+  // cell within Chebyshev distance k of it is empty (k = 0: the centre may be occupied). False
+  // when unknown (no rings, or too few).
+  HWY_INLINE bool RingsEmpty(size_t row0, int u0, int u1, int v0, int v1,
+                             const int stride[3]) const {
+    if (skip_rings == nullptr) return false;
+    const int cu = (u0 + u1) / 2, cv = (v0 + v1) / 2;
+    const int hw = std::max(std::max(cu - u0, u1 - cu), std::max(cv - v0, v1 - cv));
+    const size_t cell = row0 + size_t(cv) * stride[W] + size_t(cu) * stride[U];
+    const int k = int((skip_rings[cell >> 2] >> (8 * (cell & 3))) & 0xffu);
+    return k >= 1 && k >= hw;
   }
 
   // Whether a cell (u, v) in [u0, u1] x [v0, v1] of the slice starting at cell row0 is occupied.
@@ -816,7 +938,8 @@ struct PacketTracer {
     // kMaxSpread cells per slice the rays diverge (diffuse rays, say) and are traced one by one
     {
       const float per_cell = float(grid.num_refs) / float(std::max<size_t>(1, grid.occupied_cells));
-      const float max_spread = kMaxSpread * std::min(1.0f, kDenseCell / per_cell);
+      const float dense = (kAny ? kAnyDenseScale : 1.0f) * kDenseCell;
+      const float max_spread = kMaxSpread * std::min(1.0f, dense / per_cell);
       const int axes[2] = {U, W};
       for (int a = 0; a < 2; ++a) {
         const float lo_slope = hn::GetLane(hn::MinOfLanes(d, slo[a]));
@@ -835,6 +958,23 @@ struct PacketTracer {
                           std::max(std::abs(grid.lo[a]), std::abs(grid.hi[a]));
       err[a] = 4e-7f * scale + 1e-4f * grid.cell_size[a];
     }
+    if constexpr (kAny) {
+      // each vector's K range: o + t d at t0 and t1 (the segment a lane's hit lies on; o + t d
+      // rounds within err[K], as the U and W boxes). Shadow rays leave surfaces: a surface
+      // across K (a floor below a light) lies outside its rays' K range and is never tested
+      const V ek = hn::Set(d, err[K]);
+      for (size_t w = 0; w < nv; ++w) {
+        const size_t i = w * L;
+        const M valid = hn::RebindMask(d, hn::Ne(hn::Load(di, r.live + i), hn::Zero(di)));
+        const V ok = hn::Load(d, r.o[K] + i), dk = hn::Load(d, r.d[K] + i);
+        const V ka = hn::Add(ok, hn::Mul(hn::Load(d, r.t0 + i), dk));
+        const V kb = hn::Add(ok, hn::Mul(hn::Load(d, r.t1 + i), dk));
+        const V lo = hn::IfThenElse(valid, hn::Sub(hn::Min(ka, kb), ek), hn::Set(d, FLT_MAX));
+        const V hi = hn::IfThenElse(valid, hn::Add(hn::Max(ka, kb), ek), hn::Set(d, -FLT_MAX));
+        r.k_lo[w] = hn::GetLane(hn::MinOfLanes(d, lo));
+        r.k_hi[w] = hn::GetLane(hn::MaxOfLanes(d, hi));
+      }
+    }
     // slices along K covered by some segment, +-1 for the rounding of the entry cells
     int s_lo = hn::GetLane(hn::MinOfLanes(di, s_min));
     int s_hi = hn::GetLane(hn::MaxOfLanes(di, s_max));
@@ -851,6 +991,7 @@ struct PacketTracer {
     const uint64_t* occ = grid.occupancy.get();
     const TwoLevelGrid* two = g.two_level;
     const uint32_t* skip = g.skip.get();
+    skip_rings = skip;
     // budget of marked cells before the packet is given to the stream DDA (each ray marks at
     // least one cell per slice it passes: a bound on diverging rays)
     const uint64_t budget = 4 * uint64_t(n_valid) * uint64_t(s_hi - s_lo + 1) + 64;
@@ -888,7 +1029,8 @@ struct PacketTracer {
         const int area = (f.u1 - f.u0 + 1) * (f.v1 - f.v0 + 1);
         if (area <= kSmallBox) {
           cells += uint64_t(area);
-          if (AnyOccupied(occ, row0, f.u0, f.u1, f.v0, f.v1, stride)) {
+          if (!RingsEmpty(row0, f.u0, f.u1, f.v0, f.v1, stride) &&
+              AnyOccupied(occ, row0, f.u0, f.u1, f.v0, f.v1, stride)) {
             Refine(top, &f);
             for (int cv = f.v0; cv <= f.v1; ++cv) {
               for (int cu = f.u0; cu <= f.u1; ++cu) visit(cu, cv, f.in);
@@ -925,7 +1067,14 @@ struct PacketTracer {
       const VI prim = hn::Load(di, r.prim + i);
       const auto hit = hn::Gt(prim, hn::Set(di, -1));
       if constexpr (kAny) {
-        for (size_t l = 0; l < L && i + l < n; ++l) occluded[first + i + l] = r.prim[i + l] > 0;
+        // occluded (prim = 1) -> 1, else 0; whole vectors at once (occluded need not be padded:
+        // the last, partial vector lane by lane)
+        const VI flag = hn::IfThenElseZero(hn::Gt(prim, hn::Zero(di)), hn::Set(di, 1));
+        if (i + L <= n) {
+          hn::StoreU(flag, di, occluded + first + i);
+        } else {
+          for (size_t l = 0; i + l < n; ++l) occluded[first + i + l] = r.prim[i + l] > 0;
+        }
       } else {
         const M live = hn::FirstN(d, n - i);
         const M hf = hn::RebindMask(d, hit);
@@ -1019,9 +1168,11 @@ void ForPackets(size_t size, TraceStats* stats, bool regrouped, const Packet& pa
 // caller's stack, like PacketScratch (no allocation). Not in grids with dense cells (more than
 // kRegroupMaxPerCell references per occupied cell, the packets' kDenseCell), where the packets
 // refuse wide rays on purpose: there a regrouped packet that passes is still slower than the
-// per-ray walk (bunny shadow rays: 0.9x).
+// per-ray walk (bunny shadow rays: 0.9x). Any hit regroups up to twice that density, as its
+// packets allow (kAnyDenseScale): bunny shadow rays 1359 -> 954 Ir per ray (callgrind, AVX2).
 constexpr size_t kRegroupRays = 1024;
 constexpr float kRegroupMaxPerCell = 16.0f;
+constexpr float kAnyRegroupScale = 2.0f;  // = kAnyDenseScale
 
 struct Regroup {
   HWY_ALIGN float f[8][kRegroupRays + kStreamPad];  // ox oy oz dx dy dz tmin tmax, sorted
@@ -1032,7 +1183,7 @@ struct Regroup {
   float lo[3], scale[3];  // the grid box, for the origin's Morton code
   bool on = false;
 
-  explicit Regroup(const DdaGrid& g, size_t rays) {
+  Regroup(const DdaGrid& g, size_t rays, float max_per_cell) {
     const Grid& grid = *g.grid;
     for (int a = 0; a < 3; ++a) {
       lo[a] = grid.lo[a];
@@ -1040,7 +1191,7 @@ struct Regroup {
       scale[a] = extent > 0.0f ? 1.0f / extent : 0.0f;
     }
     const float per_cell = float(grid.num_refs) / float(std::max<size_t>(1, grid.occupied_cells));
-    on = per_cell <= kRegroupMaxPerCell && rays <= UINT32_MAX;
+    on = per_cell <= max_per_cell && rays <= UINT32_MAX;
   }
   RayStreamView Rays() {
     RayStreamView v;
@@ -1176,7 +1327,7 @@ void IntersectCoherent(const DdaGrid& g, const RayStreamView& rays, const HitStr
   }
   detail::PacketScratch sc;
   InitScratch(&sc);
-  Regroup rg(g, rays.size);
+  Regroup rg(g, rays.size, kRegroupMaxPerCell);
   const HitStreamView mine = rg.Hits();
   TraceWithRegroup(
       rays, hits, &rg, mine, stats,
@@ -1201,7 +1352,7 @@ void OccludedCoherent(const DdaGrid& g, const RayStreamView& rays, int32_t* occl
   }
   detail::PacketScratch sc;
   InitScratch(&sc);
-  Regroup rg(g, rays.size);
+  Regroup rg(g, rays.size, kAnyRegroupScale * kRegroupMaxPerCell);
   int32_t* const mine = rg.result;
   TraceWithRegroup(
       rays, occluded, &rg, mine, stats,

@@ -500,6 +500,98 @@ TEST_CASE("regression: conference floor, coherent shadow packets from 3.05e-5 ab
   }
 }
 
+// Any-hit packets across empty space (the packet walk's skip-ring checks: PredictEmpty and the
+// small-box test read DdaGrid::skip before the occupancy bits): a 100 x 100 floor at y = 0 and
+// small occluders far apart below a point light. Shadow rays from points on the floor (origins
+// on the surface, and 1e-4 above it) converge on the light; rays end exactly at an occluder's
+// vertex, edge midpoint or inside it (tmax = 1, and one float short); rays along +y and
+// grazing the floor. Every target, flat and two-level grids, against the scalar oracle.
+TEST_CASE("shadow packets across empty space: skip rings, tmax at a triangle, surface origins") {
+  Soup soup;
+  const float f0[3] = {-50, 0, -50}, f1[3] = {50, 0, -50}, f2[3] = {-50, 0, 50};
+  const float f3[3] = {50, 0, 50};
+  soup.AddTriangle(f0, f1, f2);
+  soup.AddTriangle(f1, f3, f2);
+  // occluders: horizontal triangles (exact float vertices), 8 units wide
+  const float occ[][3] = {{-30, 12, -30}, {20, 25, -10}, {-10, 40, 25}, {30, 8, 30}};
+  for (const auto& c : occ) {
+    const float a[3] = {c[0] - 4, c[1], c[2] - 4}, b[3] = {c[0] + 4, c[1], c[2] - 4};
+    const float d[3] = {c[0], c[1], c[2] + 4};
+    soup.AddTriangle(a, b, d);
+  }
+  const float light[3] = {3, 60, -2};
+  std::vector<Ray> rays;
+  // floor points in scanline runs of 64 over a 256 x 32 lattice (a run spans 24 units: slopes
+  // within 0.4 of each other, coherent)
+  for (const float lift : {0.0f, 1e-4f}) {
+    for (int j = 0; j < 32; ++j) {
+      for (int i = 0; i < 256; ++i) {
+        Ray r;
+        r.o[0] = F(-48.0 + 0.375 * i);
+        r.o[1] = lift;
+        r.o[2] = F(-48.0 + 3.0 * j);
+        for (int a = 0; a < 3; ++a) r.d[a] = F(double(light[a]) - r.o[a]);
+        r.tmin = 0.0f;
+        r.tmax = 1.0f;
+        rays.push_back(r);
+      }
+    }
+  }
+  // ending exactly at an occluder: its vertices, edge midpoints and centroid-ish interior points
+  for (const auto& c : occ) {
+    const float targets[][3] = {{c[0] - 4, c[1], c[2] - 4}, {c[0] + 4, c[1], c[2] - 4},
+                                {c[0], c[1], c[2] + 4},     {c[0], c[1], c[2] - 4},
+                                {c[0] - 2, c[1], c[2]},     {c[0], c[1], c[2]}};
+    for (const auto& t : targets) {
+      for (int k = 0; k < 64; ++k) {
+        Ray r;
+        r.o[0] = F(t[0] + 0.25 * (k % 8 - 4));
+        r.o[1] = 0.0f;
+        r.o[2] = F(t[2] + 0.25 * (k / 8 - 4));
+        for (int a = 0; a < 3; ++a) r.d[a] = t[a] - r.o[a];  // exact: small integers / 4
+        r.tmin = 0.0f;
+        r.tmax = k % 2 == 0 ? 1.0f : std::nextafter(1.0f, 0.0f);
+        rays.push_back(r);
+      }
+    }
+  }
+  // along +y from the floor (some under occluders), and grazing it along +x
+  for (int k = 0; k < 256; ++k) {
+    Ray up;
+    up.o[0] = F(-34.0 + 0.125 * (k % 64));
+    up.o[1] = 0.0f;
+    up.o[2] = F(-34.0 + 2.0 * (k / 64));
+    up.d[0] = k % 3 == 0 ? -0.0f : 0.0f;
+    up.d[1] = 1.0f;
+    up.d[2] = 0.0f;
+    up.tmin = 0.0f;
+    up.tmax = k % 4 == 0 ? 12.0f : 59.0f;  // 12: exactly at the first occluder's plane
+    rays.push_back(up);
+  }
+  for (int k = 0; k < 128; ++k) {
+    Ray g;
+    g.o[0] = -49.0f;
+    g.o[1] = k % 2 == 0 ? 0.0f : 1e-6f;
+    g.o[2] = F(-40.0 + 0.5 * k);
+    g.d[0] = 1.0f;
+    g.d[1] = k % 4 < 2 ? 1e-7f : -1e-7f;
+    g.d[2] = 0.0f;
+    g.tmin = 0.0f;
+    g.tmax = 98.0f;
+    rays.push_back(g);
+  }
+  for (const auto& [lambda, threshold] : {std::pair{4.0f, -1}, std::pair{1.0f, 0}}) {
+    const Built b(soup.view(), lambda, threshold);
+    const std::string what =
+        std::string("sparse shadow packets, ") + (threshold < 0 ? "flat" : "two-level");
+    const Oracle o = RunOracle(b, rays);
+    CHECK(o.occluded > 0);
+    CHECK(o.occluded < rays.size());
+    const PacketStats ps = CheckCoherent(b, rays, what);
+    CHECK(ps.packets > 0);
+  }
+}
+
 TEST_CASE("rs::Accel: packets on equal packets off on a procedural scene") {
   const Scene scene = LoadScene("spherebox");
   BuildOptions on, off;
