@@ -15,14 +15,19 @@
 namespace rs {
 namespace {
 
-void CheckSizes(const char* what, int width, int height, int block) {
+int CeilDiv(int a, int b) { return (a + b - 1) / b; }
+
+// The block counts of a width x height image in block x block blocks (partial at the right and
+// bottom) into *bx, *by; returns bx * by. Throws rs::Error naming `what` if a size is < 1.
+size_t BlockCounts(const char* what, int width, int height, int block, int* bx, int* by) {
   if (width < 1 || height < 1 || block < 1) {
     throw Error(fmt::format("{}: image {}x{} in {}x{} blocks: sizes must be at least 1", what,
                             width, height, block, block));
   }
+  *bx = CeilDiv(width, block);
+  *by = CeilDiv(height, block);
+  return static_cast<size_t>(*bx) * static_cast<size_t>(*by);
 }
-
-int CeilDiv(int a, int b) { return (a + b - 1) / b; }
 
 bool SameCamera(const CameraBasis& a, const CameraBasis& b) {
   return a.eye == b.eye && a.forward == b.forward && a.right == b.right && a.up == b.up &&
@@ -33,13 +38,10 @@ bool SameCamera(const CameraBasis& a, const CameraBasis& b) {
 }  // namespace
 
 void BlockWork::Resize(int w, int h, int b) {
-  CheckSizes("block work", w, h, b);
+  const size_t n = BlockCounts("block work", w, h, b, &blocks_x, &blocks_y);
   width = w;
   height = h;
   block = b;
-  blocks_x = CeilDiv(w, b);
-  blocks_y = CeilDiv(h, b);
-  const size_t n = static_cast<size_t>(blocks_x) * static_cast<size_t>(blocks_y);
   work.assign(n, 0);
 }
 
@@ -51,13 +53,10 @@ void BlockWork::Add(const BlockWork& o) {
 }
 
 void CostMap::Resize(int width, int height, int block) {
-  CheckSizes("cost map", width, height, block);
+  const size_t n = BlockCounts("cost map", width, height, block, &blocks_x_, &blocks_y_);
   width_ = width;
   height_ = height;
   block_ = block;
-  blocks_x_ = CeilDiv(width, block);
-  blocks_y_ = CeilDiv(height, block);
-  const size_t n = static_cast<size_t>(blocks_x_) * static_cast<size_t>(blocks_y_);
   cost_.assign(n, 0.0);
   const size_t pixels = static_cast<size_t>(width) * static_cast<size_t>(height);
   z_.assign(pixels, 0.0f);
