@@ -123,8 +123,9 @@ expect_error "JSON duplicate key" 'j4\.json:3:2: duplicate key "ambient"' "$rs" 
 # main). From the smallest limit at which the dynamic loader can map the libraries (below it the
 # loader's own one-line "error while loading shared libraries", exit 127; within about 1 MB
 # above it, glibc's loader may still fail on its own bookkeeping, exit 127, with "Fatal glibc
-# error: cannot allocate memory for find-object data" or a bare "out of memory" (which one
-# depends on the binary's size), before any code of the program runs) up to one the command
+# error: cannot allocate memory for find-object data", a bare "out of memory" or "cannot allocate
+# TLS data structures for initial thread" (rtld's init_tls; which one depends on the binary's
+# size), before any code of the program runs) up to one the command
 # runs in, `--help` and a tiny render must each exit below 128 with one line on
 # stderr, or succeed; at least one limit must give the command's own "needs ... to start" line.
 if [ "$asan" = 1 ]; then
@@ -140,7 +141,8 @@ else
       elif [ $rc -ge 128 ] || [ "$lines" -ne 1 ]; then
         crashes=$((crashes+1)); bad "ulimit -v ${mb} MB, $cmd: exit $rc, $lines lines on stderr"; head -n 3 err.txt
       elif grep -q '^raystream: error: address-space limit (ulimit -v) .* needs to start' err.txt; then own=$((own+1)); msg=$(cat err.txt)
-      elif [ $rc -eq 127 ] && grep -q -x 'out of memory' err.txt; then :  # the loader, as above
+      elif [ $rc -eq 127 ] && grep -q -x -e 'out of memory' \
+             -e 'cannot allocate TLS data structures for initial thread' err.txt; then :  # the loader
       elif ! grep -q -e 'error while loading shared libraries' -e '^Fatal glibc error: ' err.txt; then
         crashes=$((crashes+1)); bad "ulimit -v ${mb} MB, $cmd: exit $rc: $(cat err.txt)"
       fi
