@@ -142,29 +142,69 @@ void TilePixel(const Tile& tile, RayOrder order, size_t i, int& x, int& y) {
   HWY_ABORT("unknown ray order %d", static_cast<int>(order));
 }
 
+namespace {
+
+// A tile's pixels in `order` from index i on, a step at a time: TilePixel(i), TilePixel(i + 1),
+// ... without its divisions. Every order is a walk over blocks (scanline: blocks of one tile-wide
+// row), row by row inside a block, blocks left to right, block rows top to bottom, the last
+// block of a row and the last block row clipped to the tile.
+class TileWalk {
+ public:
+  TileWalk(const Tile& tile, RayOrder order, size_t i) : tile_(tile) {
+    kw_ = order == RayOrder::kScanline ? tile.Width() : order == RayOrder::kBlock4x2 ? 4 : 8;
+    kh_ = order == RayOrder::kScanline ? 1 : order == RayOrder::kBlock4x2 ? 2 : 8;
+    TilePixel(tile, order, i, x_, y_);
+    bx_ = tile.x0 + (x_ - tile.x0) / kw_ * kw_;
+    by_ = tile.y0 + (y_ - tile.y0) / kh_ * kh_;
+    bx1_ = std::min(bx_ + kw_, tile.x1);
+    by1_ = std::min(by_ + kh_, tile.y1);
+  }
+  int x() const { return x_; }
+  int y() const { return y_; }
+  // The next pixel (past the tile's last one: unspecified).
+  void Next() {
+    if (++x_ < bx1_) return;
+    x_ = bx_;
+    if (++y_ < by1_) return;
+    bx_ += kw_;
+    if (bx_ >= tile_.x1) {
+      bx_ = tile_.x0;
+      by_ += kh_;
+      by1_ = std::min(by_ + kh_, tile_.y1);
+    }
+    bx1_ = std::min(bx_ + kw_, tile_.x1);
+    x_ = bx_;
+    y_ = by_;
+  }
+
+ private:
+  const Tile& tile_;
+  int kw_ = 1, kh_ = 1;    // block size
+  int bx_ = 0, by_ = 0;    // the block's first pixel
+  int bx1_ = 0, by1_ = 0;  // its end (clipped)
+  int x_ = 0, y_ = 0;
+};
+
+}  // namespace
+
 void GeneratePrimaryRays(const CameraBasis& basis, const Tile& tile, RayOrder order,
                          size_t first, size_t count, const RayStreamView& out, size_t offset) {
   HWY_DASSERT(tile.x0 >= 0 && tile.y0 >= 0 && tile.x1 <= basis.width &&
               tile.y1 <= basis.height);
   HWY_DASSERT(first + count <= tile.NumPixels());
+  if (count == 0) return;
   const float inf = std::numeric_limits<float>::infinity();
   constexpr size_t kBlock = 256;
   int32_t xs[kBlock], ys[kBlock];
-  int x = 0, y = 0;
-  if (count > 0) TilePixel(tile, order, first, x, y);
+  TileWalk walk(tile, order, first);
+  const uint32_t width = static_cast<uint32_t>(basis.width);
   for (size_t k0 = 0; k0 < count; k0 += kBlock) {
     const size_t m = std::min(kBlock, count - k0);
     const size_t j0 = offset + k0;
-    for (size_t k = 0; k < m; ++k) {
-      if (order != RayOrder::kScanline) TilePixel(tile, order, first + k0 + k, x, y);
-      xs[k] = x;
-      ys[k] = y;
-      out.pixel[j0 + k] = static_cast<uint32_t>(y) * static_cast<uint32_t>(basis.width) +
-                          static_cast<uint32_t>(x);
-      if (++x == tile.x1) {  // scanline: the next pixel (other orders recompute it)
-        x = tile.x0;
-        ++y;
-      }
+    for (size_t k = 0; k < m; ++k, walk.Next()) {
+      xs[k] = walk.x();
+      ys[k] = walk.y();
+      out.pixel[j0 + k] = static_cast<uint32_t>(walk.y()) * width + static_cast<uint32_t>(walk.x());
     }
     PrimaryDirections(basis, xs, ys, m, out.dx + j0, out.dy + j0, out.dz + j0);
   }

@@ -107,6 +107,36 @@ TEST_CASE("8x8 block order: full blocks, then the partial ones at the right and 
   CHECK(px == want);
 }
 
+TEST_CASE("generation in chunks walks TilePixel's order from any first pixel") {
+  // GeneratePrimaryRays steps from pixel to pixel; TilePixel computes each one on its own.
+  const int width = 31, height = 25;
+  const CameraBasis basis = MakeCameraBasis(TestCamera(), width, height);
+  for (const RayOrder order : {RayOrder::kScanline, RayOrder::kBlock4x2, RayOrder::kBlock8x8}) {
+    for (const Tile tile : {Tile{0, 0, 31, 25}, Tile{3, 2, 20, 19}, Tile{5, 7, 6, 25},
+                            Tile{1, 1, 30, 2}, Tile{8, 8, 16, 16}, Tile{2, 3, 9, 12}}) {
+      const size_t n = tile.NumPixels();
+      for (const size_t chunk : {size_t{1}, size_t{5}, size_t{64}, size_t{300}}) {
+        INFO("order ", RayOrderName(order), " tile ", tile.x0, ",", tile.y0, "-", tile.x1, ",",
+             tile.y1, " chunk ", chunk);
+        RayStream s;
+        s.Resize(n);
+        for (size_t first = 0; first < n; first += chunk) {
+          GeneratePrimaryRays(basis, tile, order, first, std::min(chunk, n - first), s.view(),
+                              first);
+        }
+        const RayStreamView v = s.view();
+        size_t same = 0;
+        for (size_t i = 0; i < n; ++i) {
+          int x = -1, y = -1;
+          TilePixel(tile, order, i, x, y);
+          same += v.pixel[i] == static_cast<uint32_t>(y * width + x) ? 1 : 0;
+        }
+        CHECK(same == n);
+      }
+    }
+  }
+}
+
 TEST_CASE("ray fields: origin, normalized direction, tmin, tmax, pixel id, weight, kind") {
   const Camera cam = TestCamera();
   const CameraBasis basis = MakeCameraBasis(cam, 37, 21);
