@@ -32,14 +32,7 @@ void ThrowOutOfMemory(size_t bytes, const char* what) {
   throw Error(std::string("out of memory: cannot allocate ") + size + " for " + what);
 }
 
-void RayStream::Reserve(size_t capacity) {
-  for (auto* a : {&ox_, &oy_, &oz_, &dx_, &dy_, &dz_, &tmin_, &tmax_, &wr_, &wg_, &wb_}) {
-    a->Reserve(capacity);
-  }
-  pixel_.Reserve(capacity);
-  depth_.Reserve(capacity);
-  kind_.Reserve(capacity);
-}
+void RayStream::Reserve(size_t capacity) { arrays_.Reserve(capacity, "a ray stream"); }
 
 void RayStream::Resize(size_t n) {
   if (n > capacity() || capacity() == 0) Reserve(n < 2 * capacity() ? 2 * capacity() : n);
@@ -51,20 +44,21 @@ size_t RayStream::Push(float ox, float oy, float oz, float dx, float dy, float d
                        RayKind kind) {
   const size_t i = size_;
   Resize(size_ + 1);
-  ox_[i] = ox;
-  oy_[i] = oy;
-  oz_[i] = oz;
-  dx_[i] = dx;
-  dy_[i] = dy;
-  dz_[i] = dz;
-  tmin_[i] = tmin;
-  tmax_[i] = tmax;
-  pixel_[i] = pixel;
-  wr_[i] = wr;
-  wg_[i] = wg;
-  wb_[i] = wb;
-  depth_[i] = depth;
-  kind_[i] = static_cast<int32_t>(kind);
+  const RayStreamView v = view();
+  v.ox[i] = ox;
+  v.oy[i] = oy;
+  v.oz[i] = oz;
+  v.dx[i] = dx;
+  v.dy[i] = dy;
+  v.dz[i] = dz;
+  v.tmin[i] = tmin;
+  v.tmax[i] = tmax;
+  v.pixel[i] = pixel;
+  v.wr[i] = wr;
+  v.wg[i] = wg;
+  v.wb[i] = wb;
+  v.depth[i] = depth;
+  v.kind[i] = static_cast<int32_t>(kind);
   return i;
 }
 
@@ -148,78 +142,65 @@ void RayStream::FillPadding() { SealLanes(size_, capacity()); }
 
 void RayStream::SealTail() { SealLanes(size_, std::min(size_ + kStreamPad, capacity())); }
 
-void RayStream::SealLanes(size_t from, size_t end) {
+void RayStream::SealLanes(size_t from, size_t end) { SealRays(view(), from, end); }
+
+void SealRays(const RayStreamView& v, size_t from, size_t end) {
+  if (end <= from) return;
   const float nan = std::numeric_limits<float>::quiet_NaN();
-  for (size_t i = from; i < end; ++i) {
-    ox_[i] = oy_[i] = oz_[i] = nan;
-    dx_[i] = dy_[i] = dz_[i] = nan;
-    tmin_[i] = 1.0f;
-    tmax_[i] = 0.0f;
-    pixel_[i] = 0;
-    wr_[i] = wg_[i] = wb_[i] = 0.0f;
-    depth_[i] = 0;
-    kind_[i] = 0;
-  }
+  for (float* a : {v.ox, v.oy, v.oz, v.dx, v.dy, v.dz}) std::fill(a + from, a + end, nan);
+  std::fill(v.tmin + from, v.tmin + end, 1.0f);
+  std::fill(v.tmax + from, v.tmax + end, 0.0f);
+  std::fill(v.pixel + from, v.pixel + end, 0u);
+  for (float* a : {v.wr, v.wg, v.wb}) std::fill(a + from, a + end, 0.0f);
+  std::fill(v.depth + from, v.depth + end, 0);
+  std::fill(v.kind + from, v.kind + end, 0);
 }
 
 RayStreamView RayStream::view() {
   if (capacity() == 0) Reserve(1);
   RayStreamView v;
-  v.ox = ox_.data();
-  v.oy = oy_.data();
-  v.oz = oz_.data();
-  v.dx = dx_.data();
-  v.dy = dy_.data();
-  v.dz = dz_.data();
-  v.tmin = tmin_.data();
-  v.tmax = tmax_.data();
-  v.pixel = pixel_.data();
-  v.wr = wr_.data();
-  v.wg = wg_.data();
-  v.wb = wb_.data();
-  v.depth = depth_.data();
-  v.kind = kind_.data();
+  v.ox = arrays_.array<float>(0);
+  v.oy = arrays_.array<float>(1);
+  v.oz = arrays_.array<float>(2);
+  v.dx = arrays_.array<float>(3);
+  v.dy = arrays_.array<float>(4);
+  v.dz = arrays_.array<float>(5);
+  v.tmin = arrays_.array<float>(6);
+  v.tmax = arrays_.array<float>(7);
+  v.pixel = arrays_.array<uint32_t>(8);
+  v.wr = arrays_.array<float>(9);
+  v.wg = arrays_.array<float>(10);
+  v.wb = arrays_.array<float>(11);
+  v.depth = arrays_.array<int32_t>(12);
+  v.kind = arrays_.array<int32_t>(13);
   v.size = size_;
   return v;
 }
 
-void HitStream::Reserve(size_t capacity) {
-  t_.Reserve(capacity);
-  u_.Reserve(capacity);
-  v_.Reserve(capacity);
-  prim_.Reserve(capacity);
-}
+void HitStream::Reserve(size_t capacity) { arrays_.Reserve(capacity, "a hit stream"); }
 
 void HitStream::Resize(size_t n) {
-  if (n > t_.capacity() || t_.capacity() == 0) Reserve(n);
+  if (n > arrays_.capacity() || arrays_.capacity() == 0) Reserve(n);
   size_ = n;
 }
 
 void HitStream::Reset() {
-  if (t_.capacity() == 0) Reserve(1);
-  for (size_t i = 0; i < t_.capacity(); ++i) {
-    t_[i] = std::numeric_limits<float>::infinity();
-    u_[i] = v_[i] = 0.0f;
-    prim_[i] = -1;
+  const HitStreamView h = view();
+  for (size_t i = 0; i < arrays_.capacity(); ++i) {
+    h.t[i] = std::numeric_limits<float>::infinity();
+    h.u[i] = h.v[i] = 0.0f;
+    h.prim[i] = -1;
   }
 }
 
 HitStreamView HitStream::view() {
-  if (t_.capacity() == 0) Reserve(1);
-  HitStreamView h;
-  h.t = t_.data();
-  h.u = u_.data();
-  h.v = v_.data();
-  h.prim = prim_.data();
-  h.size = size_;
-  return h;
+  if (arrays_.capacity() == 0) Reserve(1);
+  return HitStreamView{arrays_.array<float>(0), arrays_.array<float>(1), arrays_.array<float>(2),
+                       arrays_.array<int32_t>(3), size_};
 }
 
 void ContributionStream::Reserve(size_t capacity) {
-  pixel_.Reserve(capacity);
-  r_.Reserve(capacity);
-  g_.Reserve(capacity);
-  b_.Reserve(capacity);
+  arrays_.Reserve(capacity, "a contribution stream");
 }
 
 void ContributionStream::Resize(size_t n) {

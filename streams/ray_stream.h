@@ -8,6 +8,8 @@
 
 #include <cstddef>
 #include <cstdint>
+#include <cstring>
+#include <utility>
 
 #include "include/raystream/raystream.h"
 
@@ -67,6 +69,48 @@ void AlignedArray<T>::ReserveForOverwrite(size_t capacity) {
   capacity_ = padded;
 }
 
+// N arrays of 4-byte elements (float, uint32_t, int32_t) in one aligned allocation, back to
+// back, each capacity() long (a multiple of kStreamPad, so every array starts 64-B aligned). One
+// allocation per stream: a small stream (a 20-ray task) keeps its arrays on neighbouring cache
+// lines, instead of one padded and offset heap block per array.
+template <size_t N>
+class SoaArrays {
+ public:
+  // Grows (never shrinks) to hold at least `capacity` elements per array; old contents are kept,
+  // new elements are zero. Throws naming `what` when memory is exhausted.
+  void Reserve(size_t capacity, const char* what);
+  size_t capacity() const { return capacity_; }
+  // Array a (< N) as T (4 bytes).
+  template <typename T>
+  T* array(size_t a) const {
+    static_assert(sizeof(T) == 4);
+    return reinterpret_cast<T*>(ptr_.get() + a * capacity_ * 4);
+  }
+
+ private:
+  hwy::AlignedFreeUniquePtr<uint8_t[]> ptr_;
+  size_t capacity_ = 0;
+};
+
+template <size_t N>
+void SoaArrays<N>::Reserve(size_t capacity, const char* what) {
+  const size_t padded = PaddedSize(capacity);
+  if (padded <= capacity_ && ptr_) return;
+  auto grown = AllocateAlignedOrThrow<uint8_t>(N * padded * 4, what);
+  for (size_t a = 0; a < N; ++a) {
+    uint8_t* to = grown.get() + a * padded * 4;
+    if (capacity_ > 0) std::memcpy(to, ptr_.get() + a * capacity_ * 4, capacity_ * 4);
+    std::memset(to + capacity_ * 4, 0, (padded - capacity_) * 4);
+  }
+  ptr_ = std::move(grown);
+  capacity_ = padded;
+}
+
+// Rays [from, end) of v become rays that can never hit (NaN origin and direction, tmax < tmin,
+// pixel 0, weight 0, depth 0, kind 0): the lanes whole-vector loads past a stream's end reach.
+// One fill per array. v must have every array (a RayStream's view) and hold the lanes.
+void SealRays(const RayStreamView& v, size_t from, size_t end);
+
 // Rays [first, first + n) of `rays` as a view of their own: every non-null array offset (the
 // base is 64-B aligned only when first is a multiple of kStreamPad). The lanes after the view
 // are the stream's next rays (or its padding), so whole-vector loads stay inside the arrays.
@@ -121,7 +165,7 @@ class RayStream {
   void Reserve(size_t capacity);
   void Clear() { size_ = 0; }
   size_t size() const { return size_; }
-  size_t capacity() const { return ox_.capacity(); }
+  size_t capacity() const { return arrays_.capacity(); }
   bool empty() const { return size_ == 0; }
   // Sets size; grows capacity when needed. New rays are uninitialised until written.
   void Resize(size_t n);
@@ -147,9 +191,8 @@ class RayStream {
  private:
   void SealLanes(size_t from, size_t end);
 
-  AlignedArray<float> ox_, oy_, oz_, dx_, dy_, dz_, tmin_, tmax_, wr_, wg_, wb_;
-  AlignedArray<uint32_t> pixel_;
-  AlignedArray<int32_t> depth_, kind_;
+  // ox, oy, oz, dx, dy, dz, tmin, tmax, pixel, wr, wg, wb, depth, kind (view()'s order).
+  SoaArrays<14> arrays_;
   size_t size_ = 0;
 };
 
@@ -166,8 +209,7 @@ class HitStream {
   HitStreamView view();
 
  private:
-  AlignedArray<float> t_, u_, v_;
-  AlignedArray<int32_t> prim_;
+  SoaArrays<4> arrays_;  // t, u, v, prim
   size_t size_ = 0;
 };
 
@@ -193,7 +235,7 @@ class ContributionStream {
   void Reserve(size_t capacity);
   void Clear() { size_ = 0; }
   size_t size() const { return size_; }
-  size_t capacity() const { return pixel_.capacity(); }
+  size_t capacity() const { return arrays_.capacity(); }
   bool empty() const { return size_ == 0; }
   // Sets size; grows capacity (at least doubling) only when n > capacity(). Entries
   // [old size, n) are uninitialised until written through the data pointers.
@@ -202,21 +244,23 @@ class ContributionStream {
   void Push(uint32_t pixel, float r, float g, float b) {
     const size_t i = size_;
     Resize(size_ + 1);
-    pixel_[i] = pixel;
-    r_[i] = r;
-    g_[i] = g;
-    b_[i] = b;
+    pixel_data()[i] = pixel;
+    r_data()[i] = r;
+    g_data()[i] = g;
+    b_data()[i] = b;
   }
   // Writable arrays (capacity() elements each), for kernels that append in place.
-  uint32_t* pixel_data() { return pixel_.data(); }
-  float* r_data() { return r_.data(); }
-  float* g_data() { return g_.data(); }
-  float* b_data() { return b_.data(); }
-  ContributionView view() const { return {pixel_.data(), r_.data(), g_.data(), b_.data(), size_}; }
+  uint32_t* pixel_data() { return arrays_.array<uint32_t>(0); }
+  float* r_data() { return arrays_.array<float>(1); }
+  float* g_data() { return arrays_.array<float>(2); }
+  float* b_data() { return arrays_.array<float>(3); }
+  ContributionView view() const {
+    return {arrays_.array<uint32_t>(0), arrays_.array<float>(1), arrays_.array<float>(2),
+            arrays_.array<float>(3), size_};
+  }
 
  private:
-  AlignedArray<uint32_t> pixel_;
-  AlignedArray<float> r_, g_, b_;
+  SoaArrays<4> arrays_;  // pixel, r, g, b
   size_t size_ = 0;
 };
 

@@ -121,6 +121,61 @@ TEST_CASE("RayStream::Append and CopyRays copy ranges array by array; SealTail")
   }
 }
 
+TEST_CASE("SoaArrays: one allocation, arrays back to back and aligned, growth keeps contents") {
+  SoaArrays<3> a;
+  CHECK(a.capacity() == 0);
+  a.Reserve(5, "test arrays");
+  const size_t cap = a.capacity();
+  REQUIRE(cap >= 5);
+  CHECK(cap % kStreamPad == 0);
+  for (size_t k = 0; k < 3; ++k) {
+    CHECK(reinterpret_cast<uintptr_t>(a.array<float>(k)) % 64 == 0);
+    if (k > 0) CHECK(a.array<float>(k) == a.array<float>(k - 1) + cap);
+    for (size_t i = 0; i < cap; ++i) CHECK(a.array<uint32_t>(k)[i] == 0u);  // zeroed
+    for (size_t i = 0; i < cap; ++i) a.array<int32_t>(k)[i] = static_cast<int32_t>(100 * k + i);
+  }
+  const float* before = a.array<float>(0);
+  a.Reserve(cap, "test arrays");  // no growth: same block
+  CHECK(a.array<float>(0) == before);
+  a.Reserve(3 * cap + 1, "test arrays");
+  REQUIRE(a.capacity() >= 3 * cap + 1);
+  for (size_t k = 0; k < 3; ++k) {
+    size_t kept = 0, zero = 0;
+    for (size_t i = 0; i < cap; ++i) kept += a.array<int32_t>(k)[i] == int32_t(100 * k + i);
+    for (size_t i = cap; i < a.capacity(); ++i) zero += a.array<int32_t>(k)[i] == 0;
+    CHECK(kept == cap);
+    CHECK(zero == a.capacity() - cap);
+  }
+  // A RayStream's 14 arrays are one such block.
+  RayStream s(20);
+  const RayStreamView v = s.view();
+  CHECK(v.oy == v.ox + s.capacity());
+  CHECK(reinterpret_cast<const void*>(v.kind) ==
+        reinterpret_cast<const void*>(v.ox + 13 * s.capacity()));
+}
+
+TEST_CASE("SealRays: every array of the lanes gets the never-hit sentinel") {
+  RayStream s;
+  for (int i = 0; i < 40; ++i) PushTagged(s, i + 1);
+  const RayStreamView v = s.view();
+  SealRays(v, 7, 23);
+  for (size_t i = 0; i < 40; ++i) {
+    const bool sealed = i >= 7 && i < 23;
+    CHECK(std::isnan(v.ox[i]) == sealed);
+    CHECK(std::isnan(v.dz[i]) == sealed);
+    if (sealed) {
+      CHECK(v.tmin[i] > v.tmax[i]);
+      CHECK(v.pixel[i] == 0u);
+      CHECK(v.wr[i] == 0.0f);
+      CHECK(v.wb[i] == 0.0f);
+      CHECK(v.depth[i] == 0);
+      CHECK(v.kind[i] == 0);
+    }
+  }
+  SealRays(v, 5, 5);  // empty range: nothing written
+  CHECK(!std::isnan(v.ox[5]));
+}
+
 TEST_CASE("ContributionStream: push, growth keeps contents, alignment, reserve, clear") {
   ContributionStream s;
   CHECK(s.empty());
