@@ -544,7 +544,12 @@ class QueueImpl final : public HostRenderer::Impl {
  public:
   explicit QueueImpl(const BackendOptions& options)
       : Impl(options), queue_(MakeQueue(options.threads)) {
-    for (int w = 0; w < options.threads; ++w) workers_.push_back(std::make_unique<Worker>());
+    for (int w = 0; w < options.threads; ++w) {
+      workers_.push_back(std::make_unique<Worker>());
+      // LOCAL: nobody else pushes into a thread's queue, so a tile's rays (and its pixels' adds)
+      // stay on the thread that took the tile.
+      workers_.back()->engine.SetSharedPixels(kShared);
+    }
     feeds_ = std::make_unique<Feed[]>(static_cast<size_t>(options.threads));
     loop_ = std::make_unique<FrameLoop>(options.threads, [this](int w) { Work(w); });
   }

@@ -32,21 +32,9 @@ size_t ShadeChunk(size_t batch, size_t lights) {
   return std::max(chunk, kStreamPad);
 }
 
-// Rays [from, from + kStreamPad) of v become rays that can never hit (NaN origin, tmax < tmin):
-// the lanes a kernel may load past the end of a view that ends at `from`. v must have the room.
-void SealLanes(const RayStreamView& v, size_t from) {
-  const float nan = std::numeric_limits<float>::quiet_NaN();
-  for (size_t i = from; i < from + kStreamPad; ++i) {
-    v.ox[i] = v.oy[i] = v.oz[i] = nan;
-    v.dx[i] = v.dy[i] = v.dz[i] = nan;
-    v.tmin[i] = 1.0f;
-    v.tmax[i] = 0.0f;
-    v.pixel[i] = 0;
-    v.wr[i] = v.wg[i] = v.wb[i] = 0.0f;
-    v.depth[i] = 0;
-    v.kind[i] = 0;
-  }
-}
+// Rays [from, from + kStreamPad) of v become rays that can never hit: the lanes a kernel may
+// load past the end of a view that ends at `from`. v must have the room.
+void SealLanes(const RayStreamView& v, size_t from) { SealRays(v, from, from + kStreamPad); }
 
 // Moves rays [from, end) of v to [to, to + end - from), to <= from (memmove order).
 void MoveRays(const RayStreamView& v, size_t from, size_t end, size_t to) {
@@ -251,8 +239,10 @@ void RayEngine::Occlude(const FrameContext& ctx, const RayStreamView& rays, Fram
   if (local_) {
     AddFixedContributions<false>(local_sums_.data(), rays.pixel, rays.wr, rays.wg, rays.wb,
                                  occluded, n, &local_nan_, &local_clamped_);
-  } else {
+  } else if (shared_pixels_) {
     fb.Add(rays.pixel, rays.wr, rays.wg, rays.wb, occluded, n);
+  } else {
+    fb.Add<false>(rays.pixel, rays.wr, rays.wg, rays.wb, occluded, n);
   }
   stats.rays[kShadowKind] += n;
   ++stats.trace_calls[kShadowKind];
@@ -325,8 +315,10 @@ void RayEngine::TraceAndShade(const FrameContext& ctx, const RayStreamView& rays
       const ContributionView c = contributions_.view();
       AddFixedContributions<false>(local_sums_.data(), c.pixel, c.r, c.g, c.b, nullptr, c.size,
                                    &local_nan_, &local_clamped_);
-    } else {
+    } else if (shared_pixels_) {
       fb.Add(contributions_.view());
+    } else {
+      fb.Add<false>(contributions_.view());
     }
     for (size_t l = direct; l < lights; ++l) {
       shadow.Append(light_rays_[l].view(), 0, light_rays_[l].size());

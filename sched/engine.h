@@ -72,6 +72,12 @@ class RayEngine {
   // pass over each call's rays; the image and the counters do not change.
   void SetBlockWork(BlockWork* sink) { block_work_ = sink; }
 
+  // TraceGeneration's framebuffer adds: true (the default) atomic, as rays of one pixel may be
+  // traced by several threads; false plain, for a caller whose pixels no other thread adds to
+  // during the frame (LOCAL: a tile's whole ray tree stays on the thread that took it). The
+  // sums are the same either way.
+  void SetSharedPixels(bool shared) { shared_pixels_ = shared; }
+
  private:
   // Intersects rays (no shadow rays), shades them in sub-chunks; each sub-chunk's bounce rays
   // are appended to `bounce`, its shadow rays light by light and traced in one call (or, when
@@ -107,6 +113,7 @@ class RayEngine {
   int task_size_ = 1 << 30;
   // RenderTile: rays carry their primary's index in the batch, contributions are summed here.
   bool local_ = false;
+  bool shared_pixels_ = true;  // TraceGeneration: atomic framebuffer adds
   std::vector<int64_t> local_sums_;     // 3 per primary ray of the batch
   std::vector<uint32_t> batch_pixels_;  // the batch's pixels
   uint64_t local_nan_ = 0, local_clamped_ = 0;

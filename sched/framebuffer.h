@@ -133,14 +133,19 @@ class Framebuffer {
 
   // Add(pixel[i], r[i], g[i], b[i]) for every contribution of `c` (pixels < num_pixels()), in
   // stream order: the same fixed-point sums, NaN drops and clamp counts as adding them one by
-  // one. Thread-safe like Add.
-  void Add(const ContributionView& c) { Add(c.pixel, c.r, c.g, c.b, nullptr, c.size); }
+  // one. Thread-safe like Add. kShared = false: plain adds, for a caller whose pixels no other
+  // thread adds to during the frame (the same sums, without the atomic read-modify-writes).
+  template <bool kShared = true>
+  void Add(const ContributionView& c) {
+    Add<kShared>(c.pixel, c.r, c.g, c.b, nullptr, c.size);
+  }
   // The same for the contributions i < n with skip[i] == 0 (skip may be null) of arrays.
+  template <bool kShared = true>
   void Add(const uint32_t* pixel, const float* r, const float* g, const float* b,
            const int32_t* skip, size_t n) {
     HWY_DASSERT(storage_ == Storage::kFixed);
     uint64_t nan = 0, clamped = 0;
-    AddFixedContributions<true>(sums_.data(), pixel, r, g, b, skip, n, &nan, &clamped);
+    AddFixedContributions<kShared>(sums_.data(), pixel, r, g, b, skip, n, &nan, &clamped);
     AddCounters(nan, clamped);
   }
 
