@@ -32,7 +32,24 @@ void ThrowOutOfMemory(size_t bytes, const char* what) {
   throw Error(std::string("out of memory: cannot allocate ") + size + " for " + what);
 }
 
-void RayStream::Reserve(size_t capacity) { arrays_.Reserve(capacity, "a ray stream"); }
+void RayStream::Reserve(size_t capacity) {
+  arrays_.Reserve(capacity, "a ray stream");
+  RayStreamView& v = arrays_view_;
+  v.ox = arrays_.array<float>(0);
+  v.oy = arrays_.array<float>(1);
+  v.oz = arrays_.array<float>(2);
+  v.dx = arrays_.array<float>(3);
+  v.dy = arrays_.array<float>(4);
+  v.dz = arrays_.array<float>(5);
+  v.tmin = arrays_.array<float>(6);
+  v.tmax = arrays_.array<float>(7);
+  v.pixel = arrays_.array<uint32_t>(8);
+  v.wr = arrays_.array<float>(9);
+  v.wg = arrays_.array<float>(10);
+  v.wb = arrays_.array<float>(11);
+  v.depth = arrays_.array<int32_t>(12);
+  v.kind = arrays_.array<int32_t>(13);
+}
 
 void RayStream::Resize(size_t n) {
   if (n > capacity() || capacity() == 0) Reserve(n < 2 * capacity() ? 2 * capacity() : n);
@@ -156,26 +173,6 @@ void SealRays(const RayStreamView& v, size_t from, size_t end) {
   std::fill(v.kind + from, v.kind + end, 0);
 }
 
-RayStreamView RayStream::view() {
-  if (capacity() == 0) Reserve(1);
-  RayStreamView v;
-  v.ox = arrays_.array<float>(0);
-  v.oy = arrays_.array<float>(1);
-  v.oz = arrays_.array<float>(2);
-  v.dx = arrays_.array<float>(3);
-  v.dy = arrays_.array<float>(4);
-  v.dz = arrays_.array<float>(5);
-  v.tmin = arrays_.array<float>(6);
-  v.tmax = arrays_.array<float>(7);
-  v.pixel = arrays_.array<uint32_t>(8);
-  v.wr = arrays_.array<float>(9);
-  v.wg = arrays_.array<float>(10);
-  v.wb = arrays_.array<float>(11);
-  v.depth = arrays_.array<int32_t>(12);
-  v.kind = arrays_.array<int32_t>(13);
-  v.size = size_;
-  return v;
-}
 
 void HitStream::Reserve(size_t capacity) { arrays_.Reserve(capacity, "a hit stream"); }
 

@@ -76,6 +76,14 @@ void AlignedArray<T>::ReserveForOverwrite(size_t capacity) {
 template <size_t N>
 class SoaArrays {
  public:
+  SoaArrays() = default;
+  SoaArrays(SoaArrays&& o) noexcept
+      : ptr_(std::move(o.ptr_)), capacity_(std::exchange(o.capacity_, 0)) {}
+  SoaArrays& operator=(SoaArrays&& o) noexcept {
+    ptr_ = std::move(o.ptr_);
+    capacity_ = std::exchange(o.capacity_, 0);
+    return *this;
+  }
   // Grows (never shrinks) to hold at least `capacity` elements per array; old contents are kept,
   // new elements are zero. Throws naming `what` when memory is exhausted.
   void Reserve(size_t capacity, const char* what);
@@ -186,13 +194,19 @@ class RayStream {
   // kernel's whole-vector loads past size can reach, at a cost independent of the capacity.
   void SealTail();
 
-  RayStreamView view();
+  RayStreamView view() {
+    if (arrays_.capacity() == 0) Reserve(1);
+    RayStreamView v = arrays_view_;
+    v.size = size_;
+    return v;
+  }
 
  private:
   void SealLanes(size_t from, size_t end);
 
-  // ox, oy, oz, dx, dy, dz, tmin, tmax, pixel, wr, wg, wb, depth, kind (view()'s order).
+  // ox, oy, oz, dx, dy, dz, tmin, tmax, pixel, wr, wg, wb, depth, kind (the view's order).
   SoaArrays<14> arrays_;
+  RayStreamView arrays_view_;  // arrays_' pointers, set by Reserve (kernels ask for views often)
   size_t size_ = 0;
 };
 

@@ -146,12 +146,27 @@ TEST_CASE("SoaArrays: one allocation, arrays back to back and aligned, growth ke
     CHECK(kept == cap);
     CHECK(zero == a.capacity() - cap);
   }
-  // A RayStream's 14 arrays are one such block.
+  // Moved: the block goes along, the source is empty.
+  const float* block = a.array<float>(0);
+  SoaArrays<3> b(std::move(a));
+  CHECK(b.array<float>(0) == block);
+  CHECK(a.capacity() == 0);
+  // A RayStream's 14 arrays are one such block; its view follows growth and moves.
   RayStream s(20);
-  const RayStreamView v = s.view();
+  RayStreamView v = s.view();
   CHECK(v.oy == v.ox + s.capacity());
   CHECK(reinterpret_cast<const void*>(v.kind) ==
         reinterpret_cast<const void*>(v.ox + 13 * s.capacity()));
+  s.Resize(5);
+  v.ox[4] = 42.0f;
+  s.Reserve(1000);
+  v = s.view();
+  CHECK(v.size == 5);
+  CHECK(v.ox[4] == 42.0f);
+  CHECK(v.kind == reinterpret_cast<int32_t*>(v.ox + 13 * s.capacity()));
+  RayStream t(std::move(s));
+  CHECK(t.view().ox == v.ox);
+  CHECK(t.view().size == 5);
 }
 
 TEST_CASE("SealRays: every array of the lanes gets the never-hit sentinel") {
