@@ -209,6 +209,11 @@ class HostRenderer {
   uint64_t frames() const;  // completed frames
   // The PBT the next frame will be tiled with (nullptr without PBT).
   const Pbt* pbt() const;
+  // What the last frame gave the PBT cost map (pbt_predict kCostMap on tiles): its threads'
+  // block work summed, the pixels' primary hit distances and the cameras. Empty (blocks
+  // nullptr) without the cost map, in a frame and after a failed one. Valid until the next
+  // BeginFrame.
+  TilePlanMeasure cost_map_measure() const;
 
   class Impl;
 
