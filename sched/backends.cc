@@ -324,8 +324,14 @@ class SerialImpl final : public HostRenderer::Impl {
 // the tiles from one shared counter over the plan's order. A tile's rays are traced by whoever
 // pops them, mixed with other tiles' rays, so a tile has no time of its own: its cost is its
 // deterministic work, every traced ray charged to the tile of its pixel (PbtTileLookup). Cell
-// steps, triangle tests and shading calls are counted per batch, not per ray, so only the ray
-// counts enter (TileWork::rays).
+// steps, triangle tests and shading calls are counted per kernel call, not per ray, and a
+// coherent packet's cell steps and triangle tests depend on which rays a thread popped
+// together, so only the ray counts enter (TileWork::rays; the calibrated cost of a shading
+// call is 0, kTileWorkCoefficients). With the cost map (pbt_predict kCostMap) the engines
+// charge each ray the same per-ray work to its pixel's block (RayEngine::SetBlockWork) and
+// store the primaries' hit distances (CostMapRecord), so the plan gets a per-block map that is
+// reprojected to the next camera, as from the tiles backend. The tile costs are not summed
+// from the blocks: PBT tiles are halved at any pixel, not on block boundaries.
 
 // Rays in flight a queue backend allows: per thread, its engine's budget and at least 64
 // batches or tiles (a breadth-first generation of a tile is wider than the engine's depth-first
@@ -537,7 +543,7 @@ class PbtTileLookup {
   uint32_t width_ = 1;
 };
 
-// PBT's cost-map record of a host backend with render threads (the tiles backend): one
+// PBT's cost-map record of a host backend with render threads (tiles, lock, lfree, local): one
 // BlockWork per thread, which only that thread's engine charges (RayEngine::SetBlockWork), and
 // one per-pixel primary hit distance array all of them share (one writer per pixel: each
 // primary ray is traced once, by one thread, and all pixels are rewritten every frame); after
@@ -610,6 +616,7 @@ class QueueImpl final : public HostRenderer::Impl {
   }
 
   const Pbt* pbt() const override { return plan_ ? plan_->pbt() : nullptr; }
+  TilePlanMeasure cost_map_measure() const override { return record_.measure(); }
 
   void Begin(const std::vector<Tile>* tiles) override {
     frame_ = nullptr;
@@ -748,6 +755,10 @@ class QueueImpl final : public HostRenderer::Impl {
       me.no_tiles = false;
       me.engine.Reserve(ctx_);
     }
+    // PBT's cost map: each thread's engine charges its rays to its own record (the pixels'
+    // global indices; each primary traced once, by whoever popped it).
+    record_.Load(frame_ != nullptr ? plan_.get() : nullptr, workers_.size());
+    for (size_t w = 0; w < workers_.size(); ++w) workers_[w]->engine.SetBlockWork(record_.Sink(w));
     size_t tile_pixels = 0;
     if (frame_ != nullptr) {
       tiles_.assign(frame_->tiles.begin(), frame_->tiles.end());
@@ -1089,7 +1100,8 @@ class QueueImpl final : public HostRenderer::Impl {
     // only if the threads are the plan's workers; otherwise the plan models the workers.
     const bool exact = !kShared && PbtWorkers() == options_.threads;
     const TilePlanReport report =
-        plan_->End(costs_, exact ? std::span<const int32_t>(ran_by_) : std::span<const int32_t>());
+        plan_->End(costs_, exact ? std::span<const int32_t>(ran_by_) : std::span<const int32_t>(),
+                   record_.Finish(ctx_));
     frame_ = nullptr;
     if (!report.pbt) return;
     ApplyPlanReport(report, stats_);
@@ -1121,6 +1133,7 @@ class QueueImpl final : public HostRenderer::Impl {
   std::vector<TileRecord> records_;
   std::vector<double> costs_;
   std::vector<int32_t> ran_by_;
+  CostMapRecord record_;   // PBT's cost map: block work and hit distances
   TaskCount outstanding_;  // shared queues: tasks pushed and not yet processed
   alignas(kQueueFalseSharing) std::atomic<size_t> next_tile_{0};   // tiles_, or PBT's order
   alignas(kQueueFalseSharing) std::atomic<int64_t> in_flight_{0};  // rays in queued tasks

@@ -123,8 +123,9 @@ TEST_CASE("no heap allocation while a later frame renders, on every host backend
 // between frames (TilePlan::End: the Table 1 measures, the frame models, PBT-Update; Plan: the
 // next tiles, predictions and lists), which reuses buffers sized in frame 0 (pbt.h, tile_plan.h).
 // Frame 0 is the warm-up: the render threads' counters, feed slots, steal ranges, the master's
-// state and the pixel -> tile lookup, the cost map's block records and hit distances, and the
-// plan's buffers, are sized there.
+// state and the pixel -> tile lookup, the cost map's block records and hit distances (every
+// backend here runs the default cost-map predictor, so the queue backends' engines charge their
+// rays to blocks too), and the plan's buffers, are sized there.
 TEST_CASE("no heap allocation in a later PBT frame on any thread, queue and tiles") {
   const Scene s = test::HandScene();
   const Accel accel(test::MeshOf(s));
