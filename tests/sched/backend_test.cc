@@ -33,17 +33,6 @@
 #include "sched/queue_lockfree.h"
 #include "tests/test_util.h"
 
-#if defined(__SANITIZE_THREAD__)
-#define RS_TEST_TSAN 1
-#elif defined(__has_feature)
-#if __has_feature(thread_sanitizer)
-#define RS_TEST_TSAN 1
-#endif
-#endif
-#ifndef RS_TEST_TSAN
-#define RS_TEST_TSAN 0
-#endif
-
 namespace rs {
 namespace {
 
