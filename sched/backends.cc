@@ -236,6 +236,7 @@ class HostRenderer::Impl {
   // time and the imbalance. Rethrows a render thread's exception.
   virtual void End() = 0;
   virtual const Pbt* pbt() const { return nullptr; }
+  virtual TilePlanMeasure cost_map_measure() const { return {}; }
 
   BackendOptions options_;
   FrameContext ctx_;
@@ -323,8 +324,14 @@ class SerialImpl final : public HostRenderer::Impl {
 // the tiles from one shared counter over the plan's order. A tile's rays are traced by whoever
 // pops them, mixed with other tiles' rays, so a tile has no time of its own: its cost is its
 // deterministic work, every traced ray charged to the tile of its pixel (PbtTileLookup). Cell
-// steps, triangle tests and shading calls are counted per batch, not per ray, so only the ray
-// counts enter (TileWork::rays).
+// steps, triangle tests and shading calls are counted per kernel call, not per ray, and a
+// coherent packet's cell steps and triangle tests depend on which rays a thread popped
+// together, so only the ray counts enter (TileWork::rays; the calibrated cost of a shading
+// call is 0, kTileWorkCoefficients). With the cost map (pbt_predict kCostMap) the engines
+// charge each ray the same per-ray work to its pixel's block (RayEngine::SetBlockWork) and
+// store the primaries' hit distances (CostMapRecord), so the plan gets a per-block map that is
+// reprojected to the next camera, as from the tiles backend. The tile costs are not summed
+// from the blocks: PBT tiles are halved at any pixel, not on block boundaries.
 
 // Rays in flight a queue backend allows: per thread, its engine's budget and at least 64
 // batches or tiles (a breadth-first generation of a tile is wider than the engine's depth-first
@@ -536,6 +543,61 @@ class PbtTileLookup {
   uint32_t width_ = 1;
 };
 
+// PBT's cost-map record of a host backend with render threads (tiles, lock, lfree, local): one
+// BlockWork per thread, which only that thread's engine charges (RayEngine::SetBlockWork), and
+// one per-pixel primary hit distance array all of them share (one writer per pixel: each
+// primary ray is traced once, by one thread, and all pixels are rewritten every frame); after
+// the closing barrier the threads' records are summed into the plan's TilePlanMeasure. Integer
+// sums: the same record whichever thread traced what. Sized in the first frame of a layout and
+// cleared after: no allocation in the steady state.
+class CostMapRecord {
+ public:
+  // Application thread, threads parked, before each frame: a record when `plan` (nullptr: no
+  // plan this frame) uses the cost map (TilePlan::uses_cost_map), in its layout, for `threads`
+  // render threads; then Sink(w) is thread w's sink, nullptr without a record.
+  void Load(const TilePlan* plan, size_t threads) {
+    measure_ = TilePlanMeasure{};
+    on_ = plan != nullptr && plan->uses_cost_map();
+    if (!on_) return;
+    const int width = plan->width(), height = plan->height();
+    const int block = plan->options().cost_block;
+    if (!sum_.Matches(width, height, block)) sum_.Resize(width, height, block);
+    const size_t pixels = static_cast<size_t>(width) * static_cast<size_t>(height);
+    if (pixel_depth_.size() != pixels) pixel_depth_.resize(pixels);
+    if (threads_.size() != threads) threads_.resize(threads);
+    for (BlockWork& b : threads_) {
+      if (!b.Matches(width, height, block)) {
+        b.Resize(width, height, block);
+      } else {
+        b.Clear();
+      }
+      b.pixel_depth = pixel_depth_.data();
+    }
+  }
+  BlockWork* Sink(size_t thread) { return on_ ? &threads_[thread] : nullptr; }
+  // After the closing barrier: the threads' block work summed, the hit distances and ctx's
+  // cameras, for TilePlan::End (empty without a record). Kept for measure() until the next
+  // Load.
+  const TilePlanMeasure& Finish(const FrameContext& ctx) {
+    if (!on_) return measure_;
+    sum_.Clear();
+    for (const BlockWork& b : threads_) sum_.Add(b);
+    measure_.blocks = &sum_;
+    measure_.pixel_depth = pixel_depth_;
+    measure_.camera = &ctx.camera;
+    measure_.next_camera = ctx.has_next_camera ? &ctx.next_camera : nullptr;
+    return measure_;
+  }
+  const TilePlanMeasure& measure() const { return measure_; }
+
+ private:
+  bool on_ = false;
+  std::vector<BlockWork> threads_;  // per render thread
+  BlockWork sum_;
+  std::vector<float> pixel_depth_;
+  TilePlanMeasure measure_;
+};
+
 template <class Q>
 class QueueImpl final : public HostRenderer::Impl {
   static constexpr bool kShared = Q::kKind != QueueKind::kLocal;
@@ -559,6 +621,7 @@ class QueueImpl final : public HostRenderer::Impl {
   }
 
   const Pbt* pbt() const override { return plan_ ? plan_->pbt() : nullptr; }
+  TilePlanMeasure cost_map_measure() const override { return record_.measure(); }
 
   void Begin(const std::vector<Tile>* tiles) override {
     frame_ = nullptr;
@@ -697,6 +760,10 @@ class QueueImpl final : public HostRenderer::Impl {
       me.no_tiles = false;
       me.engine.Reserve(ctx_);
     }
+    // PBT's cost map: each thread's engine charges its rays to its own record (the pixels'
+    // global indices; each primary traced once, by whoever popped it).
+    record_.Load(frame_ != nullptr ? plan_.get() : nullptr, workers_.size());
+    for (size_t w = 0; w < workers_.size(); ++w) workers_[w]->engine.SetBlockWork(record_.Sink(w));
     size_t tile_pixels = 0;
     if (frame_ != nullptr) {
       tiles_.assign(frame_->tiles.begin(), frame_->tiles.end());
@@ -1038,7 +1105,8 @@ class QueueImpl final : public HostRenderer::Impl {
     // only if the threads are the plan's workers; otherwise the plan models the workers.
     const bool exact = !kShared && PbtWorkers() == options_.threads;
     const TilePlanReport report =
-        plan_->End(costs_, exact ? std::span<const int32_t>(ran_by_) : std::span<const int32_t>());
+        plan_->End(costs_, exact ? std::span<const int32_t>(ran_by_) : std::span<const int32_t>(),
+                   record_.Finish(ctx_));
     frame_ = nullptr;
     if (!report.pbt) return;
     ApplyPlanReport(report, stats_);
@@ -1070,6 +1138,7 @@ class QueueImpl final : public HostRenderer::Impl {
   std::vector<TileRecord> records_;
   std::vector<double> costs_;
   std::vector<int32_t> ran_by_;
+  CostMapRecord record_;   // PBT's cost map: block work and hit distances
   TaskCount outstanding_;  // shared queues: tasks pushed and not yet processed
   alignas(kQueueFalseSharing) std::atomic<size_t> next_tile_{0};   // tiles_, or PBT's order
   alignas(kQueueFalseSharing) std::atomic<int64_t> in_flight_{0};  // rays in queued tasks
@@ -1090,6 +1159,7 @@ class TilesImpl final : public HostRenderer::Impl {
   ~TilesImpl() override { loop_.reset(); }
 
   const Pbt* pbt() const override { return plan_ ? plan_->pbt() : nullptr; }
+  TilePlanMeasure cost_map_measure() const override { return record_.measure(); }
 
   void Begin(const std::vector<Tile>* tiles) override {
     const bool use_pbt = options_.pbt_tiles_per_worker > 0;
@@ -1167,30 +1237,15 @@ class TilesImpl final : public HostRenderer::Impl {
     uint64_t ops = 0;
     uint64_t tiles = 0;
     uint64_t steals = 0;
-    BlockWork blocks;  // PBT cost map: what this thread's engine charged to each block
   };
 
   // The frame's tiles, steal ranges, records and worker counters (application thread).
   void Load() {
     if (frame_ != nullptr) tiles_ = frame_->tiles;
-    const bool cost_map = frame_ != nullptr && plan_->uses_cost_map();
-    if (cost_map) {
-      // Sized in the first frame, cleared after (the hit distances are all overwritten).
-      const int width = ctx_.options.width, height = ctx_.options.height;
-      const int block = plan_->options().cost_block;
-      if (!blocks_.Matches(width, height, block)) blocks_.Resize(width, height, block);
-      const size_t pixels = static_cast<size_t>(width) * static_cast<size_t>(height);
-      if (pixel_depth_.size() != pixels) pixel_depth_.resize(pixels);
-      for (auto& w : workers_) {
-        if (!w->blocks.Matches(width, height, block)) {
-          w->blocks.Resize(width, height, block);
-        } else {
-          w->blocks.Clear();
-        }
-        w->blocks.pixel_depth = pixel_depth_.data();  // one writer per pixel (a tile's thread)
-      }
+    record_.Load(frame_ != nullptr ? plan_.get() : nullptr, workers_.size());
+    for (size_t w = 0; w < workers_.size(); ++w) {
+      workers_[w]->fifo.engine().SetBlockWork(record_.Sink(w));
     }
-    for (auto& w : workers_) w->fifo.engine().SetBlockWork(cost_map ? &w->blocks : nullptr);
     if (lists_ && options_.pbt_steal) ranges_.Load(frame_->assignment);
     if (lists_ && options_.pbt_demand) master_.Load(frame_->owner, options_.threads);
     records_.assign(tiles_.size(), TileRecord{});
@@ -1306,17 +1361,7 @@ class TilesImpl final : public HostRenderer::Impl {
     }
     // Counter: the threads are the workers only when there are as many (else a model of n).
     if (PbtWorkers() != options_.threads) ran_by.clear();
-    TilePlanMeasure measure;
-    if (plan_->uses_cost_map()) {
-      // Integer sums: the same map whichever thread ran which tile.
-      blocks_.Clear();
-      for (const auto& w : workers_) blocks_.Add(w->blocks);
-      measure.blocks = &blocks_;
-      measure.pixel_depth = pixel_depth_;
-      measure.camera = &ctx_.camera;
-      measure.next_camera = ctx_.has_next_camera ? &ctx_.next_camera : nullptr;
-    }
-    const TilePlanReport report = plan_->End(costs, ran_by, measure);
+    const TilePlanReport report = plan_->End(costs, ran_by, record_.Finish(ctx_));
     frame_ = nullptr;
     if (!report.pbt) return;
     ApplyPlanReport(report, stats_);
@@ -1332,8 +1377,7 @@ class TilesImpl final : public HostRenderer::Impl {
   std::vector<TileRecord> records_;
   std::vector<double> costs_;     // FinishPlan's scratch
   std::vector<int32_t> ran_by_;
-  BlockWork blocks_;              // PBT cost map: the workers' block work summed
-  std::vector<float> pixel_depth_;  // PBT cost map: per pixel its primary hit distance
+  CostMapRecord record_;  // PBT's cost map: block work and hit distances
   alignas(kQueueFalseSharing) std::atomic<size_t> next_{0};
   PbtListRanges ranges_;     // pbt_steal: per list {head, tail}
   std::mutex master_mutex_;  // pbt_demand: the render threads' requests, one at a time
@@ -1387,6 +1431,8 @@ const BackendOptions& HostRenderer::options() const { return impl_->options_; }
 bool HostRenderer::in_frame() const { return impl_->in_frame_; }
 uint64_t HostRenderer::frames() const { return impl_->frames_; }
 const Pbt* HostRenderer::pbt() const { return impl_->pbt(); }
+
+TilePlanMeasure HostRenderer::cost_map_measure() const { return impl_->cost_map_measure(); }
 
 namespace {
 

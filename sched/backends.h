@@ -78,10 +78,13 @@ struct BackendOptions {
   // (TileWorkCost: the same in every run, whatever the machine's load or the threads).
   PbtCost pbt_cost = PbtCost::kWall;
   // What PBT-Update predicts the next frame's tiles with (tile_plan.h): the paper's (split halves
-  // e(a) / 2) or the cost map (default). With kCostMap the tiles backend's engines charge every
-  // trace call's work to pixel blocks of pbt_cost_block x pbt_cost_block and the map is moved
-  // to the next camera (FrameContext::next_camera); the other backends give the plan only the
-  // tile costs (spread evenly over each tile). The image does not change.
+  // e(a) / 2) or the cost map (default). With kCostMap the engines of the tiles and queue
+  // backends charge their rays' work to pixel blocks of pbt_cost_block x pbt_cost_block (tiles:
+  // every trace call's counts, cell steps and triangle tests included; lock / lfree / local:
+  // each ray's own count, which does not depend on how the rays were grouped into calls,
+  // RayEngine::SetBlockWork) and store the primary hit distances, and the map is moved to the
+  // next camera (FrameContext::next_camera); the other backends give the plan only the tile
+  // costs (spread evenly over each tile). The image does not change.
   PbtPredict pbt_predict = PbtPredict::kCostMap;
   int pbt_cost_block = 4;
   // Time queue operations (LOCK/LFREE/LOCAL) and tile-counter accesses (tiles), the paper's
@@ -209,6 +212,11 @@ class HostRenderer {
   uint64_t frames() const;  // completed frames
   // The PBT the next frame will be tiled with (nullptr without PBT).
   const Pbt* pbt() const;
+  // What the last frame gave the PBT cost map (pbt_predict kCostMap on tiles, lock, lfree,
+  // local): its threads' block work summed, the pixels' primary hit distances and the cameras.
+  // Empty (blocks nullptr) without the cost map, in a frame and after a failed one. Valid until
+  // the next BeginFrame.
+  TilePlanMeasure cost_map_measure() const;
 
   class Impl;
 

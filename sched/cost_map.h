@@ -19,11 +19,14 @@ namespace rs {
 inline constexpr double kBlockWorkUnit = 0x1p-50;
 
 // One frame's per-block record of a frame engine (RayEngine::SetBlockWork): the work of every
-// trace call charged to the blocks of its rays' pixels (equal shares per ray; TileWorkCost of
-// the call's rays, cell steps and triangle tests, in kBlockWorkUnit), and each primary ray's hit
-// distance. Work is fixed point, so sums over threads do not depend on which thread ran which
-// tile: the same frame gives the same record on any backend and thread count. Blocks are block x
-// block pixels in row-major order, partial at the right and bottom.
+// trace call charged to the blocks of its rays' pixels, in kBlockWorkUnit (a tile's own batches,
+// RenderTile: TileWorkCost of the call's rays, cell steps and triangle tests in equal shares per
+// ray; generations a queue backend grouped, TraceGeneration: each ray's own TileWorkCost, a ray
+// and a shading call if it hit), and each primary ray's hit distance. Work is fixed point, so
+// sums over threads do not depend on which thread ran which tile or ray: the same frame gives
+// the same record at any thread count (the tiles backend's, or the queue backends' one, which
+// is the same on lock, lfree and local). Blocks are block x block pixels in row-major order,
+// partial at the right and bottom.
 struct BlockWork {
   int width = 0;
   int height = 0;

@@ -201,19 +201,36 @@ size_t RayEngine::capacity_rays() const {
   return n;
 }
 
-void RayEngine::ChargeBlocks(const RayStreamView& rays, uint64_t cell_steps,
+void RayEngine::ChargeBlocks(const RayStreamView& rays, const int32_t* prim, uint64_t cell_steps,
                              uint64_t triangle_tests) {
+  BlockWork& b = *block_work_;
   const size_t n = rays.size;
+  if (!local_) {
+    // TraceGeneration: the caller grouped these rays (whatever a thread popped), and a packet's
+    // cell steps and triangle tests depend on its other rays; so each ray is charged only what
+    // it decides alone: itself, and a shading call if it hit. Fixed per ray, so the record does
+    // not depend on the grouping, the order of the calls or the thread.
+    TileWork one;
+    one.rays = 1;
+    const int64_t ray = std::llround(TileWorkCost(one) / kBlockWorkUnit);
+    one.shading_calls = 1;
+    const int64_t shaded = std::llround(TileWorkCost(one) / kBlockWorkUnit);
+    for (size_t i = 0; i < n; ++i) {
+      b.work[b.BlockOf(PixelOf(rays, i))] += prim != nullptr && prim[i] >= 0 ? shaded : ray;
+    }
+    return;
+  }
+  // RenderTile: the calls are the tile's own batches (the same rays together in every run), so
+  // the call's counters are charged. Fixed point: every ray gets units / n, the first units % n
+  // one more, so the call's units are charged exactly and the sums do not depend on the order
+  // of the calls.
   TileWork w;
   w.rays = n;
   w.cell_steps = cell_steps;
   w.triangle_tests = triangle_tests;
-  // Fixed point: every ray gets units / n, the first units % n one more, so the call's units
-  // are charged exactly and the sums do not depend on the order of the calls.
   const uint64_t units = static_cast<uint64_t>(std::llround(TileWorkCost(w) / kBlockWorkUnit));
   const uint64_t share = units / n;
   const uint64_t extra = units - share * n;
-  BlockWork& b = *block_work_;
   for (size_t i = 0; i < n; ++i) {
     b.work[b.BlockOf(PixelOf(rays, i))] += static_cast<int64_t>(share + (i < extra ? 1 : 0));
   }
@@ -232,7 +249,8 @@ void RayEngine::Occlude(const FrameContext& ctx, const RayStreamView& rays, Fram
   tracer.Occluded(rays, occluded, &stats.trace);
   const auto t1 = Clock::now();
   if (block_work_ != nullptr) {
-    ChargeBlocks(rays, stats.trace.cell_steps - steps0, stats.trace.triangle_tests - tests0);
+    ChargeBlocks(rays, nullptr, stats.trace.cell_steps - steps0,
+                 stats.trace.triangle_tests - tests0);
   }
   uint64_t blocked = 0;
   for (size_t i = 0; i < n; ++i) blocked += occluded[i] != 0 ? 1 : 0;
@@ -265,7 +283,8 @@ void RayEngine::TraceAndShade(const FrameContext& ctx, const RayStreamView& rays
   tracer.Intersect(rays, hits, &stats.trace);
   const auto t1 = Clock::now();
   if (block_work_ != nullptr) {
-    ChargeBlocks(rays, stats.trace.cell_steps - steps0, stats.trace.triangle_tests - tests0);
+    ChargeBlocks(rays, hits.prim, stats.trace.cell_steps - steps0,
+                 stats.trace.triangle_tests - tests0);
     if (float* depth = block_work_->pixel_depth; depth != nullptr) {
       const float inf = std::numeric_limits<float>::infinity();
       for (size_t i = 0; i < n; ++i) {

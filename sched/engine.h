@@ -64,12 +64,18 @@ class RayEngine {
   // Rays the arenas can hold (for tests of the memory bound).
   size_t capacity_rays() const;
 
-  // The cost-map predictor's record (cost_map.h): with a sink, every trace call's work
-  // (TileWorkCost of its rays, cell steps and triangle tests) is charged to the blocks of its
-  // rays' pixels in equal shares, and each primary ray's hit distance (+inf: a miss) is stored
-  // at its pixel in sink->pixel_depth (if not null). The sink must be sized for ctx's image (BlockWork::Resize) and is only
-  // added to (the caller clears it per frame); nullptr (the default) records nothing. Costs one
-  // pass over each call's rays; the image and the counters do not change.
+  // The cost-map predictor's record (cost_map.h): with a sink, the work of every trace call is
+  // charged to the blocks of its rays' pixels, and each primary ray's hit distance (+inf: a
+  // miss) is stored at its pixel in sink->pixel_depth (if not null). RenderTile charges each
+  // call's TileWorkCost (its rays, cell steps and triangle tests) in equal shares to its rays:
+  // its calls are the tile's own batches, the same rays together in every run. TraceGeneration
+  // charges each ray TileWorkCost of one ray, plus one shading call if it hit: its caller
+  // groups the rays (a queue backend: whatever a thread popped), and a coherent packet's cell
+  // steps and triangle tests depend on which rays share it, so only per-ray counts give the
+  // same record whichever thread traced what. The sink must be sized for ctx's image
+  // (BlockWork::Resize) and is only added to (the caller clears it per frame); nullptr (the
+  // default) records nothing. Costs one pass over each call's rays; the image and the
+  // counters do not change.
   void SetBlockWork(BlockWork* sink) { block_work_ = sink; }
 
   // TraceGeneration's framebuffer adds: true (the default) atomic, as rays of one pixel may be
@@ -87,8 +93,10 @@ class RayEngine {
   void Occlude(const FrameContext& ctx, const RayStreamView& rays, Framebuffer& fb,
                FrameStats& stats);
   void Drain(const FrameContext& ctx, size_t primaries, Framebuffer& fb, FrameStats& stats);
-  // Charges one trace call of `rays` (its counter deltas) to block_work_.
-  void ChargeBlocks(const RayStreamView& rays, uint64_t cell_steps, uint64_t triangle_tests);
+  // Charges one trace call of `rays` to block_work_ (SetBlockWork): RenderTile its counter
+  // deltas, TraceGeneration each ray its own count (prim: the hits, nullptr for shadow rays).
+  void ChargeBlocks(const RayStreamView& rays, const int32_t* prim, uint64_t cell_steps,
+                    uint64_t triangle_tests);
   uint32_t PixelOf(const RayStreamView& rays, size_t i) const {
     return local_ ? batch_pixels_[rays.pixel[i]] : rays.pixel[i];
   }

@@ -20,6 +20,22 @@ inline constexpr bool kSlowBuild = true;
 inline constexpr bool kSlowBuild = false;
 #endif
 
+}  // namespace rs::test
+
+// 1 in a ThreadSanitizer build (GCC's __SANITIZE_THREAD__ or Clang's feature), else 0.
+#if defined(__SANITIZE_THREAD__)
+#define RS_TEST_TSAN 1
+#elif defined(__has_feature)
+#if __has_feature(thread_sanitizer)
+#define RS_TEST_TSAN 1
+#endif
+#endif
+#ifndef RS_TEST_TSAN
+#define RS_TEST_TSAN 0
+#endif
+
+namespace rs::test {
+
 // Runs f(target_name) once per SIMD target that is both compiled and supported here, with
 // dynamic dispatch forced to that target; restores normal dispatch afterwards.
 template <class F>

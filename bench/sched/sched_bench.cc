@@ -52,6 +52,9 @@ struct Args {
   // --pbt-assigns: the assignments of the work and cpu rows (default all five).
   std::vector<PbtAssign> pbt_assigns = {PbtAssign::kStatic, PbtAssign::kRandom, PbtAssign::kGreedy,
                                         PbtAssign::kVisit, PbtAssign::kCounter, PbtAssign::kLpt};
+  // --pbt-backends tiles,lock,lfree,local: the backends of the PBT rows. The queue backends feed
+  // PBT their tiles' work only (no time of their own): their rows are the work cost's.
+  std::vector<BackendKind> pbt_backends = {BackendKind::kTiles};
 };
 
 bool Want(const Args& a, const std::string& part) { return a.only.empty() || a.only.count(part); }
@@ -332,7 +335,9 @@ void TileShapes(const Args& a, const std::filesystem::path& dir) {
 // assignments differ only in their imbalance. Imbalance: worker = slowest / mean of the
 // workers' lists as assigned (no stealing); demand = the paper's demand-driven master-worker
 // (§2, with the §4 affinity) on the measured costs (TilePlanReport::demand_imbalance); counter
-// (not in the paper): no lists, the n workers take the tiles costliest-predicted first.
+// (not in the paper): no lists, the n workers take the tiles costliest-predicted first. Queue
+// backends (--pbt-backends): the same walk-throughs with the PBT tiles feeding lock / lfree /
+// local queues, work cost only (their tiles' rays, and the cost map of their rays per block).
 void PbtAccuracy(const Args& a, const std::filesystem::path& dir) {
   const std::string name = "erw6";
   const int size = a.quick ? 64 : a.pbt_size;
@@ -342,37 +347,44 @@ void PbtAccuracy(const Args& a, const std::filesystem::path& dir) {
   Csv table(dir / "pbt.csv",
             "scene,size,batch,clock,assign,k,speed,workers,threads,frames,within5,within10,"
             "within15,worker_imbalance,demand_imbalance,thread_imbalance,median_ms,update_steps,"
-            "load_avg,predict,block,lpt_imbalance");
+            "load_avg,predict,block,lpt_imbalance,backend");
   Csv per_frame(dir / "pbt_frames.csv",
                 "batch,clock,assign,k,speed,frame,within5,within10,within15,worker_imbalance,"
-                "demand_imbalance,variance_before,variance_after,steps,ms,predict,lpt_imbalance");
+                "demand_imbalance,variance_before,variance_after,steps,ms,predict,lpt_imbalance,"
+                "backend");
   fmt::print("PBT {} {}x{}, n = {} workers on 2 threads, {} frames (load {})\n", name, size, size,
              workers, frames, LoadAverage());
   struct Run {
     PbtCost cost;
     PbtAssign assign;
     PbtPredict predict;
+    BackendKind backend;
   };
   std::vector<Run> runs;
-  for (const PbtPredict predict : a.pbt_predicts) {
-    for (const PbtCost cost : a.pbt_costs) {
-      if (cost == PbtCost::kWall) {
-        runs.push_back({cost, PbtAssign::kRandom, predict});  // noisy: one assignment
-        continue;
-      }
-      for (const PbtAssign as : a.pbt_assigns) {
-        // static is never updated: it has no predictor, one run is enough.
-        if (as == PbtAssign::kStatic && predict != a.pbt_predicts.front()) continue;
-        runs.push_back({cost, as, predict});
+  for (const BackendKind backend : a.pbt_backends) {
+    for (const PbtPredict predict : a.pbt_predicts) {
+      for (const PbtCost cost : a.pbt_costs) {
+        // The queue backends' tiles have no time of their own: work rows only.
+        if (backend != BackendKind::kTiles && cost != PbtCost::kWork) continue;
+        if (cost == PbtCost::kWall) {
+          runs.push_back({cost, PbtAssign::kRandom, predict, backend});  // noisy: one assignment
+          continue;
+        }
+        for (const PbtAssign as : a.pbt_assigns) {
+          // static is never updated: it has no predictor, one run is enough.
+          if (as == PbtAssign::kStatic && predict != a.pbt_predicts.front()) continue;
+          runs.push_back({cost, as, predict, backend});
+        }
       }
     }
   }
   for (const int batch : a.pbt_batches) {
     for (const Run& run : runs) {
+      const BackendKind kind = run.backend;
       for (const int k : {1, 4}) {
         for (const float speed : {1.0f, 2.0f}) {
           BackendOptions o;
-          o.kind = BackendKind::kTiles;
+          o.kind = kind;
           o.threads = 2;
           o.pbt_tiles_per_worker = k;
           o.pbt_workers = workers;
@@ -394,12 +406,12 @@ void PbtAccuracy(const Args& a, const std::filesystem::path& dir) {
             const HostFrameStats& s = r.RenderFrame(ctx, fb);
             per_frame.Row(
                 "{},{},{},{},{},{},{:.4f},{:.4f},{:.4f},{:.4f},{:.4f},{:.6g},{:.6g},{},{:.3f},{},"
-                "{:.4f}",
+                "{:.4f},{}",
                 batch, PbtCostName(run.cost), PbtAssignName(run.assign), k, speed, f,
                 s.accuracy.within5, s.accuracy.within10, s.accuracy.within15, s.worker_imbalance,
                 s.demand_imbalance, s.update.variance_before, s.update.variance_after,
                 s.update.steps, 1e3 * s.total.total_seconds, PbtPredictName(run.predict),
-                s.lpt_imbalance);
+                s.lpt_imbalance, BackendName(kind));
             if (f == 0) continue;  // no prediction yet; and warm-up
             w5.push_back(s.accuracy.within5);
             w10.push_back(s.accuracy.within10);
@@ -413,17 +425,17 @@ void PbtAccuracy(const Args& a, const std::filesystem::path& dir) {
           }
           table.Row(
               "{},{},{},{},{},{},{},{},{},{},{:.4f},{:.4f},{:.4f},{:.4f},{:.4f},{:.4f},{:.3f},{:."
-              "2f},{},{},{},{:.4f}",
+              "2f},{},{},{},{:.4f},{}",
               name, size, batch, PbtCostName(run.cost), PbtAssignName(run.assign), k, speed,
               workers, o.threads, frames - 1, Mean(w5), Mean(w10), Mean(w15), Mean(wimb),
               Mean(dimb), Mean(timb), 1e3 * Median(ms), Mean(steps), LoadAverage(),
-              PbtPredictName(run.predict), a.pbt_block, Mean(limb));
+              PbtPredictName(run.predict), a.pbt_block, Mean(limb), BackendName(kind));
           fmt::print(
-              "  batch {:4} {:4} {:7} {:7} k={} x{}: within 5/10/15 % = {:.1f} / {:.1f} / {:.1f} "
-              "%, imbalance worker {:.3f} demand {:.3f} lpt {:.3f}\n",
-              batch, PbtCostName(run.cost), PbtPredictName(run.predict),
-              PbtAssignName(run.assign), k, speed, 100 * Mean(w5), 100 * Mean(w10),
-              100 * Mean(w15), Mean(wimb), Mean(dimb), Mean(limb));
+              "  {:5} batch {:4} {:4} {:7} {:7} k={} x{}: within 5/10/15 % = {:.1f} / {:.1f} / "
+              "{:.1f} %, imbalance worker {:.3f} demand {:.3f} lpt {:.3f}\n",
+              BackendName(kind), batch, PbtCostName(run.cost), PbtPredictName(run.predict),
+              PbtAssignName(run.assign), k, speed, 100 * Mean(w5), 100 * Mean(w10), 100 * Mean(w15),
+              Mean(wimb), Mean(dimb), Mean(limb));
         }
       }
     }
@@ -712,6 +724,21 @@ int Main(int argc, char** argv) {
         a.pbt_assigns.push_back(assign);
         start = comma + 1;
       }
+    } else if (arg == "--pbt-backends" && i + 1 < argc) {
+      a.pbt_backends.clear();
+      const std::string list = argv[++i];
+      for (size_t start = 0; start <= list.size();) {
+        const size_t comma = std::min(list.find(',', start), list.size());
+        const std::string item = list.substr(start, comma - start);
+        BackendKind kind;
+        if (!ParseBackendKind(item, &kind) || kind == BackendKind::kSerial) {
+          fmt::print(stderr, "sched_bench: --pbt-backends {}: expected tiles, lock, lfree, local\n",
+                     item);
+          return 2;
+        }
+        a.pbt_backends.push_back(kind);
+        start = comma + 1;
+      }
     } else if (arg == "--pbt-block" && i + 1 < argc) {
       a.pbt_block = std::atoi(argv[++i]);
       if (a.pbt_block < 1 || a.pbt_block > 256) {
@@ -741,7 +768,8 @@ int Main(int argc, char** argv) {
                  "usage: sched_bench [--out DIR] [--quick] [--only scaling,tiles,pbt,amphitheater,"
                  "calibrate] [--pbt-costs work,cpu,wall] [--pbt-batches 1024,20] [--pbt-size 512] "
                  "[--pbt-predict paper,costmap] [--pbt-block 4] [--pbt-reproject 1] "
-                 "[--pbt-assigns static,random,greedy,visit,counter,lpt]\n");
+                 "[--pbt-assigns static,random,greedy,visit,counter,lpt] "
+                 "[--pbt-backends tiles,lock,lfree,local]\n");
       return 2;
     }
   }

@@ -194,7 +194,9 @@ def main():
             figures.append("tiles.png")
 
     # --- PBT Table 1 and imbalance ----------------------------------------------------------
-    pbt = read(os.path.join(d, "pbt.csv"))
+    # The Table 1 rows are the tiles backend's (older tables have no backend column); queue
+    # backend rows (sched_bench --pbt-backends) are listed in pbt.csv only.
+    pbt = [r for r in read(os.path.join(d, "pbt.csv")) if (r.get("backend") or "tiles") == "tiles"]
     if pbt:
         p0 = pbt[0]
         meta_pbt = os.path.join(d, "meta_pbt.txt")

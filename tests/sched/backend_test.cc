@@ -12,6 +12,7 @@
 #include <algorithm>
 #include <atomic>
 #include <chrono>
+#include <cmath>
 #include <cstdio>
 #include <cstdlib>
 #include <filesystem>
@@ -31,17 +32,6 @@
 #include "sched/frame_loop.h"
 #include "sched/queue_lockfree.h"
 #include "tests/test_util.h"
-
-#if defined(__SANITIZE_THREAD__)
-#define RS_TEST_TSAN 1
-#elif defined(__has_feature)
-#if __has_feature(thread_sanitizer)
-#define RS_TEST_TSAN 1
-#endif
-#endif
-#ifndef RS_TEST_TSAN
-#define RS_TEST_TSAN 0
-#endif
 
 namespace rs {
 namespace {
@@ -700,6 +690,105 @@ TEST_CASE("queue backends with PBT: re-tiling, affinity, deterministic work cost
       CHECK(t.frames[0][i].rays == first.frames[0][i].rays);
     }
   }
+}
+
+// The queue backends feed PBT's cost map as the tiles backend does: per-block work from their
+// engines (each ray its own count, RayEngine::SetBlockWork, so the same record at 1 and 2
+// threads and on lock, lfree and local, however the threads grouped the rays), the primaries'
+// hit distances (the tiles backend's bit for bit: the same primary rays) and the cameras, so
+// the map is reprojected to the next camera. The images stay the serial ones.
+TEST_CASE("queue backends with PBT: the cost map from their block work, deterministic, moved") {
+  const Loaded l = Load("erw6");
+  const int size = Quick() ? 32 : 48;
+  const int frames = 3;
+  const float speed = 2.0f;
+  const RenderOptions ro = Options(size, size, 4);
+  References refs(l, ro);
+  struct Frame {
+    std::vector<int64_t> work;  // the threads' block work summed
+    std::vector<float> depth;
+    std::vector<Tile> tiles;
+    std::vector<double> predicted;
+    double cost = 0;  // the tiles' costs summed
+  };
+  // The walk-through's frames; with `next`, each frame knows the next frame's camera.
+  auto run = [&](const BackendOptions& o, bool next) {
+    HostRenderer r(o);
+    Framebuffer fb(size, size);
+    std::vector<Frame> out;
+    for (int f = 0; f < frames; ++f) {
+      FrameContext ctx =
+          MakeFrameContext(l.scene, *l.accel, l.scene.path.At(f, speed, l.scene.camera), ro);
+      if (next) SetNextCamera(ctx, l.scene.path.At(f + 1, speed, l.scene.camera));
+      fb.Clear();
+      const HostFrameStats& s = r.RenderFrame(ctx, fb);
+      INFO("backend ", std::string(BackendName(o.kind)), " threads ", o.threads, " frame ", f);
+      CHECK(DiffSums(fb, refs.Get(f, speed).fb) == "");
+      const TilePlanMeasure m = r.cost_map_measure();
+      REQUIRE(m.blocks != nullptr);
+      CHECK(m.blocks->Matches(size, size, o.pbt_cost_block));
+      CHECK(m.camera != nullptr);
+      CHECK((m.next_camera != nullptr) == next);
+      REQUIRE(m.pixel_depth.size() == static_cast<size_t>(size * size));
+      Frame fr;
+      fr.work = m.blocks->work;
+      fr.depth.assign(m.pixel_depth.begin(), m.pixel_depth.end());
+      for (const TileRecord& t : s.tiles) {
+        fr.tiles.push_back(t.tile);
+        fr.predicted.push_back(t.predicted);
+        fr.cost += t.work;
+      }
+      out.push_back(std::move(fr));
+    }
+    REQUIRE(r.in_frame() == false);
+    return out;
+  };
+  auto queue = [&](BackendKind kind, int threads) {
+    BackendOptions o = QueuePbt(kind, threads, 2, PbtAssign::kGreedy);
+    o.pbt_workers = 4;  // 8 tiles at any thread count
+    return o;
+  };
+  auto same_tiles = [](const std::vector<Tile>& a, const std::vector<Tile>& b) {
+    return a.size() == b.size() && std::equal(a.begin(), a.end(), b.begin(), SameTile);
+  };
+  const std::vector<Frame> want = run(queue(BackendKind::kLock, 1), true);
+  BackendOptions tiles_options = PbtBackend(2, 2, PbtAssign::kGreedy);
+  tiles_options.pbt_workers = 4;
+  tiles_options.pbt_cost = PbtCost::kWork;
+  const std::vector<Frame> tiles = run(tiles_options, true);
+  for (int f = 0; f < frames; ++f) {
+    INFO("frame ", f);
+    const Frame& w = want[static_cast<size_t>(f)];
+    int64_t total = 0;
+    for (const int64_t b : w.work) total += b;
+    // Each ray charged its cost: the blocks sum to the tiles' ray costs (up to the fixed point's
+    // rounding of a ray's cost, about 6e7 units).
+    CHECK(static_cast<double>(total) * kBlockWorkUnit == doctest::Approx(w.cost).epsilon(1e-7));
+    // erw6 is a closed room: every primary hits.
+    CHECK(std::all_of(w.depth.begin(), w.depth.end(),
+                      [](float t) { return t > 0.0f && std::isfinite(t); }));
+    CHECK(w.depth == tiles[static_cast<size_t>(f)].depth);  // the tilings may differ, not t
+  }
+  for (const BackendKind kind : {BackendKind::kLock, BackendKind::kLockFree, BackendKind::kLocal}) {
+    for (const int threads : {1, 2}) {
+      if (kind == BackendKind::kLock && threads == 1) continue;  // `want`
+      const std::vector<Frame> got = run(queue(kind, threads), true);
+      for (int f = 0; f < frames; ++f) {
+        INFO("backend ", std::string(BackendName(kind)), " threads ", threads, " frame ", f);
+        const Frame& g = got[static_cast<size_t>(f)];
+        const Frame& w = want[static_cast<size_t>(f)];
+        CHECK(same_tiles(g.tiles, w.tiles));
+        CHECK(g.work == w.work);  // integer sums: exact
+        CHECK(g.depth == w.depth);
+        CHECK(g.predicted == w.predicted);
+      }
+    }
+  }
+  // Without the next camera the map is not moved: the same first frame, other predictions for
+  // the second (the camera moves along the path).
+  const std::vector<Frame> still = run(queue(BackendKind::kLock, 2), false);
+  CHECK(still[0].work == want[0].work);
+  CHECK(still[1].predicted != want[1].predicted);
 }
 
 // The demand-driven master over a walk-through, with the hand-out order pinned down where the

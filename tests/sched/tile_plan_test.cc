@@ -525,6 +525,107 @@ TEST_CASE("cost map: the engine charges a tile's work to its blocks and stores h
   CHECK_THROWS_AS(plan.End(costs, {}, measure), Error);
 }
 
+// The queue backends' path (TraceGeneration: rays carry their pixels, the caller grouped them):
+// every ray is charged its own work (one ray, plus a shading call if it hit) to its pixel's
+// block, so the record is the same however the rays are cut into calls and in whatever order
+// the calls come (the threads of a queue backend pop different tasks together in every run;
+// a call's cell steps and triangle tests depend on its packets, so sharing them out as
+// RenderTile does would not be). Primary hit distances land at the rays' pixels.
+TEST_CASE("cost map: a queue generation charges each ray its own work, in any grouping") {
+  const Scene scene = LoadScene("erw6");
+  const Accel accel(scene.mesh());
+  RenderOptions ro;
+  ro.width = 48;
+  ro.height = 40;
+  ro.max_depth = 3;
+  ro.batch = 64;
+  const FrameContext ctx = MakeFrameContext(scene, accel, scene.camera, ro);
+  const Tile tile{5, 3, 13, 11};  // 64 pixels, not on block boundaries
+  RayStream primaries;
+  primaries.Resize(tile.NumPixels());
+  GeneratePrimaryRays(ctx.camera, tile, ro.order, 0, tile.NumPixels(), primaries.view(), 0);
+  primaries.SealTail();
+  // `rays` traced as one generation, or cut into `cuts` parts traced last part first (each its
+  // own sealed stream); returns the record, the hit distances and the shadow rays spawned.
+  struct Record {
+    BlockWork blocks;
+    std::vector<float> depth;
+    RayStream shadow;
+    FrameStats stats;
+  };
+  auto trace = [&](RayStream& rays, bool shadow, int cuts) {
+    Record r;
+    r.blocks.Resize(ro.width, ro.height, 8);
+    r.depth.assign(static_cast<size_t>(ro.width * ro.height), -1.0f);
+    r.blocks.pixel_depth = r.depth.data();
+    RayEngine engine;
+    engine.SetBlockWork(&r.blocks);
+    Framebuffer fb(ro.width, ro.height);
+    RayStream bounce;
+    const size_t n = rays.size();
+    const size_t part = (n + static_cast<size_t>(cuts) - 1) / static_cast<size_t>(cuts);
+    for (int c = cuts - 1; c >= 0; --c) {
+      const size_t first = static_cast<size_t>(c) * part;
+      if (first >= n) continue;
+      RayStream piece;
+      piece.Append(rays.view(), first, std::min(part, n - first));
+      piece.SealTail();
+      const RayStreamView none{};
+      engine.TraceGeneration(ctx, shadow ? piece.view() : none, shadow ? none : piece.view(), fb,
+                             r.shadow, bounce, r.stats);
+    }
+    return r;
+  };
+  TileWork one;
+  one.rays = 1;
+  const int64_t ray = std::llround(TileWorkCost(one) / kBlockWorkUnit);
+  one.shading_calls = 1;
+  const int64_t shaded = std::llround(TileWorkCost(one) / kBlockWorkUnit);
+  REQUIRE(ray > 0);
+
+  Record whole = trace(primaries, false, 1);
+  const Record halves = trace(primaries, false, 2);
+  const Record fifths = trace(primaries, false, 5);
+  CHECK(whole.blocks.work == halves.blocks.work);
+  CHECK(whole.blocks.work == fifths.blocks.work);
+  CHECK(whole.depth == halves.depth);
+  // The grouping does change the kernels' counts (a 64-ray packet against shorter streams), so
+  // a share of each call's counts would not give these equal records.
+  MESSAGE("cell steps traced whole ", whole.stats.trace.cell_steps, ", in halves ",
+          halves.stats.trace.cell_steps, ", in fifths ", fifths.stats.trace.cell_steps);
+  // erw6 is a closed room: every primary hits and is shaded; each block holds its pixels' rays.
+  int64_t total = 0;
+  for (int by = 0; by < whole.blocks.blocks_y; ++by) {
+    for (int bx = 0; bx < whole.blocks.blocks_x; ++bx) {
+      const int x0 = std::max(bx * 8, tile.x0), x1 = std::min((bx + 1) * 8, tile.x1);
+      const int y0 = std::max(by * 8, tile.y0), y1 = std::min((by + 1) * 8, tile.y1);
+      const int64_t pixels = x1 > x0 && y1 > y0 ? (x1 - x0) * (y1 - y0) : 0;
+      INFO("block ", bx, ",", by);
+      CHECK(whole.blocks.work[static_cast<size_t>(by * whole.blocks.blocks_x + bx)] ==
+            pixels * shaded);
+      total += whole.blocks.work[static_cast<size_t>(by * whole.blocks.blocks_x + bx)];
+    }
+  }
+  CHECK(total == static_cast<int64_t>(tile.NumPixels()) * shaded);
+  for (int y = 0; y < ro.height; ++y) {
+    for (int x = 0; x < ro.width; ++x) {
+      const float t = whole.depth[static_cast<size_t>(y * ro.width + x)];
+      const bool inside = x >= tile.x0 && x < tile.x1 && y >= tile.y0 && y < tile.y1;
+      CHECK((inside ? t > 0.0f && std::isfinite(t) : t == -1.0f));
+    }
+  }
+  // The next generation, shadow rays only (Occlude): one ray's work each, at its pixel's block;
+  // no hit distances (not primaries).
+  REQUIRE(whole.shadow.size() > 0);
+  const Record shadow = trace(whole.shadow, true, 1);
+  const Record shadow3 = trace(whole.shadow, true, 3);
+  CHECK(shadow.blocks.work == shadow3.blocks.work);
+  int64_t shadow_total = 0;
+  for (const int64_t w : shadow.blocks.work) shadow_total += w;
+  CHECK(shadow_total == static_cast<int64_t>(whole.shadow.size()) * ray);
+  CHECK(std::all_of(shadow.depth.begin(), shadow.depth.end(), [](float t) { return t == -1.0f; }));
+}
+
 // Options: an unknown --pbt-predict value is an error that names it (the backend's check).
 TEST_CASE("cost map: backend options refuse an unknown predictor and a bad block") {
   BackendOptions o;
