@@ -453,18 +453,28 @@ TEST_CASE("work cost: a walk-through's prediction accuracy is reproducible, what
 namespace rs {
 namespace {
 
+// The cost-map tests' frame: erw6 at 48x40, depth 3, `batch` rays per kernel call.
+struct CostMapFrame {
+  explicit CostMapFrame(int batch) : scene(LoadScene("erw6")), accel(scene.mesh()) {
+    ro.width = 48;
+    ro.height = 40;
+    ro.max_depth = 3;
+    ro.batch = batch;
+    ctx = MakeFrameContext(scene, accel, scene.camera, ro);
+  }
+  const Scene scene;
+  const Accel accel;
+  RenderOptions ro;
+  FrameContext ctx;
+};
+
 // The engine's block record: a tile's work lands in the blocks of its pixels, in total the
 // tile's work cost (up to the fixed point's rounding), none outside; every pixel of the tile
 // gets its primary hit distance.
 TEST_CASE("cost map: the engine charges a tile's work to its blocks and stores hit distances") {
-  const Scene scene = LoadScene("erw6");
-  const Accel accel(scene.mesh());
-  RenderOptions ro;
-  ro.width = 48;
-  ro.height = 40;
-  ro.max_depth = 3;
-  ro.batch = 20;
-  const FrameContext ctx = MakeFrameContext(scene, accel, scene.camera, ro);
+  const CostMapFrame frame(20);
+  const RenderOptions& ro = frame.ro;
+  const FrameContext& ctx = frame.ctx;
   BlockWork blocks;
   blocks.Resize(ro.width, ro.height, 8);
   CHECK(blocks.NumBlocks() == 6 * 5);
@@ -532,14 +542,9 @@ TEST_CASE("cost map: the engine charges a tile's work to its blocks and stores h
 // a call's cell steps and triangle tests depend on its packets, so sharing them out as
 // RenderTile does would not be). Primary hit distances land at the rays' pixels.
 TEST_CASE("cost map: a queue generation charges each ray its own work, in any grouping") {
-  const Scene scene = LoadScene("erw6");
-  const Accel accel(scene.mesh());
-  RenderOptions ro;
-  ro.width = 48;
-  ro.height = 40;
-  ro.max_depth = 3;
-  ro.batch = 64;
-  const FrameContext ctx = MakeFrameContext(scene, accel, scene.camera, ro);
+  const CostMapFrame frame(64);
+  const RenderOptions& ro = frame.ro;
+  const FrameContext& ctx = frame.ctx;
   const Tile tile{5, 3, 13, 11};  // 64 pixels, not on block boundaries
   RayStream primaries;
   primaries.Resize(tile.NumPixels());
