@@ -236,6 +236,18 @@ void RayEngine::ChargeBlocks(const RayStreamView& rays, const int32_t* prim, uin
   }
 }
 
+void RayEngine::AddContributions(Framebuffer& fb, const uint32_t* pixel, const float* r,
+                                 const float* g, const float* b, const int32_t* skip, size_t n) {
+  if (local_) {
+    AddFixedContributions<false>(local_sums_.data(), pixel, r, g, b, skip, n, &local_nan_,
+                                 &local_clamped_);
+  } else if (shared_pixels_) {
+    fb.Add(pixel, r, g, b, skip, n);
+  } else {
+    fb.Add<false>(pixel, r, g, b, skip, n);
+  }
+}
+
 void RayEngine::Occlude(const FrameContext& ctx, const RayStreamView& rays, Framebuffer& fb,
                         FrameStats& stats) {
   const size_t n = rays.size;
@@ -254,14 +266,7 @@ void RayEngine::Occlude(const FrameContext& ctx, const RayStreamView& rays, Fram
   }
   uint64_t blocked = 0;
   for (size_t i = 0; i < n; ++i) blocked += occluded[i] != 0 ? 1 : 0;
-  if (local_) {
-    AddFixedContributions<false>(local_sums_.data(), rays.pixel, rays.wr, rays.wg, rays.wb,
-                                 occluded, n, &local_nan_, &local_clamped_);
-  } else if (shared_pixels_) {
-    fb.Add(rays.pixel, rays.wr, rays.wg, rays.wb, occluded, n);
-  } else {
-    fb.Add<false>(rays.pixel, rays.wr, rays.wg, rays.wb, occluded, n);
-  }
+  AddContributions(fb, rays.pixel, rays.wr, rays.wg, rays.wb, occluded, n);
   stats.rays[kShadowKind] += n;
   ++stats.trace_calls[kShadowKind];
   stats.tasks += TasksOf(n, ctx.options.task_size);
@@ -330,15 +335,8 @@ void RayEngine::TraceAndShade(const FrameContext& ctx, const RayStreamView& rays
           contributions_, std::span<RayStream* const>(light_to_.data(), lights), bounce,
           &stats.shade);
     stats.shade_seconds += Seconds(s0, Clock::now());
-    if (local_) {
-      const ContributionView c = contributions_.view();
-      AddFixedContributions<false>(local_sums_.data(), c.pixel, c.r, c.g, c.b, nullptr, c.size,
-                                   &local_nan_, &local_clamped_);
-    } else if (shared_pixels_) {
-      fb.Add(contributions_.view());
-    } else {
-      fb.Add<false>(contributions_.view());
-    }
+    const ContributionView c = contributions_.view();
+    AddContributions(fb, c.pixel, c.r, c.g, c.b, nullptr, c.size);
     for (size_t l = direct; l < lights; ++l) {
       shadow.Append(light_rays_[l].view(), 0, light_rays_[l].size());
     }

@@ -93,6 +93,10 @@ class RayEngine {
   void Occlude(const FrameContext& ctx, const RayStreamView& rays, Framebuffer& fb,
                FrameStats& stats);
   void Drain(const FrameContext& ctx, size_t primaries, Framebuffer& fb, FrameStats& stats);
+  // Contributions i < n (skip[i] != 0 skipped; skip may be null): RenderTile's batch sums
+  // (local_), else the framebuffer, atomic unless SetSharedPixels(false).
+  void AddContributions(Framebuffer& fb, const uint32_t* pixel, const float* r, const float* g,
+                        const float* b, const int32_t* skip, size_t n);
   // Charges one trace call of `rays` to block_work_ (SetBlockWork): RenderTile its counter
   // deltas, TraceGeneration each ray its own count (prim: the hits, nullptr for shadow rays).
   void ChargeBlocks(const RayStreamView& rays, const int32_t* prim, uint64_t cell_steps,
