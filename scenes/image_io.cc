@@ -1,32 +1,34 @@
-// Image files through OpenImageIO: rendered frames out (PNG 8-bit sRGB, EXR half), textures in
-// (any format OIIO reads, decoded to linear rgb), and the output files every result goes through.
-// Images are encoded into memory (OIIO's IOProxy), so every byte that reaches the disk goes
-// through our own checked write / fsync / close / rename: OIIO's plugins do not report all write
-// errors (libpng leaves a cut-off PNG on a full disk and says nothing).
+// Image files: rendered frames out (PNG 8-bit sRGB with libpng here; EXR half and the other
+// formats through OpenImageIO), textures in (any format OIIO reads, decoded to linear rgb), and
+// the output files every result goes through. OpenImageIO lives in a module loaded on first use
+// (scenes/image_module.h). Images are encoded into memory, so every byte that reaches the disk
+// goes through our own checked write / fsync / close / rename: the image libraries do not report
+// all write errors (libpng leaves a cut-off PNG on a full disk and says nothing).
 #include "scenes/image_io.h"
 
-#include <OpenImageIO/filesystem.h>
-#include <OpenImageIO/imageio.h>
+#include <dlfcn.h>
 #include <fcntl.h>
 #include <fmt/format.h>
 #include <limits.h>
-#include <sys/mman.h>
+#include <png.h>
+#include <sys/resource.h>
 #include <sys/stat.h>
 #include <unistd.h>
 
 #include <algorithm>
 #include <atomic>
-#include <cctype>
 #include <cerrno>
 #include <cmath>
 #include <csignal>
 #include <cstdio>
+#include <cstdlib>
 #include <cstring>
 #include <filesystem>
 #include <mutex>
 #include <new>
 #include <system_error>
 
+#include "scenes/image_module.h"
 #include "scenes/scene_internal.h"
 
 namespace rs {
@@ -81,20 +83,6 @@ bool TemporaryAlive(int slot) {
 
 void RemoveFile(const std::string& path) noexcept { ::unlink(path.c_str()); }
 
-std::string OneLine(std::string s) {
-  while (!s.empty() && (s.back() == '\n' || s.back() == '\r' || s.back() == ' ')) s.pop_back();
-  std::string out;
-  out.reserve(s.size());
-  for (size_t i = 0; i < s.size(); ++i) {
-    if (s[i] == '\n' || s[i] == '\r') {
-      while (i + 1 < s.size() && (s[i + 1] == '\n' || s[i + 1] == '\r')) ++i;
-      out += "; ";
-    } else {
-      out += s[i];
-    }
-  }
-  return out.empty() ? std::string("unknown error") : out;
-}
 
 std::string Errno(int err) { return std::strerror(err); }
 
@@ -126,71 +114,6 @@ void FsyncFolder(const std::string& dir, int& err) {
   ::close(fd);
 }
 
-// libpng (and libjpeg, libtiff, OpenEXR) print their own messages to stderr while OIIO also
-// returns the reason through geterror(). While OIIO runs, fd 2 goes to a memory file; afterwards
-// lines that came from someone else are passed on, the image libraries' are dropped.
-class QuietStderr {
- public:
-  QuietStderr() : lock_(Mutex()) {
-    if (::fcntl(2, F_GETFD) == -1) return;  // stderr closed: nothing to protect
-    // One memory file for the process, emptied for each use (cheap: no syscalls to create).
-    static const int mem = ::memfd_create("raystream-stderr", MFD_CLOEXEC);
-    if (mem < 0 || ::ftruncate(mem, 0) != 0 || ::lseek(mem, 0, SEEK_SET) != 0) return;
-    std::fflush(stderr);
-    saved_ = ::fcntl(2, F_DUPFD_CLOEXEC, 3);
-    if (saved_ < 0) return;
-    if (::dup2(mem, 2) < 0) {
-      ::close(saved_);
-      saved_ = -1;
-      return;
-    }
-    mem_ = mem;
-  }
-  ~QuietStderr() {
-    if (mem_ < 0) return;
-    std::fflush(stderr);
-    ::dup2(saved_, 2);
-    ::close(saved_);
-    const off_t size = ::lseek(mem_, 0, SEEK_CUR);
-    if (size <= 0) return;  // the usual case: nothing was printed
-    std::string text;
-    char buf[4096];
-    if (::lseek(mem_, 0, SEEK_SET) == 0) {
-      ssize_t n;
-      while (text.size() < (1u << 16) && (n = ::read(mem_, buf, sizeof(buf))) > 0) {
-        text.append(buf, static_cast<size_t>(n));
-      }
-    }
-    size_t pos = 0;
-    while (pos < text.size()) {
-      size_t end = text.find('\n', pos);
-      end = end == std::string::npos ? text.size() : end + 1;
-      const std::string_view line(text.data() + pos, end - pos);
-      pos = end;
-      if (FromImageLibrary(line)) continue;
-      [[maybe_unused]] const ssize_t r = ::write(2, line.data(), line.size());
-    }
-  }
-  QuietStderr(const QuietStderr&) = delete;
-  QuietStderr& operator=(const QuietStderr&) = delete;
-
- private:
-  static std::mutex& Mutex() {
-    static std::mutex m;
-    return m;
-  }
-  static bool FromImageLibrary(std::string_view line) {
-    for (const std::string_view p : {"libpng ", "libtiff", "JPEG", "Corrupt JPEG", "Premature end",
-                                     "Warning:", "OpenImageIO", "TIFF", "Openexr", "OpenEXR"}) {
-      if (line.substr(0, p.size()) == p) return true;
-    }
-    return line.find("TIFFRead") != std::string_view::npos;
-  }
-
-  std::lock_guard<std::mutex> lock_;
-  int mem_ = -1;
-  int saved_ = -1;
-};
 
 // Piecewise sRGB transfer function (IEC 61966-2-1).
 float LinearToSrgb(float x) {
@@ -199,9 +122,6 @@ float LinearToSrgb(float x) {
   return x <= 0.0031308f ? 12.92f * x : 1.055f * std::pow(x, 1.0f / 2.4f) - 0.055f;
 }
 
-float SrgbToLinear(float x) {
-  return x <= 0.04045f ? x / 12.92f : std::pow((x + 0.055f) / 1.055f, 2.4f);
-}
 
 enum class Encoding { kSrgb8, kHalf, kFloat };
 
@@ -231,11 +151,6 @@ Encoding ImageEncodingOrFail(const std::string& path) {
   return encoding;
 }
 
-std::string Lower(std::string s) {
-  std::transform(s.begin(), s.end(), s.begin(),
-                 [](unsigned char c) { return static_cast<char>(std::tolower(c)); });
-  return s;
-}
 
 // OpenEXR sizes its line-offset table from the header's dataWindow inside ImageInput::open,
 // before OIIO hands us a spec: a 299-byte file claiming 2^28 lines allocates 1.8 GB there (a
@@ -310,6 +225,135 @@ bool ExrLargestWindow(const std::string& path, uint64_t file_size, uint64_t& pix
   }
 }
 
+// ---- PNG (libpng) --------------------------------------------------------------------------------
+
+// libpng reports errors through a callback that must not return: it longjmps back into
+// EncodePng with the message kept here (no allocation on that path).
+struct PngSink {
+  std::vector<unsigned char>* out;
+  char message[200];
+};
+
+void PngWrite(png_structp png, png_bytep data, size_t n) {
+  auto* sink = static_cast<PngSink*>(png_get_io_ptr(png));
+  try {
+    sink->out->insert(sink->out->end(), data, data + n);
+  } catch (...) {  // no exception may cross libpng's C frames
+    png_error(png, "out of memory");
+  }
+}
+void PngFlush(png_structp) {}
+[[noreturn]] void PngError(png_structp png, png_const_charp message) {
+  auto* sink = static_cast<PngSink*>(png_get_error_ptr(png));
+  std::snprintf(sink->message, sizeof sink->message, "%s", message);
+  png_longjmp(png, 1);
+}
+void PngWarning(png_structp, png_const_charp) {}
+
+// 8-bit sRGB rgb rows (row 0 at the top) as a PNG with an sRGB chunk, into `out`. Returns "" or
+// libpng's reason. Nothing with a destructor lives between setjmp and png_destroy_write_struct.
+std::string EncodePng(int width, int height, const unsigned char* rgb,
+                      std::vector<unsigned char>* out) {
+  std::vector<png_bytep> rows(static_cast<size_t>(height));
+  for (size_t y = 0; y < rows.size(); ++y) {
+    rows[y] = const_cast<png_bytep>(rgb + y * static_cast<size_t>(width) * 3);
+  }
+  PngSink sink{out, {}};
+  png_structp png = png_create_write_struct(PNG_LIBPNG_VER_STRING, &sink, PngError, PngWarning);
+  png_infop info = png != nullptr ? png_create_info_struct(png) : nullptr;
+  if (info == nullptr) {
+    png_destroy_write_struct(&png, nullptr);
+    return "out of memory";
+  }
+  if (setjmp(png_jmpbuf(png)) != 0) {
+    png_destroy_write_struct(&png, &info);
+    return sink.message[0] != '\0' ? std::string(sink.message) : std::string("libpng failed");
+  }
+  png_set_write_fn(png, &sink, PngWrite, PngFlush);
+  png_set_IHDR(png, info, static_cast<png_uint_32>(width), static_cast<png_uint_32>(height), 8,
+               PNG_COLOR_TYPE_RGB, PNG_INTERLACE_NONE, PNG_COMPRESSION_TYPE_DEFAULT,
+               PNG_FILTER_TYPE_DEFAULT);
+  png_set_sRGB_gAMA_and_cHRM(png, info, PNG_sRGB_INTENT_PERCEPTUAL);
+  png_write_info(png, info);
+  png_write_image(png, rows.data());
+  png_write_end(png, nullptr);
+  png_destroy_write_struct(&png, &info);
+  return std::string();
+}
+
+// ---- The OpenImageIO module --------------------------------------------------------------------
+
+// Address space the module needs above what is mapped when it loads: OpenImageIO's ~270
+// libraries, their initialisers and a small texture read (measured here, Debian 12, OpenImageIO
+// 2.4.7: the command with 26 MB mapped reads a 2x2 PNG texture from a 528 MB limit on; 496-520
+// MB end in "out of memory"), rounded up. The initialisers of those libraries may abort instead
+// of failing under a tighter limit (ulimit -v), so the module is not loaded there.
+constexpr unsigned long long kModuleAddressSpaceMb = 512;
+
+// Megabytes of address space mapped by the process now (0 if unknown).
+unsigned long long MappedMb() {
+  unsigned long long pages = 0;
+  if (std::FILE* f = std::fopen("/proc/self/statm", "re")) {
+    if (std::fscanf(f, "%llu", &pages) != 1) pages = 0;
+    std::fclose(f);
+  }
+  return pages * static_cast<unsigned long long>(::sysconf(_SC_PAGESIZE)) >> 20;
+}
+
+// Candidate module files: $RAYSTREAM_IMAGE_MODULE alone if set; else the build tree's module
+// first for programs in the build tree (RS_BUILD_ROOT), the installed one first for the others.
+std::vector<std::string> ModuleCandidates() {
+  if (const char* env = std::getenv("RAYSTREAM_IMAGE_MODULE"); env != nullptr && *env != '\0') {
+    return {env};
+  }
+  char exe[PATH_MAX];
+  const ssize_t n = ::readlink("/proc/self/exe", exe, sizeof exe - 1);
+  const std::string self = n > 0 ? std::string(exe, static_cast<size_t>(n)) : std::string();
+  const std::string root = std::string(RS_BUILD_ROOT) + "/";
+  if (self.compare(0, root.size(), root) == 0) return {RS_IMAGE_MODULE_BUILD, RS_IMAGE_MODULE_INSTALL};
+  return {RS_IMAGE_MODULE_INSTALL, RS_IMAGE_MODULE_BUILD};
+}
+
+// The OpenImageIO module (image_module.h), loaded on first use and kept for the process. Throws
+// rs::Error "<path>: cannot <what>: <reason>" when no candidate loads (and again on the next
+// call, which tries again).
+const image_module::Functions& ImageModule(const std::string& path, std::string_view what) {
+  static std::mutex mutex;
+  static const image_module::Functions* loaded = nullptr;
+  std::lock_guard<std::mutex> lock(mutex);
+  if (loaded != nullptr) return *loaded;
+  rlimit limit{};
+  if (::getrlimit(RLIMIT_AS, &limit) == 0 && limit.rlim_cur != RLIM_INFINITY) {
+    const unsigned long long limit_mb = limit.rlim_cur >> 20, mapped_mb = MappedMb();
+    if (limit_mb < mapped_mb + kModuleAddressSpaceMb) {
+      Fail("{}: cannot {}: the address-space limit (ulimit -v) of {} MB leaves {} MB, below the "
+           "{} MB OpenImageIO and its libraries need to load",
+           path, what, limit_mb, limit_mb > mapped_mb ? limit_mb - mapped_mb : 0,
+           kModuleAddressSpaceMb);
+    }
+  }
+  std::string reasons;
+  for (const std::string& file : ModuleCandidates()) {
+    void* handle = ::dlopen(file.c_str(), RTLD_NOW | RTLD_LOCAL);
+    if (handle == nullptr) {
+      const char* why = ::dlerror();
+      reasons += (reasons.empty() ? "" : "; ") + std::string(why != nullptr ? why : file);
+      continue;
+    }
+    using Entry = const image_module::Functions* (*)();
+    const auto entry = reinterpret_cast<Entry>(::dlsym(handle, "raystream_image_module"));
+    const image_module::Functions* functions = entry != nullptr ? entry() : nullptr;
+    if (functions == nullptr || functions->version != image_module::kVersion) {
+      reasons += (reasons.empty() ? "" : "; ") + file + ": not a raystream " RS_VERSION " image module";
+      ::dlclose(handle);
+      continue;
+    }
+    loaded = functions;
+    return *loaded;
+  }
+  Fail("{}: cannot {}: cannot load the OpenImageIO module ({})", path, what, reasons);
+}
+
 std::atomic<uint64_t> g_max_pixels{ImageReadLimits{}.max_pixels};
 std::atomic<uint64_t> g_max_pixels_per_byte{ImageReadLimits{}.max_pixels_per_byte};
 
@@ -348,6 +392,8 @@ void CheckImageOutputPath(const std::string& path) {
   if (path.empty()) Fail("output path is empty");
   ImageEncodingOrFail(path);
   CheckOutputPath(path);
+  // every format but PNG is written by the OpenImageIO module: load it now, before any work
+  if (detail::LowerExtension(path) != "png") ImageModule(path, "write image");
 }
 
 StagedFile::StagedFile(StagedFile&& other) noexcept
@@ -487,41 +533,28 @@ StagedFile StageImage(const std::string& path, int width, int height,
   }
   const std::string ext = detail::LowerExtension(path);
   const Encoding encoding = ImageEncodingOrFail(path);
-  OIIO::ImageSpec spec(width, height, 3,
-                       encoding == Encoding::kSrgb8  ? OIIO::TypeDesc::UINT8
-                       : encoding == Encoding::kHalf ? OIIO::TypeDesc::HALF
-                                                     : OIIO::TypeDesc::FLOAT);
   std::vector<unsigned char> bytes;
-  const void* data = rgb.data();
-  OIIO::TypeDesc data_type = OIIO::TypeDesc::FLOAT;
   if (encoding == Encoding::kSrgb8) {
-    spec.attribute("oiio:ColorSpace", "sRGB");
     bytes.resize(rgb.size());
     for (size_t i = 0; i < rgb.size(); ++i) {
       bytes[i] = static_cast<unsigned char>(std::lround(LinearToSrgb(rgb[i]) * 255.0f));
     }
-    data = bytes.data();
-    data_type = OIIO::TypeDesc::UINT8;
-  } else {
-    spec.attribute("oiio:ColorSpace", "Linear");
-    if (ext == "exr") spec.attribute("compression", "zip");
   }
-  // Encode into memory; the plugin is chosen by the target's extension, nothing touches disk.
   std::vector<unsigned char> encoded;
-  {
-    QuietStderr quiet;
-    auto out = OIIO::ImageOutput::create(path);
-    if (!out)
-      Fail("{}: cannot write image: no writer for '.{}': {}", path, ext, OneLine(OIIO::geterror()));
-    OIIO::Filesystem::IOVecOutput proxy(encoded);
-    if (!out->supports("ioproxy") || !out->set_ioproxy(&proxy)) {
-      Fail("{}: cannot write image: the '.{}' writer cannot encode to memory", path, ext);
-    }
-    if (!out->open(path, spec) || !out->write_image(data_type, data) || !out->close()) {
-      const std::string why = OneLine(out->geterror());
-      Fail("{}: cannot write image: {}", path, why);
-    }
+  std::string why;
+  if (ext == "png") {
+    why = EncodePng(width, height, bytes.data(), &encoded);
+  } else {
+    const image_module::Functions& module = ImageModule(path, "write image");
+    why = module.encode(path, width, height,
+                        encoding == Encoding::kSrgb8  ? image_module::FileType::kUint8
+                        : encoding == Encoding::kHalf ? image_module::FileType::kHalf
+                                                      : image_module::FileType::kFloat,
+                        encoding == Encoding::kSrgb8 ? static_cast<const void*>(bytes.data())
+                                                     : static_cast<const void*>(rgb.data()),
+                        &encoded);
   }
+  if (!why.empty()) Fail("{}: cannot write image: {}", path, why);
   if (encoded.empty()) Fail("{}: cannot write image: the encoder produced no data", path);
   return StageFile(path,
                    std::string_view(reinterpret_cast<const char*>(encoded.data()), encoded.size()),
@@ -580,92 +613,10 @@ Texture ReadImage(const std::string& path, const ImageReadLimits& limits) {
     Fail("{}: {} in a {}-byte file: corrupt, or more than the limit of {} pixels for textures",
          path, exr_what, file_size, limits.max_pixels);
   }
-  // Keep colours as stored: OIIO would premultiply by alpha, darkening a texture's rgb.
-  OIIO::ImageSpec config;
-  config.attribute("oiio:UnassociatedAlpha", 1);
-  QuietStderr quiet;
-  auto in = OIIO::ImageInput::open(path, &config);
-  if (!in) {
-    std::string why = OIIO::geterror();
-    if (why.empty()) why = "not an image OpenImageIO can read";
-    Fail("{}: cannot read image: {}", path, OneLine(why));
-  }
-  const OIIO::ImageSpec& spec = in->spec();
-  const int channels = spec.nchannels;
-  if (spec.width <= 0 || spec.height <= 0 || channels <= 0 || spec.depth > 1) {
-    Fail("{}: image has size {}x{}x{} with {} channels", path, spec.width, spec.height, spec.depth,
-         channels);
-  }
-  // Header checks before any pixel is allocated.
-  const uint64_t pixels = static_cast<uint64_t>(spec.width) * static_cast<uint64_t>(spec.height);
-  if (pixels > limits.max_pixels) {
-    Fail("{}: image {}x{} has {} pixels, more than the limit of {} for textures", path, spec.width,
-         spec.height, pixels, limits.max_pixels);
-  }
-  if (limits.max_pixels_per_byte > 0 && pixels / limits.max_pixels_per_byte >= file_size) {
-    Fail("{}: header claims {}x{} pixels but the file has only {} bytes (corrupt or truncated)",
-         path, spec.width, spec.height, file_size);
-  }
-  if (channels > 64) Fail("{}: image has {} channels (at most 64)", path, channels);
-  // OpenImageIO 2.4 reads a TIFF through a buffer of whole strips: RowsPerStrip scanlines, even
-  // when the image has fewer rows (a texture_fuzz finding: a 350-byte 15620x4 TIFF claiming 65312
-  // rows per strip had it allocate 4 GB). libtiff clamps the strip to the image; OIIO does not.
-  const int64_t rows_per_strip = spec.get_int_attribute("tiff:RowsPerStrip", 0);
-  if (spec.tile_width == 0 && rows_per_strip > spec.height &&
-      static_cast<uint64_t>(rows_per_strip) * static_cast<uint64_t>(spec.width) >
-          limits.max_pixels) {
-    Fail("{}: TIFF claims {} rows per strip for a {}x{} image (more than the limit of {} pixels "
-         "for textures in one strip)",
-         path, rows_per_strip, spec.width, spec.height, limits.max_pixels);
-  }
-  // Small images: decode on this thread (OIIO would start worker threads for each read).
-  if (pixels < (uint64_t{1} << 20)) in->threads(1);
-  // Read the colour channels only: rgb directly, or the first channel of grey (+ alpha).
-  const int read_channels = channels >= 3 ? 3 : 1;
+  const image_module::Functions& module = ImageModule(path, "read image");
   Texture tex;
-  std::vector<float> grey;
-  try {
-    tex.rgb.resize(static_cast<size_t>(pixels) * 3);
-    if (read_channels == 1) grey.resize(static_cast<size_t>(pixels));
-  } catch (const std::bad_alloc&) {
-    Fail("{}: out of memory for a {}x{} texture ({} MiB)", path, spec.width, spec.height,
-         pixels * 3 * sizeof(float) >> 20);
-  }
-  float* dst = read_channels == 3 ? tex.rgb.data() : grey.data();
-  if (!in->read_image(0, 0, 0, read_channels, OIIO::TypeDesc::FLOAT, dst)) {
-    Fail("{}: cannot read image: {}", path, OneLine(in->geterror()));
-  }
-  // Transfer function: the file's colour space if it says so, else sRGB for integer data.
-  const std::string cs = Lower(spec.get_string_attribute("oiio:ColorSpace"));
-  const bool integer = spec.format.basetype != OIIO::TypeDesc::FLOAT &&
-                       spec.format.basetype != OIIO::TypeDesc::HALF &&
-                       spec.format.basetype != OIIO::TypeDesc::DOUBLE;
-  enum { kLinear, kSrgb, kGamma } transfer = integer ? kSrgb : kLinear;
-  float gamma = 1.0f;
-  if (cs == "linear" || cs == "scene_linear" || cs == "lin_srgb") {
-    transfer = kLinear;
-  } else if (cs == "srgb") {
-    transfer = kSrgb;
-  } else if (cs.rfind("gammacorrected", 0) == 0 || cs.rfind("gamma", 0) == 0) {
-    gamma = spec.get_float_attribute("oiio:Gamma", 2.2f);
-    transfer = gamma > 0.0f && std::isfinite(gamma) ? kGamma : kSrgb;
-  }
-  tex.path = path;
-  tex.width = spec.width;
-  tex.height = spec.height;
-  for (size_t p = 0; p < pixels; ++p) {
-    for (size_t c = 0; c < 3; ++c) {
-      // Grey (1 channel) and grey + alpha (2) repeat the first channel; alpha is dropped.
-      float x = read_channels == 3 ? tex.rgb[p * 3 + c] : grey[p];
-      if (!std::isfinite(x)) x = 0.0f;
-      if (transfer == kSrgb) {
-        x = SrgbToLinear(x);
-      } else if (transfer == kGamma) {
-        x = x > 0.0f ? std::pow(x, gamma) : 0.0f;
-      }
-      tex.rgb[p * 3 + c] = std::isfinite(x) ? x : 0.0f;
-    }
-  }
+  const std::string why = module.read(path, file_size, limits, &tex);
+  if (!why.empty()) throw Error(why);
   return tex;
 }
 

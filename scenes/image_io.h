@@ -1,5 +1,6 @@
-// Reading textures and writing images with OpenImageIO (PNG, EXR, anything OIIO writes), and the
-// crash-safe output files every result goes through (temporary beside the target, fsync, rename).
+// Reading textures and writing images (PNG with libpng; EXR and the other formats, and every texture,
+// through OpenImageIO in a module loaded on first use), and the crash-safe output files every result
+// goes through (temporary beside the target, fsync, rename).
 #pragma once
 
 #include <cstdint>
@@ -22,7 +23,8 @@ namespace rs {
 // non-regular file, its folder exists, is a folder, and a file can be created in it (probed by
 // creating and removing a temporary). Throws rs::Error "<path>: <reason>". Does not write `path`.
 void CheckOutputPath(const std::string& path);
-// CheckOutputPath plus a known image extension (what WriteImage accepts).
+// CheckOutputPath plus a known image extension (what WriteImage accepts), and for every format but
+// PNG the OpenImageIO module loaded (scenes/image_module.h).
 void CheckImageOutputPath(const std::string& path);
 
 // A complete, fsynced temporary waiting to be renamed over its final path. Commit() puts it in

@@ -819,16 +819,18 @@ int Main(int argc, char** argv) {
 }  // namespace rs
 
 // A tight address-space limit (ulimit -v, RLIMIT_AS) must end in one line and exit 1, but the
-// static initialisers of the shared libraries (OpenImageIO and the ~270 it pulls in: thread pools,
-// malloc arenas, registries) run before main and abort or segfault when they cannot map memory.
+// static initialisers of the shared libraries (thread pools, malloc arenas, registries) run before
+// main and abort or segfault when they cannot map memory.
 // An executable's .preinit_array runs after the dynamic loader has mapped every library (a limit
 // too small for that is the loader's own "error while loading shared libraries", exit 127) and
 // before any library's initialiser: check there that the limit leaves the headroom they and a
 // small render need. Only the C library and raw system calls are used here.
 namespace {
-// Measured here (2 CPUs, Debian 12, OpenImageIO 2.4.7): the libraries map ~390 MB, their
-// initialisers need ~70 MB more and an 8x8 render ~90 MB; between this check and what a run
-// needs, allocation failures inside main are the ordinary one-line "out of memory" error.
+// Measured here (2 CPUs, Debian 12): the libraries map ~26 MB (OpenImageIO, ~500 MB more with
+// its libraries, is a module loaded on first use that checks the limit itself:
+// scenes/image_io.cc), and an 8x8 render on every hardware thread runs from a 128 MB limit on
+// (each thread's stack and malloc arena); between this check and what a run needs, allocation
+// failures inside main are the ordinary one-line "out of memory" error.
 constexpr unsigned long long kStartHeadroomMb = 96;
 
 void CheckAddressSpace(int, char**, char**) {

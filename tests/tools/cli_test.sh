@@ -27,6 +27,14 @@ if "$rs" render --scene cornell --width 64 --height 48 --depth 2 --out "$tmp/c.p
 else bad "render cornell"; cat "$tmp/out"; fi
 if "$rs" render --scene cornell --width 32 --height 32 --out "$tmp/c.exr" -q && [ -s "$tmp/c.exr" ]; then
   ok "render to EXR"; else bad "render to EXR"; fi
+# OpenImageIO (~270 libraries) is a module loaded only for textures and formats other than PNG
+# (scenes/image_module.h): the loader's log names it for an EXR render and not for a PNG one.
+LD_DEBUG=files LD_DEBUG_OUTPUT="$tmp/ld_png" "$rs" render --width 16 --height 16 -q --out "$tmp/m.png"
+LD_DEBUG=files LD_DEBUG_OUTPUT="$tmp/ld_exr" "$rs" render --width 16 --height 16 -q --out "$tmp/m.exr"
+if [ -s "$tmp/m.png" ] && [ -s "$tmp/m.exr" ] && ! grep -q 'file=libOpenImageIO' "$tmp"/ld_png.* \
+   && grep -q 'raystream-oiio\.so' "$tmp"/ld_exr.* && grep -q 'file=libOpenImageIO' "$tmp"/ld_exr.*; then
+  ok "PNG render maps no OpenImageIO, EXR render loads the module"
+else bad "OpenImageIO module loading"; grep -h 'file=' "$tmp"/ld_png.* | head -5; fi
 if "$rs" render --scene cornell --width 16 --height 16 --frames 3 --out "$tmp/f#.png" --stats "$tmp/s.json" -q \
    && [ -s "$tmp/f0000.png" ] && [ -s "$tmp/f0002.png" ] && python3 -c "import json,sys; d=json.load(open('$tmp/s.json')); sys.exit(0 if len(d['frames'])==3 else 1)"; then
   ok "3-frame walk-through with per-frame files and stats"; else bad "multi-frame render"; fi
