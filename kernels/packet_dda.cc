@@ -153,6 +153,7 @@ struct PacketTracer {
   uint64_t cells = 0;
   uint64_t tests = 0;
   uint64_t one_ready = 0;  // rays whose PreparedRay (r.one) is set up
+  float k_union_lo = 0.0f, k_union_hi = 0.0f;  // any hit: the K range of every vector's rays
   const uint32_t* skip_rings = nullptr;  // DdaGrid::skip (null: none)
 
   static size_t Lanes() { return hn::Lanes(D()); }
@@ -491,6 +492,18 @@ struct PacketTracer {
       const VT k2 = hn::LoadU(dt, b + size_t(6 + K) * stride);
       klo = hn::Min(k0, hn::Min(k1, k2));
       khi = hn::Max(k0, hn::Max(k1, k2));
+    }
+    // the group against the slice's union box first (and any hit: the packet's K range): most
+    // triangles of a leaf lie outside the packet's few cells
+    {
+      auto m = hn::And(
+          hn::And(hn::Le(ulo, hn::Set(dt, f.whi[0])), hn::Ge(uhi, hn::Set(dt, f.wlo[0]))),
+          hn::And(hn::Le(vlo, hn::Set(dt, f.whi[1])), hn::Ge(vhi, hn::Set(dt, f.wlo[1]))));
+      if constexpr (kAny) {
+        m = hn::And(m, hn::And(hn::Le(klo, hn::Set(dt, k_union_hi)),
+                               hn::Ge(khi, hn::Set(dt, k_union_lo))));
+      }
+      if (hn::AllFalse(dt, m)) return;
     }
     uint64_t vecs[16] = {};  // per triangle of the group: vectors to test (bit w)
     bool any = false;
@@ -974,6 +987,8 @@ struct PacketTracer {
         r.k_lo[w] = hn::GetLane(hn::MinOfLanes(d, lo));
         r.k_hi[w] = hn::GetLane(hn::MaxOfLanes(d, hi));
       }
+      k_union_lo = *std::min_element(r.k_lo, r.k_lo + nv);
+      k_union_hi = *std::max_element(r.k_hi, r.k_hi + nv);
     }
     // slices along K covered by some segment, +-1 for the rounding of the entry cells
     int s_lo = hn::GetLane(hn::MinOfLanes(di, s_min));
