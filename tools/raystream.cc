@@ -442,6 +442,8 @@ BackendConfig MakeBackendConfig(const RenderArgs& args, const RenderOptions& opt
   return c;
 }
 
+int ReportException(std::exception_ptr error) noexcept;
+
 // The one frame loop of every backend: set up (load, build), render the camera path's frames,
 // write the images ('#': every frame as it completes; otherwise the last after Finish), the
 // statistics (one writer, JSON or CSV) and the summary.
@@ -484,16 +486,22 @@ int RunRender(RenderArgs args) {
   std::optional<Accel> accel;
   double load_seconds = 0;
   std::string note;
-  if (!backend->Setup([&] {
-        const auto t_load = std::chrono::steady_clock::now();
-        scene.emplace(LoadScene(args.scene));
-        load_seconds = Seconds(std::chrono::steady_clock::now() - t_load);
-        BuildOptions build;
-        SetLambda(args.lambda, &build);
-        accel.emplace(backend->Build(*scene, build, args.width, &note));
-      })) {
-    return 1;  // another MPI rank printed the error
+  bool set_up = false;
+  try {
+    set_up = backend->Setup([&] {
+      const auto t_load = std::chrono::steady_clock::now();
+      scene.emplace(LoadScene(args.scene));
+      load_seconds = Seconds(std::chrono::steady_clock::now() - t_load);
+      BuildOptions build;
+      SetLambda(args.lambda, &build);
+      accel.emplace(backend->Build(*scene, build, args.width, &note));
+    });
+  } catch (...) {
+    // Printed while the backend lives: the mpi backend finalizes MPI when it goes, and mpirun
+    // may then end this rank (the others exit with status 1 at once) before the line is out.
+    return ReportException(std::current_exception());
   }
+  if (!set_up) return 1;  // another MPI rank printed the error
   const bool owner = backend->owns_image();
   if (owner && !note.empty() && !args.quiet) fmt::print(stderr, "raystream: note: {}\n", note);
   const AccelInfo info = accel->Info();
@@ -616,6 +624,27 @@ int RunRender(RenderArgs args) {
 void PrintError(const char* kind, const std::string& what) noexcept {
   std::fprintf(stderr, "raystream: %s: %s\n", kind, what.c_str());
   std::fflush(stderr);
+}
+
+// The one line for an exception that ends the command, and the exit status: 1 for errors, 2 for
+// an internal error.
+int ReportException(std::exception_ptr error) noexcept {
+  try {
+    std::rethrow_exception(error);
+  } catch (const Error& e) {
+    PrintError("error", e.what());
+  } catch (const std::system_error& e) {  // fmt: a write to stdout failed (full disk, pipe)
+    PrintError("error", std::string("cannot write to standard output: ") + e.what());
+  } catch (const std::bad_alloc&) {
+    PrintError("error", "out of memory");
+  } catch (const std::exception& e) {
+    PrintError("internal error", e.what());
+    return 2;
+  } catch (...) {
+    PrintError("internal error", "unknown exception");
+    return 2;
+  }
+  return 1;
 }
 
 // Everything written to stdout reached it, or the run fails (e.g. `info >/dev/full`).
@@ -799,18 +828,8 @@ int Main(int argc, char** argv) {
       for (const auto& d : SceneSearchPath()) fmt::print("  {}\n", d);
       return FlushStdout(0);
     }
-  } catch (const Error& e) {
-    PrintError("error", e.what());
-    return 1;
-  } catch (const std::system_error& e) {  // fmt: a write to stdout failed (full disk, pipe)
-    PrintError("error", std::string("cannot write to standard output: ") + e.what());
-    return 1;
-  } catch (const std::bad_alloc&) {
-    PrintError("error", "out of memory");
-    return 1;
-  } catch (const std::exception& e) {
-    PrintError("internal error", e.what());
-    return 2;
+  } catch (...) {
+    return ReportException(std::current_exception());
   }
   return 0;
 }
