@@ -127,17 +127,24 @@ bool BinReferences(const TriangleSoA& tris, const Grid& grid, const BinGeometry&
     for (int a = 0; a < 3; ++a) p[k][a] = tris.p[k][a].data();
   }
   RangeBlock block;
+  uint16_t quad_js[kRangeBlock];
+  uint8_t quad_masks[kRangeBlock];
   for (size_t first = first_tri; first < n; first += kRangeBlock) {
     const size_t count = std::min(kRangeBlock, n - first);
-    SimdTriangleCellRanges(tris, geo, first, count, &block);
+    SimdTriangleCellRanges(tris, geo, first, count, &block, /*bin_flags=*/true);
     // room for the block's one-cell and line triangles (all their box cells are emitted) at
     // once; each triangle tested by BinTriangleCells makes room for its box plus that reserve
     // below (the line triangles after it in the block still need theirs)
-    size_t lines = 0;
+    // (flagged triangles have box 0); the 2 x 2-cell triangles are edge-tested here, a vector
+    // of triangles at a time
+    size_t lines = 0, quads = 0;
     for (size_t j = 0; j < count; ++j) {
-      const int spans_mask = block.flags[j] & 7;
-      lines += (spans_mask & (spans_mask - 1)) == 0 ? size_t(block.box[j]) : 0;
+      const int32_t flags = block.flags[j];
+      lines += (flags & kRangeLine) ? size_t(block.box[j]) : 0;
+      if (flags & kRangeQuad) quad_js[quads++] = uint16_t(j);
     }
+    if (quads > 0) SimdQuadCellMasks(tris, geo, first, block, quad_js, quads, quad_masks);
+    size_t next_quad = 0;
     if (num_refs + lines > limit) {
       *num_refs_out = num_refs + lines;
       return false;
@@ -152,7 +159,7 @@ bool BinReferences(const TriangleSoA& tris, const Grid& grid, const BinGeometry&
       if (flags & (kRangeDegenerate | kRangeOutside)) continue;
       size_t c = block.cell[j];  // the corner's cell index (SIMD pass)
       const int spans_mask = flags & 7;
-      if ((spans_mask & (spans_mask - 1)) == 0) {
+      if (flags & kRangeLine) {
         // one cell (the common case at low lambda), or a line of cells along one axis: the
         // triangle crosses them all (BinTriangleCells)
         const int a = spans_mask == 4 ? 2 : spans_mask >> 1;  // 0 -> axis 0, a 1-cell range
@@ -163,6 +170,32 @@ bool BinReferences(const TriangleSoA& tris, const Grid& grid, const BinGeometry&
           ++begin[c];
         }
         lines -= cells;
+        continue;
+      }
+      if (flags & kRangeQuad) {
+        // a 2 x 2-cell triangle: its cells from the SIMD edge tests, in BinTriangleCells' order
+        // (axis i fastest), with the same room and budget checks as below
+        const uint32_t mask = quad_masks[next_quad++];
+        size_t room = 4;
+        if (num_refs + room + lines > limit) {
+          const size_t exact = size_t(std::popcount(mask));
+          if (num_refs + exact + lines > limit) {
+            *num_refs_out = num_refs + exact + lines;
+            return false;
+          }
+          room = exact;
+        }
+        if (num_refs + room + lines > *capacity) {
+          Grow(ref_cells, num_refs, capacity, room + lines, limit);
+          cells_out = ref_cells->get();
+        }
+        const size_t si = strides[spans_mask == 6 ? 1 : 0], sj = strides[spans_mask == 3 ? 1 : 2];
+        const size_t offset[4] = {0, si, sj, si + sj};
+        for (uint32_t m = mask; m != 0; m &= m - 1) {
+          const size_t cell = c + offset[std::countr_zero(m)];
+          cells_out[num_refs++] = uint32_t(cell);
+          ++begin[cell];
+        }
         continue;
       }
       const int c0[3] = {block.c0[0][j], block.c0[1][j], block.c0[2][j]};

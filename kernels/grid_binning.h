@@ -101,12 +101,18 @@ inline constexpr size_t kRangeBlock = 256;
 inline constexpr int32_t kRangeOutside = 8;      // flags bit: misses the grid (no cells)
 inline constexpr int32_t kRangeDegenerate = 16;  // flags bit: degenerate triangle (skip)
 inline constexpr int32_t kRangeSmall = 32;       // flags bit: at most 2 cells on every axis
+// flags bit (bin_flags only): at most one spanning axis (one cell, or a line of cells:
+// BinTriangleCells lists the whole box). Also set on some flagged triangles (their box is 0).
+inline constexpr int32_t kRangeLine = 64;
+// flags bit (bin_flags only): 2 x 2 cells (box 4, two axes of extent 1) and not spanning on the
+// third axis: the triangles SimdQuadCellMasks tests.
+inline constexpr int32_t kRangeQuad = 128;
 struct RangeBlock {
   int32_t c0[3][kRangeBlock];  // [0, 0] for flagged (degenerate or outside) triangles
   int32_t c1[3][kRangeBlock];
   uint32_t box[kRangeBlock];   // cells in the box [c0, c1] (<= num_cells < 2^32), 0 if flagged
   int32_t flags[kRangeBlock];  // bit a: spans on axis a; kRangeOutside; kRangeDegenerate;
-                               // kRangeSmall
+                               // kRangeSmall; kRangeLine; kRangeQuad
   // Cell index of the corner c0, c0[0] + res[0] (c0[1] + res[1] c0[2]); for flagged triangles
   // res[0] res[1] res[2] (one past the last cell).
   uint32_t cell[kRangeBlock];
@@ -114,8 +120,21 @@ struct RangeBlock {
   uint32_t step[3][kRangeBlock];
 };
 // Fills out for triangles [first, first + count), count <= kRangeBlock, first + count <= size.
+// kRangeLine and kRangeQuad are set only with bin_flags (the binning's; the box counts and the
+// sub-grids do not read them).
 void SimdTriangleCellRanges(const TriangleSoA& tris, const BinGeometry& g, size_t first,
-                            size_t count, RangeBlock* out);
+                            size_t count, RangeBlock* out, bool bin_flags = false);
+
+// The 2 x 2-cell triangles of a block (the most common ones after the 1-cell and line
+// triangles, kRangeQuad): spanning exactly 2 cells on two axes i < j and one cell on the third.
+// For block entries js[0, n) (indices into `block`, triangles first + js[t]), masks[t] gets bit
+// m + 2 r
+// set iff cell (c0[i] + m, c0[j] + r) passes the 2D edge tests of binning::Edges2D(i, j) on
+// that triangle: the same sums, products and comparisons per lane as Edges2D's constructor
+// and SimdEdgeTable, so the same cells as BinTriangleCells bit for bit, a vector of triangles
+// at a time.
+void SimdQuadCellMasks(const TriangleSoA& tris, const BinGeometry& g, size_t first,
+                       const RangeBlock& block, const uint16_t* js, size_t n, uint8_t* masks);
 
 // The edge constraints of a triangle's 2D projection (binning::Edges2D): cell (ci, cj) passes
 // edge k iff c = (base[k] + double(cj) * sj[k]) + double(ci) * si[k] is within [lo[k], hi[k]].

@@ -117,8 +117,9 @@ void SimdDegenerateFlagsRange(TriangleSoA* tris, size_t first, size_t n, size_t*
   *nonfinite_out = nonfinite;
 }
 
-void SimdTriangleCellRanges(const TriangleSoA& tris, const BinGeometry& g, size_t first,
-                            size_t count, RangeBlock* out) {
+template <bool bin_flags>
+HWY_INLINE void CellRanges(const TriangleSoA& tris, const BinGeometry& g, size_t first,
+                           size_t count, RangeBlock* out) {
   const hn::ScalableTag<float> d;
   const hn::RebindToSigned<decltype(d)> di;
   const auto minus1 = hn::Set(d, -1.0f), one = hn::Set(d, 1.0f);
@@ -171,11 +172,113 @@ void SimdTriangleCellRanges(const TriangleSoA& tris, const BinGeometry& g, size_
       hn::StoreU(c1, di, out->c1[a] + k);
     }
     flags = hn::Or(flags, hn::IfThenElseZero(small, hn::Set(di, kRangeSmall)));
+    if constexpr (bin_flags) {
+      // at most one spanning axis: spans & (spans - 1) == 0
+      const auto spans = hn::And(flags, hn::Set(di, 7));
+      const auto line = hn::Eq(hn::And(spans, hn::Sub(spans, one_i)), zero_i);
+      flags = hn::Or(flags, hn::IfThenElseZero(line, hn::Set(di, kRangeLine)));
+      // box 4 with every extent <= 1: two axes of extent 1 (both spanning); not spanning on the
+      // third (spans != 7, else BinTriangleCells runs the 3D test)
+      const auto quad = hn::And(hn::RebindMask(di, hn::Eq(box, hn::Set(du, 4u))),
+                                hn::And(small, hn::Ne(spans, hn::Set(di, 7))));
+      flags = hn::Or(flags, hn::IfThenElseZero(quad, hn::Set(di, kRangeQuad)));
+    }
     cell = hn::IfThenElse(hn::RebindMask(du, skip), hn::Set(du, num_cells), cell);
     hn::StoreU(cell, du, out->cell + k);
     hn::StoreU(box, du, out->box + k);
     hn::StoreU(flags, di, out->flags + k);
   }
+}
+
+void SimdQuadCellMasks(const TriangleSoA& tris, const BinGeometry& g, size_t first,
+                       const RangeBlock& block, const uint16_t* js, size_t n, uint8_t* masks) {
+  const hn::ScalableTag<double> dd;
+  constexpr size_t kMax = HWY_MAX_BYTES / sizeof(double);
+  const size_t lanes = hn::Lanes(dd);
+  // the per-axis terms of Edges2D, rounded as there: 0.5 cs + margin, lo + 0.5 cs
+  double hc[3], mid[3];
+  for (int a = 0; a < 3; ++a) {
+    hc[a] = 0.5 * g.cs[a] + g.margin[a];
+    mid[a] = g.lo[a] + 0.5 * g.cs[a];
+  }
+  HWY_ALIGN double vi[3][kMax], vj[3][kMax];
+  HWY_ALIGN double hci[kMax], hcj[kMax], midi[kMax], midj[kMax], csi[kMax], csj[kMax];
+  HWY_ALIGN double ci0[kMax], cj0[kMax], out[kMax];
+  const auto zero = hn::Zero(dd), one = hn::Set(dd, 1.0);
+  for (size_t s = 0; s < n; s += lanes) {
+    const size_t live = std::min(lanes, n - s);
+    // each lane's projection axes (i, j) and its values on them; lanes past n repeat the last
+    for (size_t l = 0; l < lanes; ++l) {
+      const size_t e = js[s + std::min(l, live - 1)];
+      const size_t t = first + e;
+      const int32_t flags = block.flags[e];
+      const int k = !(flags & 1) ? 0 : (!(flags & 2) ? 1 : 2);  // the single-cell axis
+      const int i = k == 0 ? 1 : 0, j = k == 2 ? 1 : 2;
+      for (int v = 0; v < 3; ++v) {
+        vi[v][l] = double(tris.p[v][i][t]);
+        vj[v][l] = double(tris.p[v][j][t]);
+      }
+      hci[l] = hc[i];
+      hcj[l] = hc[j];
+      midi[l] = mid[i];
+      midj[l] = mid[j];
+      csi[l] = g.cs[i];
+      csj[l] = g.cs[j];
+      ci0[l] = double(block.c0[i][e]);
+      cj0[l] = double(block.c0[j][e]);
+    }
+    hn::Vec<decltype(dd)> pi[3], pj[3];
+    for (int v = 0; v < 3; ++v) {
+      pi[v] = hn::Load(dd, vi[v]);
+      pj[v] = hn::Load(dd, vj[v]);
+    }
+    const auto hi_c = hn::Load(dd, hci), hj_c = hn::Load(dd, hcj);
+    const auto mi = hn::Load(dd, midi), mj = hn::Load(dd, midj);
+    const auto ci_s = hn::Load(dd, csi), cj_s = hn::Load(dd, csj);
+    const auto col0 = hn::Load(dd, ci0), row0 = hn::Load(dd, cj0);
+    const auto col1 = hn::Add(col0, one), row1 = hn::Add(row0, one);  // small integers: exact
+    auto ok00 = hn::Eq(zero, zero), ok10 = ok00, ok01 = ok00, ok11 = ok00;
+    for (int e = 0; e < 3; ++e) {
+      const int q = e == 2 ? 0 : e + 1, r = e == 0 ? 2 : e - 1;  // edge p -> q, third vertex r
+      // normal of the projected edge; (0, 0) (an edge along the third axis) constrains nothing
+      const auto ni = hn::Neg(hn::Sub(pj[q], pj[e])), nj = hn::Sub(pi[q], pi[e]);
+      const auto none = hn::And(hn::Eq(ni, zero), hn::Eq(nj, zero));
+      const auto pp = hn::Add(hn::Mul(ni, pi[e]), hn::Mul(nj, pj[e]));
+      const auto pr = hn::Add(hn::Mul(ni, pi[r]), hn::Mul(nj, pj[r]));
+      const auto half = hn::Add(hn::Mul(hn::Abs(ni), hi_c), hn::Mul(hn::Abs(nj), hj_c));
+      // min / max of two finite values; a signed zero tie does not change min - half
+      const auto lo = hn::Sub(hn::Min(pp, pr), half), hi = hn::Add(hn::Max(pp, pr), half);
+      const auto base = hn::Add(hn::Mul(ni, mi), hn::Mul(nj, mj));
+      const auto si = hn::Mul(ni, ci_s), sj = hn::Mul(nj, cj_s);
+      // (base + double(cj) * sj) + double(ci) * si, as SimdEdgeTable
+      const auto r0 = hn::Add(base, hn::Mul(row0, sj)), r1 = hn::Add(base, hn::Mul(row1, sj));
+      const auto t0 = hn::Mul(col0, si), t1 = hn::Mul(col1, si);
+      const auto pass = [&](const hn::Vec<decltype(dd)> c) {
+        return hn::Or(none, hn::Not(hn::Or(hn::Lt(c, lo), hn::Gt(c, hi))));
+      };
+      ok00 = hn::And(ok00, pass(hn::Add(r0, t0)));
+      ok10 = hn::And(ok10, pass(hn::Add(r0, t1)));
+      ok01 = hn::And(ok01, pass(hn::Add(r1, t0)));
+      ok11 = hn::And(ok11, pass(hn::Add(r1, t1)));
+    }
+    // bit m + 2 r per cell (small integers in double: exact)
+    auto bits = hn::IfThenElseZero(ok00, one);
+    bits = hn::Add(bits, hn::IfThenElseZero(ok10, hn::Set(dd, 2.0)));
+    bits = hn::Add(bits, hn::IfThenElseZero(ok01, hn::Set(dd, 4.0)));
+    bits = hn::Add(bits, hn::IfThenElseZero(ok11, hn::Set(dd, 8.0)));
+    hn::Store(bits, dd, out);
+    for (size_t l = 0; l < live; ++l) masks[s + l] = uint8_t(out[l]);
+  }
+}
+
+void SimdTriangleCellRanges(const TriangleSoA& tris, const BinGeometry& g, size_t first,
+                            size_t count, RangeBlock* out) {
+  CellRanges<false>(tris, g, first, count, out);
+}
+
+void SimdTriangleCellRangesBin(const TriangleSoA& tris, const BinGeometry& g, size_t first,
+                               size_t count, RangeBlock* out) {
+  CellRanges<true>(tris, g, first, count, out);
 }
 
 void SimdEdgeTable(const EdgeSet& e, int ci0, int ni, int cj0, int nj, uint8_t* out) {
@@ -243,8 +346,15 @@ namespace rs {
 
 HWY_EXPORT(SimdTriangleBounds);
 HWY_EXPORT(SimdTriangleCellRanges);
+HWY_EXPORT(SimdTriangleCellRangesBin);
 HWY_EXPORT(SimdDegenerateFlagsRange);
 HWY_EXPORT(SimdEdgeTable);
+HWY_EXPORT(SimdQuadCellMasks);
+
+void SimdQuadCellMasks(const TriangleSoA& tris, const BinGeometry& g, size_t first,
+                       const RangeBlock& block, const uint16_t* js, size_t n, uint8_t* masks) {
+  HWY_DYNAMIC_DISPATCH(SimdQuadCellMasks)(tris, g, first, block, js, n, masks);
+}
 
 void SimdEdgeTable(const EdgeSet& e, int ci0, int ni, int cj0, int nj, uint8_t* out) {
   HWY_DYNAMIC_DISPATCH(SimdEdgeTable)(e, ci0, ni, cj0, nj, out);
@@ -264,8 +374,12 @@ void SimdTriangleBounds(const TriangleSoA& tris, float lo[3], float hi[3], size_
 }
 
 void SimdTriangleCellRanges(const TriangleSoA& tris, const BinGeometry& g, size_t first,
-                            size_t count, RangeBlock* out) {
-  HWY_DYNAMIC_DISPATCH(SimdTriangleCellRanges)(tris, g, first, count, out);
+                            size_t count, RangeBlock* out, bool bin_flags) {
+  if (bin_flags) {
+    HWY_DYNAMIC_DISPATCH(SimdTriangleCellRangesBin)(tris, g, first, count, out);
+  } else {
+    HWY_DYNAMIC_DISPATCH(SimdTriangleCellRanges)(tris, g, first, count, out);
+  }
 }
 
 }  // namespace rs

@@ -15,6 +15,7 @@
 #include "kernels/grid_binning.h"
 #include "kernels/triangle.h"
 #include "tests/kernels/geometry_util.h"
+#include "tests/test_util.h"
 
 namespace rs {
 namespace {
@@ -464,6 +465,81 @@ TEST_CASE("SIMD edge tables equal the scalar sums and comparisons, ties included
   CHECK(ties > 50);
   CHECK(passed > cells / 10);
   CHECK(passed < cells);
+}
+
+TEST_CASE("SIMD 2 x 2-cell masks equal BinTriangleCells on every target") {
+  // triangles about a cell wide at random positions (many straddle a cell corner on two axes:
+  // 2 x 2 boxes), some on cell planes and with an edge along an axis (an edge of projected
+  // normal (0, 0)), on grids of several resolutions and offsets, huge and tiny coordinates
+  Rng rng(59);
+  size_t quads = 0, partial = 0;
+  for (int round = 0; round < 8; ++round) {
+    const double scale = round == 6 ? 1e-30 : (round == 7 ? 1e30 : 1.0);
+    const double offset = round == 5 ? 1e4 : 0.0;
+    Soup soup;
+    for (int t = 0; t < 700; ++t) {
+      const Soup one = test::RandomSoup(rng, 1, -1.0, 1.0, round % 2 ? 0.12 : 0.3);
+      float p[9];
+      for (int k = 0; k < 9; ++k) p[k] = F((double(one.positions[k]) + offset) * scale);
+      if (t % 7 == 0) p[3] = p[0];  // edge 0 -> 1 along the axes y, z only
+      if (t % 11 == 0) p[5] = p[2] = p[8];  // in a z plane
+      soup.AddTriangle(p, p + 3, p + 6);
+    }
+    TriangleSoA tris;
+    BuildTriangleSoA(soup.view(), &tris);
+    Grid geometry;
+    SetGridGeometry(ComputeGridBounds(tris), float(1 + round), 512, &geometry);
+    const BinGeometry geo = GridBinGeometry(geometry);
+    test::ForEachTarget([&](const char* target) {
+      INFO("target: ", target, " round ", round);
+      BinScratch scratch;
+      RangeBlock block;
+      for (size_t first = 0; first < tris.size; first += kRangeBlock) {
+        const size_t count = std::min(kRangeBlock, tris.size - first);
+        SimdTriangleCellRanges(tris, geo, first, count, &block, /*bin_flags=*/true);
+        std::vector<uint16_t> js;
+        for (size_t j = 0; j < count; ++j) {
+          // kRangeQuad: two spanning axes of extent 1, one cell on the third; kRangeLine: at
+          // most one spanning axis
+          const int s = block.flags[j] & 7;
+          bool quad = block.box[j] == 4 && (s == 3 || s == 5 || s == 6);
+          const int a = s == 6 ? 1 : 0, b = s == 3 ? 1 : 2;
+          quad = quad && block.c1[a][j] - block.c0[a][j] == 1 &&
+                 block.c1[b][j] - block.c0[b][j] == 1;
+          CHECK(((block.flags[j] & kRangeQuad) != 0) == quad);
+          CHECK(((block.flags[j] & kRangeLine) != 0) == ((s & (s - 1)) == 0));
+          if (quad) js.push_back(uint16_t(j));
+        }
+        std::vector<uint8_t> masks(js.size() + 1, 0xee);
+        SimdQuadCellMasks(tris, geo, first, block, js.data(), js.size(), masks.data());
+        CHECK(masks[js.size()] == 0xee);  // nothing written past the masks
+        for (size_t q = 0; q < js.size(); ++q) {
+          const size_t j = js[q], i = first + j;
+          const float v[3][3] = {{tris.p[0][0][i], tris.p[0][1][i], tris.p[0][2][i]},
+                                 {tris.p[1][0][i], tris.p[1][1][i], tris.p[1][2][i]},
+                                 {tris.p[2][0][i], tris.p[2][1][i], tris.p[2][2][i]}};
+          int c0[3], c1[3];
+          bool span[3];
+          const int spans = TriangleCellRange(geo, v, c0, c1, span);
+          REQUIRE(spans == 2);
+          const int k = !span[0] ? 0 : (!span[1] ? 1 : 2);
+          const int ai = k == 0 ? 1 : 0, aj = k == 2 ? 1 : 2;
+          uint32_t expect = 0;
+          BinTriangleCells(geo, v, c0, c1, span, spans, &scratch, [&](int x, int y, int z) {
+            const int c[3] = {x, y, z};
+            expect |= 1u << ((c[ai] - c0[ai]) + 2 * (c[aj] - c0[aj]));
+          });
+          INFO("triangle ", i);
+          CHECK(uint32_t(masks[q]) == expect);
+          partial += expect != 15;
+        }
+        quads += js.size();
+      }
+    });
+  }
+  MESSAGE("2 x 2-cell triangles ", quads, ", not in all four cells ", partial);
+  CHECK(quads > 1000);
+  CHECK(partial > 100);
 }
 
 TEST_CASE("CountGridBoxes equals counting the bounding-box cells one by one") {
