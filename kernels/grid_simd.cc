@@ -332,7 +332,13 @@ void SimdEdgeTable(const EdgeSet& e, int ci0, int ni, int cj0, int nj, uint8_t* 
       uint8_t bits[8] = {};
       hn::StoreMaskBits(dd, ok, bits);
       uint8_t* o = out + size_t(r) * size_t(ni) + size_t(m0);
-      for (int m = 0; m < live; ++m) o[m] = uint8_t((bits[m >> 3] >> (m & 7)) & 1u);
+      if (std::endian::native == std::endian::little && live == lanes && lanes <= 8) {
+        // byte m = bit m: kBadBytes' bytes flipped, one store of the vector's entries
+        const uint64_t entries = kBadBytes[bits[0]] ^ 0x0101010101010101ull;
+        std::memcpy(o, &entries, size_t(lanes));
+      } else {
+        for (int m = 0; m < live; ++m) o[m] = uint8_t((bits[m >> 3] >> (m & 7)) & 1u);
+      }
     }
   }
 }
