@@ -90,6 +90,10 @@ void SimdDegenerateFlags(TriangleSoA* tris);
 void SimdDegenerateFlags(TriangleSoA* tris, size_t first, size_t last, size_t* degenerate,
                          size_t* nonfinite);
 
+// The largest of p[0, n) (0 if n = 0), a vector at a time: unpadded caller memory (whole
+// vectors while they fit, then the rest one by one). The mesh's index check (rs::Accel).
+uint32_t SimdMaxIndex(const uint32_t* p, size_t n);
+
 // Float min / max of the vertices of the non-degenerate triangles (+-FLT_MAX if none) and
 // their number.
 void SimdTriangleBounds(const TriangleSoA& tris, float lo[3], float hi[3], size_t* num_valid);

@@ -30,6 +30,21 @@ HWY_INLINE hn::Mask<D> ValidLanes(D d, const TriangleSoA& tris, size_t i) {
   return hn::And(hn::FirstN(d, tris.size - i), hn::RebindMask(d, hn::Eq(flag, hn::Zero(di))));
 }
 
+uint32_t SimdMaxIndex(const uint32_t* p, size_t n) {
+  const hn::ScalableTag<uint32_t> du;
+  const size_t lanes = hn::Lanes(du);
+  // two accumulators: the max's latency
+  auto m0 = hn::Zero(du), m1 = hn::Zero(du);
+  size_t i = 0;
+  for (; i + 2 * lanes <= n; i += 2 * lanes) {
+    m0 = hn::Max(m0, hn::LoadU(du, p + i));
+    m1 = hn::Max(m1, hn::LoadU(du, p + i + lanes));
+  }
+  uint32_t m = hn::GetLane(hn::MaxOfLanes(du, hn::Max(m0, m1)));
+  for (; i < n; ++i) m = std::max(m, p[i]);  // unpadded caller memory: no whole-vector load
+  return m;
+}
+
 void SimdTriangleBounds(const TriangleSoA& tris, float lo[3], float hi[3], size_t* num_valid) {
   const hn::ScalableTag<float> d;
   const auto big = hn::Set(d, FLT_MAX), small = hn::Set(d, -FLT_MAX);
@@ -351,6 +366,9 @@ HWY_AFTER_NAMESPACE();
 namespace rs {
 
 HWY_EXPORT(SimdTriangleBounds);
+HWY_EXPORT(SimdMaxIndex);
+
+uint32_t SimdMaxIndex(const uint32_t* p, size_t n) { return HWY_DYNAMIC_DISPATCH(SimdMaxIndex)(p, n); }
 HWY_EXPORT(SimdTriangleCellRanges);
 HWY_EXPORT(SimdTriangleCellRangesBin);
 HWY_EXPORT(SimdDegenerateFlagsRange);

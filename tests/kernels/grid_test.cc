@@ -467,6 +467,24 @@ TEST_CASE("SIMD edge tables equal the scalar sums and comparisons, ties included
   CHECK(passed < cells);
 }
 
+TEST_CASE("SimdMaxIndex: the largest index of unpadded arrays, every size and position") {
+  test::ForEachTarget([&](const char* target) {
+    INFO("target: ", target);
+    for (size_t n = 0; n <= 70; ++n) {
+      // exactly n elements on the heap (ASan: no read past them), the largest at every position,
+      // values above 2^31 (unsigned order)
+      for (size_t at = 0; at < std::max<size_t>(n, 1); ++at) {
+        std::vector<uint32_t> v(n);
+        for (size_t i = 0; i < n; ++i) v[i] = uint32_t(i * 2654435761u) >> 1;
+        if (n > 0) v[at] = 0x80000000u + uint32_t(at);
+        const uint32_t expect = n == 0 ? 0 : *std::max_element(v.begin(), v.end());
+        INFO("n ", n, " at ", at);
+        CHECK(SimdMaxIndex(v.data(), n) == expect);
+      }
+    }
+  });
+}
+
 TEST_CASE("SIMD 2 x 2-cell masks equal BinTriangleCells on every target") {
   // triangles about a cell wide at random positions (many straddle a cell corner on two axes:
   // 2 x 2 boxes), some on cell planes and with an edge along an axis (an edge of projected
