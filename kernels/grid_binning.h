@@ -90,6 +90,12 @@ void SimdDegenerateFlags(TriangleSoA* tris);
 void SimdDegenerateFlags(TriangleSoA* tris, size_t first, size_t last, size_t* degenerate,
                          size_t* nonfinite);
 
+// dst[k][a][i] = mesh.positions[mesh.indices[3 i + k] * mesh.stride + a] for i in [first, last)
+// (the triangle gather of BuildTriangleSoA), a vector of triangles at a time with gathers where
+// the offsets fit in 32 bits, else (and for the last part vector) one by one; the same floats.
+// Preconditions: every index read is < num_vertices; dst arrays hold `last` floats (padded).
+void SimdGatherTriangles(const MeshView& mesh, size_t first, size_t last, float* const dst[3][3]);
+
 // The largest of p[0, n) (0 if n = 0), a vector at a time: unpadded caller memory (whole
 // vectors while they fit, then the rest one by one). The mesh's index check (rs::Accel).
 uint32_t SimdMaxIndex(const uint32_t* p, size_t n);

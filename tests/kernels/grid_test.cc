@@ -467,6 +467,42 @@ TEST_CASE("SIMD edge tables equal the scalar sums and comparisons, ties included
   CHECK(passed < cells);
 }
 
+TEST_CASE("BuildTriangleSoA gathers the mesh's vertices: every size, stride and target") {
+  Rng rng(61);
+  test::ForEachTarget([&](const char* target) {
+    INFO("target: ", target);
+    for (size_t n = 0; n <= 45; n += (n < 20 ? 1 : 7)) {
+      for (const size_t stride : {size_t{3}, size_t{4}, size_t{7}}) {
+        // exactly sized arrays (ASan: no read past them); vertices shared and in any order
+        const size_t vertices = 2 * n + 1;
+        std::vector<float> positions(vertices * stride);
+        for (float& x : positions) x = rng.UniformF(-100.0, 100.0);
+        std::vector<uint32_t> indices(3 * n);
+        for (uint32_t& i : indices) i = uint32_t(rng.Below(uint32_t(vertices)));
+        MeshView mesh;
+        mesh.positions = positions.data();
+        mesh.num_vertices = vertices;
+        mesh.stride = stride;
+        mesh.indices = indices.data();
+        mesh.num_triangles = n;
+        for (const int threads : {1, 3}) {
+          TriangleSoA tris;
+          BuildTriangleSoA(mesh, &tris, threads);
+          REQUIRE(tris.size == n);
+          for (size_t t = 0; t < n; ++t) {
+            for (int k = 0; k < 3; ++k) {
+              for (int a = 0; a < 3; ++a) {
+                INFO("n ", n, " stride ", stride, " triangle ", t, " vertex ", k, " axis ", a);
+                CHECK(tris.p[k][a][t] == positions[indices[3 * t + k] * stride + a]);
+              }
+            }
+          }
+        }
+      }
+    }
+  });
+}
+
 TEST_CASE("SimdMaxIndex: the largest index of unpadded arrays, every size and position") {
   test::ForEachTarget([&](const char* target) {
     INFO("target: ", target);
