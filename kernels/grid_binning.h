@@ -96,6 +96,12 @@ void SimdDegenerateFlags(TriangleSoA* tris, size_t first, size_t last, size_t* d
 // Preconditions: every index read is < num_vertices; dst arrays hold `last` floats (padded).
 void SimdGatherTriangles(const MeshView& mesh, size_t first, size_t last, float* const dst[3][3]);
 
+// out[i] = min(out[i], max(d, in[i])) for i < n: one offset of the empty-space rings' windowed
+// min-max (BuildSkipRings, kernels/dda_grid.cc), a vector of bytes at a time (the compiler
+// vectorizes the scalar loop for SSE2 only). out and in do not overlap; unpadded: whole
+// vectors, the last one overlapping the one before (the update is idempotent).
+void SimdMinMaxOffset(uint8_t* out, const uint8_t* in, size_t n, uint8_t d);
+
 // The largest of p[0, n) (0 if n = 0), a vector at a time: unpadded caller memory (whole
 // vectors while they fit, then the rest one by one). The mesh's index check (rs::Accel).
 uint32_t SimdMaxIndex(const uint32_t* p, size_t n);

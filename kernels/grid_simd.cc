@@ -65,6 +65,23 @@ void SimdGatherTriangles(const MeshView& mesh, size_t first, size_t last, float*
   }
 }
 
+void SimdMinMaxOffset(uint8_t* HWY_RESTRICT out, const uint8_t* HWY_RESTRICT in, size_t n,
+                      uint8_t d) {
+  const hn::ScalableTag<uint8_t> du8;
+  const size_t lanes = hn::Lanes(du8);
+  if (n < lanes) {
+    for (size_t i = 0; i < n; ++i) out[i] = std::min(out[i], std::max(d, in[i]));
+    return;
+  }
+  const auto dv = hn::Set(du8, d);
+  const auto update = [&](size_t i) {
+    hn::StoreU(hn::Min(hn::LoadU(du8, out + i), hn::Max(dv, hn::LoadU(du8, in + i))), du8,
+               out + i);
+  };
+  for (size_t i = 0; i + lanes < n; i += lanes) update(i);
+  update(n - lanes);  // the last vector, overlapping: min(min(o, m), m) = min(o, m)
+}
+
 uint32_t SimdMaxIndex(const uint32_t* p, size_t n) {
   const hn::ScalableTag<uint32_t> du;
   const size_t lanes = hn::Lanes(du);
@@ -243,6 +260,8 @@ HWY_INLINE void CellRanges(const TriangleSoA& tris, const BinGeometry& g, size_t
 void SimdQuadCellMasks(const TriangleSoA& tris, const BinGeometry& g, size_t first,
                        const RangeBlock& block, const uint16_t* js, size_t n, uint8_t* masks) {
   const hn::ScalableTag<double> dd;
+  const hn::Rebind<float, decltype(dd)> df;
+  const hn::Rebind<int32_t, decltype(dd)> di;
   constexpr size_t kMax = HWY_MAX_BYTES / sizeof(double);
   const size_t lanes = hn::Lanes(dd);
   // the per-axis terms of Edges2D, rounded as there: 0.5 cs + margin, lo + 0.5 cs
@@ -251,41 +270,46 @@ void SimdQuadCellMasks(const TriangleSoA& tris, const BinGeometry& g, size_t fir
     hc[a] = 0.5 * g.cs[a] + g.margin[a];
     mid[a] = g.lo[a] + 0.5 * g.cs[a];
   }
-  HWY_ALIGN double vi[3][kMax], vj[3][kMax];
-  HWY_ALIGN double hci[kMax], hcj[kMax], midi[kMax], midj[kMax], csi[kMax], csj[kMax];
-  HWY_ALIGN double ci0[kMax], cj0[kMax], out[kMax];
-  const auto zero = hn::Zero(dd), one = hn::Set(dd, 1.0);
+  HWY_ALIGN int32_t tri[kMax], entry[kMax];
+  HWY_ALIGN double single[kMax], out[kMax];
+  const auto zero = hn::Zero(dd), one = hn::Set(dd, 1.0), two = hn::Set(dd, 2.0);
   for (size_t s = 0; s < n; s += lanes) {
     const size_t live = std::min(lanes, n - s);
-    // each lane's projection axes (i, j) and its values on them; lanes past n repeat the last
+    // each lane's triangle, block entry and single-cell axis k; lanes past n repeat the last
     for (size_t l = 0; l < lanes; ++l) {
       const size_t e = js[s + std::min(l, live - 1)];
-      const size_t t = first + e;
       const int32_t flags = block.flags[e];
-      const int k = !(flags & 1) ? 0 : (!(flags & 2) ? 1 : 2);  // the single-cell axis
-      const int i = k == 0 ? 1 : 0, j = k == 2 ? 1 : 2;
-      for (int v = 0; v < 3; ++v) {
-        vi[v][l] = double(tris.p[v][i][t]);
-        vj[v][l] = double(tris.p[v][j][t]);
-      }
-      hci[l] = hc[i];
-      hcj[l] = hc[j];
-      midi[l] = mid[i];
-      midj[l] = mid[j];
-      csi[l] = g.cs[i];
-      csj[l] = g.cs[j];
-      ci0[l] = double(block.c0[i][e]);
-      cj0[l] = double(block.c0[j][e]);
+      tri[l] = int32_t(first + e);
+      entry[l] = int32_t(e);
+      single[l] = !(flags & 1) ? 0.0 : (!(flags & 2) ? 1.0 : 2.0);
     }
+    // projection axes (i, j) = (1, 2), (0, 2), (0, 1) for k = 0, 1, 2: i is axis 1 iff k = 0,
+    // j is axis 1 iff k = 2
+    const auto k = hn::Load(dd, single);
+    const auto i_is_1 = hn::Eq(k, zero), j_is_1 = hn::Eq(k, two);
+    const auto t = hn::Load(di, tri), e = hn::Load(di, entry);
     hn::Vec<decltype(dd)> pi[3], pj[3];
     for (int v = 0; v < 3; ++v) {
-      pi[v] = hn::Load(dd, vi[v]);
-      pj[v] = hn::Load(dd, vj[v]);
+      hn::Vec<decltype(dd)> x[3];
+      for (int a = 0; a < 3; ++a) {
+        x[a] = hn::PromoteTo(dd, hn::GatherIndex(df, tris.p[v][a].data(), t));
+      }
+      pi[v] = hn::IfThenElse(i_is_1, x[1], x[0]);
+      pj[v] = hn::IfThenElse(j_is_1, x[1], x[2]);
     }
-    const auto hi_c = hn::Load(dd, hci), hj_c = hn::Load(dd, hcj);
-    const auto mi = hn::Load(dd, midi), mj = hn::Load(dd, midj);
-    const auto ci_s = hn::Load(dd, csi), cj_s = hn::Load(dd, csj);
-    const auto col0 = hn::Load(dd, ci0), row0 = hn::Load(dd, cj0);
+    const auto pick_i = [&](const double* per_axis) {
+      return hn::IfThenElse(i_is_1, hn::Set(dd, per_axis[1]), hn::Set(dd, per_axis[0]));
+    };
+    const auto pick_j = [&](const double* per_axis) {
+      return hn::IfThenElse(j_is_1, hn::Set(dd, per_axis[1]), hn::Set(dd, per_axis[2]));
+    };
+    const auto hi_c = pick_i(hc), hj_c = pick_j(hc);
+    const auto mi = pick_i(mid), mj = pick_j(mid);
+    const auto ci_s = pick_i(g.cs), cj_s = pick_j(g.cs);
+    hn::Vec<decltype(dd)> c0[3];
+    for (int a = 0; a < 3; ++a) c0[a] = hn::PromoteTo(dd, hn::GatherIndex(di, block.c0[a], e));
+    const auto col0 = hn::IfThenElse(i_is_1, c0[1], c0[0]);
+    const auto row0 = hn::IfThenElse(j_is_1, c0[1], c0[2]);
     const auto col1 = hn::Add(col0, one), row1 = hn::Add(row0, one);  // small integers: exact
     auto ok00 = hn::Eq(zero, zero), ok10 = ok00, ok01 = ok00, ok11 = ok00;
     for (int e = 0; e < 3; ++e) {
@@ -402,6 +426,11 @@ namespace rs {
 
 HWY_EXPORT(SimdTriangleBounds);
 HWY_EXPORT(SimdMaxIndex);
+HWY_EXPORT(SimdMinMaxOffset);
+
+void SimdMinMaxOffset(uint8_t* out, const uint8_t* in, size_t n, uint8_t d) {
+  HWY_DYNAMIC_DISPATCH(SimdMinMaxOffset)(out, in, n, d);
+}
 HWY_EXPORT(SimdGatherTriangles);
 
 void SimdGatherTriangles(const MeshView& mesh, size_t first, size_t last, float* const dst[3][3]) {

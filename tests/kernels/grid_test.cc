@@ -503,6 +503,26 @@ TEST_CASE("BuildTriangleSoA gathers the mesh's vertices: every size, stride and 
   });
 }
 
+TEST_CASE("SimdMinMaxOffset equals the scalar min-max update: every size, every target") {
+  Rng rng(67);
+  test::ForEachTarget([&](const char* target) {
+    INFO("target: ", target);
+    for (size_t n = 0; n <= 200; n += (n < 70 ? 1 : 13)) {
+      std::vector<uint8_t> in(n), out(n);  // exactly n bytes (ASan: nothing past them)
+      for (size_t i = 0; i < n; ++i) {
+        in[i] = uint8_t(rng.Below(20));
+        out[i] = uint8_t(rng.Below(20));
+      }
+      const uint8_t d = uint8_t(1 + rng.Below(15));
+      std::vector<uint8_t> expect(out);
+      for (size_t i = 0; i < n; ++i) expect[i] = std::min(expect[i], std::max(d, in[i]));
+      SimdMinMaxOffset(out.data(), in.data(), n, d);
+      INFO("n ", n);
+      CHECK(out == expect);
+    }
+  });
+}
+
 TEST_CASE("SimdMaxIndex: the largest index of unpadded arrays, every size and position") {
   test::ForEachTarget([&](const char* target) {
     INFO("target: ", target);
