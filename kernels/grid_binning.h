@@ -102,6 +102,11 @@ void SimdGatherTriangles(const MeshView& mesh, size_t first, size_t last, float*
 // vectors, the last one overlapping the one before (the update is idempotent).
 void SimdMinMaxOffset(uint8_t* out, const uint8_t* in, size_t n, uint8_t d);
 
+// out->p[k][a][t] = tris.p[k][a][ids[t]] for t < n (a grid cell's triangles, gathered for its
+// sub-grid), a vector of ids at a time; ids unpadded (whole vectors, then the rest one by one).
+// out's arrays hold n floats; ids[t] < tris.size < 2^31.
+void SimdGatherListed(const TriangleSoA& tris, const uint32_t* ids, size_t n, TriangleSoA* out);
+
 // The largest of p[0, n) (0 if n = 0), a vector at a time: unpadded caller memory (whole
 // vectors while they fit, then the rest one by one). The mesh's index check (rs::Accel).
 uint32_t SimdMaxIndex(const uint32_t* p, size_t n);

@@ -89,7 +89,7 @@ namespace {
 // start of each occupied sub-cell's list in it.
 struct CellRefiner {
   const Grid& grid;
-  const float* p[3][3];
+  const TriangleSoA& source;  // the grid's triangles
   double max_abs;   // largest |bound| of the grid
   double min_cell;  // smallest sub-cell edge
   bool by_cost;
@@ -106,11 +106,12 @@ struct CellRefiner {
 
   CellRefiner(const Grid& g, const TriangleSoA& tris, double max_abs_bound, double min_cell_size,
               bool cost, const GridCostModel& m)
-      : grid(g), max_abs(max_abs_bound), min_cell(min_cell_size), by_cost(cost), model(m) {
-    for (int k = 0; k < 3; ++k) {
-      for (int a = 0; a < 3; ++a) p[k][a] = tris.p[k][a].data();
-    }
-  }
+      : grid(g),
+        source(tris),
+        max_abs(max_abs_bound),
+        min_cell(min_cell_size),
+        by_cost(cost),
+        model(m) {}
 
   // Refines `cell` if it pays off (by_cost), its sub-cells are not too fine and it makes at
   // most `room` sub-cell references: fills *rec (all but first_leaf), appends the leaf lists to
@@ -154,16 +155,7 @@ struct CellRefiner {
       std::fill(cell_tris.degenerate.data(), cell_tris.degenerate.data() + n, uint8_t{0});
     }
     cell_tris.size = n;
-    float* to[3][3];
-    for (int k = 0; k < 3; ++k) {
-      for (int a = 0; a < 3; ++a) to[k][a] = cell_tris.p[k][a].data();
-    }
-    for (uint32_t t = 0; t < n; ++t) {  // one pass: each id read once
-      const uint32_t id = list[t];
-      for (int k = 0; k < 3; ++k) {
-        for (int a = 0; a < 3; ++a) to[k][a][t] = p[k][a][id];
-      }
-    }
+    SimdGatherListed(source, list, n, &cell_tris);  // one pass: each id read once
     std::fill(counts, counts + kSubCells, 0u);
     size_t num_sub_refs = 0;
     for (size_t first = 0; first < n; first += kRangeBlock) {

@@ -523,6 +523,33 @@ TEST_CASE("SimdMinMaxOffset equals the scalar min-max update: every size, every 
   });
 }
 
+TEST_CASE("SimdGatherListed gathers the listed triangles: every size, every target") {
+  Rng rng(73);
+  const Soup soup = test::RandomSoup(rng, 300, -1.0, 1.0, 0.3);
+  TriangleSoA tris;
+  BuildTriangleSoA(soup.view(), &tris);
+  test::ForEachTarget([&](const char* target) {
+    INFO("target: ", target);
+    for (size_t n = 0; n <= 60; ++n) {
+      std::vector<uint32_t> ids(n);  // exactly n ids (ASan: nothing read past them)
+      for (uint32_t& id : ids) id = uint32_t(rng.Below(uint32_t(tris.size)));
+      TriangleSoA out;
+      for (auto& vertex : out.p) {
+        for (auto& axis : vertex) axis.ReserveForOverwrite(n);
+      }
+      SimdGatherListed(tris, ids.data(), n, &out);
+      for (size_t t = 0; t < n; ++t) {
+        for (int k = 0; k < 3; ++k) {
+          for (int a = 0; a < 3; ++a) {
+            INFO("n ", n, " t ", t);
+            CHECK(out.p[k][a][t] == tris.p[k][a][ids[t]]);
+          }
+        }
+      }
+    }
+  });
+}
+
 TEST_CASE("SimdMaxIndex: the largest index of unpadded arrays, every size and position") {
   test::ForEachTarget([&](const char* target) {
     INFO("target: ", target);
