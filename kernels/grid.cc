@@ -138,11 +138,9 @@ bool BinReferences(const TriangleSoA& tris, const Grid& grid, const BinGeometry&
     // below (the line triangles after it in the block still need theirs)
     // (flagged triangles have box 0); the 2 x 2-cell triangles are edge-tested here, a vector
     // of triangles at a time
-    size_t lines = 0, quads = 0;
+    size_t lines = block.line_sum, quads = 0;
     for (size_t j = 0; j < count; ++j) {
-      const int32_t flags = block.flags[j];
-      lines += (flags & kRangeLine) ? size_t(block.box[j]) : 0;
-      if (flags & kRangeQuad) quad_js[quads++] = uint16_t(j);
+      if (block.flags[j] & kRangeQuad) quad_js[quads++] = uint16_t(j);
     }
     if (quads > 0) SimdQuadCellMasks(tris, geo, first, block, quad_js, quads, quad_masks);
     size_t next_quad = 0;
@@ -356,7 +354,7 @@ size_t MarkGridBoxes(const TriangleSoA& tris, const Grid& geometry, const BinGeo
   for (size_t first = first_tri; first < last_tri; first += kRangeBlock) {
     const size_t count = std::min(kRangeBlock, last_tri - first);
     SimdTriangleCellRanges(tris, geo, first, count, &block);
-    for (size_t j = 0; j < count; ++j) refs += size_t(block.box[j]);
+    refs += block.box_sum;
     for (size_t j = 0; j < count; ++j) {
       // the corner's index (num_cells for flagged triangles) and the index steps of the box,
       // from the SIMD pass

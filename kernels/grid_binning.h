@@ -139,6 +139,8 @@ struct RangeBlock {
   uint32_t cell[kRangeBlock];
   // (c1[a] - c0[a]) x the cell-index stride of axis a (1, res[0], res[0] res[1]); 0 if flagged.
   uint32_t step[3][kRangeBlock];
+  size_t box_sum = 0;   // sum of box[0, count)
+  size_t line_sum = 0;  // bin_flags only: sum of box[j] over the kRangeLine triangles j < count
 };
 // Fills out for triangles [first, first + count), count <= kRangeBlock, first + count <= size.
 // kRangeLine and kRangeQuad are set only with bin_flags (the binning's; the box counts and the

@@ -215,6 +215,11 @@ HWY_INLINE void CellRanges(const TriangleSoA& tris, const BinGeometry& g, size_t
   // cell-index strides (exact in 32 bits: res[0] res[1] res[2] < 2^32)
   const uint32_t strides[3] = {1u, uint32_t(g.res[0]), uint32_t(g.res[0]) * uint32_t(g.res[1])};
   const uint32_t num_cells = strides[2] * uint32_t(g.res[2]);
+  // box sums of the block, exact: the low and high 16 bits of each box summed apart (a lane
+  // adds at most kRangeBlock values below 2^16: no overflow), reduced once at the end
+  const hn::RebindToUnsigned<decltype(di)> du;
+  const auto low16 = hn::Set(du, 0xffffu);
+  auto box_lo = hn::Zero(du), box_hi = hn::Zero(du), line_lo = box_lo, line_hi = box_lo;
   for (size_t k = 0; k < count; k += hn::Lanes(d)) {
     const size_t i = first + k;
     const auto ok = ValidLanes(d, tris, i);
@@ -244,7 +249,6 @@ HWY_INLINE void CellRanges(const TriangleSoA& tris, const BinGeometry& g, size_t
     }
     // flagged lanes get the range [0, 0] and box 0 (so their values are harmless to use)
     const auto skip = hn::Ne(hn::And(flags, hn::Set(di, kRangeDegenerate | kRangeOutside)), zero_i);
-    const hn::RebindToUnsigned<decltype(di)> du;
     auto box = hn::BitCast(du, hn::IfThenZeroElse(skip, one_i));
     auto cell = hn::Zero(du);
     auto small = hn::Eq(zero_i, zero_i);  // all lanes
@@ -260,6 +264,10 @@ HWY_INLINE void CellRanges(const TriangleSoA& tris, const BinGeometry& g, size_t
       hn::StoreU(c1, di, out->c1[a] + k);
     }
     flags = hn::Or(flags, hn::IfThenElseZero(small, hn::Set(di, kRangeSmall)));
+    // (lanes past count: triangles of the next block or none)
+    const auto counted = hn::IfThenElseZero(hn::RebindMask(du, hn::FirstN(di, count - k)), box);
+    box_lo = hn::Add(box_lo, hn::And(counted, low16));
+    box_hi = hn::Add(box_hi, hn::ShiftRight<16>(counted));
     if constexpr (bin_flags) {
       // at most one spanning axis: spans & (spans - 1) == 0
       const auto spans = hn::And(flags, hn::Set(di, 7));
@@ -270,12 +278,21 @@ HWY_INLINE void CellRanges(const TriangleSoA& tris, const BinGeometry& g, size_t
       const auto quad = hn::And(hn::RebindMask(di, hn::Eq(box, hn::Set(du, 4u))),
                                 hn::And(small, hn::Ne(spans, hn::Set(di, 7))));
       flags = hn::Or(flags, hn::IfThenElseZero(quad, hn::Set(di, kRangeQuad)));
+      const auto lined = hn::IfThenElseZero(hn::RebindMask(du, line), counted);
+      line_lo = hn::Add(line_lo, hn::And(lined, low16));
+      line_hi = hn::Add(line_hi, hn::ShiftRight<16>(lined));
     }
     cell = hn::IfThenElse(hn::RebindMask(du, skip), hn::Set(du, num_cells), cell);
     hn::StoreU(cell, du, out->cell + k);
     hn::StoreU(box, du, out->box + k);
     hn::StoreU(flags, di, out->flags + k);
   }
+  const auto total = [&](hn::Vec<decltype(du)> lo, hn::Vec<decltype(du)> hi) {
+    return size_t(hn::GetLane(hn::SumOfLanes(du, lo))) +
+           (size_t(hn::GetLane(hn::SumOfLanes(du, hi))) << 16);
+  };
+  out->box_sum = total(box_lo, box_hi);
+  out->line_sum = bin_flags ? total(line_lo, line_hi) : 0;
 }
 
 void SimdQuadCellMasks(const TriangleSoA& tris, const BinGeometry& g, size_t first,

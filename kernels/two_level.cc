@@ -163,9 +163,9 @@ struct CellRefiner {
       SimdTriangleCellRanges(cell_tris, geo, first, count, &block, /*bin_flags=*/true);
       // at most the bounding-box cells are emitted: make room once per block; the 2 x 2-cell
       // triangles are edge-tested here, a vector of triangles at a time (SimdQuadCellMasks)
-      size_t most = 0, quads = 0;
+      const size_t most = block.box_sum;
+      size_t quads = 0;
       for (size_t j = 0; j < count; ++j) {
-        most += size_t(block.box[j]);
         if (block.flags[j] & kRangeQuad) quad_js[quads++] = uint16_t(j);
       }
       if (quads > 0) SimdQuadCellMasks(cell_tris, geo, first, block, quad_js, quads, quad_masks);

@@ -568,6 +568,41 @@ TEST_CASE("SimdMaxIndex: the largest index of unpadded arrays, every size and po
   });
 }
 
+TEST_CASE("box sums of the cell ranges: boxes of more than 2^16 cells, every target") {
+  // one triangle across a dense grid (a box of ~10^6 cells: the high 16 bits of the sums) and
+  // small ones, degenerate ones among them
+  Rng rng(79);
+  Soup soup = test::RandomSoup(rng, 600, -1.0, 1.0, 0.05);
+  const float a[3] = {-1.0f, -1.0f, -1.0f}, b[3] = {1.0f, 1.0f, -1.0f}, c[3] = {1.0f, -1.0f, 1.0f};
+  soup.AddTriangle(a, b, c);
+  soup.AddTriangle(a, a, b);
+  TriangleSoA tris;
+  BuildTriangleSoA(soup.view(), &tris);
+  Grid geometry;
+  SetGridGeometry(ComputeGridBounds(tris), 2000.0f, 512, &geometry);
+  const BinGeometry geo = GridBinGeometry(geometry);
+  test::ForEachTarget([&](const char* target) {
+    INFO("target: ", target);
+    size_t largest = 0;
+    for (const bool bin_flags : {false, true}) {
+      RangeBlock block;
+      for (size_t first = 0; first < tris.size; first += kRangeBlock) {
+        const size_t count = std::min(kRangeBlock, tris.size - first);
+        SimdTriangleCellRanges(tris, geo, first, count, &block, bin_flags);
+        size_t sum = 0, lines = 0;
+        for (size_t j = 0; j < count; ++j) {
+          sum += block.box[j];
+          lines += (block.flags[j] & kRangeLine) ? block.box[j] : 0;
+          largest = std::max<size_t>(largest, block.box[j]);
+        }
+        CHECK(block.box_sum == sum);
+        if (bin_flags) CHECK(block.line_sum == lines);
+      }
+    }
+    CHECK(largest > (size_t{1} << 20));
+  });
+}
+
 TEST_CASE("SIMD 2 x 2-cell masks equal BinTriangleCells on every target") {
   // triangles about a cell wide at random positions (many straddle a cell corner on two axes:
   // 2 x 2 boxes), some on cell planes and with an edge along an axis (an edge of projected
@@ -599,6 +634,13 @@ TEST_CASE("SIMD 2 x 2-cell masks equal BinTriangleCells on every target") {
         const size_t count = std::min(kRangeBlock, tris.size - first);
         SimdTriangleCellRanges(tris, geo, first, count, &block, /*bin_flags=*/true);
         std::vector<uint16_t> js;
+        size_t box_sum = 0, line_sum = 0;
+        for (size_t j = 0; j < count; ++j) {
+          box_sum += block.box[j];
+          line_sum += (block.flags[j] & kRangeLine) ? block.box[j] : 0;
+        }
+        CHECK(block.box_sum == box_sum);
+        CHECK(block.line_sum == line_sum);
         for (size_t j = 0; j < count; ++j) {
           // kRangeQuad: two spanning axes of extent 1, one cell on the third; kRangeLine: at
           // most one spanning axis
