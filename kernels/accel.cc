@@ -15,6 +15,7 @@
 #include "kernels/packet_dda.h"
 #include "kernels/dda.h"
 #include "kernels/dda_simd.h"
+#include "kernels/grid_binning.h"  // SimdMaxIndex
 #include "kernels/two_level.h"
 
 namespace rs {
@@ -87,19 +88,11 @@ void ValidateTriangles(const MeshView& mesh) {
   }
 }
 
-// True iff every index is < num_vertices (one pass over the index array, no position read).
+// True iff every index is < num_vertices (one pass over the index array, no position read;
+// SIMD: without -march the compiler has no unsigned 32-bit max to vectorize the scalar loop).
 bool IndicesInRange(const MeshView& mesh) {
-  const uint32_t* indices = mesh.indices;
   const size_t count = 3 * mesh.num_triangles;
-  // four running maxima: a reduction the compiler vectorizes
-  uint32_t m[4] = {0, 0, 0, 0};
-  size_t i = 0;
-  for (; i + 4 <= count; i += 4) {
-    for (int k = 0; k < 4; ++k) m[k] = indices[i + k] > m[k] ? indices[i + k] : m[k];
-  }
-  for (; i < count; ++i) m[0] = indices[i] > m[0] ? indices[i] : m[0];
-  const uint32_t max_index = std::max(std::max(m[0], m[1]), std::max(m[2], m[3]));
-  return count == 0 || size_t{max_index} < mesh.num_vertices;
+  return count == 0 || size_t{SimdMaxIndex(mesh.indices, count)} < mesh.num_vertices;
 }
 
 }  // namespace

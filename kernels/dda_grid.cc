@@ -10,6 +10,7 @@
 #include <vector>
 
 #include "kernels/build_threads.h"
+#include "kernels/grid_binning.h"  // SimdMinMaxOffset
 #include "streams/ray_stream.h"  // AllocateAlignedOrThrow
 
 namespace rs {
@@ -24,9 +25,9 @@ size_t DdaGrid::Bytes() const {
 namespace {
 
 // out[i] = min(out[i], max(d, in[i])) for i < n: one offset of the windowed min-max below, over
-// contiguous bytes (the compiler vectorizes it).
-void MinMaxOffset(uint8_t* __restrict out, const uint8_t* __restrict in, size_t n, uint8_t d) {
-  for (size_t i = 0; i < n; ++i) out[i] = std::min(out[i], std::max(d, in[i]));
+// contiguous bytes (kernels/grid_simd.cc, a vector at a time).
+void MinMaxOffset(uint8_t* out, const uint8_t* in, size_t n, uint8_t d) {
+  SimdMinMaxOffset(out, in, n, d);
 }
 
 // BuildSkipRings with 2 num_cells bytes of scratch (every byte is written before it is read).

@@ -8,6 +8,7 @@
 #include <bit>
 #include <cfloat>
 #include <cmath>
+#include <cstring>
 #include <string>
 #include <vector>
 
@@ -127,17 +128,22 @@ bool BinReferences(const TriangleSoA& tris, const Grid& grid, const BinGeometry&
     for (int a = 0; a < 3; ++a) p[k][a] = tris.p[k][a].data();
   }
   RangeBlock block;
+  uint16_t quad_js[kRangeBlock];
+  uint8_t quad_masks[kRangeBlock];
   for (size_t first = first_tri; first < n; first += kRangeBlock) {
     const size_t count = std::min(kRangeBlock, n - first);
-    SimdTriangleCellRanges(tris, geo, first, count, &block);
+    SimdTriangleCellRanges(tris, geo, first, count, &block, /*bin_flags=*/true);
     // room for the block's one-cell and line triangles (all their box cells are emitted) at
     // once; each triangle tested by BinTriangleCells makes room for its box plus that reserve
     // below (the line triangles after it in the block still need theirs)
-    size_t lines = 0;
+    // (flagged triangles have box 0); the 2 x 2-cell triangles are edge-tested here, a vector
+    // of triangles at a time
+    size_t lines = block.line_sum, quads = 0;
     for (size_t j = 0; j < count; ++j) {
-      const int spans_mask = block.flags[j] & 7;
-      lines += (spans_mask & (spans_mask - 1)) == 0 ? size_t(block.box[j]) : 0;
+      if (block.flags[j] & kRangeQuad) quad_js[quads++] = uint16_t(j);
     }
+    if (quads > 0) SimdQuadCellMasks(tris, geo, first, block, quad_js, quads, quad_masks);
+    size_t next_quad = 0;
     if (num_refs + lines > limit) {
       *num_refs_out = num_refs + lines;
       return false;
@@ -152,7 +158,7 @@ bool BinReferences(const TriangleSoA& tris, const Grid& grid, const BinGeometry&
       if (flags & (kRangeDegenerate | kRangeOutside)) continue;
       size_t c = block.cell[j];  // the corner's cell index (SIMD pass)
       const int spans_mask = flags & 7;
-      if ((spans_mask & (spans_mask - 1)) == 0) {
+      if (flags & kRangeLine) {
         // one cell (the common case at low lambda), or a line of cells along one axis: the
         // triangle crosses them all (BinTriangleCells)
         const int a = spans_mask == 4 ? 2 : spans_mask >> 1;  // 0 -> axis 0, a 1-cell range
@@ -163,6 +169,32 @@ bool BinReferences(const TriangleSoA& tris, const Grid& grid, const BinGeometry&
           ++begin[c];
         }
         lines -= cells;
+        continue;
+      }
+      if (flags & kRangeQuad) {
+        // a 2 x 2-cell triangle: its cells from the SIMD edge tests, in BinTriangleCells' order
+        // (axis i fastest), with the same room and budget checks as below
+        const uint32_t mask = quad_masks[next_quad++];
+        size_t room = 4;
+        if (num_refs + room + lines > limit) {
+          const size_t exact = size_t(std::popcount(mask));
+          if (num_refs + exact + lines > limit) {
+            *num_refs_out = num_refs + exact + lines;
+            return false;
+          }
+          room = exact;
+        }
+        if (num_refs + room + lines > *capacity) {
+          Grow(ref_cells, num_refs, capacity, room + lines, limit);
+          cells_out = ref_cells->get();
+        }
+        const size_t si = strides[spans_mask == 6 ? 1 : 0], sj = strides[spans_mask == 3 ? 1 : 2];
+        const size_t offset[4] = {0, si, sj, si + sj};
+        for (uint32_t m = mask; m != 0; m &= m - 1) {
+          const size_t cell = c + offset[std::countr_zero(m)];
+          cells_out[num_refs++] = uint32_t(cell);
+          ++begin[cell];
+        }
         continue;
       }
       const int c0[3] = {block.c0[0][j], block.c0[1][j], block.c0[2][j]};
@@ -284,6 +316,23 @@ BinGeometry GridBinGeometry(const Grid& grid) {
 
 namespace {
 
+// mark[0, len) = 1 for 1 <= len <= 64 (a box row of MarkGridBoxes): overlapping word stores
+// instead of a memset call per row (rows are short: boxes of at most 64 cells).
+// Out of line: inlined, it changed the code of the small-box loop around it (+2 % there).
+[[gnu::noinline]] void MarkRow(uint8_t* mark, size_t len) {
+  constexpr uint64_t kOnes8 = 0x0101010101010101ull;
+  constexpr uint32_t kOnes4 = 0x01010101u;
+  if (len >= 8) {
+    for (size_t k = 0; k + 8 < len; k += 8) std::memcpy(mark + k, &kOnes8, 8);
+    std::memcpy(mark + len - 8, &kOnes8, 8);
+  } else if (len >= 4) {
+    std::memcpy(mark, &kOnes4, 4);
+    std::memcpy(mark + len - 4, &kOnes4, 4);
+  } else {
+    mark[0] = mark[len >> 1] = mark[len - 1] = 1;  // len 1, 2 or 3
+  }
+}
+
 // CountGridBoxes over triangles [first, last): marks the cells of small boxes in `mark` (one
 // byte per cell, plus the spare byte at num_cells), adds big boxes' corners to *diff (allocated
 // at the first big box) and returns the sum of the box cell counts.
@@ -305,7 +354,7 @@ size_t MarkGridBoxes(const TriangleSoA& tris, const Grid& geometry, const BinGeo
   for (size_t first = first_tri; first < last_tri; first += kRangeBlock) {
     const size_t count = std::min(kRangeBlock, last_tri - first);
     SimdTriangleCellRanges(tris, geo, first, count, &block);
-    for (size_t j = 0; j < count; ++j) refs += size_t(block.box[j]);
+    refs += block.box_sum;
     for (size_t j = 0; j < count; ++j) {
       // the corner's index (num_cells for flagged triangles) and the index steps of the box,
       // from the SIMD pass
@@ -348,8 +397,7 @@ size_t MarkGridBoxes(const TriangleSoA& tris, const Grid& geometry, const BinGeo
       }
       for (int z = 0; z <= ez; ++z) {
         for (int y = 0; y <= ey; ++y) {
-          uint8_t* row = mark + cell + stride_y * size_t(y) + stride_z * size_t(z);
-          std::fill(row, row + ex + 1, uint8_t{1});
+          MarkRow(mark + cell + stride_y * size_t(y) + stride_z * size_t(z), size_t(ex) + 1);
         }
       }
     }

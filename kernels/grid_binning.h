@@ -90,6 +90,27 @@ void SimdDegenerateFlags(TriangleSoA* tris);
 void SimdDegenerateFlags(TriangleSoA* tris, size_t first, size_t last, size_t* degenerate,
                          size_t* nonfinite);
 
+// dst[k][a][i] = mesh.positions[mesh.indices[3 i + k] * mesh.stride + a] for i in [first, last)
+// (the triangle gather of BuildTriangleSoA), a vector of triangles at a time with gathers where
+// the offsets fit in 32 bits, else (and for the last part vector) one by one; the same floats.
+// Preconditions: every index read is < num_vertices; dst arrays hold `last` floats (padded).
+void SimdGatherTriangles(const MeshView& mesh, size_t first, size_t last, float* const dst[3][3]);
+
+// out[i] = min(out[i], max(d, in[i])) for i < n: one offset of the empty-space rings' windowed
+// min-max (BuildSkipRings, kernels/dda_grid.cc), a vector of bytes at a time (the compiler
+// vectorizes the scalar loop for SSE2 only). out and in do not overlap; unpadded: whole
+// vectors, the last one overlapping the one before (the update is idempotent).
+void SimdMinMaxOffset(uint8_t* out, const uint8_t* in, size_t n, uint8_t d);
+
+// out->p[k][a][t] = tris.p[k][a][ids[t]] for t < n (a grid cell's triangles, gathered for its
+// sub-grid), a vector of ids at a time; ids unpadded (whole vectors, then the rest one by one).
+// out's arrays hold n floats; ids[t] < tris.size < 2^31.
+void SimdGatherListed(const TriangleSoA& tris, const uint32_t* ids, size_t n, TriangleSoA* out);
+
+// The largest of p[0, n) (0 if n = 0), a vector at a time: unpadded caller memory (whole
+// vectors while they fit, then the rest one by one). The mesh's index check (rs::Accel).
+uint32_t SimdMaxIndex(const uint32_t* p, size_t n);
+
 // Float min / max of the vertices of the non-degenerate triangles (+-FLT_MAX if none) and
 // their number.
 void SimdTriangleBounds(const TriangleSoA& tris, float lo[3], float hi[3], size_t* num_valid);
@@ -101,21 +122,42 @@ inline constexpr size_t kRangeBlock = 256;
 inline constexpr int32_t kRangeOutside = 8;      // flags bit: misses the grid (no cells)
 inline constexpr int32_t kRangeDegenerate = 16;  // flags bit: degenerate triangle (skip)
 inline constexpr int32_t kRangeSmall = 32;       // flags bit: at most 2 cells on every axis
+// flags bit (bin_flags only): at most one spanning axis (one cell, or a line of cells:
+// BinTriangleCells lists the whole box). Also set on some flagged triangles (their box is 0).
+inline constexpr int32_t kRangeLine = 64;
+// flags bit (bin_flags only): 2 x 2 cells (box 4, two axes of extent 1) and not spanning on the
+// third axis: the triangles SimdQuadCellMasks tests.
+inline constexpr int32_t kRangeQuad = 128;
 struct RangeBlock {
   int32_t c0[3][kRangeBlock];  // [0, 0] for flagged (degenerate or outside) triangles
   int32_t c1[3][kRangeBlock];
   uint32_t box[kRangeBlock];   // cells in the box [c0, c1] (<= num_cells < 2^32), 0 if flagged
   int32_t flags[kRangeBlock];  // bit a: spans on axis a; kRangeOutside; kRangeDegenerate;
-                               // kRangeSmall
+                               // kRangeSmall; kRangeLine; kRangeQuad
   // Cell index of the corner c0, c0[0] + res[0] (c0[1] + res[1] c0[2]); for flagged triangles
   // res[0] res[1] res[2] (one past the last cell).
   uint32_t cell[kRangeBlock];
   // (c1[a] - c0[a]) x the cell-index stride of axis a (1, res[0], res[0] res[1]); 0 if flagged.
   uint32_t step[3][kRangeBlock];
+  size_t box_sum = 0;   // sum of box[0, count)
+  size_t line_sum = 0;  // bin_flags only: sum of box[j] over the kRangeLine triangles j < count
 };
 // Fills out for triangles [first, first + count), count <= kRangeBlock, first + count <= size.
+// kRangeLine and kRangeQuad are set only with bin_flags (the binning's; the box counts and the
+// sub-grids do not read them).
 void SimdTriangleCellRanges(const TriangleSoA& tris, const BinGeometry& g, size_t first,
-                            size_t count, RangeBlock* out);
+                            size_t count, RangeBlock* out, bool bin_flags = false);
+
+// The 2 x 2-cell triangles of a block (the most common ones after the 1-cell and line
+// triangles, kRangeQuad): spanning exactly 2 cells on two axes i < j and one cell on the third.
+// For block entries js[0, n) (indices into `block`, triangles first + js[t]), masks[t] gets bit
+// m + 2 r
+// set iff cell (c0[i] + m, c0[j] + r) passes the 2D edge tests of binning::Edges2D(i, j) on
+// that triangle: the same sums, products and comparisons per lane as Edges2D's constructor
+// and SimdEdgeTable, so the same cells as BinTriangleCells bit for bit, a vector of triangles
+// at a time.
+void SimdQuadCellMasks(const TriangleSoA& tris, const BinGeometry& g, size_t first,
+                       const RangeBlock& block, const uint16_t* js, size_t n, uint8_t* masks);
 
 // The edge constraints of a triangle's 2D projection (binning::Edges2D): cell (ci, cj) passes
 // edge k iff c = (base[k] + double(cj) * sj[k]) + double(ci) * si[k] is within [lo[k], hi[k]].

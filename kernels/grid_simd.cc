@@ -30,6 +30,94 @@ HWY_INLINE hn::Mask<D> ValidLanes(D d, const TriangleSoA& tris, size_t i) {
   return hn::And(hn::FirstN(d, tris.size - i), hn::RebindMask(d, hn::Eq(flag, hn::Zero(di))));
 }
 
+void SimdGatherTriangles(const MeshView& mesh, size_t first, size_t last, float* const dst[3][3]) {
+  const hn::ScalableTag<float> d;
+  const hn::RebindToSigned<decltype(d)> di;
+  const size_t lanes = hn::Lanes(d);
+  const uint32_t* indices = mesh.indices;
+  const float* positions = mesh.positions;
+  const size_t stride = mesh.stride;
+  size_t i = first;
+  // int32 gather offsets: 3 i + 2 and index * stride + 2 (index < num_vertices)
+  constexpr size_t kMaxOffset = size_t{0x7fffffff} - 2;
+  if (last <= kMaxOffset / 3 && mesh.num_vertices <= kMaxOffset / (stride == 0 ? 1 : stride)) {
+    // the index array is read as int32 (the same bits; every value is < 2^31 here)
+    const int32_t* idx = reinterpret_cast<const int32_t*>(indices);
+    const auto three = hn::Set(di, 3), stride_i = hn::Set(di, int32_t(stride));
+    for (; i + lanes <= last; i += lanes) {
+      const auto at = hn::Mul(hn::Iota(di, int32_t(i)), three);  // 3 i per lane
+      for (int k = 0; k < 3; ++k) {
+        const auto vertex = hn::GatherIndex(di, idx, hn::Add(at, hn::Set(di, k)));
+        const auto offset = hn::Mul(vertex, stride_i);
+        for (int a = 0; a < 3; ++a) {
+          hn::StoreU(hn::GatherIndex(d, positions + a, offset), d, dst[k][a] + i);
+        }
+      }
+    }
+  }
+  for (; i < last; ++i) {  // unpadded caller arrays: the rest one by one
+    for (int k = 0; k < 3; ++k) {
+      const float* src = positions + size_t{indices[3 * i + k]} * stride;
+      dst[k][0][i] = src[0];
+      dst[k][1][i] = src[1];
+      dst[k][2][i] = src[2];
+    }
+  }
+}
+
+void SimdMinMaxOffset(uint8_t* HWY_RESTRICT out, const uint8_t* HWY_RESTRICT in, size_t n,
+                      uint8_t d) {
+  const hn::ScalableTag<uint8_t> du8;
+  const size_t lanes = hn::Lanes(du8);
+  if (n < lanes) {
+    for (size_t i = 0; i < n; ++i) out[i] = std::min(out[i], std::max(d, in[i]));
+    return;
+  }
+  const auto dv = hn::Set(du8, d);
+  const auto update = [&](size_t i) {
+    hn::StoreU(hn::Min(hn::LoadU(du8, out + i), hn::Max(dv, hn::LoadU(du8, in + i))), du8,
+               out + i);
+  };
+  for (size_t i = 0; i + lanes < n; i += lanes) update(i);
+  update(n - lanes);  // the last vector, overlapping: min(min(o, m), m) = min(o, m)
+}
+
+void SimdGatherListed(const TriangleSoA& tris, const uint32_t* ids, size_t n, TriangleSoA* out) {
+  const hn::ScalableTag<float> d;
+  const hn::RebindToSigned<decltype(d)> di;
+  const size_t lanes = hn::Lanes(d);
+  size_t t = 0;
+  for (; t + lanes <= n; t += lanes) {
+    // ids < 2^31: the same bits as int32 offsets
+    const auto id = hn::LoadU(di, reinterpret_cast<const int32_t*>(ids + t));
+    for (int k = 0; k < 3; ++k) {
+      for (int a = 0; a < 3; ++a) {
+        hn::StoreU(hn::GatherIndex(d, tris.p[k][a].data(), id), d, out->p[k][a].data() + t);
+      }
+    }
+  }
+  for (; t < n; ++t) {
+    for (int k = 0; k < 3; ++k) {
+      for (int a = 0; a < 3; ++a) out->p[k][a][t] = tris.p[k][a][ids[t]];
+    }
+  }
+}
+
+uint32_t SimdMaxIndex(const uint32_t* p, size_t n) {
+  const hn::ScalableTag<uint32_t> du;
+  const size_t lanes = hn::Lanes(du);
+  // two accumulators: the max's latency
+  auto m0 = hn::Zero(du), m1 = hn::Zero(du);
+  size_t i = 0;
+  for (; i + 2 * lanes <= n; i += 2 * lanes) {
+    m0 = hn::Max(m0, hn::LoadU(du, p + i));
+    m1 = hn::Max(m1, hn::LoadU(du, p + i + lanes));
+  }
+  uint32_t m = hn::GetLane(hn::MaxOfLanes(du, hn::Max(m0, m1)));
+  for (; i < n; ++i) m = std::max(m, p[i]);  // unpadded caller memory: no whole-vector load
+  return m;
+}
+
 void SimdTriangleBounds(const TriangleSoA& tris, float lo[3], float hi[3], size_t* num_valid) {
   const hn::ScalableTag<float> d;
   const auto big = hn::Set(d, FLT_MAX), small = hn::Set(d, -FLT_MAX);
@@ -117,8 +205,9 @@ void SimdDegenerateFlagsRange(TriangleSoA* tris, size_t first, size_t n, size_t*
   *nonfinite_out = nonfinite;
 }
 
-void SimdTriangleCellRanges(const TriangleSoA& tris, const BinGeometry& g, size_t first,
-                            size_t count, RangeBlock* out) {
+template <bool bin_flags>
+HWY_INLINE void CellRanges(const TriangleSoA& tris, const BinGeometry& g, size_t first,
+                           size_t count, RangeBlock* out) {
   const hn::ScalableTag<float> d;
   const hn::RebindToSigned<decltype(d)> di;
   const auto minus1 = hn::Set(d, -1.0f), one = hn::Set(d, 1.0f);
@@ -126,6 +215,11 @@ void SimdTriangleCellRanges(const TriangleSoA& tris, const BinGeometry& g, size_
   // cell-index strides (exact in 32 bits: res[0] res[1] res[2] < 2^32)
   const uint32_t strides[3] = {1u, uint32_t(g.res[0]), uint32_t(g.res[0]) * uint32_t(g.res[1])};
   const uint32_t num_cells = strides[2] * uint32_t(g.res[2]);
+  // box sums of the block, exact: the low and high 16 bits of each box summed apart (a lane
+  // adds at most kRangeBlock values below 2^16: no overflow), reduced once at the end
+  const hn::RebindToUnsigned<decltype(di)> du;
+  const auto low16 = hn::Set(du, 0xffffu);
+  auto box_lo = hn::Zero(du), box_hi = hn::Zero(du), line_lo = box_lo, line_hi = box_lo;
   for (size_t k = 0; k < count; k += hn::Lanes(d)) {
     const size_t i = first + k;
     const auto ok = ValidLanes(d, tris, i);
@@ -155,7 +249,6 @@ void SimdTriangleCellRanges(const TriangleSoA& tris, const BinGeometry& g, size_
     }
     // flagged lanes get the range [0, 0] and box 0 (so their values are harmless to use)
     const auto skip = hn::Ne(hn::And(flags, hn::Set(di, kRangeDegenerate | kRangeOutside)), zero_i);
-    const hn::RebindToUnsigned<decltype(di)> du;
     auto box = hn::BitCast(du, hn::IfThenZeroElse(skip, one_i));
     auto cell = hn::Zero(du);
     auto small = hn::Eq(zero_i, zero_i);  // all lanes
@@ -171,11 +264,133 @@ void SimdTriangleCellRanges(const TriangleSoA& tris, const BinGeometry& g, size_
       hn::StoreU(c1, di, out->c1[a] + k);
     }
     flags = hn::Or(flags, hn::IfThenElseZero(small, hn::Set(di, kRangeSmall)));
+    // (lanes past count: triangles of the next block or none)
+    const auto counted = hn::IfThenElseZero(hn::RebindMask(du, hn::FirstN(di, count - k)), box);
+    box_lo = hn::Add(box_lo, hn::And(counted, low16));
+    box_hi = hn::Add(box_hi, hn::ShiftRight<16>(counted));
+    if constexpr (bin_flags) {
+      // at most one spanning axis: spans & (spans - 1) == 0
+      const auto spans = hn::And(flags, hn::Set(di, 7));
+      const auto line = hn::Eq(hn::And(spans, hn::Sub(spans, one_i)), zero_i);
+      flags = hn::Or(flags, hn::IfThenElseZero(line, hn::Set(di, kRangeLine)));
+      // box 4 with every extent <= 1: two axes of extent 1 (both spanning); not spanning on the
+      // third (spans != 7, else BinTriangleCells runs the 3D test)
+      const auto quad = hn::And(hn::RebindMask(di, hn::Eq(box, hn::Set(du, 4u))),
+                                hn::And(small, hn::Ne(spans, hn::Set(di, 7))));
+      flags = hn::Or(flags, hn::IfThenElseZero(quad, hn::Set(di, kRangeQuad)));
+      const auto lined = hn::IfThenElseZero(hn::RebindMask(du, line), counted);
+      line_lo = hn::Add(line_lo, hn::And(lined, low16));
+      line_hi = hn::Add(line_hi, hn::ShiftRight<16>(lined));
+    }
     cell = hn::IfThenElse(hn::RebindMask(du, skip), hn::Set(du, num_cells), cell);
     hn::StoreU(cell, du, out->cell + k);
     hn::StoreU(box, du, out->box + k);
     hn::StoreU(flags, di, out->flags + k);
   }
+  const auto total = [&](hn::Vec<decltype(du)> lo, hn::Vec<decltype(du)> hi) {
+    return size_t(hn::GetLane(hn::SumOfLanes(du, lo))) +
+           (size_t(hn::GetLane(hn::SumOfLanes(du, hi))) << 16);
+  };
+  out->box_sum = total(box_lo, box_hi);
+  out->line_sum = bin_flags ? total(line_lo, line_hi) : 0;
+}
+
+void SimdQuadCellMasks(const TriangleSoA& tris, const BinGeometry& g, size_t first,
+                       const RangeBlock& block, const uint16_t* js, size_t n, uint8_t* masks) {
+  const hn::ScalableTag<double> dd;
+  const hn::Rebind<float, decltype(dd)> df;
+  const hn::Rebind<int32_t, decltype(dd)> di;
+  constexpr size_t kMax = HWY_MAX_BYTES / sizeof(double);
+  const size_t lanes = hn::Lanes(dd);
+  // the per-axis terms of Edges2D, rounded as there: 0.5 cs + margin, lo + 0.5 cs
+  double hc[3], mid[3];
+  for (int a = 0; a < 3; ++a) {
+    hc[a] = 0.5 * g.cs[a] + g.margin[a];
+    mid[a] = g.lo[a] + 0.5 * g.cs[a];
+  }
+  HWY_ALIGN int32_t tri[kMax], entry[kMax];
+  HWY_ALIGN double single[kMax], out[kMax];
+  const auto zero = hn::Zero(dd), one = hn::Set(dd, 1.0), two = hn::Set(dd, 2.0);
+  for (size_t s = 0; s < n; s += lanes) {
+    const size_t live = std::min(lanes, n - s);
+    // each lane's triangle, block entry and single-cell axis k; lanes past n repeat the last
+    for (size_t l = 0; l < lanes; ++l) {
+      const size_t e = js[s + std::min(l, live - 1)];
+      const int32_t flags = block.flags[e];
+      tri[l] = int32_t(first + e);
+      entry[l] = int32_t(e);
+      single[l] = !(flags & 1) ? 0.0 : (!(flags & 2) ? 1.0 : 2.0);
+    }
+    // projection axes (i, j) = (1, 2), (0, 2), (0, 1) for k = 0, 1, 2: i is axis 1 iff k = 0,
+    // j is axis 1 iff k = 2
+    const auto k = hn::Load(dd, single);
+    const auto i_is_1 = hn::Eq(k, zero), j_is_1 = hn::Eq(k, two);
+    const auto t = hn::Load(di, tri), e = hn::Load(di, entry);
+    hn::Vec<decltype(dd)> pi[3], pj[3];
+    for (int v = 0; v < 3; ++v) {
+      hn::Vec<decltype(dd)> x[3];
+      for (int a = 0; a < 3; ++a) {
+        x[a] = hn::PromoteTo(dd, hn::GatherIndex(df, tris.p[v][a].data(), t));
+      }
+      pi[v] = hn::IfThenElse(i_is_1, x[1], x[0]);
+      pj[v] = hn::IfThenElse(j_is_1, x[1], x[2]);
+    }
+    const auto pick_i = [&](const double* per_axis) {
+      return hn::IfThenElse(i_is_1, hn::Set(dd, per_axis[1]), hn::Set(dd, per_axis[0]));
+    };
+    const auto pick_j = [&](const double* per_axis) {
+      return hn::IfThenElse(j_is_1, hn::Set(dd, per_axis[1]), hn::Set(dd, per_axis[2]));
+    };
+    const auto hi_c = pick_i(hc), hj_c = pick_j(hc);
+    const auto mi = pick_i(mid), mj = pick_j(mid);
+    const auto ci_s = pick_i(g.cs), cj_s = pick_j(g.cs);
+    hn::Vec<decltype(dd)> c0[3];
+    for (int a = 0; a < 3; ++a) c0[a] = hn::PromoteTo(dd, hn::GatherIndex(di, block.c0[a], e));
+    const auto col0 = hn::IfThenElse(i_is_1, c0[1], c0[0]);
+    const auto row0 = hn::IfThenElse(j_is_1, c0[1], c0[2]);
+    const auto col1 = hn::Add(col0, one), row1 = hn::Add(row0, one);  // small integers: exact
+    auto ok00 = hn::Eq(zero, zero), ok10 = ok00, ok01 = ok00, ok11 = ok00;
+    for (int e = 0; e < 3; ++e) {
+      const int q = e == 2 ? 0 : e + 1, r = e == 0 ? 2 : e - 1;  // edge p -> q, third vertex r
+      // normal of the projected edge; (0, 0) (an edge along the third axis) constrains nothing
+      const auto ni = hn::Neg(hn::Sub(pj[q], pj[e])), nj = hn::Sub(pi[q], pi[e]);
+      const auto none = hn::And(hn::Eq(ni, zero), hn::Eq(nj, zero));
+      const auto pp = hn::Add(hn::Mul(ni, pi[e]), hn::Mul(nj, pj[e]));
+      const auto pr = hn::Add(hn::Mul(ni, pi[r]), hn::Mul(nj, pj[r]));
+      const auto half = hn::Add(hn::Mul(hn::Abs(ni), hi_c), hn::Mul(hn::Abs(nj), hj_c));
+      // min / max of two finite values; a signed zero tie does not change min - half
+      const auto lo = hn::Sub(hn::Min(pp, pr), half), hi = hn::Add(hn::Max(pp, pr), half);
+      const auto base = hn::Add(hn::Mul(ni, mi), hn::Mul(nj, mj));
+      const auto si = hn::Mul(ni, ci_s), sj = hn::Mul(nj, cj_s);
+      // (base + double(cj) * sj) + double(ci) * si, as SimdEdgeTable
+      const auto r0 = hn::Add(base, hn::Mul(row0, sj)), r1 = hn::Add(base, hn::Mul(row1, sj));
+      const auto t0 = hn::Mul(col0, si), t1 = hn::Mul(col1, si);
+      const auto pass = [&](const hn::Vec<decltype(dd)> c) {
+        return hn::Or(none, hn::Not(hn::Or(hn::Lt(c, lo), hn::Gt(c, hi))));
+      };
+      ok00 = hn::And(ok00, pass(hn::Add(r0, t0)));
+      ok10 = hn::And(ok10, pass(hn::Add(r0, t1)));
+      ok01 = hn::And(ok01, pass(hn::Add(r1, t0)));
+      ok11 = hn::And(ok11, pass(hn::Add(r1, t1)));
+    }
+    // bit m + 2 r per cell (small integers in double: exact)
+    auto bits = hn::IfThenElseZero(ok00, one);
+    bits = hn::Add(bits, hn::IfThenElseZero(ok10, hn::Set(dd, 2.0)));
+    bits = hn::Add(bits, hn::IfThenElseZero(ok01, hn::Set(dd, 4.0)));
+    bits = hn::Add(bits, hn::IfThenElseZero(ok11, hn::Set(dd, 8.0)));
+    hn::Store(bits, dd, out);
+    for (size_t l = 0; l < live; ++l) masks[s + l] = uint8_t(out[l]);
+  }
+}
+
+void SimdTriangleCellRanges(const TriangleSoA& tris, const BinGeometry& g, size_t first,
+                            size_t count, RangeBlock* out) {
+  CellRanges<false>(tris, g, first, count, out);
+}
+
+void SimdTriangleCellRangesBin(const TriangleSoA& tris, const BinGeometry& g, size_t first,
+                               size_t count, RangeBlock* out) {
+  CellRanges<true>(tris, g, first, count, out);
 }
 
 void SimdEdgeTable(const EdgeSet& e, int ci0, int ni, int cj0, int nj, uint8_t* out) {
@@ -229,7 +444,13 @@ void SimdEdgeTable(const EdgeSet& e, int ci0, int ni, int cj0, int nj, uint8_t* 
       uint8_t bits[8] = {};
       hn::StoreMaskBits(dd, ok, bits);
       uint8_t* o = out + size_t(r) * size_t(ni) + size_t(m0);
-      for (int m = 0; m < live; ++m) o[m] = uint8_t((bits[m >> 3] >> (m & 7)) & 1u);
+      if (std::endian::native == std::endian::little && live == lanes && lanes <= 8) {
+        // byte m = bit m: kBadBytes' bytes flipped, one store of the vector's entries
+        const uint64_t entries = kBadBytes[bits[0]] ^ 0x0101010101010101ull;
+        std::memcpy(o, &entries, size_t(lanes));
+      } else {
+        for (int m = 0; m < live; ++m) o[m] = uint8_t((bits[m >> 3] >> (m & 7)) & 1u);
+      }
     }
   }
 }
@@ -242,9 +463,34 @@ HWY_AFTER_NAMESPACE();
 namespace rs {
 
 HWY_EXPORT(SimdTriangleBounds);
+HWY_EXPORT(SimdMaxIndex);
+HWY_EXPORT(SimdGatherListed);
+
+void SimdGatherListed(const TriangleSoA& tris, const uint32_t* ids, size_t n, TriangleSoA* out) {
+  HWY_DYNAMIC_DISPATCH(SimdGatherListed)(tris, ids, n, out);
+}
+HWY_EXPORT(SimdMinMaxOffset);
+
+void SimdMinMaxOffset(uint8_t* out, const uint8_t* in, size_t n, uint8_t d) {
+  HWY_DYNAMIC_DISPATCH(SimdMinMaxOffset)(out, in, n, d);
+}
+HWY_EXPORT(SimdGatherTriangles);
+
+void SimdGatherTriangles(const MeshView& mesh, size_t first, size_t last, float* const dst[3][3]) {
+  HWY_DYNAMIC_DISPATCH(SimdGatherTriangles)(mesh, first, last, dst);
+}
+
+uint32_t SimdMaxIndex(const uint32_t* p, size_t n) { return HWY_DYNAMIC_DISPATCH(SimdMaxIndex)(p, n); }
 HWY_EXPORT(SimdTriangleCellRanges);
+HWY_EXPORT(SimdTriangleCellRangesBin);
 HWY_EXPORT(SimdDegenerateFlagsRange);
 HWY_EXPORT(SimdEdgeTable);
+HWY_EXPORT(SimdQuadCellMasks);
+
+void SimdQuadCellMasks(const TriangleSoA& tris, const BinGeometry& g, size_t first,
+                       const RangeBlock& block, const uint16_t* js, size_t n, uint8_t* masks) {
+  HWY_DYNAMIC_DISPATCH(SimdQuadCellMasks)(tris, g, first, block, js, n, masks);
+}
 
 void SimdEdgeTable(const EdgeSet& e, int ci0, int ni, int cj0, int nj, uint8_t* out) {
   HWY_DYNAMIC_DISPATCH(SimdEdgeTable)(e, ci0, ni, cj0, nj, out);
@@ -264,8 +510,12 @@ void SimdTriangleBounds(const TriangleSoA& tris, float lo[3], float hi[3], size_
 }
 
 void SimdTriangleCellRanges(const TriangleSoA& tris, const BinGeometry& g, size_t first,
-                            size_t count, RangeBlock* out) {
-  HWY_DYNAMIC_DISPATCH(SimdTriangleCellRanges)(tris, g, first, count, out);
+                            size_t count, RangeBlock* out, bool bin_flags) {
+  if (bin_flags) {
+    HWY_DYNAMIC_DISPATCH(SimdTriangleCellRangesBin)(tris, g, first, count, out);
+  } else {
+    HWY_DYNAMIC_DISPATCH(SimdTriangleCellRanges)(tris, g, first, count, out);
+  }
 }
 
 }  // namespace rs

@@ -36,27 +36,17 @@ void BuildTriangleSoA(const MeshView& mesh, TriangleSoA* out, int threads) {
   }
   out->degenerate.ReserveForOverwrite(n);
   out->size = n;
-  // gather (scalar: the index buffer makes it a gather), then the degenerate flags a vector of
-  // triangles at a time (kernels/grid_simd.cc); threaded: both per part of the triangles
+  // gather, then the degenerate flags, each a vector of triangles at a time
+  // (kernels/grid_simd.cc); threaded: both per part of the triangles
   float* dst[3][3];
   for (int k = 0; k < 3; ++k) {
     for (int a = 0; a < 3; ++a) dst[k][a] = out->p[k][a].data();
   }
-  const uint32_t* indices = mesh.indices;
-  const float* positions = mesh.positions;
-  const size_t stride = mesh.stride;
   const int parts = int(std::min<size_t>(size_t(BuildThreadCount(threads)), n / 4096 + 1));
   std::vector<size_t> degenerate(size_t(parts), 0), nonfinite(size_t(parts), 0);
   RunParts(parts, [&](int t) {
     const size_t first = PartBegin(n, parts, t, 64), last = PartBegin(n, parts, t + 1, 64);
-    for (size_t i = first; i < last; ++i) {
-      for (int k = 0; k < 3; ++k) {
-        const float* src = positions + size_t{indices[3 * i + k]} * stride;
-        dst[k][0][i] = src[0];
-        dst[k][1][i] = src[1];
-        dst[k][2][i] = src[2];
-      }
-    }
+    SimdGatherTriangles(mesh, first, last, dst);
     SimdDegenerateFlags(out, first, last, &degenerate[size_t(t)], &nonfinite[size_t(t)]);
   });
   out->num_degenerate = out->num_nonfinite = 0;

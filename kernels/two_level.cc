@@ -5,6 +5,7 @@
 
 #include <algorithm>
 #include <atomic>
+#include <bit>
 #include <cfloat>
 #include <cmath>
 #include <limits>
@@ -88,7 +89,7 @@ namespace {
 // start of each occupied sub-cell's list in it.
 struct CellRefiner {
   const Grid& grid;
-  const float* p[3][3];
+  const TriangleSoA& source;  // the grid's triangles
   double max_abs;   // largest |bound| of the grid
   double min_cell;  // smallest sub-cell edge
   bool by_cost;
@@ -99,15 +100,18 @@ struct CellRefiner {
   BinScratch scratch;
   TriangleSoA cell_tris;  // the current cell's triangles, for the SIMD cell ranges
   RangeBlock block;
+  uint16_t quad_js[kRangeBlock];  // the block's 2 x 2-cell triangles and their cells
+  uint8_t quad_masks[kRangeBlock];
   uint32_t counts[kSubCells];
 
   CellRefiner(const Grid& g, const TriangleSoA& tris, double max_abs_bound, double min_cell_size,
               bool cost, const GridCostModel& m)
-      : grid(g), max_abs(max_abs_bound), min_cell(min_cell_size), by_cost(cost), model(m) {
-    for (int k = 0; k < 3; ++k) {
-      for (int a = 0; a < 3; ++a) p[k][a] = tris.p[k][a].data();
-    }
-  }
+      : grid(g),
+        source(tris),
+        max_abs(max_abs_bound),
+        min_cell(min_cell_size),
+        by_cost(cost),
+        model(m) {}
 
   // Refines `cell` if it pays off (by_cost), its sub-cells are not too fine and it makes at
   // most `room` sub-cell references: fills *rec (all but first_leaf), appends the leaf lists to
@@ -151,34 +155,59 @@ struct CellRefiner {
       std::fill(cell_tris.degenerate.data(), cell_tris.degenerate.data() + n, uint8_t{0});
     }
     cell_tris.size = n;
-    float* to[3][3];
-    for (int k = 0; k < 3; ++k) {
-      for (int a = 0; a < 3; ++a) to[k][a] = cell_tris.p[k][a].data();
-    }
-    for (uint32_t t = 0; t < n; ++t) {  // one pass: each id read once
-      const uint32_t id = list[t];
-      for (int k = 0; k < 3; ++k) {
-        for (int a = 0; a < 3; ++a) to[k][a][t] = p[k][a][id];
-      }
-    }
+    SimdGatherListed(source, list, n, &cell_tris);  // one pass: each id read once
     std::fill(counts, counts + kSubCells, 0u);
     size_t num_sub_refs = 0;
     for (size_t first = 0; first < n; first += kRangeBlock) {
       const size_t count = std::min(kRangeBlock, n - first);
-      SimdTriangleCellRanges(cell_tris, geo, first, count, &block);
-      // at most the bounding-box cells are emitted: make room once per block
-      size_t most = 0;
-      for (size_t j = 0; j < count; ++j) most += size_t(block.box[j]);
+      SimdTriangleCellRanges(cell_tris, geo, first, count, &block, /*bin_flags=*/true);
+      // at most the bounding-box cells are emitted: make room once per block; the 2 x 2-cell
+      // triangles are edge-tested here, a vector of triangles at a time (SimdQuadCellMasks)
+      const size_t most = block.box_sum;
+      size_t quads = 0;
+      for (size_t j = 0; j < count; ++j) {
+        if (block.flags[j] & kRangeQuad) quad_js[quads++] = uint16_t(j);
+      }
+      if (quads > 0) SimdQuadCellMasks(cell_tris, geo, first, block, quad_js, quads, quad_masks);
+      size_t next_quad = 0;
       if (ref_sub.size() < num_sub_refs + most) {
         ref_sub.resize(num_sub_refs + most);
         ref_tri.resize(num_sub_refs + most);
       }
       uint16_t* sub_out = ref_sub.data();
       uint32_t* tri_out = ref_tri.data();
+      static constexpr uint32_t kStride[3] = {1, kSubRes, kSubRes * kSubRes};
       for (size_t j = 0; j < count; ++j) {
         const int32_t flags = block.flags[j];
         if (flags & kRangeOutside) continue;
         const uint32_t id = list[first + j];
+        // block.cell[j] = x + kSubRes (y + kSubRes z) of the box's low corner
+        if (flags & kRangeLine) {
+          // one cell or a line along one axis: every box cell, in order (BinTriangleCells)
+          const int spans_mask = flags & 7;
+          const uint32_t stride = kStride[spans_mask == 4 ? 2 : spans_mask >> 1];
+          uint32_t sc = block.cell[j];
+          for (uint32_t k = 0; k < block.box[j]; ++k, sc += stride) {
+            sub_out[num_sub_refs] = uint16_t(sc);
+            tri_out[num_sub_refs++] = id;
+            ++counts[sc];
+          }
+          continue;
+        }
+        if (flags & kRangeQuad) {
+          // 2 x 2 cells: those of the SIMD edge tests, axis i fastest (BinTriangleCells' order)
+          const int spans_mask = flags & 7;
+          const uint32_t si = kStride[spans_mask == 6 ? 1 : 0];
+          const uint32_t sj = kStride[spans_mask == 3 ? 1 : 2];
+          const uint32_t offset[4] = {0, si, sj, si + sj};
+          for (uint32_t m = quad_masks[next_quad++]; m != 0; m &= m - 1) {
+            const uint32_t sc = block.cell[j] + offset[std::countr_zero(m)];
+            sub_out[num_sub_refs] = uint16_t(sc);
+            tri_out[num_sub_refs++] = id;
+            ++counts[sc];
+          }
+          continue;
+        }
         const int c0[3] = {block.c0[0][j], block.c0[1][j], block.c0[2][j]};
         const int c1[3] = {block.c1[0][j], block.c1[1][j], block.c1[2][j]};
         const bool span[3] = {(flags & 1) != 0, (flags & 2) != 0, (flags & 4) != 0};

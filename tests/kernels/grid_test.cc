@@ -15,6 +15,7 @@
 #include "kernels/grid_binning.h"
 #include "kernels/triangle.h"
 #include "tests/kernels/geometry_util.h"
+#include "tests/test_util.h"
 
 namespace rs {
 namespace {
@@ -464,6 +465,224 @@ TEST_CASE("SIMD edge tables equal the scalar sums and comparisons, ties included
   CHECK(ties > 50);
   CHECK(passed > cells / 10);
   CHECK(passed < cells);
+}
+
+TEST_CASE("BuildTriangleSoA gathers the mesh's vertices: every size, stride and target") {
+  Rng rng(61);
+  test::ForEachTarget([&](const char* target) {
+    INFO("target: ", target);
+    for (size_t n = 0; n <= 45; n += (n < 20 ? 1 : 7)) {
+      for (const size_t stride : {size_t{3}, size_t{4}, size_t{7}}) {
+        // exactly sized arrays (ASan: no read past them); vertices shared and in any order
+        const size_t vertices = 2 * n + 1;
+        std::vector<float> positions(vertices * stride);
+        for (float& x : positions) x = rng.UniformF(-100.0, 100.0);
+        std::vector<uint32_t> indices(3 * n);
+        for (uint32_t& i : indices) i = uint32_t(rng.Below(uint32_t(vertices)));
+        MeshView mesh;
+        mesh.positions = positions.data();
+        mesh.num_vertices = vertices;
+        mesh.stride = stride;
+        mesh.indices = indices.data();
+        mesh.num_triangles = n;
+        for (const int threads : {1, 3}) {
+          TriangleSoA tris;
+          BuildTriangleSoA(mesh, &tris, threads);
+          REQUIRE(tris.size == n);
+          for (size_t t = 0; t < n; ++t) {
+            for (int k = 0; k < 3; ++k) {
+              for (int a = 0; a < 3; ++a) {
+                INFO("n ", n, " stride ", stride, " triangle ", t, " vertex ", k, " axis ", a);
+                CHECK(tris.p[k][a][t] == positions[indices[3 * t + k] * stride + a]);
+              }
+            }
+          }
+        }
+      }
+    }
+  });
+}
+
+TEST_CASE("SimdMinMaxOffset equals the scalar min-max update: every size, every target") {
+  Rng rng(67);
+  test::ForEachTarget([&](const char* target) {
+    INFO("target: ", target);
+    for (size_t n = 0; n <= 200; n += (n < 70 ? 1 : 13)) {
+      std::vector<uint8_t> in(n), out(n);  // exactly n bytes (ASan: nothing past them)
+      for (size_t i = 0; i < n; ++i) {
+        in[i] = uint8_t(rng.Below(20));
+        out[i] = uint8_t(rng.Below(20));
+      }
+      const uint8_t d = uint8_t(1 + rng.Below(15));
+      std::vector<uint8_t> expect(out);
+      for (size_t i = 0; i < n; ++i) expect[i] = std::min(expect[i], std::max(d, in[i]));
+      SimdMinMaxOffset(out.data(), in.data(), n, d);
+      INFO("n ", n);
+      CHECK(out == expect);
+    }
+  });
+}
+
+TEST_CASE("SimdGatherListed gathers the listed triangles: every size, every target") {
+  Rng rng(73);
+  const Soup soup = test::RandomSoup(rng, 300, -1.0, 1.0, 0.3);
+  TriangleSoA tris;
+  BuildTriangleSoA(soup.view(), &tris);
+  test::ForEachTarget([&](const char* target) {
+    INFO("target: ", target);
+    for (size_t n = 0; n <= 60; ++n) {
+      std::vector<uint32_t> ids(n);  // exactly n ids (ASan: nothing read past them)
+      for (uint32_t& id : ids) id = uint32_t(rng.Below(uint32_t(tris.size)));
+      TriangleSoA out;
+      for (auto& vertex : out.p) {
+        for (auto& axis : vertex) axis.ReserveForOverwrite(n);
+      }
+      SimdGatherListed(tris, ids.data(), n, &out);
+      for (size_t t = 0; t < n; ++t) {
+        for (int k = 0; k < 3; ++k) {
+          for (int a = 0; a < 3; ++a) {
+            INFO("n ", n, " t ", t);
+            CHECK(out.p[k][a][t] == tris.p[k][a][ids[t]]);
+          }
+        }
+      }
+    }
+  });
+}
+
+TEST_CASE("SimdMaxIndex: the largest index of unpadded arrays, every size and position") {
+  test::ForEachTarget([&](const char* target) {
+    INFO("target: ", target);
+    for (size_t n = 0; n <= 70; ++n) {
+      // exactly n elements on the heap (ASan: no read past them), the largest at every position,
+      // values above 2^31 (unsigned order)
+      for (size_t at = 0; at < std::max<size_t>(n, 1); ++at) {
+        std::vector<uint32_t> v(n);
+        for (size_t i = 0; i < n; ++i) v[i] = uint32_t(i * 2654435761u) >> 1;
+        if (n > 0) v[at] = 0x80000000u + uint32_t(at);
+        const uint32_t expect = n == 0 ? 0 : *std::max_element(v.begin(), v.end());
+        INFO("n ", n, " at ", at);
+        CHECK(SimdMaxIndex(v.data(), n) == expect);
+      }
+    }
+  });
+}
+
+TEST_CASE("box sums of the cell ranges: boxes of more than 2^16 cells, every target") {
+  // one triangle across a dense grid (a box of ~10^6 cells: the high 16 bits of the sums) and
+  // small ones, degenerate ones among them
+  Rng rng(79);
+  Soup soup = test::RandomSoup(rng, 600, -1.0, 1.0, 0.05);
+  const float a[3] = {-1.0f, -1.0f, -1.0f}, b[3] = {1.0f, 1.0f, -1.0f}, c[3] = {1.0f, -1.0f, 1.0f};
+  soup.AddTriangle(a, b, c);
+  soup.AddTriangle(a, a, b);
+  TriangleSoA tris;
+  BuildTriangleSoA(soup.view(), &tris);
+  Grid geometry;
+  SetGridGeometry(ComputeGridBounds(tris), 2000.0f, 512, &geometry);
+  const BinGeometry geo = GridBinGeometry(geometry);
+  test::ForEachTarget([&](const char* target) {
+    INFO("target: ", target);
+    size_t largest = 0;
+    for (const bool bin_flags : {false, true}) {
+      RangeBlock block;
+      for (size_t first = 0; first < tris.size; first += kRangeBlock) {
+        const size_t count = std::min(kRangeBlock, tris.size - first);
+        SimdTriangleCellRanges(tris, geo, first, count, &block, bin_flags);
+        size_t sum = 0, lines = 0;
+        for (size_t j = 0; j < count; ++j) {
+          sum += block.box[j];
+          lines += (block.flags[j] & kRangeLine) ? block.box[j] : 0;
+          largest = std::max<size_t>(largest, block.box[j]);
+        }
+        CHECK(block.box_sum == sum);
+        if (bin_flags) CHECK(block.line_sum == lines);
+      }
+    }
+    CHECK(largest > (size_t{1} << 20));
+  });
+}
+
+TEST_CASE("SIMD 2 x 2-cell masks equal BinTriangleCells on every target") {
+  // triangles about a cell wide at random positions (many straddle a cell corner on two axes:
+  // 2 x 2 boxes), some on cell planes and with an edge along an axis (an edge of projected
+  // normal (0, 0)), on grids of several resolutions and offsets, huge and tiny coordinates
+  Rng rng(59);
+  size_t quads = 0, partial = 0;
+  for (int round = 0; round < 8; ++round) {
+    const double scale = round == 6 ? 1e-30 : (round == 7 ? 1e30 : 1.0);
+    const double offset = round == 5 ? 1e4 : 0.0;
+    Soup soup;
+    for (int t = 0; t < 700; ++t) {
+      const Soup one = test::RandomSoup(rng, 1, -1.0, 1.0, round % 2 ? 0.12 : 0.3);
+      float p[9];
+      for (int k = 0; k < 9; ++k) p[k] = F((double(one.positions[k]) + offset) * scale);
+      if (t % 7 == 0) p[3] = p[0];  // edge 0 -> 1 along the axes y, z only
+      if (t % 11 == 0) p[5] = p[2] = p[8];  // in a z plane
+      soup.AddTriangle(p, p + 3, p + 6);
+    }
+    TriangleSoA tris;
+    BuildTriangleSoA(soup.view(), &tris);
+    Grid geometry;
+    SetGridGeometry(ComputeGridBounds(tris), float(1 + round), 512, &geometry);
+    const BinGeometry geo = GridBinGeometry(geometry);
+    test::ForEachTarget([&](const char* target) {
+      INFO("target: ", target, " round ", round);
+      BinScratch scratch;
+      RangeBlock block;
+      for (size_t first = 0; first < tris.size; first += kRangeBlock) {
+        const size_t count = std::min(kRangeBlock, tris.size - first);
+        SimdTriangleCellRanges(tris, geo, first, count, &block, /*bin_flags=*/true);
+        std::vector<uint16_t> js;
+        size_t box_sum = 0, line_sum = 0;
+        for (size_t j = 0; j < count; ++j) {
+          box_sum += block.box[j];
+          line_sum += (block.flags[j] & kRangeLine) ? block.box[j] : 0;
+        }
+        CHECK(block.box_sum == box_sum);
+        CHECK(block.line_sum == line_sum);
+        for (size_t j = 0; j < count; ++j) {
+          // kRangeQuad: two spanning axes of extent 1, one cell on the third; kRangeLine: at
+          // most one spanning axis
+          const int s = block.flags[j] & 7;
+          bool quad = block.box[j] == 4 && (s == 3 || s == 5 || s == 6);
+          const int a = s == 6 ? 1 : 0, b = s == 3 ? 1 : 2;
+          quad = quad && block.c1[a][j] - block.c0[a][j] == 1 &&
+                 block.c1[b][j] - block.c0[b][j] == 1;
+          CHECK(((block.flags[j] & kRangeQuad) != 0) == quad);
+          CHECK(((block.flags[j] & kRangeLine) != 0) == ((s & (s - 1)) == 0));
+          if (quad) js.push_back(uint16_t(j));
+        }
+        std::vector<uint8_t> masks(js.size() + 1, 0xee);
+        SimdQuadCellMasks(tris, geo, first, block, js.data(), js.size(), masks.data());
+        CHECK(masks[js.size()] == 0xee);  // nothing written past the masks
+        for (size_t q = 0; q < js.size(); ++q) {
+          const size_t j = js[q], i = first + j;
+          const float v[3][3] = {{tris.p[0][0][i], tris.p[0][1][i], tris.p[0][2][i]},
+                                 {tris.p[1][0][i], tris.p[1][1][i], tris.p[1][2][i]},
+                                 {tris.p[2][0][i], tris.p[2][1][i], tris.p[2][2][i]}};
+          int c0[3], c1[3];
+          bool span[3];
+          const int spans = TriangleCellRange(geo, v, c0, c1, span);
+          REQUIRE(spans == 2);
+          const int k = !span[0] ? 0 : (!span[1] ? 1 : 2);
+          const int ai = k == 0 ? 1 : 0, aj = k == 2 ? 1 : 2;
+          uint32_t expect = 0;
+          BinTriangleCells(geo, v, c0, c1, span, spans, &scratch, [&](int x, int y, int z) {
+            const int c[3] = {x, y, z};
+            expect |= 1u << ((c[ai] - c0[ai]) + 2 * (c[aj] - c0[aj]));
+          });
+          INFO("triangle ", i);
+          CHECK(uint32_t(masks[q]) == expect);
+          partial += expect != 15;
+        }
+        quads += js.size();
+      }
+    });
+  }
+  MESSAGE("2 x 2-cell triangles ", quads, ", not in all four cells ", partial);
+  CHECK(quads > 1000);
+  CHECK(partial > 100);
 }
 
 TEST_CASE("CountGridBoxes equals counting the bounding-box cells one by one") {
