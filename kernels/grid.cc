@@ -150,6 +150,22 @@ bool BinReferences(const TriangleSoA& tris, const Grid& grid, const BinGeometry&
     }
     if (num_refs + lines > *capacity) Grow(ref_cells, num_refs, capacity, lines, limit);
     uint32_t* cells_out = ref_cells->get();
+    // room for a triangle of at most `room` cells and the block's line triangles after it;
+    // past the budget, exact() counts its cells; false (*num_refs_out set) if they pass it
+    const auto make_room = [&](size_t room, const auto& exact) {
+      if (num_refs + room + lines > limit) {
+        room = exact();
+        if (num_refs + room + lines > limit) {
+          *num_refs_out = num_refs + room + lines;
+          return false;
+        }
+      }
+      if (num_refs + room + lines > *capacity) {
+        Grow(ref_cells, num_refs, capacity, room + lines, limit);
+        cells_out = ref_cells->get();
+      }
+      return true;
+    };
     for (size_t j = 0; j < count; ++j) {
       const uint32_t i = uint32_t(first + j);
       ref_begin[i - first_tri] = uint32_t(num_refs);
@@ -175,19 +191,7 @@ bool BinReferences(const TriangleSoA& tris, const Grid& grid, const BinGeometry&
         // a 2 x 2-cell triangle: its cells from the SIMD edge tests, in BinTriangleCells' order
         // (axis i fastest), with the same room and budget checks as below
         const uint32_t mask = quad_masks[next_quad++];
-        size_t room = 4;
-        if (num_refs + room + lines > limit) {
-          const size_t exact = size_t(std::popcount(mask));
-          if (num_refs + exact + lines > limit) {
-            *num_refs_out = num_refs + exact + lines;
-            return false;
-          }
-          room = exact;
-        }
-        if (num_refs + room + lines > *capacity) {
-          Grow(ref_cells, num_refs, capacity, room + lines, limit);
-          cells_out = ref_cells->get();
-        }
+        if (!make_room(4, [&] { return size_t(std::popcount(mask)); })) return false;
         const size_t si = strides[spans_mask == 6 ? 1 : 0], sj = strides[spans_mask == 3 ? 1 : 2];
         const size_t offset[4] = {0, si, sj, si + sj};
         for (uint32_t m = mask; m != 0; m &= m - 1) {
@@ -207,19 +211,13 @@ bool BinReferences(const TriangleSoA& tris, const Grid& grid, const BinGeometry&
       // its box, and what the block's line triangles after it still need; a box larger than
       // the budget left (a huge or long thin triangle) is counted first, so the array never
       // grows far past the budget
-      size_t room = size_t(block.box[j]);
-      if (num_refs + room + lines > limit) {
-        size_t exact = 0;
-        BinTriangleCells(geo, v, c0, c1, span, spans, &scratch, [&](int, int, int) { ++exact; });
-        if (num_refs + exact + lines > limit) {
-          *num_refs_out = num_refs + exact + lines;
-          return false;
-        }
-        room = exact;
-      }
-      if (num_refs + room + lines > *capacity) {
-        Grow(ref_cells, num_refs, capacity, room + lines, limit);
-        cells_out = ref_cells->get();
+      if (!make_room(size_t(block.box[j]), [&] {
+            size_t exact = 0;
+            BinTriangleCells(geo, v, c0, c1, span, spans, &scratch,
+                             [&](int, int, int) { ++exact; });
+            return exact;
+          })) {
+        return false;
       }
       BinTriangleCells(geo, v, c0, c1, span, spans, &scratch, [&](int x, int y, int z) {
         const size_t cell = size_t(x) + stride_y * size_t(y) + stride_z * size_t(z);
@@ -502,12 +500,10 @@ size_t EstimateGridRefs(const TriangleSoA& tris, const Grid& geometry, size_t li
     while (i + 1 < n && before + double(boxes[i]) <= at) before += double(boxes[i++]);
     if (i != measured) {
       measured = i;
-      const float v[3][3] = {{tris.p[0][0][i], tris.p[0][1][i], tris.p[0][2][i]},
-                             {tris.p[1][0][i], tris.p[1][1][i], tris.p[1][2][i]},
-                             {tris.p[2][0][i], tris.p[2][1][i], tris.p[2][2][i]}};
+      float v[3][3];
       int c0[3], c1[3];
       bool span[3];
-      const int spans = TriangleCellRange(geo, v, c0, c1, span);
+      const int spans = TriangleCellRange(geo, tris, i, v, c0, c1, span);
       size_t exact = 0, box = 1;
       if (spans >= 0) {
         BinTriangleCells(geo, v, c0, c1, span, spans, &scratch, [&](int, int, int) { ++exact; });

@@ -301,6 +301,15 @@ inline int TriangleCellRange(const BinGeometry& g, const float v[3][3], int c0[3
   return outside ? -1 : spans;
 }
 
+// TriangleCellRange of triangle i of `tris`; its vertices are left in v.
+inline int TriangleCellRange(const BinGeometry& g, const TriangleSoA& tris, size_t i,
+                             float v[3][3], int c0[3], int c1[3], bool span[3]) {
+  for (int k = 0; k < 3; ++k) {
+    for (int a = 0; a < 3; ++a) v[k][a] = tris.p[k][a][i];
+  }
+  return TriangleCellRange(g, v, c0, c1, span);
+}
+
 // Calls emit(x, y, z) for every cell of `g` that triangle v (float vertices, finite) overlaps,
 // grown by the margin, in x-fastest order, each cell once, given its TriangleCellRange. Never
 // misses a cell (the float ranges contain the exact ones); may add a cell that the bounding box

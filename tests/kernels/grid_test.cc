@@ -658,12 +658,10 @@ TEST_CASE("SIMD 2 x 2-cell masks equal BinTriangleCells on every target") {
         CHECK(masks[js.size()] == 0xee);  // nothing written past the masks
         for (size_t q = 0; q < js.size(); ++q) {
           const size_t j = js[q], i = first + j;
-          const float v[3][3] = {{tris.p[0][0][i], tris.p[0][1][i], tris.p[0][2][i]},
-                                 {tris.p[1][0][i], tris.p[1][1][i], tris.p[1][2][i]},
-                                 {tris.p[2][0][i], tris.p[2][1][i], tris.p[2][2][i]}};
+          float v[3][3];
           int c0[3], c1[3];
           bool span[3];
-          const int spans = TriangleCellRange(geo, v, c0, c1, span);
+          const int spans = TriangleCellRange(geo, tris, i, v, c0, c1, span);
           REQUIRE(spans == 2);
           const int k = !span[0] ? 0 : (!span[1] ? 1 : 2);
           const int ai = k == 0 ? 1 : 0, aj = k == 2 ? 1 : 2;
