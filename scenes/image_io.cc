@@ -546,7 +546,7 @@ StagedFile StageImage(const std::string& path, int width, int height,
     why = EncodePng(width, height, bytes.data(), &encoded);
   } else {
     const image_module::Functions& module = ImageModule(path, "write image");
-    why = module.encode(path, width, height,
+    why = module.encode(path, ext, width, height,
                         encoding == Encoding::kSrgb8  ? image_module::FileType::kUint8
                         : encoding == Encoding::kHalf ? image_module::FileType::kHalf
                                                       : image_module::FileType::kFloat,

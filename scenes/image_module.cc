@@ -120,12 +120,8 @@ std::string Lower(std::string s) {
   return s;
 }
 
-std::string Encode(const std::string& path, int width, int height, FileType type,
-                   const void* data, std::vector<unsigned char>* encoded) try {
-  const std::string ext = [&] {
-    const size_t dot = path.rfind('.');
-    return dot == std::string::npos ? std::string() : Lower(path.substr(dot + 1));
-  }();
+std::string Encode(const std::string& path, const std::string& ext, int width, int height,
+                   FileType type, const void* data, std::vector<unsigned char>* encoded) try {
   const OIIO::TypeDesc file_type = type == FileType::kUint8  ? OIIO::TypeDesc::UINT8
                                    : type == FileType::kHalf ? OIIO::TypeDesc::HALF
                                                              : OIIO::TypeDesc::FLOAT;

@@ -15,19 +15,19 @@
 namespace rs::image_module {
 
 // Bumped with every change to Functions: a module of another version is not used.
-inline constexpr int kVersion = 1;
+inline constexpr int kVersion = 2;
 
 // What StageImage hands over: 8-bit sRGB bytes, or linear floats stored as half or float.
 enum class FileType { kUint8, kHalf, kFloat };
 
 struct Functions {
   int version;
-  // Encodes width x height rgb pixels into `encoded` with OpenImageIO's writer for the extension
-  // of `path` (nothing touches the disk): `data` is width * height * 3 bytes for kUint8, floats
-  // otherwise. Returns "" or the reason, one line ("<path>: cannot write image: <reason>" is
-  // the caller's).
-  std::string (*encode)(const std::string& path, int width, int height, FileType type,
-                        const void* data, std::vector<unsigned char>* encoded);
+  // Encodes width x height rgb pixels into `encoded` with OpenImageIO's writer for `path`, whose
+  // lower-case extension is `ext` (nothing touches the disk): `data` is width * height * 3 bytes
+  // for kUint8, floats otherwise. Returns "" or the reason, one line ("<path>: cannot write
+  // image: <reason>" is the caller's).
+  std::string (*encode)(const std::string& path, const std::string& ext, int width, int height,
+                        FileType type, const void* data, std::vector<unsigned char>* encoded);
   // Reads `path` (a regular file of file_size bytes) as linear rgb into *tex, its header checked
   // against `limits` before any pixel is allocated. Returns "" or the whole one-line message.
   std::string (*read)(const std::string& path, uint64_t file_size, const ImageReadLimits& limits,
