@@ -40,7 +40,7 @@ void ValidateOptionsAndArrays(const MeshView& mesh, const BuildOptions& options)
                 "finite number, got " + FormatFloat(options.lambda));
   }
   if (options.grid != GridKind::kAuto && options.grid != GridKind::kUniform &&
-      options.grid != GridKind::kTwoLevel) {
+      options.grid != GridKind::kTwoLevel && options.grid != GridKind::kIrregular) {
     throw Error("BuildOptions: unknown grid kind " + std::to_string(int(options.grid)));
   }
   if (options.micro_cache < 0 || options.micro_cache > kMaxMicroCache) {
@@ -111,7 +111,8 @@ Accel::Accel(const MeshView& mesh, const BuildOptions& options) : impl_(std::mak
   const GridCostModel model;
   m.lambda = options.lambda > 0.0f ? options.lambda : kDefaultLambda;
   const GridBounds bounds = ComputeGridBounds(m.triangles);  // shared by the lambda choice
-  if (options.grid == GridKind::kAuto && options.lambda == 0.0f) {
+  const bool auto_grid = options.grid == GridKind::kAuto || options.grid == GridKind::kIrregular;
+  if (auto_grid && options.lambda == 0.0f) {
     m.lambda = ChooseLambda(m.triangles, bounds, options.max_resolution, model, nullptr,
                             options.build_threads);
   }
@@ -119,20 +120,25 @@ Accel::Accel(const MeshView& mesh, const BuildOptions& options) : impl_(std::mak
             options.build_threads);
   const bool may_refine =
       options.grid == GridKind::kTwoLevel ||
-      (options.grid == GridKind::kAuto &&
+      (auto_grid &&
        TwoLevelCostBound(m.grid, options.subgrid_threshold, model) <
            kTwoLevelMinGain * FlatGridCost(m.grid, model));
   if (may_refine) {
     BuildTwoLevel(m.grid, m.triangles, options.subgrid_threshold,
-                  /*by_cost=*/options.grid == GridKind::kAuto, model, &m.two_level,
-                  options.build_threads);
-    if (options.grid == GridKind::kAuto && !m.two_level.empty() &&
+                  /*by_cost=*/auto_grid, model, &m.two_level, options.build_threads);
+    if (auto_grid && !m.two_level.empty() &&
         !(TwoLevelGridCost(m.grid, m.two_level, model) <
           kTwoLevelMinGain * FlatGridCost(m.grid, model))) {
       m.two_level = TwoLevelGrid();  // not worth it: stay flat
     }
   }
   BuildDdaGrid(m.grid, &m.two_level, m.triangles, &m.dda, options.build_threads);
+  if (options.grid == GridKind::kIrregular) {
+    BuildIrregularGrid(m.triangles, bounds, IrregularOptions{}, options.max_resolution,
+                       &m.irregular);
+    BuildIrregularDda(m.irregular, m.triangles, &m.irregular_dda, options.build_threads);
+    m.dda.irregular = &m.irregular_dda;
+  }
   m.dda_options.micro_cache = options.micro_cache;
   m.packets = options.packets;
   // A jump costs a gather and the exact boundary search (dda_stream.cc: JumpEmpty), several
@@ -316,7 +322,10 @@ AccelInfo Accel::Info() const {
   info.references = m.grid.num_refs;
   info.max_per_cell = m.grid.max_per_cell;
   info.build_seconds = m.build_seconds;
-  info.bytes = m.triangles.Bytes() + m.grid.Bytes() + m.two_level.Bytes() + m.dda.Bytes();
+  info.bytes = m.triangles.Bytes() + m.grid.Bytes() + m.two_level.Bytes() + m.dda.Bytes() +
+               m.irregular.Bytes() + m.irregular_dda.Bytes();
+  info.irregular_cells = m.irregular.num_cells;
+  info.irregular_references = m.irregular.lists.num_refs;
   info.kind = m.two_level.empty() ? "uniform" : "two-level";
   info.lambda = m.lambda;
   info.subgrids = m.two_level.num_records;

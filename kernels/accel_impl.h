@@ -6,6 +6,8 @@
 #include "include/raystream/raystream.h"
 #include "kernels/dda_simd.h"
 #include "kernels/grid.h"
+#include "kernels/irregular.h"
+#include "kernels/irregular_simd.h"
 #include "kernels/triangle.h"
 #include "kernels/two_level.h"
 
@@ -16,7 +18,10 @@ struct Accel::Impl {
   Grid grid;               // empty (num_cells = 0) when no triangle can be hit; always a
                            // complete flat grid (also when two_level refines some cells)
   TwoLevelGrid two_level;  // empty for a flat grid
-  DdaGrid dda;             // borrows grid, two_level, triangles (Impl never moves: unique_ptr)
+  IrregularGrid irregular;  // empty unless BuildOptions::grid = kIrregular
+  IrregularDda irregular_dda;
+  DdaGrid dda;             // borrows grid, two_level, triangles, irregular_dda (Impl never
+                           // moves: unique_ptr)
   DdaOptions dda_options;
   bool packets = true;     // BuildOptions::packets
   float lambda = 0.0f;

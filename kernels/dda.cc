@@ -9,6 +9,7 @@
 #include <cmath>
 #include <limits>
 
+#include "kernels/irregular.h"
 #include "kernels/two_level.h"
 #include "kernels/two_level_dda.h"
 
@@ -33,53 +34,32 @@ class Mailbox {
   uint32_t next_ = 0;
 };
 
-// `two` is null for a flat grid; else occupied refined cells are traversed through their
-// sub-grid (TraverseSubGrid) and leaves are tested from the leaf lists.
+// The triangle tests of one ray: the ray's watertight setup, the 9 SoA arrays in its (kx, ky,
+// kz) order, the mailbox and the candidate. Visit(list, begin, end) tests a leaf's ids; true iff
+// kAnyHit and a hit was found. On equal t the lower triangle id wins.
 template <bool kAnyHit>
-bool Traverse(const Grid& grid, const TwoLevelGrid* two, const TriangleSoA& tris, float ox,
-              float oy, float oz, float dx, float dy, float dz, float tmin, float tmax,
-              RayHit* hit, TraceStats* stats) {
-  if (grid.empty()) return false;
-  DdaRay r;
-  float t0, tmax_f;
-  if (!BeginDdaRay(grid, ox, oy, oz, dx, dy, dz, tmin, tmax, &r, &t0, &tmax_f)) return false;
-  const float t1 = r.t1;
-  int cell[3];
-  float t_next[3];
-  size_t idx = DdaStartCell(grid, r, t0, cell, t_next);
-  const size_t stride[3] = {1, size_t(grid.res[0]), size_t(grid.res[0]) * size_t(grid.res[1])};
-
-  // The watertight test reads the vertex components in the ray's (kx, ky, kz) order: pick the
-  // 9 SoA arrays once per ray.
-  const WatertightRay ray = PrepareWatertightRay(ox, oy, oz, dx, dy, dz);
-  const float* v[3][3];
-  for (int k = 0; k < 3; ++k) {
-    v[k][0] = tris.p[k][ray.kx].data();
-    v[k][1] = tris.p[k][ray.ky].data();
-    v[k][2] = tris.p[k][ray.kz].data();
+class LeafTester {
+ public:
+  LeafTester(const TriangleSoA& tris, float ox, float oy, float oz, float dx, float dy, float dz,
+             float tmin, float tmax_f)
+      : ray_(PrepareWatertightRay(ox, oy, oz, dx, dy, dz)), tmin_(tmin), best_t(tmax_f) {
+    for (int k = 0; k < 3; ++k) {
+      v_[k][0] = tris.p[k][ray_.kx].data();
+      v_[k][1] = tris.p[k][ray_.ky].data();
+      v_[k][2] = tris.p[k][ray_.kz].data();
+    }
   }
-  const uint32_t* list_begin = two == nullptr ? grid.cell_begin.get() : two->leaves.cell_begin.get();
-  const uint32_t* list_ids = two == nullptr ? grid.tri_ids.get() : two->leaves.tri_ids.get();
-  const uint64_t* occupancy = grid.occupancy.get();
 
-  Mailbox mailbox;
-  uint64_t cell_steps = 0, triangle_tests = 0;
-  float best_t = tmax_f;
-  uint32_t best_prim = UINT32_MAX;
-  TriHit best{};
-  bool found = false;
-  // Tests leaf `leaf` (a top-level cell, or a sub-cell's leaf); true iff any-hit found.
-  auto visit = [&](size_t leaf) {
-    const uint32_t end = list_begin[leaf + 1];
-    for (uint32_t k = list_begin[leaf]; k < end; ++k) {
-      const uint32_t id = list_ids[k];
-      if (mailbox.Contains(id)) continue;
-      mailbox.Insert(id);
+  bool Visit(const uint32_t* ids, uint32_t begin, uint32_t end) {
+    for (uint32_t k = begin; k < end; ++k) {
+      const uint32_t id = ids[k];
+      if (mailbox_.Contains(id)) continue;
+      mailbox_.Insert(id);
       ++triangle_tests;
       TriHit th;
-      if (!IntersectWatertightPermuted(ray, v[0][0][id], v[0][1][id], v[0][2][id], v[1][0][id],
-                                       v[1][1][id], v[1][2][id], v[2][0][id], v[2][1][id],
-                                       v[2][2][id], tmin, best_t, &th)) {
+      if (!IntersectWatertightPermuted(ray_, v_[0][0][id], v_[0][1][id], v_[0][2][id],
+                                       v_[1][0][id], v_[1][1][id], v_[1][2][id], v_[2][0][id],
+                                       v_[2][1][id], v_[2][2][id], tmin_, best_t, &th)) {
         continue;
       }
       if constexpr (kAnyHit) {
@@ -96,6 +76,64 @@ bool Traverse(const Grid& grid, const TwoLevelGrid* two, const TriangleSoA& tris
       }
     }
     return false;
+  }
+
+  // Adds the counts to `stats` (may be null) and writes the candidate to `hit` (closest hit).
+  bool Finish(uint64_t cell_steps, RayHit* hit, TraceStats* stats) const {
+    if (stats != nullptr) {
+      stats->cell_steps += cell_steps;
+      stats->triangle_tests += triangle_tests;
+    }
+    if constexpr (!kAnyHit) {
+      if (found) {
+        hit->t = best.t;
+        hit->u = best.u;
+        hit->v = best.v;
+        hit->prim = int32_t(best_prim);
+      }
+    }
+    return found;
+  }
+
+ private:
+  WatertightRay ray_;
+  const float* v_[3][3];
+  float tmin_;
+  Mailbox mailbox_;
+
+ public:
+  float best_t;
+  uint32_t best_prim = UINT32_MAX;
+  TriHit best{};
+  bool found = false;
+  uint64_t triangle_tests = 0;
+};
+
+// `two` is null for a flat grid; else occupied refined cells are traversed through their
+// sub-grid (TraverseSubGrid) and leaves are tested from the leaf lists.
+template <bool kAnyHit>
+bool Traverse(const Grid& grid, const TwoLevelGrid* two, const TriangleSoA& tris, float ox,
+              float oy, float oz, float dx, float dy, float dz, float tmin, float tmax,
+              RayHit* hit, TraceStats* stats) {
+  if (grid.empty()) return false;
+  DdaRay r;
+  float t0, tmax_f;
+  if (!BeginDdaRay(grid, ox, oy, oz, dx, dy, dz, tmin, tmax, &r, &t0, &tmax_f)) return false;
+  const float t1 = r.t1;
+  int cell[3];
+  float t_next[3];
+  size_t idx = DdaStartCell(grid, r, t0, cell, t_next);
+  const size_t stride[3] = {1, size_t(grid.res[0]), size_t(grid.res[0]) * size_t(grid.res[1])};
+
+  const uint32_t* list_begin = two == nullptr ? grid.cell_begin.get() : two->leaves.cell_begin.get();
+  const uint32_t* list_ids = two == nullptr ? grid.tri_ids.get() : two->leaves.tri_ids.get();
+  const uint64_t* occupancy = grid.occupancy.get();
+
+  LeafTester<kAnyHit> tester(tris, ox, oy, oz, dx, dy, dz, tmin, tmax_f);
+  uint64_t cell_steps = 0;
+  // Tests leaf `leaf` (a top-level cell, or a sub-cell's leaf); true iff any-hit found.
+  auto visit = [&](size_t leaf) {
+    return tester.Visit(list_ids, list_begin[leaf], list_begin[leaf + 1]);
   };
   float t_enter = t0;
   int enter_axis = -1;
@@ -104,15 +142,15 @@ bool Traverse(const Grid& grid, const TwoLevelGrid* two, const TriangleSoA& tris
     const float t_exit = std::fmin(t_next[0], std::fmin(t_next[1], t_next[2]));
     if ((occupancy[idx >> 6] >> (idx & 63)) & 1u) {
       if (two != nullptr && two->Refined(idx)) {
-        const SubExit e = TraverseSubGrid(two->Record(idx), r, t_enter, enter_axis, &best_t,
-                                          &cell_steps, visit);
+        const SubExit e = TraverseSubGrid(two->Record(idx), r, t_enter, enter_axis,
+                                          &tester.best_t, &cell_steps, visit);
         if (e != SubExit::kLeft) break;
       } else if (visit(idx)) {
         break;
       }
     }
     // The candidate (or the end of the segment) lies before the next cell: done.
-    if (best_t <= t_exit || t1 <= t_exit) break;
+    if (tester.best_t <= t_exit || t1 <= t_exit) break;
     // Step into the neighbour across the nearest boundary (ties to the last axis).
     const int a = t_next[0] < t_next[1] ? (t_next[0] < t_next[2] ? 0 : 2)
                                         : (t_next[1] < t_next[2] ? 1 : 2);
@@ -123,19 +161,51 @@ bool Traverse(const Grid& grid, const TwoLevelGrid* two, const TriangleSoA& tris
     t_enter = t_exit;
     enter_axis = a;
   }
-  if (stats != nullptr) {
-    stats->cell_steps += cell_steps;
-    stats->triangle_tests += triangle_tests;
-  }
-  if constexpr (!kAnyHit) {
-    if (found) {
-      hit->t = best.t;
-      hit->u = best.u;
-      hit->v = best.v;
-      hit->prim = int32_t(best_prim);
+  return tester.Finish(cell_steps, hit, stats);
+}
+
+// The irregular grid (kernels/irregular.h): from the start voxel's cell, test the cell's list,
+// stop when the candidate or the segment end lies before the exit of the cell's box, else move
+// to the voxel across the nearest far face (the other axes: o + t_exit d, clamped into the box).
+// Every step moves the voxel by at least one on the exit axis and never back on any axis
+// (IrregularNextVoxel), so a ray enters at most vres[0] + vres[1] + vres[2] cells.
+template <bool kAnyHit>
+bool TraverseIrregular(const IrregularGrid& g, const TriangleSoA& tris, float ox, float oy,
+                       float oz, float dx, float dy, float dz, float tmin, float tmax,
+                       RayHit* hit, TraceStats* stats) {
+  if (g.empty()) return false;
+  DdaRay r;
+  float t0, tmax_f;
+  if (!BeginDdaRay(g, ox, oy, oz, dx, dy, dz, tmin, tmax, &r, &t0, &tmax_f)) return false;
+  int v[3];
+  IrregularStartVoxel(g, r, t0, v);
+  const uint32_t* list_begin = g.lists.cell_begin.get();
+  const uint32_t* list_ids = g.lists.tri_ids.get();
+  LeafTester<kAnyHit> tester(tris, ox, oy, oz, dx, dy, dz, tmin, tmax_f);
+  uint64_t cell_steps = 0;
+  float t_enter = t0;
+  for (;;) {
+    ++cell_steps;
+    const uint32_t cell = g.Lookup(v);
+    const int32_t* box = g.Box(cell);
+    if (tester.Visit(list_ids, list_begin[cell], list_begin[cell + 1])) break;
+    float t_face[3];
+    for (int a = 0; a < 3; ++a) {
+      t_face[a] = r.step[a] == 0 ? std::numeric_limits<float>::infinity()
+                                 : IrregularFaceT(g, r, a, r.step[a] > 0 ? box[3 + a] : box[a]);
     }
+    // The ray is covered up to t_exit, or up to t_enter if the box lies behind it (the lookup
+    // clamped the exit point of the cell before into this box): t never decreases, so a ray
+    // cannot cycle between two overlapping boxes.
+    const float t_exit =
+        std::fmax(t_enter, std::fmin(t_face[0], std::fmin(t_face[1], t_face[2])));
+    if (tester.best_t <= t_exit || r.t1 <= t_exit) break;
+    const int a = t_face[0] < t_face[1] ? (t_face[0] < t_face[2] ? 0 : 2)
+                                        : (t_face[1] < t_face[2] ? 1 : 2);
+    if (!IrregularNextVoxel(g, r, box, a, t_exit, v)) break;
+    t_enter = t_exit;
   }
-  return found;
+  return tester.Finish(cell_steps, hit, stats);
 }
 
 const TwoLevelGrid* SecondLevel(const TwoLevelGrid* two) {
@@ -170,6 +240,21 @@ bool TraceClosest(const Grid& grid, const TriangleSoA& tris, float ox, float oy,
 bool TraceAny(const Grid& grid, const TriangleSoA& tris, float ox, float oy, float oz, float dx,
               float dy, float dz, float tmin, float tmax, TraceStats* stats) {
   return TraceAnyGrid(grid, nullptr, tris, ox, oy, oz, dx, dy, dz, tmin, tmax, stats);
+}
+
+bool TraceClosestIrregular(const IrregularGrid& g, const TriangleSoA& tris, float ox, float oy,
+                           float oz, float dx, float dy, float dz, float tmin, float tmax,
+                           RayHit* hit, TraceStats* stats) {
+  hit->t = std::numeric_limits<float>::infinity();
+  hit->u = hit->v = 0.0f;
+  hit->prim = -1;
+  return TraverseIrregular<false>(g, tris, ox, oy, oz, dx, dy, dz, tmin, tmax, hit, stats);
+}
+
+bool TraceAnyIrregular(const IrregularGrid& g, const TriangleSoA& tris, float ox, float oy,
+                       float oz, float dx, float dy, float dz, float tmin, float tmax,
+                       TraceStats* stats) {
+  return TraverseIrregular<true>(g, tris, ox, oy, oz, dx, dy, dz, tmin, tmax, nullptr, stats);
 }
 
 bool TraceClosestTwoLevel(const Grid& grid, const TwoLevelGrid& two, const TriangleSoA& tris,

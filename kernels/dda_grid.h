@@ -39,6 +39,10 @@ struct DdaGrid {
   // The stream kernels index cells with int32 lanes; larger grids (more than 2^31 - 64 cells)
   // are traced by the scalar DDA (false here).
   bool simd_ok = false;
+  // If set, the per-ray stream kernels (IntersectStreamDda / OccludedStreamDda, and so the rays
+  // the coherent packets refuse) trace the irregular grid instead (kernels/irregular_simd.h):
+  // the same results; the packets keep this grid. Borrowed, like the rest.
+  const struct IrregularDda* irregular = nullptr;
 
   bool empty() const { return grid == nullptr || grid->empty(); }
   size_t Bytes() const;

@@ -40,6 +40,7 @@
 #include <cstring>
 #include <limits>
 
+#include "kernels/irregular_simd.h"
 #include "streams/ray_stream.h"  // SubView
 
 #undef HWY_TARGET_INCLUDE
@@ -784,6 +785,7 @@ void ScalarStream(const DdaGrid& g, const RayStreamView& rays, const HitStreamVi
 void IntersectStreamDda(const DdaGrid& g, const RayStreamView& rays, const HitStreamView& hits,
                         const DdaOptions& options, TraceStats* stats) {
   HWY_DASSERT(hits.size == rays.size);
+  if (g.irregular != nullptr) return IntersectStreamIrregular(*g.irregular, rays, hits, stats);
   if (stats != nullptr) stats->rays += rays.size;
   if (rays.size == 0) return;
   if (g.empty() || !g.simd_ok) return ScalarStream(g, rays, &hits, nullptr, stats);
@@ -797,6 +799,7 @@ void IntersectStreamDda(const DdaGrid& g, const RayStreamView& rays, const HitSt
 
 void OccludedStreamDda(const DdaGrid& g, const RayStreamView& rays, int32_t* occluded,
                        const DdaOptions& options, TraceStats* stats) {
+  if (g.irregular != nullptr) return OccludedStreamIrregular(*g.irregular, rays, occluded, stats);
   if (stats != nullptr) stats->rays += rays.size;
   if (rays.size == 0) return;
   if (g.empty() || !g.simd_ok) return ScalarStream(g, rays, nullptr, occluded, stats);

@@ -322,6 +322,11 @@ CellFrameStats CellRenderer::RenderTiles(const FrameContext& ctx, Framebuffer& f
 Accel BuildCellAccel(const Scene& scene, BuildOptions options, const SimConfig& config,
                      int image_width, std::string* note) {
   if (note != nullptr) note->clear();
+  if (options.grid == GridKind::kIrregular) {
+    throw Error("--grid irregular: the cell backend simulates the paper's uniform and two-level "
+                "grids on the SPEs, not the irregular grid; use --grid auto, uniform or "
+                "two-level");
+  }
   const uint64_t budget = OccupancyBudgetCells(config, static_cast<uint32_t>(scene.lights.size()),
                                                image_width, /*two_level=*/true);
   Accel accel(scene.mesh(), options);

@@ -84,7 +84,9 @@ Json InfoJson(const Scene& scene, const AccelInfo& a) {
         {"flat_cost_estimate", a.flat_cost_estimate},
         {"simd_target", a.simd_target},
         {"empty_block_share", a.empty_block_share},
-        {"empty_skip", a.empty_skip}}},
+        {"empty_skip", a.empty_skip},
+        {"irregular_cells", a.irregular_cells},
+        {"irregular_references", a.irregular_references}}},
       {"features", FeaturesJson(scene.features)}};
 }
 
@@ -126,6 +128,10 @@ void PrintInfo(const Json& j) {
   fmt::print("empty space  {:.1f} % of cells in empty 5x5x5 blocks, empty-space skipping {}\n",
              100.0 * g["empty_block_share"].get<double>(),
              g["empty_skip"].get<bool>() ? "on" : "off");
+  if (const size_t cells = g["irregular_cells"].get<size_t>(); cells > 0) {
+    fmt::print("irregular    {} cells, {} references (the rays traced one per lane)\n", cells,
+               g["irregular_references"].get<size_t>());
+  }
   fmt::print("features     lights={} specular={} reflection={} transmission={} textures={} "
              "large={}\n",
              f["lights"].get<bool>(), f["specular"].get<bool>(), f["reflection"].get<bool>(),
@@ -136,17 +142,28 @@ struct InfoArgs {
   std::string scene = kDefaultScene;
   bool json = false;
   float lambda = 0.0f;  // 0: chosen by the grid cost model (BuildOptions::lambda)
+  std::string grid = "auto";
 };
 
 // --lambda: 0 (the default) lets the grid cost model choose; anything else is used as given.
-void SetLambda(float lambda, BuildOptions* build) {
+// --grid: BuildOptions::grid by name (the CLI checks the name).
+void SetBuild(float lambda, const std::string& grid, BuildOptions* build) {
   if (lambda > 0.0f) build->lambda = lambda;
+  build->grid = grid == "uniform"     ? GridKind::kUniform
+                : grid == "two-level" ? GridKind::kTwoLevel
+                : grid == "irregular" ? GridKind::kIrregular
+                                      : GridKind::kAuto;
 }
+
+constexpr const char* kGridHelp =
+    "acceleration structure: auto (a uniform grid, with 8x8x8 sub-grids where the cost model "
+    "finds them cheaper), uniform, two-level, or irregular (auto's grid for coherent packets and "
+    "an irregular grid for the rays traced one by one: diffuse, reflected and refracted rays)";
 
 int RunInfo(const InfoArgs& args) {
   const Scene scene = LoadScene(args.scene);
   BuildOptions build;
-  SetLambda(args.lambda, &build);
+  SetBuild(args.lambda, args.grid, &build);
   const Accel accel(scene.mesh(), build);
   const Json j = InfoJson(scene, accel.Info());
   if (args.json) {
@@ -172,6 +189,7 @@ struct RenderArgs {
   std::string order;  // empty: RenderOptions' default (block8x8)
   float cutoff = RenderOptions{}.weight_cutoff;
   float lambda = 0.0f;  // 0: chosen by the grid cost model
+  std::string grid = "auto";  // --grid (BuildOptions::grid)
   std::string stats;
   bool quiet = false;
   // Host schedulers (sched/backends.h).
@@ -493,7 +511,7 @@ int RunRender(RenderArgs args) {
       scene.emplace(LoadScene(args.scene));
       load_seconds = Seconds(std::chrono::steady_clock::now() - t_load);
       BuildOptions build;
-      SetLambda(args.lambda, &build);
+      SetBuild(args.lambda, args.grid, &build);
       accel.emplace(backend->Build(*scene, build, args.width, &note));
     });
   } catch (...) {
@@ -788,6 +806,9 @@ int Main(int argc, char** argv) {
   render->add_option("--lambda", r.lambda, "grid density: cells per triangle (0: chosen by the grid cost model)")
       ->check(CLI::Range(0.0f, 64.0f))
       ->capture_default_str();
+  render->add_option("--grid", r.grid, kGridHelp)
+      ->check(CLI::IsMember({"auto", "uniform", "two-level", "irregular"}))
+      ->capture_default_str();
   render->add_option("--mpi-timeout", r.mpi_timeout,
                      "mpi backend: bound on every wait of the master for a worker (setup, "
                      "tile, result transfer, end of run); a worker that misses it ends the run "
@@ -806,6 +827,9 @@ int Main(int argc, char** argv) {
   info->add_flag("--json", i.json, "print JSON");
   info->add_option("--lambda", i.lambda, "grid density: cells per triangle (0: chosen by the grid cost model)")
       ->check(CLI::Range(0.0f, 64.0f))
+      ->capture_default_str();
+  info->add_option("--grid", i.grid, kGridHelp)
+      ->check(CLI::IsMember({"auto", "uniform", "two-level", "irregular"}))
       ->capture_default_str();
 
   CLI::App* scenes = app.add_subcommand("scenes", "list built-in scenes and the search path");

@@ -140,6 +140,26 @@ std::unique_ptr<SceneData>& Current() {
   return current;
 }
 
+// rs::Accel's options: RS_BENCH_GRID=auto (default), uniform, two-level or irregular
+// (BuildOptions::grid).
+BuildOptions BenchBuildOptions() {
+  BuildOptions o;
+  const char* g = std::getenv("RS_BENCH_GRID");
+  const std::string kind = g != nullptr ? g : "auto";
+  if (kind == "uniform") {
+    o.grid = GridKind::kUniform;
+  } else if (kind == "two-level") {
+    o.grid = GridKind::kTwoLevel;
+  } else if (kind == "irregular") {
+    o.grid = GridKind::kIrregular;
+  } else if (kind != "auto") {
+    std::fprintf(stderr, "trace_bench: RS_BENCH_GRID=%s: expected auto, uniform, two-level or "
+                 "irregular\n", kind.c_str());
+    std::exit(2);
+  }
+  return o;
+}
+
 SceneData& GetScene(const std::string& name) {
   auto& current = Current();
   if (current && current->name == name) return *current;
@@ -150,7 +170,7 @@ SceneData& GetScene(const std::string& name) {
     const auto t0 = std::chrono::steady_clock::now();
     data->scene = LoadScene(name);
     data->mesh = data->scene.mesh();
-    data->accel = std::make_unique<Accel>(data->mesh);
+    data->accel = std::make_unique<Accel>(data->mesh, BenchBuildOptions());
     data->embree = std::make_unique<EmbreePeer>(data->mesh);
     data->sets = MakeRaySets(data->scene, *data->embree, Cfg().width, Cfg().height);
     data->light = data->sets.light;
@@ -334,7 +354,7 @@ void BM_Build(benchmark::State& state, const std::string& scene, bool embree, bo
     if (embree) {
       d.rebuild_peer->Build(d.mesh);
     } else {
-      Accel accel(d.mesh);
+      Accel accel(d.mesh, BenchBuildOptions());
       benchmark::DoNotOptimize(&accel);
     }
     faults += ThreadMinorFaults() - faults0;
@@ -368,7 +388,7 @@ void BM_Frame(benchmark::State& state, const std::string& scene, int tracer) {
   size_t occluded = 0;
   for (auto _ : state) {
     if (tracer < 0) {
-      Accel accel(d.mesh);
+      Accel accel(d.mesh, BenchBuildOptions());
       accel.Intersect(primary, hits);
       MakeShadowRays(d.scene, primary, hits, d.light, d.frame_shadow);
       accel.Occluded(d.frame_shadow.view(), d.frame_occluded.data());

@@ -87,7 +87,7 @@ struct MeshView {
   size_t num_triangles = 0;
 };
 
-enum class GridKind : int { kAuto = 0, kUniform = 1, kTwoLevel = 2 };
+enum class GridKind : int { kAuto = 0, kUniform = 1, kTwoLevel = 2, kIrregular = 3 };
 
 struct BuildOptions {
   // Grid density: cells ~= lambda * triangles (Cleary/Wyvill). 0 (the default): chosen by the
@@ -98,6 +98,9 @@ struct BuildOptions {
   // than subgrid_threshold triangles gets an 8x8x8 sub-grid (Cell paper 3.8). kAuto: lambda
   // from the grid cost model when `lambda` is 0 (else `lambda`), then only the cells whose
   // sub-grid the cost model finds cheaper are refined; AccelInfo::kind says what was built.
+  // kIrregular: the grid of kAuto for coherent packets, and an irregular grid (cells of varying
+  // size, merged and expanded over empty space: Perard-Gayot et al. 2017) for every ray traced
+  // one per lane (incoherent rays, and those the packets refuse). Same hits in every case.
   GridKind grid = GridKind::kAuto;
   int subgrid_threshold = 32;  // kTwoLevel: refine cells with more triangles; kAuto: candidates
   int micro_cache = 8;         // traversal micro-cache entries (0 = off, at most 16)
@@ -126,7 +129,9 @@ struct AccelInfo {
   size_t max_per_cell = 0;
   double build_seconds = 0;
   size_t bytes = 0;
-  const char* kind = "uniform";  // "uniform" or "two-level"
+  const char* kind = "uniform";  // "uniform", "two-level" (the grid of the packets)
+  size_t irregular_cells = 0;     // cells of the irregular grid (GridKind::kIrregular), or 0
+  size_t irregular_references = 0;
   float lambda = 0.0f;            // the lambda the top-level grid was built with
   size_t subgrids = 0;            // refined cells (8x8x8 sub-grids, one 128-B record each)
   size_t sub_references = 0;      // triangle references held by sub-cells

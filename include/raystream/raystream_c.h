@@ -51,7 +51,12 @@ typedef struct RSMesh {
   size_t num_triangles;
 } RSMesh;
 
-typedef enum RSGridKind { RS_GRID_AUTO = 0, RS_GRID_UNIFORM = 1, RS_GRID_TWO_LEVEL = 2 } RSGridKind;
+typedef enum RSGridKind {
+  RS_GRID_AUTO = 0,
+  RS_GRID_UNIFORM = 1,
+  RS_GRID_TWO_LEVEL = 2,
+  RS_GRID_IRREGULAR = 3 /* rs::GridKind::kIrregular */
+} RSGridKind;
 
 /* rs::BuildOptions; rsInitBuildOptions fills the defaults. */
 typedef struct RSBuildOptions {

@@ -203,14 +203,15 @@ TEST_CASE("misuse is an rs::Error naming the problem, never a crash") {
 
 TEST_CASE("lambda: 0 lets the cost model choose; a positive lambda is used under every kind") {
   const Scene scene = Box();
-  for (const GridKind kind : {GridKind::kAuto, GridKind::kUniform, GridKind::kTwoLevel}) {
+  for (const GridKind kind :
+       {GridKind::kAuto, GridKind::kUniform, GridKind::kTwoLevel, GridKind::kIrregular}) {
     BuildOptions o;
     o.grid = kind;
     o.lambda = 2.5f;
     CHECK(Accel(scene.View(), o).Info().lambda == 2.5f);
     o.lambda = 0;
     const float chosen = Accel(scene.View(), o).Info().lambda;
-    if (kind == GridKind::kAuto) {
+    if (kind == GridKind::kAuto || kind == GridKind::kIrregular) {
       CHECK(chosen > 0);
     } else {
       CHECK(chosen == 4.0f);

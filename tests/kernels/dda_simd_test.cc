@@ -24,6 +24,8 @@
 #include "kernels/dda.h"
 #include "kernels/dda_simd.h"
 #include "kernels/grid.h"
+#include "kernels/irregular.h"
+#include "kernels/irregular_simd.h"
 #include "kernels/triangle.h"
 #include "kernels/two_level.h"
 #include "scenes/load.h"
@@ -92,7 +94,58 @@ Oracle CheckAllTargets(const Built& b, const std::vector<Ray>& rays, const std::
   RayStream stream = MakeStream(rays);
   DdaOptions options;
   options.micro_cache = micro_cache;
+  // The irregular grid over the same triangles: the same hits; its SIMD kernel takes the cell
+  // steps of its scalar traversal.
+  IrregularGrid irr;
+  BuildIrregularGrid(b.tris, ComputeGridBounds(b.tris), IrregularOptions{}, 512, &irr);
+  IrregularDda irr_dda;
+  BuildIrregularDda(irr, b.tris, &irr_dda);
+  TraceStats irr_closest, irr_any;
+  size_t irr_scalar_bad = 0;
+  for (size_t i = 0; i < n; ++i) {
+    const Ray& r = rays[i];
+    RayHit h;
+    TraceClosestIrregular(irr, b.tris, r.o[0], r.o[1], r.o[2], r.d[0], r.d[1], r.d[2], r.tmin,
+                          r.tmax, &h, &irr_closest);
+    irr_scalar_bad += !SameHit(o.hit[i], h.t, h.u, h.v, h.prim);
+    irr_scalar_bad += TraceAnyIrregular(irr, b.tris, r.o[0], r.o[1], r.o[2], r.d[0], r.d[1],
+                                        r.d[2], r.tmin, r.tmax, &irr_any) != (o.any[i] != 0);
+  }
+  CHECK(irr_scalar_bad == 0);
   test::ForEachTarget([&](const char* target) {
+    {
+      INFO(what, ": irregular grid, target ", std::string(target), ", rays ", n);
+      HitStream ih(n);
+      ih.Resize(n);
+      const HitStreamView iv = ih.view();
+      for (size_t i = 0; i < n; ++i) {
+        iv.t[i] = 7.0f;
+        iv.prim[i] = 3;
+      }
+      TraceStats ic, ia;
+      IntersectStreamIrregular(irr_dda, stream.view(), iv, &ic);
+      size_t bad = 0;
+      for (size_t i = 0; i < n; ++i) {
+        if (SameHit(o.hit[i], iv.t[i], iv.u[i], iv.v[i], iv.prim[i])) continue;
+        if (++bad <= 3) {
+          const Ray& r = rays[i];
+          INFO("ray ", i, " o ", r.o[0], " ", r.o[1], " ", r.o[2], " d ", r.d[0], " ", r.d[1],
+               " ", r.d[2], ": irregular prim ", iv.prim[i], " t ", iv.t[i], ", scalar prim ",
+               o.hit[i].prim, " t ", o.hit[i].t);
+          CHECK(SameHit(o.hit[i], iv.t[i], iv.u[i], iv.v[i], iv.prim[i]));
+        }
+      }
+      CHECK(bad == 0);
+      CHECK(ic.rays == n);
+      CHECK(ic.cell_steps == irr_closest.cell_steps);
+      std::vector<int32_t> occluded(n + 1, 77);
+      OccludedStreamIrregular(irr_dda, stream.view(), occluded.data(), &ia);
+      size_t any_bad = 0;
+      for (size_t i = 0; i < n; ++i) any_bad += occluded[i] != o.any[i];
+      CHECK(any_bad == 0);
+      CHECK(occluded[n] == 77);
+      CHECK(ia.cell_steps == irr_any.cell_steps);
+    }
     INFO(what, ": target ", std::string(target), ", rays ", n, ", micro-cache ", micro_cache);
     HitStream hits(n);
     hits.Resize(n);
@@ -602,10 +655,11 @@ TEST_CASE("huge offsets (1e5) and tiny scales (1e-4)") {
   }
 }
 
-// Procedural scenes through the public Accel (auto, uniform, two-level): Intersect / Occluded
+// Procedural scenes through the public Accel (auto, uniform, two-level, irregular): Intersect / Occluded
 // (SIMD) against rs::ref::AccelIntersect / AccelOccluded (scalar), every target.
 void CheckAccel(const MeshView& mesh, const std::string& name, size_t n, uint32_t seed) {
-  for (const GridKind kind : {GridKind::kAuto, GridKind::kUniform, GridKind::kTwoLevel}) {
+  for (const GridKind kind :
+       {GridKind::kAuto, GridKind::kUniform, GridKind::kTwoLevel, GridKind::kIrregular}) {
     BuildOptions options;
     options.grid = kind;
     const Accel accel(mesh, options);
@@ -617,6 +671,7 @@ void CheckAccel(const MeshView& mesh, const std::string& name, size_t n, uint32_
     // kAuto refines only where the model predicts a gain (forced kTwoLevel may cost more)
     if (kind == GridKind::kAuto) CHECK(info.cost_estimate <= info.flat_cost_estimate);
     if (kind == GridKind::kTwoLevel) CHECK(info.lambda == 4.0f);
+    CHECK((kind == GridKind::kIrregular) == (info.irregular_cells > 0));
     Rng rng(seed);
     Built probe(mesh, 4.0f, -1);  // only for the ray generator's bounds and triangles
     const std::vector<Ray> rays = RandomRays(rng, probe, n);

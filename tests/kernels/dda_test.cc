@@ -14,6 +14,7 @@
 
 #include "kernels/dda.h"
 #include "kernels/grid.h"
+#include "kernels/irregular.h"
 #include "kernels/reference.h"
 #include "kernels/triangle.h"
 #include "tests/kernels/geometry_util.h"
@@ -29,13 +30,22 @@ using test::kInf;
 using test::kNaN;
 using test::Ray;
 
+// The uniform grid, and two irregular grids over the same triangles (the default options, and
+// a finer one with more merges), which must give the uniform grid's results bit for bit.
 struct World {
   Soup soup;
   TriangleSoA tris;
   Grid grid;
+  IrregularGrid irregular[2];
   explicit World(Soup s, float lambda = 4.0f, int max_res = 512) : soup(std::move(s)) {
     BuildTriangleSoA(soup.view(), &tris);
     BuildGrid(tris, lambda, max_res, &grid);
+    const GridBounds bounds = ComputeGridBounds(tris);
+    BuildIrregularGrid(tris, bounds, IrregularOptions{}, max_res, &irregular[0]);
+    IrregularOptions fine;
+    fine.top_lambda = 1.0f;
+    fine.sub_lambda = 8.0f;
+    BuildIrregularGrid(tris, bounds, fine, max_res, &irregular[1]);
   }
 };
 
@@ -66,6 +76,8 @@ struct Counts {
   int rays = 0, hits = 0, exact_mismatch = 0, any_mismatch = 0;
   int ref_ties = 0, ref_edge = 0, ref_bad = 0, ref_t_bad = 0;
   uint64_t steps = 0, tests = 0;
+  int irregular_mismatch = 0;
+  uint64_t irregular_steps = 0;
 };
 
 // Traces r through the grid; checks it against the float brute force (must be identical) and
@@ -93,6 +105,28 @@ void Check(const World& w, const Ray& r, Counts* c) {
   }
   if (!hit) CHECK(g.prim == -1);
   if (!hit) CHECK(g.t == kInf);
+  for (const IrregularGrid& irr : w.irregular) {
+    TraceStats is;
+    RayHit ih;
+    const bool ihit = TraceClosestIrregular(irr, w.tris, r.o[0], r.o[1], r.o[2], r.d[0], r.d[1],
+                                            r.d[2], r.tmin, r.tmax, &ih, &is);
+    const bool isame = ihit == hit && ih.prim == g.prim && SameBits(ih.t, g.t) &&
+                       SameBits(ih.u, g.u) && SameBits(ih.v, g.v);
+    if (!isame) {
+      ++c->irregular_mismatch;
+      INFO("irregular: o ", r.o[0], " ", r.o[1], " ", r.o[2], " d ", r.d[0], " ", r.d[1], " ",
+           r.d[2], " grid prim ", g.prim, " t ", g.t, " irregular prim ", ih.prim, " t ", ih.t);
+      CHECK(isame);
+    }
+    c->irregular_steps += is.cell_steps;
+    CHECK(is.cell_steps <= uint64_t(irr.vres[0] + irr.vres[1] + irr.vres[2]));
+    const bool iany = TraceAnyIrregular(irr, w.tris, r.o[0], r.o[1], r.o[2], r.d[0], r.d[1],
+                                        r.d[2], r.tmin, r.tmax, nullptr);
+    if (iany != bhit) {
+      ++c->irregular_mismatch;
+      CHECK(iany == bhit);
+    }
+  }
   const bool any = TraceAny(w.grid, w.tris, r.o[0], r.o[1], r.o[2], r.d[0], r.d[1], r.d[2],
                             r.tmin, r.tmax, nullptr);
   if (any != bhit) {
@@ -155,8 +189,10 @@ void Report(const Counts& c, const std::string& what, int max_decisions_per_1000
           ", triangle tests ", c.tests, "; vs float brute force: mismatches ", c.exact_mismatch,
           ", any-hit mismatches ", c.any_mismatch, "; vs double ref: ties ", c.ref_ties,
           ", edge/bound decisions ", c.ref_edge, ", other ", c.ref_bad, ", t out of tolerance ",
-          c.ref_t_bad);
+          c.ref_t_bad, "; irregular grids: cell steps ", c.irregular_steps, ", mismatches ",
+          c.irregular_mismatch);
   CHECK(c.exact_mismatch == 0);
+  CHECK(c.irregular_mismatch == 0);
   CHECK(c.any_mismatch == 0);
   CHECK(c.ref_bad == 0);
   CHECK(c.ref_t_bad == 0);

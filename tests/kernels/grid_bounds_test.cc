@@ -55,7 +55,10 @@ struct Rays {
 };
 
 std::string KindName(GridKind kind) {
-  return kind == GridKind::kAuto ? "auto" : kind == GridKind::kUniform ? "uniform" : "two-level";
+  return kind == GridKind::kAuto        ? "auto"
+         : kind == GridKind::kUniform   ? "uniform"
+         : kind == GridKind::kTwoLevel  ? "two-level"
+                                        : "irregular";
 }
 
 // Builds `mesh` with `kind`, checks the bounds and the build time, then traces `rays` with the
@@ -76,10 +79,13 @@ AccelInfo CheckBoundedAndExact(const std::string& what, const MeshView& mesh, Gr
           info.resolution[1], "x", info.resolution[2], ", lambda ", info.lambda, ", ",
           info.references, " refs (", double(info.references) / n, " per triangle), ",
           info.sub_references, " sub-cell refs (", double(info.sub_references) / n,
-          " per triangle), ", info.max_per_cell, " max per cell, ", info.bytes, " B (",
+          " per triangle), ", info.irregular_references, " irregular refs in ",
+          info.irregular_cells, " cells, ", info.max_per_cell, " max per cell, ", info.bytes, " B (",
           double(info.bytes) / n, " per triangle)");
   CHECK(double(info.references) <= kRefsPerTriangle * n + kRefSlack);
   CHECK(double(info.sub_references) <= kRefsPerTriangle * n + kRefSlack);
+  CHECK(double(info.irregular_references) <= kRefsPerTriangle * n + kRefSlack);
+  CHECK((kind == GridKind::kIrregular) == (info.irregular_cells > 0 || mesh.num_triangles == 0));
   CHECK(double(info.bytes) <= kBytesPerTriangle * n + kBytesSlack);
   // generous (sanitizers, a shared machine): the unbounded build took 6-11 s or hung
   CHECK(seconds < (test::kSlowBuild ? 60.0 : 10.0));
@@ -203,7 +209,8 @@ void MakeSphereCase(const std::array<double, 3>& c, double snap, double lattice,
 }
 
 TEST_CASE("icosphere of 81920 triangles at the origin: bounded references, watertight") {
-  for (const GridKind kind : {GridKind::kAuto, GridKind::kUniform, GridKind::kTwoLevel}) {
+  for (const GridKind kind :
+       {GridKind::kAuto, GridKind::kUniform, GridKind::kTwoLevel, GridKind::kIrregular}) {
     SphereCase s;
     // vertices on the 2^-16 lattice, origins on 2^-8: every direction is an exact float
     MakeSphereCase({0.0, 0.0, 0.0}, 65536.0, 256.0, test::kSlowBuild ? 500 : 2000, &s);
@@ -213,7 +220,8 @@ TEST_CASE("icosphere of 81920 triangles at the origin: bounded references, water
 }
 
 TEST_CASE("icosphere of 81920 triangles of radius 1 at (148376, 1234, -223423): bounded, watertight") {
-  for (const GridKind kind : {GridKind::kAuto, GridKind::kUniform, GridKind::kTwoLevel}) {
+  for (const GridKind kind :
+       {GridKind::kAuto, GridKind::kUniform, GridKind::kTwoLevel, GridKind::kIrregular}) {
     SphereCase s;
     // float rounding only: x and z are multiples of 1/64 there, many triangles are slivers or
     // degenerate; origins on the 1/64 lattice keep every direction exact
@@ -236,7 +244,8 @@ void CheckIdenticalTriangles(size_t copies, size_t num_rays) {
               c[3] = {0.25f, 1.125f, 0.875f};
   Soup soup;
   for (size_t i = 0; i < copies; ++i) soup.AddTriangle(a, b, c);
-  for (const GridKind kind : {GridKind::kAuto, GridKind::kUniform, GridKind::kTwoLevel}) {
+  for (const GridKind kind :
+       {GridKind::kAuto, GridKind::kUniform, GridKind::kTwoLevel, GridKind::kIrregular}) {
     Rays r;
     Rng rng{uint32_t(copies)};
     for (size_t k = 0; k < num_rays; ++k) {
@@ -297,7 +306,8 @@ TEST_CASE("30,000-corner fan of long thin triangles: bounded references, waterti
   for (int i = 1; i + 1 < kCorners; ++i) {
     soup.indices.insert(soup.indices.end(), {0u, uint32_t(i), uint32_t(i + 1)});
   }
-  for (const GridKind kind : {GridKind::kAuto, GridKind::kUniform, GridKind::kTwoLevel}) {
+  for (const GridKind kind :
+       {GridKind::kAuto, GridKind::kUniform, GridKind::kTwoLevel, GridKind::kIrregular}) {
     Rays r;
     Rng rng(30000);
     const size_t num_rays = test::kSlowBuild ? 200 : 1000;

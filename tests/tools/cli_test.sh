@@ -77,6 +77,17 @@ for b in "lock --threads 2" "lfree --threads 3" "local --threads 2" "tiles --thr
      && cmp -s "$want" "$tmp/b-$name.png"; then ok "backend $b: same image as serial"
   else bad "backend $b: image differs from serial or render failed"; fi
 done
+# --grid: every acceleration structure renders the serial image byte for byte (the irregular
+# grid traces the reflected and refracted rays); the cell backend refuses the irregular grid.
+for g in uniform two-level irregular; do
+  if "$rs" render --scene cornell --width 32 --height 24 --depth 3 --grid $g --backend tiles --threads 2 \
+       --out "$tmp/g-$g.png" -q && cmp -s "$tmp/b-serial.png" "$tmp/g-$g.png"; then ok "--grid $g: same image as serial"
+  else bad "--grid $g: image differs from serial or render failed"; fi
+done
+if "$rs" info --scene cornell --grid irregular | grep -qE '^irregular +[0-9]+ cells'; then ok "info --grid irregular: irregular grid printed"
+else bad "info --grid irregular: no irregular line"; fi
+expect_error "cell backend with --grid irregular" 'grid irregular.*cell backend' "$rs" render --scene cornell --width 8 --height 8 --backend cell --grid irregular --out "$tmp/gc.png"
+expect_error "unknown grid" 'grid' "$rs" render --scene cornell --grid nosuch --width 8 --height 8 --out "$tmp/gn.png"
 # The tiles backend's demand-driven master (--demand, tools/raystream.cc): a free thread asks for
 # the next tile in PBT order (its own lists' first). The serial image with 2 re-tiled frames, as
 # many threads as PBT workers or fewer; every tile rendered once; "demand" in the statistics.

@@ -1,0 +1,418 @@
+// Irregular grid build (kernels/irregular.h): a coarse uniform grid, each top cell cut to the
+// depth its count asks for (conservative binning of its list, kernels/grid_binning.h), cells
+// merged pairwise along x, y, z while the cost model gains, traversal boxes expanded over empty
+// cells, then compacted into the lookup tables, boxes and CSR lists. The scalar traversal is
+// kernels/dda.cc's.
+#include "kernels/irregular.h"
+
+#include <algorithm>
+#include <cfloat>
+#include <cmath>
+#include <vector>
+
+#include "kernels/grid_binning.h"
+
+namespace rs {
+namespace {
+
+struct Box {
+  int lo[3];
+  int hi[3];
+};
+
+double BoxArea(const IrregularGrid& g, const int32_t lo[3], const int32_t hi[3]) {
+  double e[3];
+  for (int a = 0; a < 3; ++a) e[a] = double(hi[a] - lo[a]) * double(g.voxel_size[a]);
+  return e[0] * e[1] + e[1] * e[2] + e[0] * e[2];
+}
+
+double CellCost(double area, size_t refs, const GridCostModel& m) {
+  return area * (kIrregularStep * m.step + (refs > 0 ? m.visit : 0.0) + double(refs) * m.triangle);
+}
+
+// Size of the union of two ascending id lists.
+size_t UnionSize(const uint32_t* a, size_t na, const uint32_t* b, size_t nb) {
+  size_t i = 0, j = 0, n = 0;
+  while (i < na && j < nb) {
+    if (a[i] < b[j]) {
+      ++i;
+    } else if (b[j] < a[i]) {
+      ++j;
+    } else {
+      ++i;
+      ++j;
+    }
+    ++n;
+  }
+  return n + (na - i) + (nb - j);
+}
+
+// The cells while they are built: boxes in voxels, lists as (begin, count) in one pool (a merged
+// list is appended; the dead ones are dropped at compaction), and the lookup tables of the final
+// layout, rewritten in place when cells merge.
+class Builder {
+ public:
+  Builder(IrregularGrid* g, const GridCostModel& m) : g_(*g), model_(m) {}
+
+  IrregularGrid& g_;
+  const GridCostModel& model_;
+  std::vector<int32_t> lo_[3], hi_[3];
+  std::vector<uint32_t> begin_, count_;
+  std::vector<uint32_t> pool_;
+  std::vector<uint8_t> alive_;
+  std::vector<uint32_t> top_, fine_;
+
+  size_t Cells() const { return begin_.size(); }
+  void AddCell(const int lo[3], const int hi[3], uint32_t begin, uint32_t count) {
+    for (int a = 0; a < 3; ++a) {
+      lo_[a].push_back(lo[a]);
+      hi_[a].push_back(hi[a]);
+    }
+    begin_.push_back(begin);
+    count_.push_back(count);
+    alive_.push_back(1);
+  }
+  uint32_t Lookup(const int v[3]) const {
+    const int D = g_.depth;
+    const int x = v[0] >> D, y = v[1] >> D, z = v[2] >> D;
+    const uint32_t e = top_[size_t(x) + size_t(g_.top_res[0]) *
+                                            (size_t(y) + size_t(g_.top_res[1]) * size_t(z))];
+    const int s = int(e & 3u), q = D - s, m = (1 << D) - 1;
+    return fine_[(e >> 2) + uint32_t((v[0] & m) >> q) + (uint32_t((v[1] & m) >> q) << s) +
+                 (uint32_t((v[2] & m) >> q) << (2 * s))];
+  }
+  // Writes `id` into every table entry of the region [lo, hi) (a union of whole sub-cells of
+  // every top cell it touches).
+  void Paint(const int lo[3], const int hi[3], uint32_t id) {
+    const int D = g_.depth;
+    int t0[3], t1[3];
+    for (int a = 0; a < 3; ++a) {
+      t0[a] = lo[a] >> D;
+      t1[a] = (hi[a] - 1) >> D;
+    }
+    for (int tz = t0[2]; tz <= t1[2]; ++tz) {
+      for (int ty = t0[1]; ty <= t1[1]; ++ty) {
+        for (int tx = t0[0]; tx <= t1[0]; ++tx) {
+          const int tc[3] = {tx, ty, tz};
+          const uint32_t e = top_[size_t(tx) + size_t(g_.top_res[0]) *
+                                                   (size_t(ty) + size_t(g_.top_res[1]) * size_t(tz))];
+          const int s = int(e & 3u), q = D - s;
+          int s0[3], s1[3];
+          for (int a = 0; a < 3; ++a) {
+            const int base = tc[a] << D;
+            s0[a] = (std::max(lo[a], base) - base) >> q;
+            s1[a] = (std::min(hi[a], base + (1 << D)) - 1 - base) >> q;
+          }
+          for (int z = s0[2]; z <= s1[2]; ++z) {
+            for (int y = s0[1]; y <= s1[1]; ++y) {
+              for (int x = s0[0]; x <= s1[0]; ++x) {
+                fine_[(e >> 2) + uint32_t(x) + (uint32_t(y) << s) + (uint32_t(z) << (2 * s))] = id;
+              }
+            }
+          }
+        }
+      }
+    }
+  }
+
+  double Cost(uint32_t k) const {
+    const int32_t lo[3] = {lo_[0][k], lo_[1][k], lo_[2][k]};
+    const int32_t hi[3] = {hi_[0][k], hi_[1][k], hi_[2][k]};
+    return CellCost(BoxArea(g_, lo, hi), count_[k], model_);
+  }
+
+  // Merges pairs of cells along each axis while the cost model gains: a cell and its neighbour
+  // across its +a face with the same extent on the other axes. Each cell merges at most once per
+  // pass, so sizes grow evenly; rounds repeat while any pass merged.
+  void Merge() {
+    std::vector<uint8_t> used(Cells());
+    for (int round = 0; round < 64; ++round) {
+      bool changed = false;
+      for (int a = 0; a < 3; ++a) {
+        std::fill(used.begin(), used.end(), uint8_t{0});
+        const int b = (a + 1) % 3, c = (a + 2) % 3;
+        const size_t n = Cells();
+        for (size_t k = 0; k < n; ++k) {
+          if (!alive_[k] || used[k] || hi_[a][k] >= g_.vres[a]) continue;
+          int v[3];
+          v[a] = hi_[a][k];
+          v[b] = lo_[b][k];
+          v[c] = lo_[c][k];
+          const uint32_t m = Lookup(v);
+          if (used[m] || lo_[b][m] != lo_[b][k] || hi_[b][m] != hi_[b][k] ||
+              lo_[c][m] != lo_[c][k] || hi_[c][m] != hi_[c][k]) {
+            continue;
+          }
+          const uint32_t* la = pool_.data() + begin_[k];
+          const uint32_t* lb = pool_.data() + begin_[m];
+          const size_t nu = UnionSize(la, count_[k], lb, count_[m]);
+          int32_t lo[3] = {lo_[0][k], lo_[1][k], lo_[2][k]};
+          int32_t hi[3] = {hi_[0][k], hi_[1][k], hi_[2][k]};
+          hi[a] = hi_[a][m];
+          const double merged = CellCost(BoxArea(g_, lo, hi), nu, model_);
+          if (merged > Cost(uint32_t(k)) + Cost(m)) continue;
+          if (count_[m] > 0) {
+            // the union, appended to the pool
+            const uint32_t nb = uint32_t(pool_.size());
+            pool_.resize(pool_.size() + nu);
+            la = pool_.data() + begin_[k];
+            lb = pool_.data() + begin_[m];
+            std::set_union(la, la + count_[k], lb, lb + count_[m], pool_.data() + nb);
+            begin_[k] = nb;
+            count_[k] = uint32_t(nu);
+          }
+          const int mlo[3] = {lo_[0][m], lo_[1][m], lo_[2][m]};
+          const int mhi[3] = {hi_[0][m], hi_[1][m], hi_[2][m]};
+          Paint(mlo, mhi, uint32_t(k));
+          hi_[a][k] = hi_[a][m];
+          alive_[m] = 0;
+          used[k] = used[m] = 1;
+          ++g_.merged;
+          changed = true;
+        }
+      }
+      if (!changed) break;
+    }
+  }
+
+  // True if every voxel of [lo, hi) lies in a cell with an empty list.
+  bool AllEmpty(const int lo[3], const int hi[3]) const {
+    int v[3];
+    for (v[2] = lo[2]; v[2] < hi[2]; ++v[2]) {
+      for (v[1] = lo[1]; v[1] < hi[1]; ++v[1]) {
+        for (v[0] = lo[0]; v[0] < hi[0]; ++v[0]) {
+          if (count_[Lookup(v)] != 0) return false;
+        }
+      }
+    }
+    return true;
+  }
+};
+
+}  // namespace
+
+double IrregularGridCost(const IrregularGrid& g, const GridCostModel& model) {
+  if (g.empty() || !g.box) return 0.0;
+  if (g.empty()) return 0.0;
+  const int32_t lo[3] = {0, 0, 0};
+  const int32_t hi[3] = {g.vres[0], g.vres[1], g.vres[2]};
+  const double total = BoxArea(g, lo, hi);
+  if (!(total > 0.0)) return 0.0;
+  double sum = 0.0;
+  for (size_t k = 0; k < g.num_cells; ++k) {
+    const int32_t* b = g.Box(uint32_t(k));
+    sum += CellCost(BoxArea(g, b, b + 3),
+                    g.lists.cell_begin[k + 1] - g.lists.cell_begin[k], model);
+  }
+  return sum / total;
+}
+
+void BuildIrregularGrid(const TriangleSoA& tris, const GridBounds& bounds,
+                        const IrregularOptions& options, int max_resolution, IrregularGrid* out) {
+  *out = IrregularGrid();
+  Grid top;
+  BuildGrid(tris, bounds, options.top_lambda, max_resolution, &top);
+  if (top.empty()) return;
+  IrregularGrid& g = *out;
+  double max_abs = 0.0;
+  for (int a = 0; a < 3; ++a) {
+    max_abs = std::max({max_abs, std::fabs(double(top.lo[a])), std::fabs(double(top.hi[a]))});
+  }
+  const double ulp_margin = 4.0 * FLT_EPSILON * max_abs;
+  const double min_cell = kMinCellMargins * ulp_margin;
+  int depth = kIrregularMaxDepth;
+  for (int a = 0; a < 3; ++a) {
+    while (depth > 0 && double(top.cell_size[a]) / double(1 << depth) < min_cell) --depth;
+  }
+  g.depth = depth;
+  for (int a = 0; a < 3; ++a) {
+    g.lo[a] = top.lo[a];
+    g.hi[a] = top.hi[a];
+    g.top_res[a] = top.res[a];
+    g.vres[a] = top.res[a] << depth;
+    g.voxel_size[a] = top.cell_size[a] / float(1 << depth);
+    g.inv_voxel_size[a] = top.inv_cell_size[a] * float(1 << depth);
+    g.margin[a] = 1e-3 * double(g.voxel_size[a]) + ulp_margin;
+  }
+  g.num_top = top.num_cells;
+
+  Builder b(&g, options.model);
+  b.top_.resize(top.num_cells);
+  const size_t budget = GridRefBudget(bounds.num_valid);
+  size_t total_refs = top.num_refs;
+  BinScratch scratch;
+  std::vector<uint32_t> sub_count, sub_begin, pairs_sub, pairs_id;
+  const double log8 = std::log(8.0);
+  size_t cell = 0;
+  for (int tz = 0; tz < top.res[2]; ++tz) {
+    for (int ty = 0; ty < top.res[1]; ++ty) {
+      for (int tx = 0; tx < top.res[0]; ++tx, ++cell) {
+        const int tc[3] = {tx, ty, tz};
+        const uint32_t lb = top.cell_begin[cell];
+        const uint32_t n = top.cell_begin[cell + 1] - lb;
+        int s = 0;
+        if (n > 0) {
+          s = int(std::lround(std::log(double(options.sub_lambda) * double(n)) / log8));
+          s = std::clamp(s, 0, depth);
+        }
+        // bin the cell's list into 2^s sub-cells per axis
+        const int sres = 1 << s;
+        const int scells = sres * sres * sres;
+        pairs_sub.clear();
+        pairs_id.clear();
+        if (s > 0) {
+          BinGeometry geo;
+          float lo_f[3], inv_f[3];
+          for (int a = 0; a < 3; ++a) {
+            lo_f[a] = g.lo[a] + float(tc[a] << depth) * g.voxel_size[a];
+            const float cs = g.voxel_size[a] * float(1 << (depth - s));
+            inv_f[a] = g.inv_voxel_size[a] / float(1 << (depth - s));
+            geo.lo[a] = double(lo_f[a]);
+            geo.cs[a] = double(cs);
+            geo.margin[a] = g.margin[a];
+            geo.res[a] = sres;
+          }
+          FinishBinGeometry(lo_f, inv_f, &geo);
+          for (uint32_t k = lb; k < lb + n; ++k) {
+            const uint32_t id = top.tri_ids[k];
+            float v[3][3];
+            for (int vi = 0; vi < 3; ++vi) {
+              for (int a = 0; a < 3; ++a) v[vi][a] = tris.p[vi][a][id];
+            }
+            BinTriangle(geo, v, &scratch, [&](int x, int y, int z) {
+              pairs_sub.push_back(uint32_t(x + sres * (y + sres * z)));
+              pairs_id.push_back(id);
+            });
+          }
+          if (total_refs - n + pairs_sub.size() > budget) {
+            s = 0;  // over the budget: the top cell stays one cell
+          } else {
+            total_refs = total_refs - n + pairs_sub.size();
+          }
+        }
+        const uint32_t fine_base = uint32_t(b.fine_.size());
+        b.top_[cell] = (fine_base << 2) | uint32_t(s);
+        if (s == 0) {
+          const int lo[3] = {tx << depth, ty << depth, tz << depth};
+          const int hi[3] = {(tx + 1) << depth, (ty + 1) << depth, (tz + 1) << depth};
+          const uint32_t pb = uint32_t(b.pool_.size());
+          b.pool_.insert(b.pool_.end(), top.tri_ids.get() + lb, top.tri_ids.get() + lb + n);
+          b.fine_.push_back(uint32_t(b.Cells()));
+          b.AddCell(lo, hi, pb, n);
+          continue;
+        }
+        // counting sort of the (sub-cell, id) pairs: ids stay ascending within a sub-cell
+        sub_count.assign(size_t(scells) + 1, 0u);
+        for (const uint32_t sc : pairs_sub) ++sub_count[sc + 1];
+        sub_begin.assign(size_t(scells) + 1, 0u);
+        for (int k = 0; k < scells; ++k) sub_begin[k + 1] = sub_begin[k] + sub_count[k + 1];
+        const uint32_t pb = uint32_t(b.pool_.size());
+        b.pool_.resize(b.pool_.size() + pairs_sub.size());
+        std::vector<uint32_t> fill(sub_begin.begin(), sub_begin.end() - 1);
+        for (size_t k = 0; k < pairs_sub.size(); ++k) {
+          b.pool_[pb + fill[pairs_sub[k]]++] = pairs_id[k];
+        }
+        const int q = depth - s;
+        for (int z = 0; z < sres; ++z) {
+          for (int y = 0; y < sres; ++y) {
+            for (int x = 0; x < sres; ++x) {
+              const int sc = x + sres * (y + sres * z);
+              const int lo[3] = {(tx << depth) + (x << q), (ty << depth) + (y << q),
+                                 (tz << depth) + (z << q)};
+              const int hi[3] = {lo[0] + (1 << q), lo[1] + (1 << q), lo[2] + (1 << q)};
+              b.fine_.push_back(uint32_t(b.Cells()));
+              b.AddCell(lo, hi, pb + sub_begin[sc], sub_begin[sc + 1] - sub_begin[sc]);
+            }
+          }
+        }
+      }
+    }
+  }
+  if (b.fine_.size() >= (size_t{1} << 30) || b.Cells() >= (size_t{1} << 31)) {
+    throw Error("irregular grid build: " + std::to_string(b.Cells()) +
+                " cells exceed the 32-bit tables; lower the lambdas");
+  }
+  g.base_cells = b.Cells();
+  if (options.merge) b.Merge();
+
+  // compaction: live cells in order
+  std::vector<uint32_t> renumber(b.Cells(), UINT32_MAX);
+  size_t live = 0, refs = 0;
+  for (size_t k = 0; k < b.Cells(); ++k) {
+    if (!b.alive_[k]) continue;
+    renumber[k] = uint32_t(live++);
+    refs += b.count_[k];
+  }
+  g.num_cells = live;
+  g.num_fine = b.fine_.size();
+  g.top = AllocateBuildArray<uint32_t>(g.num_top, "irregular top entries");
+  std::copy(b.top_.begin(), b.top_.end(), g.top.get());
+  g.fine = AllocateBuildArray<uint32_t>(g.num_fine, "irregular sub-cell entries");
+  for (size_t i = 0; i < g.num_fine; ++i) g.fine[i] = renumber[b.fine_[i]];
+  g.box = AllocateBuildArray<int32_t>(8 * live, "irregular cell boxes");
+  Grid& lists = g.lists;
+  lists.num_cells = live;
+  lists.num_refs = refs;
+  lists.cell_begin = AllocateBuildArray<uint32_t>(live + 1, "irregular cell offsets");
+  lists.tri_ids = AllocateBuildArray<uint32_t>(std::max<size_t>(refs, 1), "irregular triangle ids");
+  size_t at = 0;
+  for (size_t k = 0; k < b.Cells(); ++k) {
+    if (!b.alive_[k]) continue;
+    const uint32_t c = renumber[k];
+    int32_t* box = g.box.get() + 8 * size_t(c);
+    for (int a = 0; a < 3; ++a) {
+      box[a] = b.lo_[a][k];
+      box[3 + a] = b.hi_[a][k];
+    }
+    box[6] = box[7] = 0;
+    lists.cell_begin[c] = uint32_t(at);
+    std::copy(b.pool_.begin() + b.begin_[k], b.pool_.begin() + b.begin_[k] + b.count_[k],
+              lists.tri_ids.get() + at);
+    at += b.count_[k];
+    lists.occupied_cells += b.count_[k] != 0;
+    lists.max_per_cell = std::max<size_t>(lists.max_per_cell, b.count_[k]);
+  }
+  lists.cell_begin[live] = uint32_t(at);
+  g.region_cost = IrregularGridCost(g, options.model);
+
+  if (!options.expand) return;
+  const int kMaxExpand = 1 << depth;  // voxels per face: one top cell
+  // Expansion: grow each non-empty cell's box (at most kMaxExpand voxels per face) one voxel layer at a time over voxels whose own cells have
+  // empty lists (b's regions: the boxes before expansion), on all six faces until none grows.
+  std::vector<uint32_t> counts(b.Cells());
+  for (size_t k = 0; k < b.Cells(); ++k) counts[k] = b.alive_[k] ? b.count_[k] : 0;
+  for (size_t c = 0; c < live; ++c) {
+    if (lists.cell_begin[c + 1] == lists.cell_begin[c]) continue;  // empty cells are merged
+    int32_t* box = g.box.get() + 8 * c;
+    const int32_t own[6] = {box[0], box[1], box[2], box[3], box[4], box[5]};
+    bool grew_any = false;
+    for (bool grew = true; grew;) {
+      grew = false;
+      for (int f = 0; f < 6; ++f) {
+        const int a = f >> 1;
+        const bool up = f & 1;
+        int lo[3] = {box[0], box[1], box[2]};
+        int hi[3] = {box[3], box[4], box[5]};
+        if (up) {
+          if (hi[a] >= g.vres[a] || hi[a] - own[3 + a] >= kMaxExpand) continue;
+          lo[a] = hi[a];
+          hi[a] = hi[a] + 1;
+        } else {
+          if (lo[a] <= 0 || own[a] - lo[a] >= kMaxExpand) continue;
+          hi[a] = lo[a];
+          lo[a] = lo[a] - 1;
+        }
+        if (!b.AllEmpty(lo, hi)) continue;
+        if (up) {
+          ++box[3 + a];
+        } else {
+          --box[a];
+        }
+        grew = grew_any = true;
+      }
+    }
+    g.expanded += grew_any;
+  }
+}
+
+}  // namespace rs
