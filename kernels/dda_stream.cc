@@ -187,24 +187,6 @@ class MicroCache {
   uint64_t hits_ = 0;
 };
 
-// The lanes set in `mask` as bits (lane l = bit l), for the scalar loops over lanes: they pick
-// lanes with tzcnt instead of reading back a CompressStore'd lane list. Such a list goes through
-// memory, and a compress store does not forward to the loads that read it back (they wait for
-// the store to retire); AVX2 has no compress instruction at all, and Highway 1.0.3 builds its
-// 1 KiB index table on the stack at every call (callgrind: 16 % of the instructions and 3/4 of
-// the branches of the any-hit kernel on AVX2).
-template <class D>
-HWY_INLINE uint64_t LaneBits(D d, hn::Mask<D> mask) {
-  static_assert(kDdaMaxLanes <= 64, "lane bits must fit a uint64_t");
-  uint8_t bytes[(kDdaMaxLanes + 7) / 8] = {};
-  hn::StoreMaskBits(d, mask, bytes);
-  uint64_t bits = 0;
-  for (size_t i = 0; i < sizeof(bytes); ++i) bits |= uint64_t{bytes[i]} << (8 * i);
-  return bits;
-}
-
-// Index of the lowest set bit of bits != 0 (the next lane of a LaneBits loop).
-HWY_INLINE size_t LowestLane(uint64_t bits) { return hwy::Num0BitsBelowLS1Bit_Nonzero64(bits); }
 
 
 // Output of one kernel call: closest hits or occlusion flags.

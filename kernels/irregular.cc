@@ -126,13 +126,14 @@ class Builder {
   // pass, so sizes grow evenly; rounds repeat while any pass merged.
   void Merge() {
     std::vector<uint8_t> used(Cells());
+    std::vector<uint32_t> alive(Cells()), still;
+    for (size_t k = 0; k < Cells(); ++k) alive[k] = uint32_t(k);
     for (int round = 0; round < 64; ++round) {
       bool changed = false;
       for (int a = 0; a < 3; ++a) {
-        std::fill(used.begin(), used.end(), uint8_t{0});
         const int b = (a + 1) % 3, c = (a + 2) % 3;
-        const size_t n = Cells();
-        for (size_t k = 0; k < n; ++k) {
+        for (const uint32_t k : alive) used[k] = 0;
+        for (const uint32_t k : alive) {
           if (!alive_[k] || used[k] || hi_[a][k] >= g_.vres[a]) continue;
           int v[3];
           v[a] = hi_[a][k];
@@ -150,7 +151,7 @@ class Builder {
           int32_t hi[3] = {hi_[0][k], hi_[1][k], hi_[2][k]};
           hi[a] = hi_[a][m];
           const double merged = CellCost(BoxArea(g_, lo, hi), nu, model_);
-          if (merged > Cost(uint32_t(k)) + Cost(m)) continue;
+          if (merged > Cost(k) + Cost(m)) continue;
           if (count_[m] > 0) {
             // the union, appended to the pool
             const uint32_t nb = uint32_t(pool_.size());
@@ -163,7 +164,7 @@ class Builder {
           }
           const int mlo[3] = {lo_[0][m], lo_[1][m], lo_[2][m]};
           const int mhi[3] = {hi_[0][m], hi_[1][m], hi_[2][m]};
-          Paint(mlo, mhi, uint32_t(k));
+          Paint(mlo, mhi, k);
           hi_[a][k] = hi_[a][m];
           alive_[m] = 0;
           used[k] = used[m] = 1;
@@ -172,6 +173,12 @@ class Builder {
         }
       }
       if (!changed) break;
+      // the next round visits the cells still alive
+      still.clear();
+      for (const uint32_t k : alive) {
+        if (alive_[k]) still.push_back(k);
+      }
+      alive.swap(still);
     }
   }
 
@@ -222,7 +229,17 @@ void BuildIrregularGrid(const TriangleSoA& tris, const GridBounds& bounds,
   const double min_cell = kMinCellMargins * ulp_margin;
   int depth = kIrregularMaxDepth;
   for (int a = 0; a < 3; ++a) {
-    while (depth > 0 && double(top.cell_size[a]) / double(1 << depth) < min_cell) --depth;
+    // sub-cells no finer than the coordinates allow; at most 65535 voxels per axis (the SIMD
+    // kernel packs a box's lo and hi into 16 bits each)
+    while (depth > 0 && (double(top.cell_size[a]) / double(1 << depth) < min_cell ||
+                         (top.res[a] << depth) > 65535)) {
+      --depth;
+    }
+  }
+  if (top.res[0] > 65535 || top.res[1] > 65535 || top.res[2] > 65535) {
+    throw Error("irregular grid build: " + std::to_string(top.res[0]) + "x" +
+                std::to_string(top.res[1]) + "x" + std::to_string(top.res[2]) +
+                " top cells exceed 65535 per axis; lower BuildOptions::max_resolution");
   }
   g.depth = depth;
   for (int a = 0; a < 3; ++a) {

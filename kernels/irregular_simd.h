@@ -18,16 +18,17 @@ namespace rs {
 
 // What the SIMD traversal reads: the grid and its cells' triangles as bundles. Borrows `grid`
 // and `tris` (they must outlive it, unmodified).
-// cells[8 k .. 8 k + 7]: cell k's traversal box (lo x y z, hi x y z, as IrregularGrid::box),
-// then its first bundle and its bundle count: what a step reads of a cell, in one 32-B record
-// (half a cache line; 64-B aligned array).
+// cells[4 k .. 4 k + 3]: what a step reads of cell k, in one 16-B record (64-B aligned array):
+// its traversal box per axis as lo | hi << 16 (IrregularGrid::box; the lattice has at most 65535
+// voxels per axis), and its first bundle; its bundle count is the next record's first bundle
+// minus its own (a record past the last cell holds the total).
 struct IrregularDda {
   const IrregularGrid* grid = nullptr;
   const TriangleSoA* tris = nullptr;
   TriBundles bundles;
   hwy::AlignedFreeUniquePtr<int32_t[]> cells;
   bool empty() const { return grid == nullptr || grid->empty(); }
-  size_t Bytes() const { return bundles.Bytes() + (grid == nullptr ? 0 : 32 * grid->num_cells); }
+  size_t Bytes() const { return bundles.Bytes() + (grid == nullptr ? 0 : 16 * (grid->num_cells + 1)); }
 };
 
 void BuildIrregularDda(const IrregularGrid& grid, const TriangleSoA& tris, IrregularDda* out,

@@ -181,6 +181,7 @@ void StreamIrregular(const IrregularDda& gd, const RayStreamView& rays, const Hi
   const int32_t* bundle_ids = gd.bundles.ids.get();
   const VF inf = hn::Set(d, std::numeric_limits<float>::infinity());
   const VI zero = hn::Zero(di), one = hn::Set(di, 1), minus1 = hn::Set(di, -1);
+  const hn::RebindToUnsigned<decltype(di)> du;
   VF glo[3], gvs[3], ginv[3];
   VI gres_m1[3];
   for (int a = 0; a < 3; ++a) {
@@ -222,18 +223,22 @@ void StreamIrregular(const IrregularDda& gd, const RayStreamView& rays, const Hi
     // 2. the current cells' records (box, bundle span); their triangles are fetched while the
     //    lanes find the next cells
     const auto live = hn::Gt(hn::Load(di, ls.ray), minus1);  // (no integer Ge in Highway 1.0.3)
-    const VI cell8 = hn::ShiftLeft<3>(hn::IfThenElseZero(live, hn::Load(di, ls.cell)));
+    const VI cell4 = hn::ShiftLeft<2>(hn::IfThenElseZero(live, hn::Load(di, ls.cell)));
     VI blo[3], bhi[3];
+    const VI low16 = hn::Set(di, 0xFFFF);
     for (int a = 0; a < 3; ++a) {
-      blo[a] = hn::GatherIndex(di, cells, hn::Add(cell8, hn::Set(di, a)));
-      bhi[a] = hn::GatherIndex(di, cells, hn::Add(cell8, hn::Set(di, 3 + a)));
+      const VI packed = hn::GatherIndex(di, cells, hn::Add(cell4, hn::Set(di, a)));
+      blo[a] = hn::And(packed, low16);
+      bhi[a] = hn::BitCast(di, hn::ShiftRight<16>(hn::BitCast(du, packed)));
     }
-    hn::Store(hn::GatherIndex(di, cells, hn::Add(cell8, hn::Set(di, 6))), di, span_first);
-    hn::Store(hn::IfThenElseZero(live, hn::GatherIndex(di, cells, hn::Add(cell8, hn::Set(di, 7)))),
-              di, span_count);
-    for (size_t l = 0; l < N; ++l) {
-      if (span_count[l] == 0) continue;
-      const float* p = bundle_data + kBundleFloats * size_t(span_first[l]);
+    const VI first = hn::GatherIndex(di, cells, hn::Add(cell4, hn::Set(di, 3)));
+    const VI count = hn::IfThenElseZero(
+        live, hn::Sub(hn::GatherIndex(di, cells, hn::Add(cell4, hn::Set(di, 7))), first));
+    hn::Store(first, di, span_first);
+    hn::Store(count, di, span_count);
+    const uint64_t visit = LaneBits(di, hn::Gt(count, zero));
+    for (uint64_t bits = visit; bits != 0; bits &= bits - 1) {
+      const float* p = bundle_data + kBundleFloats * size_t(span_first[LowestLane(bits)]);
       hwy::Prefetch(p);
       hwy::Prefetch(p + 16);
     }
@@ -285,8 +290,8 @@ void StreamIrregular(const IrregularDda& gd, const RayStreamView& rays, const Hi
     hn::Store(t_exit, d, t_exit_lanes);
     hn::Store(hn::VecFromMask(di, leave), di, leave_lanes);
     // 4. the current cells' triangles
-    for (size_t l = 0; l < N; ++l) {
-      if (span_count[l] == 0) continue;
+    for (uint64_t bits = visit; bits != 0; bits &= bits - 1) {
+      const size_t l = LowestLane(bits);
       TriBundleSpan span;
       span.vertices = bundle_data + kBundleFloats * size_t(span_first[l]);
       span.ids = bundle_ids + kBundleLanes * size_t(span_first[l]);
@@ -360,13 +365,16 @@ void BuildIrregularDda(const IrregularGrid& grid, const TriangleSoA& tris, Irreg
     return;
   }
   BuildTriBundles(grid.lists, tris, &out->bundles, threads);
-  out->cells = hwy::AllocateAligned<int32_t>(8 * grid.num_cells);
-  for (size_t k = 0; k < grid.num_cells; ++k) {
-    int32_t* c = out->cells.get() + 8 * k;
-    const int32_t* b = grid.Box(uint32_t(k));
-    for (int a = 0; a < 6; ++a) c[a] = b[a];
-    c[6] = int32_t(out->bundles.cell_begin[k]);
-    c[7] = int32_t(out->bundles.cell_begin[k + 1] - out->bundles.cell_begin[k]);
+  out->cells = hwy::AllocateAligned<int32_t>(4 * (grid.num_cells + 1));
+  HWY_ASSERT(out->cells);
+  for (size_t k = 0; k <= grid.num_cells; ++k) {
+    int32_t* c = out->cells.get() + 4 * k;
+    for (int a = 0; a < 3; ++a) {
+      c[a] = k == grid.num_cells ? 0
+                                 : int32_t(uint32_t(grid.Box(uint32_t(k))[a]) |
+                                           (uint32_t(grid.Box(uint32_t(k))[3 + a]) << 16));
+    }
+    c[3] = int32_t(out->bundles.cell_begin[k]);
   }
 }
 

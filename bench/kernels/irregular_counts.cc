@@ -84,8 +84,8 @@ int main(int argc, char** argv) {
     std::printf("  irregular cost %7.2f  cells/ray %6.2f tests/ray %6.2f  %.3f s  build %.3f s  %.1f MB\n",
                 IrregularGridCost(irr), double(sb.cell_steps) / n, double(sb.triangle_tests) / n,
                 tb, build, double(irr.Bytes()) / 1e6);
-    std::printf("  irregular region cost %.2f, accel flat cost %.2f\n", irr.region_cost,
-                m.flat_cost_estimate);
+    std::printf("  irregular region cost %.2f, accel flat cost %.2f; tables: %zu top, %zu sub-cell "
+                "entries\n", irr.region_cost, m.flat_cost_estimate, irr.num_top, irr.num_fine);
     std::printf("  irregular: top %dx%dx%d depth %d, base cells %zu, merges %zu, cells %zu "
                 "(occupied %zu), refs %zu, expanded %zu; time ratio irregular/accel %.3f\n",
                 irr.top_res[0], irr.top_res[1], irr.top_res[2], irr.depth, irr.base_cells,
