@@ -86,6 +86,16 @@ inline float DdaBoundaryT(const GridT& grid, const DdaRay& r, int a, int boundar
   return (grid.lo[a] + float(boundary) * grid.cell_size[a] - r.o[a]) * r.inv_d[a];
 }
 
+// The cell of o + t0 d along one axis of a lattice (origin lo, inverse cell size inv_cell, res
+// cells), clamped into [0, res): rounding may put the entry point just outside; NaN gives 0.
+inline int EntryCell(float o, float d, float t0, float lo, float inv_cell, int res) {
+  const float p = o + t0 * d;
+  const float f = (p - lo) * inv_cell;
+  int c = f >= 0.0f ? (f < float(res) ? int(f) : res - 1) : 0;  // NaN -> 0
+  if (c >= res) c = res - 1;
+  return c;
+}
+
 // Start cell of the DDA: the entry point o + t0 d, clamped into the grid (rounding may put it
 // just outside; NaN gives 0), and the t of the first boundary per axis (+inf on parallel axes).
 // Returns the flat cell index.
@@ -95,10 +105,7 @@ inline size_t DdaStartCell(const GridT& grid, const DdaRay& r, float t0, int cel
   size_t idx = 0;
   const size_t stride[3] = {1, size_t(grid.res[0]), size_t(grid.res[0]) * size_t(grid.res[1])};
   for (int a = 0; a < 3; ++a) {
-    const float p = r.o[a] + t0 * r.d[a];
-    const float f = (p - grid.lo[a]) * grid.inv_cell_size[a];
-    int c = f >= 0.0f ? (f < float(grid.res[a]) ? int(f) : grid.res[a] - 1) : 0;  // NaN -> 0
-    if (c >= grid.res[a]) c = grid.res[a] - 1;
+    const int c = EntryCell(r.o[a], r.d[a], t0, grid.lo[a], grid.inv_cell_size[a], grid.res[a]);
     cell[a] = c;
     idx += size_t(c) * stride[a];
     t_next[a] = r.step[a] == 0 ? std::numeric_limits<float>::infinity()

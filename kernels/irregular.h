@@ -122,11 +122,7 @@ bool TraceAnyIrregular(const IrregularGrid& g, const TriangleSoA& tris, float ox
 // lattice). Shared by the scalar and SIMD traversals.
 inline void IrregularStartVoxel(const IrregularGrid& g, const DdaRay& r, float t0, int v[3]) {
   for (int a = 0; a < 3; ++a) {
-    const float p = r.o[a] + t0 * r.d[a];
-    const float f = (p - g.lo[a]) * g.inv_voxel_size[a];
-    int c = f >= 0.0f ? (f < float(g.vres[a]) ? int(f) : g.vres[a] - 1) : 0;  // NaN -> 0
-    if (c >= g.vres[a]) c = g.vres[a] - 1;
-    v[a] = c;
+    v[a] = EntryCell(r.o[a], r.d[a], t0, g.lo[a], g.inv_voxel_size[a], g.vres[a]);
   }
 }
 

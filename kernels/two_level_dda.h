@@ -24,10 +24,7 @@ inline void SubGridStart(const SubGridRecord& rec, const DdaRay& r, float t_ente
     if (a == enter_axis) {
       c[a] = r.step[a] > 0 ? 0 : kSubRes - 1;
     } else {
-      const float p = r.o[a] + t_enter * r.d[a];
-      const float f = (p - rec.lo[a]) * rec.inv_cell_size[a];
-      c[a] = f >= 0.0f ? (f < float(kSubRes) ? int(f) : kSubRes - 1) : 0;  // NaN -> 0
-      if (c[a] >= kSubRes) c[a] = kSubRes - 1;
+      c[a] = EntryCell(r.o[a], r.d[a], t_enter, rec.lo[a], rec.inv_cell_size[a], kSubRes);
     }
     if (r.step[a] == 0) {
       t_next[a] = std::numeric_limits<float>::infinity();
