@@ -8,6 +8,7 @@
 #include <algorithm>
 #include <cfloat>
 #include <cmath>
+#include <limits>
 #include <vector>
 
 #include "kernels/grid_binning.h"
@@ -63,6 +64,18 @@ class Builder {
   std::vector<uint32_t> top_, fine_;
 
   size_t Cells() const { return begin_.size(); }
+  // Drops the cells from `cells` on, the pool from `pool` on and the entries from `fine` on.
+  void Truncate(size_t cells, size_t pool, size_t fine) {
+    for (int a = 0; a < 3; ++a) {
+      lo_[a].resize(cells);
+      hi_[a].resize(cells);
+    }
+    begin_.resize(cells);
+    count_.resize(cells);
+    alive_.resize(cells);
+    pool_.resize(pool);
+    fine_.resize(fine);
+  }
   void AddCell(const int lo[3], const int hi[3], uint32_t begin, uint32_t count) {
     for (int a = 0; a < 3; ++a) {
       lo_[a].push_back(lo[a]);
@@ -182,18 +195,125 @@ class Builder {
     }
   }
 
-  // True if every voxel of [lo, hi) lies in a cell with an empty list.
-  bool AllEmpty(const int lo[3], const int hi[3]) const {
+  // The layers of empty cells ahead of a box's face: [lo, hi) is the one-voxel layer beyond
+  // the face on axis a (up: in +a), walked in rows along its longest axis that jump to the end
+  // of each cell met. 0 if a cell there lists a triangle; else the least extent of those cells
+  // beyond the face (they tile the layer, so they cover that many layers).
+  int EmptyReach(const int lo[3], const int hi[3], int a, bool up) const {
+    int r = 0;
+    for (int k = 1; k < 3; ++k) {
+      if (hi[k] - lo[k] > hi[r] - lo[r]) r = k;
+    }
+    const int p = (r + 1) % 3, q = (r + 2) % 3;
+    int reach = std::numeric_limits<int>::max();
     int v[3];
-    for (v[2] = lo[2]; v[2] < hi[2]; ++v[2]) {
-      for (v[1] = lo[1]; v[1] < hi[1]; ++v[1]) {
-        for (v[0] = lo[0]; v[0] < hi[0]; ++v[0]) {
-          if (count_[Lookup(v)] != 0) return false;
+    for (v[q] = lo[q]; v[q] < hi[q]; ++v[q]) {
+      for (v[p] = lo[p]; v[p] < hi[p]; ++v[p]) {
+        for (v[r] = lo[r]; v[r] < hi[r];) {
+          const uint32_t m = Lookup(v);
+          if (count_[m] != 0) return 0;
+          reach = std::min(reach, up ? hi_[a][m] - lo[a] : hi[a] - lo_[a][m]);
+          v[r] = hi_[r][m];
         }
       }
     }
-    return true;
+    return reach;
   }
+};
+
+
+// The cells of one top cell: an octree cut to at most `s` levels, whose node is split into its
+// 8 children (conservative binning of its list, kernels/grid_binning.h) while it holds more than
+// leaf_triangles triangles and has levels left; leaves become cells, painted into the top
+// cell's 8^s table entries (a leaf at level l covers 8^(s - l) of them). Empty space inside a
+// dense top cell is a few large leaves, not 8^s empty sub-cells.
+class Octree {
+ public:
+  Octree(Builder* b, const TriangleSoA& tris, int leaf_triangles)
+      : b_(*b), tris_(tris), leaf_(size_t(std::max(leaf_triangles, 0))) {}
+
+  // Builds the cells of the top cell whose first voxel is lo (its entries from fine_base, at
+  // depth s) from its list ids[0, n) (ascending); returns the references of its leaves.
+  size_t Build(const int lo[3], uint32_t fine_base, int s, const uint32_t* ids, size_t n) {
+    for (int a = 0; a < 3; ++a) base_[a] = lo[a];
+    fine_base_ = fine_base;
+    s_ = s;
+    refs_ = 0;
+    Node(lo, 1 << b_.g_.depth, 0, ids, n);
+    return refs_;
+  }
+
+ private:
+  void Node(const int lo[3], int size, int level, const uint32_t* ids, size_t n) {
+    const IrregularGrid& g = b_.g_;
+    if (n <= leaf_ || level == s_) {
+      const int hi[3] = {lo[0] + size, lo[1] + size, lo[2] + size};
+      const uint32_t id = uint32_t(b_.Cells());
+      b_.AddCell(lo, hi, uint32_t(b_.pool_.size()), uint32_t(n));
+      b_.pool_.insert(b_.pool_.end(), ids, ids + n);
+      refs_ += n;
+      // this leaf's entries: (size / 2^q)^3 of the top cell's table, q = depth - s
+      const int q = g.depth - s_, span = size >> q;
+      const int e0[3] = {(lo[0] - base_[0]) >> q, (lo[1] - base_[1]) >> q, (lo[2] - base_[2]) >> q};
+      for (int z = e0[2]; z < e0[2] + span; ++z) {
+        for (int y = e0[1]; y < e0[1] + span; ++y) {
+          for (int x = e0[0]; x < e0[0] + span; ++x) {
+            b_.fine_[fine_base_ + uint32_t(x) + (uint32_t(y) << s_) + (uint32_t(z) << (2 * s_))] = id;
+          }
+        }
+      }
+      return;
+    }
+    // bin the list into the 8 children (ids stay ascending within each child)
+    const int half = size / 2;
+    BinGeometry geo;
+    float lo_f[3], inv_f[3];
+    for (int a = 0; a < 3; ++a) {
+      lo_f[a] = g.lo[a] + float(lo[a]) * g.voxel_size[a];
+      inv_f[a] = g.inv_voxel_size[a] / float(half);
+      geo.lo[a] = double(lo_f[a]);
+      geo.cs[a] = double(g.voxel_size[a] * float(half));
+      geo.margin[a] = g.margin[a];
+      geo.res[a] = 2;
+    }
+    FinishBinGeometry(lo_f, inv_f, &geo);
+    std::vector<uint32_t>& list = lists_[level];
+    size_t count[8] = {};
+    pairs_.clear();
+    for (size_t k = 0; k < n; ++k) {
+      float v[3][3];
+      for (int vi = 0; vi < 3; ++vi) {
+        for (int a = 0; a < 3; ++a) v[vi][a] = tris_.p[vi][a][ids[k]];
+      }
+      BinTriangle(geo, v, &scratch_, [&](int x, int y, int z) {
+        const uint32_t c = uint32_t(x + 2 * (y + 2 * z));
+        pairs_.push_back((uint64_t(c) << 32) | ids[k]);
+        ++count[c];
+      });
+    }
+    size_t begin[9] = {};
+    for (int c = 0; c < 8; ++c) begin[c + 1] = begin[c] + count[c];
+    list.resize(begin[8]);
+    size_t fill[8];
+    std::copy(begin, begin + 8, fill);
+    for (const uint64_t p : pairs_) list[fill[p >> 32]++] = uint32_t(p);
+    for (int c = 0; c < 8; ++c) {
+      const int child[3] = {lo[0] + (c & 1) * half, lo[1] + ((c >> 1) & 1) * half,
+                            lo[2] + (c >> 2) * half};
+      Node(child, half, level + 1, list.data() + begin[c], count[c]);
+    }
+  }
+
+  Builder& b_;
+  const TriangleSoA& tris_;
+  size_t leaf_;
+  int base_[3] = {0, 0, 0};
+  uint32_t fine_base_ = 0;
+  int s_ = 0;
+  size_t refs_ = 0;
+  std::vector<uint32_t> lists_[kIrregularMaxDepth + 1];  // the children's lists, per level
+  std::vector<uint64_t> pairs_;
+  BinScratch scratch_;
 };
 
 }  // namespace
@@ -257,14 +377,12 @@ void BuildIrregularGrid(const TriangleSoA& tris, const GridBounds& bounds,
   b.top_.resize(top.num_cells);
   const size_t budget = GridRefBudget(bounds.num_valid);
   size_t total_refs = top.num_refs;
-  BinScratch scratch;
-  std::vector<uint32_t> sub_count, sub_begin, pairs_sub, pairs_id;
+  Octree octree(&b, tris, options.leaf_triangles);
   const double log8 = std::log(8.0);
   size_t cell = 0;
   for (int tz = 0; tz < top.res[2]; ++tz) {
     for (int ty = 0; ty < top.res[1]; ++ty) {
       for (int tx = 0; tx < top.res[0]; ++tx, ++cell) {
-        const int tc[3] = {tx, ty, tz};
         const uint32_t lb = top.cell_begin[cell];
         const uint32_t n = top.cell_begin[cell + 1] - lb;
         int s = 0;
@@ -272,75 +390,20 @@ void BuildIrregularGrid(const TriangleSoA& tris, const GridBounds& bounds,
           s = int(std::lround(std::log(double(options.sub_lambda) * double(n)) / log8));
           s = std::clamp(s, 0, depth);
         }
-        // bin the cell's list into 2^s sub-cells per axis
-        const int sres = 1 << s;
-        const int scells = sres * sres * sres;
-        pairs_sub.clear();
-        pairs_id.clear();
-        if (s > 0) {
-          BinGeometry geo;
-          float lo_f[3], inv_f[3];
-          for (int a = 0; a < 3; ++a) {
-            lo_f[a] = g.lo[a] + float(tc[a] << depth) * g.voxel_size[a];
-            const float cs = g.voxel_size[a] * float(1 << (depth - s));
-            inv_f[a] = g.inv_voxel_size[a] / float(1 << (depth - s));
-            geo.lo[a] = double(lo_f[a]);
-            geo.cs[a] = double(cs);
-            geo.margin[a] = g.margin[a];
-            geo.res[a] = sres;
-          }
-          FinishBinGeometry(lo_f, inv_f, &geo);
-          for (uint32_t k = lb; k < lb + n; ++k) {
-            const uint32_t id = top.tri_ids[k];
-            float v[3][3];
-            for (int vi = 0; vi < 3; ++vi) {
-              for (int a = 0; a < 3; ++a) v[vi][a] = tris.p[vi][a][id];
-            }
-            BinTriangle(geo, v, &scratch, [&](int x, int y, int z) {
-              pairs_sub.push_back(uint32_t(x + sres * (y + sres * z)));
-              pairs_id.push_back(id);
-            });
-          }
-          if (total_refs - n + pairs_sub.size() > budget) {
-            s = 0;  // over the budget: the top cell stays one cell
-          } else {
-            total_refs = total_refs - n + pairs_sub.size();
-          }
-        }
+        const int lo[3] = {tx << depth, ty << depth, tz << depth};
+        const size_t cells_before = b.Cells(), pool_before = b.pool_.size();
         const uint32_t fine_base = uint32_t(b.fine_.size());
         b.top_[cell] = (fine_base << 2) | uint32_t(s);
-        if (s == 0) {
-          const int lo[3] = {tx << depth, ty << depth, tz << depth};
-          const int hi[3] = {(tx + 1) << depth, (ty + 1) << depth, (tz + 1) << depth};
-          const uint32_t pb = uint32_t(b.pool_.size());
-          b.pool_.insert(b.pool_.end(), top.tri_ids.get() + lb, top.tri_ids.get() + lb + n);
-          b.fine_.push_back(uint32_t(b.Cells()));
-          b.AddCell(lo, hi, pb, n);
-          continue;
-        }
-        // counting sort of the (sub-cell, id) pairs: ids stay ascending within a sub-cell
-        sub_count.assign(size_t(scells) + 1, 0u);
-        for (const uint32_t sc : pairs_sub) ++sub_count[sc + 1];
-        sub_begin.assign(size_t(scells) + 1, 0u);
-        for (int k = 0; k < scells; ++k) sub_begin[k + 1] = sub_begin[k] + sub_count[k + 1];
-        const uint32_t pb = uint32_t(b.pool_.size());
-        b.pool_.resize(b.pool_.size() + pairs_sub.size());
-        std::vector<uint32_t> fill(sub_begin.begin(), sub_begin.end() - 1);
-        for (size_t k = 0; k < pairs_sub.size(); ++k) {
-          b.pool_[pb + fill[pairs_sub[k]]++] = pairs_id[k];
-        }
-        const int q = depth - s;
-        for (int z = 0; z < sres; ++z) {
-          for (int y = 0; y < sres; ++y) {
-            for (int x = 0; x < sres; ++x) {
-              const int sc = x + sres * (y + sres * z);
-              const int lo[3] = {(tx << depth) + (x << q), (ty << depth) + (y << q),
-                                 (tz << depth) + (z << q)};
-              const int hi[3] = {lo[0] + (1 << q), lo[1] + (1 << q), lo[2] + (1 << q)};
-              b.fine_.push_back(uint32_t(b.Cells()));
-              b.AddCell(lo, hi, pb + sub_begin[sc], sub_begin[sc + 1] - sub_begin[sc]);
-            }
-          }
+        b.fine_.resize(fine_base + (size_t{1} << (3 * s)));
+        const size_t refs = octree.Build(lo, fine_base, s, top.tri_ids.get() + lb, n);
+        if (s > 0 && total_refs - n + refs > budget) {
+          // over the budget: the top cell stays one cell
+          b.Truncate(cells_before, pool_before, fine_base);
+          b.top_[cell] = fine_base << 2;
+          b.fine_.resize(fine_base + 1);
+          octree.Build(lo, fine_base, 0, top.tri_ids.get() + lb, n);
+        } else {
+          total_refs = total_refs - n + refs;
         }
       }
     }
@@ -394,10 +457,9 @@ void BuildIrregularGrid(const TriangleSoA& tris, const GridBounds& bounds,
 
   if (!options.expand) return;
   const int kMaxExpand = 1 << depth;  // voxels per face: one top cell
-  // Expansion: grow each non-empty cell's box (at most kMaxExpand voxels per face) one voxel layer at a time over voxels whose own cells have
-  // empty lists (b's regions: the boxes before expansion), on all six faces until none grows.
-  std::vector<uint32_t> counts(b.Cells());
-  for (size_t k = 0; k < b.Cells(); ++k) counts[k] = b.alive_[k] ? b.count_[k] : 0;
+  // Expansion: grow each non-empty cell's box over the empty cells beyond its faces (b's
+  // regions: the boxes before expansion), by whole empty cells at a time, at most kMaxExpand
+  // voxels per face, on all six faces until none grows.
   for (size_t c = 0; c < live; ++c) {
     if (lists.cell_begin[c + 1] == lists.cell_begin[c]) continue;  // empty cells are merged
     int32_t* box = g.box.get() + 8 * c;
@@ -410,20 +472,23 @@ void BuildIrregularGrid(const TriangleSoA& tris, const GridBounds& bounds,
         const bool up = f & 1;
         int lo[3] = {box[0], box[1], box[2]};
         int hi[3] = {box[3], box[4], box[5]};
+        int room;
         if (up) {
-          if (hi[a] >= g.vres[a] || hi[a] - own[3 + a] >= kMaxExpand) continue;
+          room = std::min(g.vres[a] - hi[a], kMaxExpand - (hi[a] - own[3 + a]));
           lo[a] = hi[a];
           hi[a] = hi[a] + 1;
         } else {
-          if (lo[a] <= 0 || own[a] - lo[a] >= kMaxExpand) continue;
+          room = std::min(lo[a], kMaxExpand - (own[a] - lo[a]));
           hi[a] = lo[a];
           lo[a] = lo[a] - 1;
         }
-        if (!b.AllEmpty(lo, hi)) continue;
+        if (room <= 0) continue;
+        const int n = std::min(room, b.EmptyReach(lo, hi, a, up));
+        if (n <= 0) continue;
         if (up) {
-          ++box[3 + a];
+          box[3 + a] += n;
         } else {
-          --box[a];
+          box[a] -= n;
         }
         grew = grew_any = true;
       }

@@ -1,7 +1,8 @@
 // Irregular grid (Perard-Gayot, Kalojanov, Slusallek, "GPU Ray Tracing using Irregular Grids",
-// Computer Graphics Forum 36(2), 2017): cells of varying size on a fine virtual lattice. A coarse
-// uniform grid is subdivided per cell to the depth its triangle count asks for (2^d sub-cells per
-// axis, d <= 3: an octree level cut uniformly), neighbouring cells are merged where the grid cost
+// Computer Graphics Forum 36(2), 2017): cells of varying size on a fine virtual lattice. Each cell
+// of a coarse uniform grid holds an octree of at most the depth its triangle count asks for
+// (d <= 3: 2^d finest sub-cells per axis; nodes with few triangles are not split), neighbouring
+// cells are merged where the grid cost
 // model says the merged cell is cheaper, and each cell's traversal box is then expanded over the
 // empty cells around it, so a ray leaves empty space in one step. A ray steps from cell to cell
 // by the exit point of the current cell's box: one lookup (top-level entry, then the sub-cell
@@ -89,7 +90,8 @@ double IrregularGridCost(const IrregularGrid& g, const GridCostModel& model = {}
 
 struct IrregularOptions {
   float top_lambda = 0.125f;  // top-level cells per triangle
-  float sub_lambda = 2.0f;    // sub-cells per triangle in a subdivided top cell
+  float sub_lambda = 1.0f;    // a top cell of n triangles is cut to depth round(log8(sub_lambda n))
+  int leaf_triangles = 2;     // octree nodes with more triangles are split (to that depth)
   bool merge = true;
   bool expand = true;
   GridCostModel model;        // the merge criterion (IrregularGridCost's weights)

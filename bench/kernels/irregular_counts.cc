@@ -58,6 +58,9 @@ int main(int argc, char** argv) {
     double t = Now();
     BuildIrregularGrid(m.triangles, ComputeGridBounds(m.triangles), opt, 512, &irr);
     const double build = Now() - t;
+    for (int rep = int(Env("RS_IRR_BUILDS", 0)); rep > 0; --rep) {  // for profilers
+      BuildIrregularGrid(m.triangles, ComputeGridBounds(m.triangles), opt, 512, &irr);
+    }
     const RayStreamView r = diffuse.view();
     const size_t n = r.size;
     std::vector<RayHit> a(n), b(n);
