@@ -1,7 +1,8 @@
 // Scalar comparison of the irregular grid with the grid rs::Accel builds (uniform or two-level):
 // the diffuse rays of trace_bench (one per primary hit of a WxH image), traced by both scalar
-// traversals; prints cells, tests, build and trace time of each, the cost model's figures, and
-// whether every hit agrees. Options: RS_IRR_TOP, RS_IRR_SUB (lambdas), RS_IRR_MERGE,
+// traversals and both SIMD stream kernels; prints cells, tests, build and trace time of each,
+// the cost model's figures (the irregular grid's over its cells' own regions), and whether every
+// hit agrees (exit status 1 if one differs). Times are one run: a hint, not a benchmark. Options: RS_IRR_TOP, RS_IRR_SUB (lambdas), RS_IRR_MERGE,
 // RS_IRR_EXPAND (0/1).
 #include <algorithm>
 #include <chrono>
@@ -85,10 +86,10 @@ int main(int argc, char** argv) {
                 double(sa.cell_steps) / n, double(sa.triangle_tests) / n, ta, m.build_seconds,
                 double(m.grid.Bytes() + m.two_level.Bytes()) / 1e6);
     std::printf("  irregular cost %7.2f  cells/ray %6.2f tests/ray %6.2f  %.3f s  build %.3f s  %.1f MB\n",
-                IrregularGridCost(irr), double(sb.cell_steps) / n, double(sb.triangle_tests) / n,
+                irr.region_cost, double(sb.cell_steps) / n, double(sb.triangle_tests) / n,
                 tb, build, double(irr.Bytes()) / 1e6);
-    std::printf("  irregular region cost %.2f, accel flat cost %.2f; tables: %zu top, %zu sub-cell "
-                "entries\n", irr.region_cost, m.flat_cost_estimate, irr.num_top, irr.num_fine);
+    std::printf("  accel flat cost %.2f; irregular tables: %zu top, %zu sub-cell entries\n",
+                m.flat_cost_estimate, irr.num_top, irr.num_fine);
     std::printf("  irregular: top %dx%dx%d depth %d, base cells %zu, merges %zu, cells %zu "
                 "(occupied %zu), refs %zu, expanded %zu; time ratio irregular/accel %.3f\n",
                 irr.top_res[0], irr.top_res[1], irr.top_res[2], irr.depth, irr.base_cells,
