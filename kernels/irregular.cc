@@ -244,24 +244,32 @@ class Octree {
   }
 
  private:
+  static constexpr size_t kNoSplitMin = 64;
+
+  // Makes [lo, lo + size)^3 a cell listing ids[0, n) and paints its entries.
+  void Leaf(const int lo[3], int size, const uint32_t* ids, size_t n) {
+    const IrregularGrid& g = b_.g_;
+    const int hi[3] = {lo[0] + size, lo[1] + size, lo[2] + size};
+    const uint32_t id = uint32_t(b_.Cells());
+    b_.AddCell(lo, hi, uint32_t(b_.pool_.size()), uint32_t(n));
+    b_.pool_.insert(b_.pool_.end(), ids, ids + n);
+    refs_ += n;
+    // this leaf's entries: (size / 2^q)^3 of the top cell's table, q = depth - s
+    const int q = g.depth - s_, span = size >> q;
+    const int e0[3] = {(lo[0] - base_[0]) >> q, (lo[1] - base_[1]) >> q, (lo[2] - base_[2]) >> q};
+    for (int z = e0[2]; z < e0[2] + span; ++z) {
+      for (int y = e0[1]; y < e0[1] + span; ++y) {
+        for (int x = e0[0]; x < e0[0] + span; ++x) {
+          b_.fine_[fine_base_ + uint32_t(x) + (uint32_t(y) << s_) + (uint32_t(z) << (2 * s_))] = id;
+        }
+      }
+    }
+  }
+
   void Node(const int lo[3], int size, int level, const uint32_t* ids, size_t n) {
     const IrregularGrid& g = b_.g_;
     if (n <= leaf_ || level == s_) {
-      const int hi[3] = {lo[0] + size, lo[1] + size, lo[2] + size};
-      const uint32_t id = uint32_t(b_.Cells());
-      b_.AddCell(lo, hi, uint32_t(b_.pool_.size()), uint32_t(n));
-      b_.pool_.insert(b_.pool_.end(), ids, ids + n);
-      refs_ += n;
-      // this leaf's entries: (size / 2^q)^3 of the top cell's table, q = depth - s
-      const int q = g.depth - s_, span = size >> q;
-      const int e0[3] = {(lo[0] - base_[0]) >> q, (lo[1] - base_[1]) >> q, (lo[2] - base_[2]) >> q};
-      for (int z = e0[2]; z < e0[2] + span; ++z) {
-        for (int y = e0[1]; y < e0[1] + span; ++y) {
-          for (int x = e0[0]; x < e0[0] + span; ++x) {
-            b_.fine_[fine_base_ + uint32_t(x) + (uint32_t(y) << s_) + (uint32_t(z) << (2 * s_))] = id;
-          }
-        }
-      }
+      Leaf(lo, size, ids, n);
       return;
     }
     // bin the list into the 8 children (ids stay ascending within each child)
@@ -290,6 +298,16 @@ class Octree {
         pairs_.push_back((uint64_t(c) << 32) | ids[k]);
         ++count[c];
       });
+    }
+    // A split of many triangles that leaves them all in one child and lists them at least twice
+    // over separates nothing (copies of one triangle spanning a child boundary): the node stays
+    // a leaf, so such input is binned once per top cell instead of once per level. (Triangles
+    // that all lie in one child are split: the other seven children are empty space.)
+    size_t sum = 0;
+    for (const size_t c : count) sum += c;
+    if (n > kNoSplitMin && *std::max_element(count, count + 8) == n && sum >= 2 * n) {
+      Leaf(lo, size, ids, n);
+      return;
     }
     size_t begin[9] = {};
     for (int c = 0; c < 8; ++c) begin[c + 1] = begin[c] + count[c];

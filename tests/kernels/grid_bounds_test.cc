@@ -81,7 +81,7 @@ AccelInfo CheckBoundedAndExact(const std::string& what, const MeshView& mesh, Gr
           info.sub_references, " sub-cell refs (", double(info.sub_references) / n,
           " per triangle), ", info.irregular_references, " irregular refs in ",
           info.irregular_cells, " cells, ", info.max_per_cell, " max per cell, ", info.bytes, " B (",
-          double(info.bytes) / n, " per triangle)");
+          double(info.bytes) / n, " per triangle), build ", seconds, " s");
   CHECK(double(info.references) <= kRefsPerTriangle * n + kRefSlack);
   CHECK(double(info.sub_references) <= kRefsPerTriangle * n + kRefSlack);
   CHECK(double(info.irregular_references) <= kRefsPerTriangle * n + kRefSlack);
