@@ -704,6 +704,62 @@ TEST_CASE("misuse of TraceScene is an rs::Error, never a crash") {
   t.Intersect(rays.View(), hits.View());
 }
 
+// A C scene of ts's geometries and instances built with `options` (committed).
+RSScene NewCScene(const TestScene& ts, const RSBuildOptions* options) {
+  RSScene scene = rsNewScene(options);
+  REQUIRE(scene != nullptr);
+  for (const auto& g : ts.geoms) {
+    RSGeometryDesc d;
+    rsInitGeometryDesc(&d);
+    const GeometryDesc c = g.Desc();
+    d.positions = c.positions, d.num_vertices = c.num_vertices, d.stride_bytes = c.stride_bytes;
+    d.indices = c.indices, d.index_type = static_cast<RSIndexType>(c.index_type);
+    d.num_triangles = c.num_triangles, d.mask = c.mask;
+    d.mode = static_cast<RSBufferMode>(c.mode), d.instance_only = c.instance_only ? 1 : 0;
+    uint32_t id = 99;
+    CHECK(rsSceneAttachGeometry(scene, &d, &id) == RS_ERROR_NONE);
+  }
+  for (const auto& in : ts.insts) {
+    uint32_t id = 99;
+    CHECK(rsSceneAttachInstance(scene, in.geom, in.m, in.mask, &id) == RS_ERROR_NONE);
+  }
+  CHECK(rsSceneCommit(scene) == RS_ERROR_NONE);
+  return scene;
+}
+
+TEST_CASE("the C scene API with RS_GRID_IRREGULAR: the hits and occlusion of the default grid") {
+  const TestScene ts = Mixed();
+  const Rays rays(500, 12);
+  const size_t n = rays.mask.size();
+  RSBuildOptions irregular;
+  rsInitBuildOptions(&irregular);
+  irregular.grid = RS_GRID_IRREGULAR;
+  RSScene a = NewCScene(ts, nullptr), b = NewCScene(ts, &irregular);
+  RSRays r = {rays.f[0].data(), rays.f[1].data(), rays.f[2].data(), rays.f[3].data(),
+              rays.f[4].data(), rays.f[5].data(), rays.f[6].data(), rays.f[7].data(),
+              rays.mask.data(), rays.id.data(), n};
+  Hits ha(n), hb(n);
+  RSHits ra = {ha.t.data(),  ha.u.data(),    ha.v.data(),    ha.nx.data(),   ha.ny.data(),
+               ha.nz.data(), ha.prim.data(), ha.geom.data(), ha.inst.data(), n};
+  RSHits rb = {hb.t.data(),  hb.u.data(),    hb.v.data(),    hb.nx.data(),   hb.ny.data(),
+               hb.nz.data(), hb.prim.data(), hb.geom.data(), hb.inst.data(), n};
+  test::ForEachTarget([&](const char* target) {
+    INFO("target ", std::string(target));
+    CHECK(rsSceneIntersect(a, &r, &ra) == RS_ERROR_NONE);
+    CHECK(rsSceneIntersect(b, &r, &rb) == RS_ERROR_NONE);
+    CHECK(ha == hb);
+    std::vector<int32_t> oa(n), ob(n);
+    CHECK(rsSceneOccluded(a, &r, oa.data()) == RS_ERROR_NONE);
+    CHECK(rsSceneOccluded(b, &r, ob.data()) == RS_ERROR_NONE);
+    CHECK(oa == ob);
+  });
+  size_t hit = 0;
+  for (size_t i = 0; i < n; ++i) hit += ha.geom[i] >= 0;
+  CHECK(hit > n / 5);
+  rsReleaseScene(a);
+  rsReleaseScene(b);
+}
+
 TEST_CASE("the C scene API: the same hits as C++, error codes for misuse") {
   const TestScene ts = Mixed();
   const Rays rays(500, 11);
