@@ -2,9 +2,9 @@
 // Computer Graphics Forum 36(2), 2017): cells of varying size on a fine virtual lattice. Each cell
 // of a coarse uniform grid holds an octree of at most the depth its triangle count asks for
 // (d <= 3: 2^d finest sub-cells per axis; nodes with few triangles are not split), neighbouring
-// cells are merged where the grid cost
-// model says the merged cell is cheaper, and each cell's traversal box is then expanded over the
-// empty cells around it, so a ray leaves empty space in one step. A ray steps from cell to cell
+// cells are merged where the grid cost model says the merged cell is cheaper, and each non-empty
+// cell's traversal box is then expanded over the empty cells around it, so a ray leaves empty
+// space in one step. A ray steps from cell to cell
 // by the exit point of the current cell's box: one lookup (top-level entry, then the sub-cell
 // entry) finds the next cell; the cell's triangles are tested with the same watertight test as
 // the uniform and two-level grids, so every structure gives the same hits.
@@ -37,7 +37,8 @@ inline constexpr int kIrregularMaxDepth = 3;  // at most 8 sub-cells per top cel
 //   fine[(e >> 2) + ((v.x & m) >> q) + (((v.y & m) >> q) << s) + (((v.z & m) >> q) << 2s)].
 // Cells. Cell k has a traversal box box[8 k .. 8 k + 5] = lo x y z, hi x y z in voxels (hi
 // exclusive; box[8 k + 6], box[8 k + 7] are 0): its own region, expanded over empty cells, so
-// the boxes of non-empty cells never overlap another non-empty cell. lists.cell_begin[k] ..
+// a box never overlaps the region of another non-empty cell (boxes may overlap each other over
+// empty space: IrregularNextVoxel copes). lists.cell_begin[k] ..
 // lists.cell_begin[k + 1] index its triangle ids in lists.tri_ids (ascending); a triangle is
 // listed in every cell whose own region, grown by `margin`, it overlaps (the conservative test
 // of the uniform grid, kernels/grid_binning.h).
