@@ -338,7 +338,6 @@ class Octree {
 
 double IrregularGridCost(const IrregularGrid& g, const GridCostModel& model) {
   if (g.empty() || !g.box) return 0.0;
-  if (g.empty()) return 0.0;
   const int32_t lo[3] = {0, 0, 0};
   const int32_t hi[3] = {g.vres[0], g.vres[1], g.vres[2]};
   const double total = BoxArea(g, lo, hi);

@@ -285,8 +285,6 @@ void StreamIrregular(const IrregularDda& gd, const RayStreamView& rays, const Hi
     }
     // the next cells (looked up now, used next iteration): their records are prefetched
     const VI next_cell = LookupCells(di, g, hn::Not(leave), nv);
-    HWY_ALIGN int32_t next_lanes[kIrrMaxLanes];
-    hn::Store(next_cell, di, next_lanes);
     hn::Store(t_exit, d, t_exit_lanes);
     hn::Store(hn::VecFromMask(di, leave), di, leave_lanes);
     // 4. the current cells' triangles
@@ -319,7 +317,7 @@ void StreamIrregular(const IrregularDda& gd, const RayStreamView& rays, const Hi
         }
       }
     }
-    hn::Store(hn::Load(di, next_lanes), di, ls.cell);
+    hn::Store(next_cell, di, ls.cell);
     // 5. retire the lanes whose candidate or segment end lies before the exit, or that left
     const VF te = hn::Load(d, t_exit_lanes);
     const auto done = hn::Or(hn::Le(hn::Load(d, ls.best), te), hn::Le(hn::Load(d, ls.t1), te));

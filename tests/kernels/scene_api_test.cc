@@ -704,10 +704,8 @@ TEST_CASE("misuse of TraceScene is an rs::Error, never a crash") {
   t.Intersect(rays.View(), hits.View());
 }
 
-// A C scene of ts's geometries and instances built with `options` (committed).
-RSScene NewCScene(const TestScene& ts, const RSBuildOptions* options) {
-  RSScene scene = rsNewScene(options);
-  REQUIRE(scene != nullptr);
+// Attaches ts's geometries to a C scene through rsSceneAttachGeometry.
+void AttachCGeometries(RSScene scene, const TestScene& ts) {
   for (const auto& g : ts.geoms) {
     RSGeometryDesc d;
     rsInitGeometryDesc(&d);
@@ -719,6 +717,13 @@ RSScene NewCScene(const TestScene& ts, const RSBuildOptions* options) {
     uint32_t id = 99;
     CHECK(rsSceneAttachGeometry(scene, &d, &id) == RS_ERROR_NONE);
   }
+}
+
+// A C scene of ts's geometries and instances built with `options` (committed).
+RSScene NewCScene(const TestScene& ts, const RSBuildOptions* options) {
+  RSScene scene = rsNewScene(options);
+  REQUIRE(scene != nullptr);
+  AttachCGeometries(scene, ts);
   for (const auto& in : ts.insts) {
     uint32_t id = 99;
     CHECK(rsSceneAttachInstance(scene, in.geom, in.m, in.mask, &id) == RS_ERROR_NONE);
@@ -766,17 +771,7 @@ TEST_CASE("the C scene API: the same hits as C++, error codes for misuse") {
   const size_t n = rays.mask.size();
   RSScene scene = rsNewScene(nullptr);
   REQUIRE(scene != nullptr);
-  for (const auto& g : ts.geoms) {
-    RSGeometryDesc d;
-    rsInitGeometryDesc(&d);
-    const GeometryDesc c = g.Desc();
-    d.positions = c.positions, d.num_vertices = c.num_vertices, d.stride_bytes = c.stride_bytes;
-    d.indices = c.indices, d.index_type = static_cast<RSIndexType>(c.index_type);
-    d.num_triangles = c.num_triangles, d.mask = c.mask;
-    d.mode = static_cast<RSBufferMode>(c.mode), d.instance_only = c.instance_only ? 1 : 0;
-    uint32_t id = 99;
-    CHECK(rsSceneAttachGeometry(scene, &d, &id) == RS_ERROR_NONE);
-  }
+  AttachCGeometries(scene, ts);
   RSRays r = {rays.f[0].data(), rays.f[1].data(), rays.f[2].data(), rays.f[3].data(),
               rays.f[4].data(), rays.f[5].data(), rays.f[6].data(), rays.f[7].data(),
               rays.mask.data(), rays.id.data(), n};
