@@ -5,6 +5,7 @@
 #pragma once
 
 #include <algorithm>
+#include <bit>
 #include <cfloat>
 #include <cmath>
 #include <cstddef>
@@ -398,6 +399,95 @@ inline void BinTriangle(const BinGeometry& g, const float v[3][3], BinScratch* s
   bool span[3];
   const int spans = TriangleCellRange(g, v, c0, c1, span);
   if (spans >= 0) BinTriangleCells(g, v, c0, c1, span, spans, scratch, emit);
+}
+
+// out's triangles [0, n) = the listed triangles ids[0, n) of src (SimdGatherListed; out's arrays
+// grown as needed, their degenerate flags 0: lists hold no degenerate triangle), for BinListed.
+inline void GatherListed(const TriangleSoA& src, const uint32_t* ids, size_t n, TriangleSoA* out) {
+  // (the gather overwrites [0, n): a grown array need not keep earlier triangles)
+  for (auto& vertex : out->p) {
+    for (auto& axis : vertex) axis.ReserveForOverwrite(n);
+  }
+  if (out->size < n) {
+    out->degenerate.ReserveForOverwrite(n);
+    std::fill(out->degenerate.data(), out->degenerate.data() + n, uint8_t{0});
+  }
+  out->size = n;
+  SimdGatherListed(src, ids, n, out);  // one pass: each id read once
+}
+
+// Scratch of BinListed, reused across calls.
+struct ListedBinScratch {
+  RangeBlock block;
+  uint16_t quad_js[kRangeBlock];  // the block's 2 x 2-cell triangles and their cells
+  uint8_t quad_masks[kRangeBlock];
+  BinScratch scratch;
+};
+
+// The cells BinTriangle gives each of the triangles [0, n) of `tris` (a cell's list, gathered
+// by GatherListed: finite, none degenerate), bit for bit, a block of kRangeBlock triangles at a
+// time: their cell ranges a vector at a time (SimdTriangleCellRanges), the 2 x 2-cell ones
+// edge-tested a vector at a time (SimdQuadCellMasks), one cell or a line of cells emitted
+// whole, the rest by BinTriangleCells. geo is a kRes x kRes x kRes grid. Per block,
+// reserve(most) first (`most`: the most cells the block emits, its boxes' sum), then
+// emit(j, cell) for triangle j and cell index x + kRes (y + kRes z), triangles in order; then
+// a false from done_block() stops the binning (returns false). The sub-grids' refinement
+// (kernels/two_level.cc, kRes 8) and the irregular grid's octree (kernels/irregular.cc,
+// kRes 2) bin their lists with it.
+template <int kRes, class Reserve, class Emit, class DoneBlock>
+bool BinListed(const TriangleSoA& tris, const BinGeometry& geo, size_t n, ListedBinScratch* s,
+               const Reserve& reserve, const Emit& emit, const DoneBlock& done_block) {
+  static constexpr uint32_t stride[3] = {1, kRes, kRes * kRes};
+  HWY_DASSERT(geo.res[0] == kRes && geo.res[1] == kRes && geo.res[2] == kRes);
+  RangeBlock& block = s->block;
+  for (size_t first = 0; first < n; first += kRangeBlock) {
+    const size_t count = std::min(kRangeBlock, n - first);
+    SimdTriangleCellRanges(tris, geo, first, count, &block, /*bin_flags=*/true);
+    size_t quads = 0;
+    for (size_t j = 0; j < count; ++j) {
+      if (block.flags[j] & kRangeQuad) s->quad_js[quads++] = uint16_t(j);
+    }
+    if (quads > 0) SimdQuadCellMasks(tris, geo, first, block, s->quad_js, quads, s->quad_masks);
+    reserve(block.box_sum);
+    size_t next_quad = 0;
+    for (size_t j = 0; j < count; ++j) {
+      const int32_t flags = block.flags[j];
+      if (flags & kRangeOutside) continue;
+      const size_t t = first + j;
+      // block.cell[j]: the cell index of the box's low corner
+      if (flags & kRangeLine) {
+        // one cell or a line along one axis: every box cell, in order (BinTriangleCells)
+        const int spans_mask = flags & 7;
+        const uint32_t step = stride[spans_mask == 4 ? 2 : spans_mask >> 1];
+        uint32_t c = block.cell[j];
+        for (uint32_t k = 0; k < block.box[j]; ++k, c += step) emit(t, c);
+        continue;
+      }
+      if (flags & kRangeQuad) {
+        // 2 x 2 cells: those of the SIMD edge tests, axis i fastest (BinTriangleCells' order)
+        const int spans_mask = flags & 7;
+        const uint32_t si = stride[spans_mask == 6 ? 1 : 0];
+        const uint32_t sj = stride[spans_mask == 3 ? 1 : 2];
+        const uint32_t offset[4] = {0, si, sj, si + sj};
+        for (uint32_t m = s->quad_masks[next_quad++]; m != 0; m &= m - 1) {
+          emit(t, block.cell[j] + offset[std::countr_zero(m)]);
+        }
+        continue;
+      }
+      const int c0[3] = {block.c0[0][j], block.c0[1][j], block.c0[2][j]};
+      const int c1[3] = {block.c1[0][j], block.c1[1][j], block.c1[2][j]};
+      const bool span[3] = {(flags & 1) != 0, (flags & 2) != 0, (flags & 4) != 0};
+      const int spans = int(span[0]) + int(span[1]) + int(span[2]);
+      const float v[3][3] = {{tris.p[0][0][t], tris.p[0][1][t], tris.p[0][2][t]},
+                             {tris.p[1][0][t], tris.p[1][1][t], tris.p[1][2][t]},
+                             {tris.p[2][0][t], tris.p[2][1][t], tris.p[2][2][t]}};
+      BinTriangleCells(geo, v, c0, c1, span, spans, &s->scratch, [&](int x, int y, int z) {
+        emit(t, uint32_t(x + kRes * (y + kRes * z)));
+      });
+    }
+    if (!done_block()) return false;
+  }
+  return true;
 }
 
 }  // namespace rs

@@ -223,9 +223,9 @@ class Builder {
 
 
 // The cells of one top cell: an octree cut to at most `s` levels, whose node is split into its
-// 8 children (conservative binning of its list, kernels/grid_binning.h) while it holds more than
-// leaf_triangles triangles and has levels left; leaves become cells, painted into the top
-// cell's 8^s table entries (a leaf at level l covers 8^(s - l) of them). Empty space inside a
+// 8 children (conservative binning of its list: BinListed, kernels/grid_binning.h) while it
+// holds more than leaf_triangles triangles and has levels left; leaves become cells, painted
+// into the top cell's 8^s table entries (a leaf at level l covers 8^(s - l) of them). Empty space inside a
 // dense top cell is a few large leaves, not 8^s empty sub-cells.
 class Octree {
  public:
@@ -288,17 +288,14 @@ class Octree {
     std::vector<uint32_t>& list = lists_[level];
     size_t count[8] = {};
     pairs_.clear();
-    for (size_t k = 0; k < n; ++k) {
-      float v[3][3];
-      for (int vi = 0; vi < 3; ++vi) {
-        for (int a = 0; a < 3; ++a) v[vi][a] = tris_.p[vi][a][ids[k]];
-      }
-      BinTriangle(geo, v, &scratch_, [&](int x, int y, int z) {
-        const uint32_t c = uint32_t(x + 2 * (y + 2 * z));
-        pairs_.push_back((uint64_t(c) << 32) | ids[k]);
-        ++count[c];
-      });
-    }
+    GatherListed(tris_, ids, n, &node_tris_);
+    BinListed<2>(
+        node_tris_, geo, n, &bin_, [&](size_t most) { pairs_.reserve(pairs_.size() + most); },
+        [&](size_t t, uint32_t c) {  // c = x + 2 (y + 2 z)
+          pairs_.push_back((uint64_t(c) << 32) | ids[t]);
+          ++count[c];
+        },
+        [] { return true; });
     // A split of many triangles that leaves them all in one child and lists them at least twice
     // over separates nothing (copies of one triangle spanning a child boundary): the node stays
     // a leaf, so such input is binned once per top cell instead of once per level. (Triangles
@@ -331,7 +328,8 @@ class Octree {
   size_t refs_ = 0;
   std::vector<uint32_t> lists_[kIrregularMaxDepth + 1];  // the children's lists, per level
   std::vector<uint64_t> pairs_;
-  BinScratch scratch_;
+  TriangleSoA node_tris_;  // the node's triangles, gathered for BinListed
+  ListedBinScratch bin_;
 };
 
 }  // namespace

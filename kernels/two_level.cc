@@ -97,11 +97,8 @@ struct CellRefiner {
   // scratch, reused across cells
   std::vector<uint16_t> ref_sub;  // sub-cell of each reference of the current cell
   std::vector<uint32_t> ref_tri;
-  BinScratch scratch;
   TriangleSoA cell_tris;  // the current cell's triangles, for the SIMD cell ranges
-  RangeBlock block;
-  uint16_t quad_js[kRangeBlock];  // the block's 2 x 2-cell triangles and their cells
-  uint8_t quad_masks[kRangeBlock];
+  ListedBinScratch bin;
   uint32_t counts[kSubCells];
 
   CellRefiner(const Grid& g, const TriangleSoA& tris, double max_abs_bound, double min_cell_size,
@@ -143,89 +140,34 @@ struct CellRefiner {
     }
     FinishBinGeometry(rec.lo, rec.inv_cell_size, &geo);
     // bin the parent's list (ascending ids) into the sub-cells: the triangles gathered into
-    // cell_tris (none is degenerate: the grid lists none), their cell ranges a vector at a time
-    // (the arithmetic of TriangleCellRange), then the cells as BinTriangleCells emits them
+    // cell_tris (none is degenerate: the grid lists none), then BinListed
     const uint32_t* list = ids + begin[cell];
-    // (the gather overwrites [0, n): a grown array need not keep the previous cell's triangles)
-    for (auto& vertex : cell_tris.p) {
-      for (auto& axis : vertex) axis.ReserveForOverwrite(n);
-    }
-    if (cell_tris.size < n) {
-      cell_tris.degenerate.ReserveForOverwrite(n);
-      std::fill(cell_tris.degenerate.data(), cell_tris.degenerate.data() + n, uint8_t{0});
-    }
-    cell_tris.size = n;
-    SimdGatherListed(source, list, n, &cell_tris);  // one pass: each id read once
+    GatherListed(source, list, n, &cell_tris);
     std::fill(counts, counts + kSubCells, 0u);
     size_t num_sub_refs = 0;
-    for (size_t first = 0; first < n; first += kRangeBlock) {
-      const size_t count = std::min(kRangeBlock, n - first);
-      SimdTriangleCellRanges(cell_tris, geo, first, count, &block, /*bin_flags=*/true);
-      // at most the bounding-box cells are emitted: make room once per block; the 2 x 2-cell
-      // triangles are edge-tested here, a vector of triangles at a time (SimdQuadCellMasks)
-      const size_t most = block.box_sum;
-      size_t quads = 0;
-      for (size_t j = 0; j < count; ++j) {
-        if (block.flags[j] & kRangeQuad) quad_js[quads++] = uint16_t(j);
-      }
-      if (quads > 0) SimdQuadCellMasks(cell_tris, geo, first, block, quad_js, quads, quad_masks);
-      size_t next_quad = 0;
-      if (ref_sub.size() < num_sub_refs + most) {
-        ref_sub.resize(num_sub_refs + most);
-        ref_tri.resize(num_sub_refs + most);
-      }
-      uint16_t* sub_out = ref_sub.data();
-      uint32_t* tri_out = ref_tri.data();
-      static constexpr uint32_t kStride[3] = {1, kSubRes, kSubRes * kSubRes};
-      for (size_t j = 0; j < count; ++j) {
-        const int32_t flags = block.flags[j];
-        if (flags & kRangeOutside) continue;
-        const uint32_t id = list[first + j];
-        // block.cell[j] = x + kSubRes (y + kSubRes z) of the box's low corner
-        if (flags & kRangeLine) {
-          // one cell or a line along one axis: every box cell, in order (BinTriangleCells)
-          const int spans_mask = flags & 7;
-          const uint32_t stride = kStride[spans_mask == 4 ? 2 : spans_mask >> 1];
-          uint32_t sc = block.cell[j];
-          for (uint32_t k = 0; k < block.box[j]; ++k, sc += stride) {
-            sub_out[num_sub_refs] = uint16_t(sc);
-            tri_out[num_sub_refs++] = id;
-            ++counts[sc];
+    uint16_t* sub_out = nullptr;  // the next reference's sub-cell and triangle
+    uint32_t* tri_out = nullptr;
+    uint32_t* const counts_out = counts;
+    const bool fits = BinListed<kSubRes>(
+        cell_tris, geo, n, &bin,
+        [&](size_t most) {  // at most the bounding-box cells: room once per block
+          if (ref_sub.size() < num_sub_refs + most) {
+            ref_sub.resize(num_sub_refs + most);
+            ref_tri.resize(num_sub_refs + most);
           }
-          continue;
-        }
-        if (flags & kRangeQuad) {
-          // 2 x 2 cells: those of the SIMD edge tests, axis i fastest (BinTriangleCells' order)
-          const int spans_mask = flags & 7;
-          const uint32_t si = kStride[spans_mask == 6 ? 1 : 0];
-          const uint32_t sj = kStride[spans_mask == 3 ? 1 : 2];
-          const uint32_t offset[4] = {0, si, sj, si + sj};
-          for (uint32_t m = quad_masks[next_quad++]; m != 0; m &= m - 1) {
-            const uint32_t sc = block.cell[j] + offset[std::countr_zero(m)];
-            sub_out[num_sub_refs] = uint16_t(sc);
-            tri_out[num_sub_refs++] = id;
-            ++counts[sc];
-          }
-          continue;
-        }
-        const int c0[3] = {block.c0[0][j], block.c0[1][j], block.c0[2][j]};
-        const int c1[3] = {block.c1[0][j], block.c1[1][j], block.c1[2][j]};
-        const bool span[3] = {(flags & 1) != 0, (flags & 2) != 0, (flags & 4) != 0};
-        const int spans = int(span[0]) + int(span[1]) + int(span[2]);
-        const size_t t = first + j;
-        const float v[3][3] = {
-            {cell_tris.p[0][0][t], cell_tris.p[0][1][t], cell_tris.p[0][2][t]},
-            {cell_tris.p[1][0][t], cell_tris.p[1][1][t], cell_tris.p[1][2][t]},
-            {cell_tris.p[2][0][t], cell_tris.p[2][1][t], cell_tris.p[2][2][t]}};
-        BinTriangleCells(geo, v, c0, c1, span, spans, &scratch, [&](int x, int y, int z) {
-          const int sc = x + kSubRes * (y + kSubRes * z);
-          sub_out[num_sub_refs] = uint16_t(sc);
-          tri_out[num_sub_refs++] = id;
-          ++counts[sc];
+          sub_out = ref_sub.data() + num_sub_refs;
+          tri_out = ref_tri.data() + num_sub_refs;
+        },
+        [&](size_t t, uint32_t sc) {
+          *sub_out++ = uint16_t(sc);
+          *tri_out++ = list[t];
+          ++counts_out[sc];
+        },
+        [&] {  // over the budget: stays a leaf
+          num_sub_refs = size_t(sub_out - ref_sub.data());
+          return num_sub_refs <= room;
         });
-      }
-      if (num_sub_refs > room) return false;  // over the budget: stays a leaf
-    }
+    if (!fits) return false;
     size_t occupied = 0;
     for (const uint32_t k : counts) occupied += k != 0;
     if (by_cost && !(SubGridCost(occupied, num_sub_refs, model) < LeafCost(n, model))) {
