@@ -611,6 +611,9 @@ class QueueImpl final : public HostRenderer::Impl {
       // LOCAL: nobody else pushes into a thread's queue, so a tile's rays (and its pixels' adds)
       // stay on the thread that took the tile.
       workers_.back()->engine.SetSharedPixels(kShared);
+      // LOCK, LFREE: every thread adds to every tile's pixels; each sums its contributions per
+      // pixel and adds them a table at a time under pixel_lock_ (Work flushes the rest).
+      workers_.back()->engine.SetCombinePixels(kShared ? &pixel_lock_ : nullptr);
     }
     feeds_ = std::make_unique<Feed[]>(static_cast<size_t>(options.threads));
     loop_ = std::make_unique<FrameLoop>(options.threads, [this](int w) { Work(w); });
@@ -759,6 +762,7 @@ class QueueImpl final : public HostRenderer::Impl {
       me.own = w;
       me.no_tiles = false;
       me.engine.Reserve(ctx_);
+      me.engine.DiscardContributions();  // an abandoned frame's, if any
     }
     // PBT's cost map: each thread's engine charges its rays to its own record (the pixels'
     // global indices; each primary traced once, by whoever popped it).
@@ -1037,9 +1041,15 @@ class QueueImpl final : public HostRenderer::Impl {
     me.stats.schedule_seconds += Seconds(t0, t1) + Seconds(t2, Clock::now());
   }
 
-  // Listing 2, lines 4-10, on thread w, with batches and tiles feeding the queue.
+  // Listing 2 on thread w (Poll), then the thread's combined contributions into the image.
   void Work(int w) {
     Worker& me = *workers_[static_cast<size_t>(w)];
+    Poll(me, w);
+    if constexpr (kShared) me.engine.FlushContributions(*fb_);
+  }
+
+  // Listing 2, lines 4-10, on thread w, with batches and tiles feeding the queue.
+  void Poll(Worker& me, int w) {
     const size_t batch_tasks = BatchTasks();
     const size_t shadow_tasks = ShadowBatchTasks();
     const bool pbt = frame_ != nullptr;
@@ -1122,6 +1132,7 @@ class QueueImpl final : public HostRenderer::Impl {
     outstanding_.Reset(0);
   }
 
+  std::mutex pixel_lock_;  // LOCK, LFREE: the engines' framebuffer flushes (SetCombinePixels)
   Q queue_;
   TaskArena arena_;
   std::vector<std::unique_ptr<Worker>> workers_;

@@ -241,6 +241,8 @@ void RayEngine::AddContributions(Framebuffer& fb, const uint32_t* pixel, const f
   if (local_) {
     AddFixedContributions<false>(local_sums_.data(), pixel, r, g, b, skip, n, &local_nan_,
                                  &local_clamped_);
+  } else if (shared_pixels_ && combine_lock_ != nullptr) {
+    combined_.Add(fb, *combine_lock_, pixel, r, g, b, skip, n);
   } else if (shared_pixels_) {
     fb.Add(pixel, r, g, b, skip, n);
   } else {

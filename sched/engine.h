@@ -7,6 +7,7 @@
 
 #include <cstddef>
 #include <cstdint>
+#include <mutex>
 #include <vector>
 
 #include "sched/cost_map.h"
@@ -84,6 +85,22 @@ class RayEngine {
   // sums are the same either way.
   void SetSharedPixels(bool shared) { shared_pixels_ = shared; }
 
+  // Shared pixels, non-null `lock`: TraceGeneration sums its contributions per pixel in the
+  // engine's PixelSumTable (framebuffer.h) and adds them to the framebuffer a table at a time
+  // holding *lock, which every engine adding to the frame's framebuffer must share (instead of
+  // an atomic add per contribution channel). The caller must call FlushContributions(fb) once
+  // its thread is done with the frame (before the frame's image is read), and
+  // DiscardContributions() before the next frame if a frame was abandoned. Off (nullptr) by
+  // default; *lock must outlive the engine's frames.
+  void SetCombinePixels(std::mutex* lock) {
+    combine_lock_ = lock;
+    if (lock != nullptr) combined_.Reserve();
+  }
+  void FlushContributions(Framebuffer& fb) {
+    if (combine_lock_ != nullptr) combined_.Flush(fb, *combine_lock_);
+  }
+  void DiscardContributions() { combined_.Clear(); }
+
  private:
   // Intersects rays (no shadow rays), shades them in sub-chunks; each sub-chunk's bounce rays
   // are appended to `bounce`, its shadow rays light by light and traced in one call (or, when
@@ -94,7 +111,8 @@ class RayEngine {
                FrameStats& stats);
   void Drain(const FrameContext& ctx, size_t primaries, Framebuffer& fb, FrameStats& stats);
   // Contributions i < n (skip[i] != 0 skipped; skip may be null): RenderTile's batch sums
-  // (local_), else the framebuffer, atomic unless SetSharedPixels(false).
+  // (local_), else combined_ (SetCombinePixels), else the framebuffer, atomic unless
+  // SetSharedPixels(false).
   void AddContributions(Framebuffer& fb, const uint32_t* pixel, const float* r, const float* g,
                         const float* b, const int32_t* skip, size_t n);
   // Charges one trace call of `rays` to block_work_ (SetBlockWork): RenderTile its counter
@@ -126,6 +144,8 @@ class RayEngine {
   // RenderTile: rays carry their primary's index in the batch, contributions are summed here.
   bool local_ = false;
   bool shared_pixels_ = true;  // TraceGeneration: atomic framebuffer adds
+  std::mutex* combine_lock_ = nullptr;  // ... combined per pixel in combined_ first
+  PixelSumTable combined_;
   std::vector<int64_t> local_sums_;     // 3 per primary ray of the batch
   std::vector<uint32_t> batch_pixels_;  // the batch's pixels
   uint64_t local_nan_ = 0, local_clamped_ = 0;

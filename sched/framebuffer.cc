@@ -75,4 +75,75 @@ std::vector<float> Framebuffer::ToRgb() const {
   return rgb;
 }
 
+void PixelSumTable::Reserve() {
+  if (!keys_.empty()) return;
+  keys_.assign(kSlots, kEmpty);
+  sums_.assign(3 * kSlots, 0);
+  used_.reserve(kSlots / 2);
+}
+
+void PixelSumTable::Add(Framebuffer& fb, std::mutex& lock, const uint32_t* pixel, const float* r,
+                        const float* g, const float* b, const int32_t* skip, size_t n) {
+  Reserve();
+  constexpr size_t kBlock = 256;
+  constexpr uint32_t kMask = kSlots - 1;
+  alignas(64) int64_t f[3][kBlock];
+  for (size_t i0 = 0; i0 < n; i0 += kBlock) {
+    const size_t m = std::min(kBlock, n - i0);
+    ContributionsToFixed(r + i0, g + i0, b + i0, skip != nullptr ? skip + i0 : nullptr, m, f[0],
+                         f[1], f[2], &nan_, &clamped_);
+    for (size_t k = 0; k < m; ++k) {
+      if ((f[0][k] | f[1][k] | f[2][k]) == 0) continue;  // skipped, dropped or black
+      const uint32_t p = pixel[i0 + k];
+      uint32_t slot = (p * 0x9E3779B1u) >> 20;  // 12 bits: kSlots
+      while (keys_[slot] != p && keys_[slot] != kEmpty) slot = (slot + 1) & kMask;
+      int64_t* sum = sums_.data() + 3 * size_t(slot);
+      if (keys_[slot] == kEmpty) {
+        keys_[slot] = p;
+        used_.push_back(slot);
+        sum[0] = f[0][k];
+        sum[1] = f[1][k];
+        sum[2] = f[2][k];
+        // half full: flush if the lock is free, else keep adding (probes stay short up to
+        // 7/8 full, where the flush waits for the lock)
+        if (used_.size() >= kSlots / 2 && (used_.size() >= kSlots / 8 * 7 || lock.try_lock())) {
+          if (used_.size() >= kSlots / 8 * 7) lock.lock();
+          FlushLocked(fb);
+          lock.unlock();
+        }
+      } else {
+        sum[0] += f[0][k];
+        sum[1] += f[1][k];
+        sum[2] += f[2][k];
+      }
+    }
+  }
+}
+
+void PixelSumTable::Flush(Framebuffer& fb, std::mutex& lock) {
+  const std::lock_guard<std::mutex> hold(lock);
+  FlushLocked(fb);
+}
+
+void PixelSumTable::FlushLocked(Framebuffer& fb) {
+  int64_t* const sums = fb.sums();
+  for (const uint32_t slot : used_) {
+    int64_t* p = sums + 3 * size_t(keys_[slot]);
+    const int64_t* f = sums_.data() + 3 * size_t(slot);
+    p[0] += f[0];
+    p[1] += f[1];
+    p[2] += f[2];
+    keys_[slot] = kEmpty;
+  }
+  used_.clear();
+  fb.AddCounters(nan_, clamped_);
+  nan_ = clamped_ = 0;
+}
+
+void PixelSumTable::Clear() {
+  for (const uint32_t slot : used_) keys_[slot] = kEmpty;
+  used_.clear();
+  nan_ = clamped_ = 0;
+}
+
 }  // namespace rs

@@ -9,6 +9,7 @@
 #include <cmath>
 #include <cstddef>
 #include <cstdint>
+#include <mutex>
 #include <vector>
 
 #include "streams/ray_stream.h"
@@ -231,6 +232,40 @@ class Framebuffer {
   std::vector<float> rgb_;     // kResolved: 3 per pixel
   alignas(std::atomic_ref<uint64_t>::required_alignment) uint64_t dropped_nan_ = 0;
   alignas(std::atomic_ref<uint64_t>::required_alignment) uint64_t clamped_ = 0;
+};
+
+// One thread's contributions to pixels other threads also add to (a shared queue's rays of one
+// pixel are traced by whichever thread pops them), summed per pixel in a small table and added
+// to the framebuffer a table at a time with plain adds under a mutex the threads share: about
+// 2048 pixels per lock instead of an atomic read-modify-write per contribution channel (a
+// pixel's contributions rarely meet in the table: it is the atomics that cost). A half-full
+// table is flushed if the mutex is free, else it keeps filling; it waits for the mutex only
+// when 7/8 full, and in Flush. The same
+// sums and counters as Framebuffer::Add (integer addition is associative; NaN drops and clamps
+// are counted per contribution). 4096 slots (128 KiB), allocated by Reserve (or the first
+// Add); nothing after. Not thread-safe: one per thread; every thread adding to the framebuffer during the
+// frame must go through a table with the same mutex.
+class PixelSumTable {
+ public:
+  static constexpr size_t kSlots = 4096;  // a power of two
+  void Reserve();  // allocates the table (no-op once allocated)
+  // Framebuffer::Add(pixel, r, g, b, skip, n), combined: what is not flushed yet stays here.
+  void Add(Framebuffer& fb, std::mutex& lock, const uint32_t* pixel, const float* r,
+           const float* g, const float* b, const int32_t* skip, size_t n);
+  // Adds every pixel sum and counter held to fb (holding `lock`) and empties the table. The
+  // frame's image needs every thread's Flush (before the closing barrier).
+  void Flush(Framebuffer& fb, std::mutex& lock);
+  // Empties the table without adding (a frame that was abandoned).
+  void Clear();
+  size_t size() const { return used_.size(); }
+
+ private:
+  void FlushLocked(Framebuffer& fb);  // Flush's adds; the caller holds the lock
+  static constexpr uint32_t kEmpty = 0xffffffffu;
+  std::vector<uint32_t> keys_;  // per slot: its pixel, or kEmpty
+  std::vector<int64_t> sums_;   // per slot: 3 fixed-point channels
+  std::vector<uint32_t> used_;  // the slots in use (capacity kSlots / 2)
+  uint64_t nan_ = 0, clamped_ = 0;
 };
 
 inline bool ContributionToFixed(float r, float g, float b, int64_t out[3], bool* clamped) {

@@ -5,9 +5,11 @@
 #include <doctest/doctest.h>
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <cstring>
 #include <limits>
+#include <mutex>
 #include <random>
 #include <thread>
 #include <vector>
@@ -303,6 +305,125 @@ TEST_CASE("Add with a skip mask == Add of the unskipped contributions") {
   CHECK(all.clamped() == one.clamped());
   CHECK(one.dropped_nan() > 0);
   CHECK(one.clamped() > 0);
+}
+
+// Contributions with NaN, negative, infinite, huge and zero channels and skip flags, as arrays.
+struct ContributionArrays {
+  std::vector<uint32_t> pixel;
+  std::vector<float> r, g, b;
+  std::vector<int32_t> skip;
+};
+ContributionArrays HostileContributions(size_t n, uint32_t pixels, uint32_t seed) {
+  std::mt19937 rng(seed);
+  std::uniform_real_distribution<float> unit(0.0f, 2.0f);
+  ContributionArrays c;
+  for (size_t i = 0; i < n; ++i) {
+    c.pixel.push_back(static_cast<uint32_t>(rng() % pixels));
+    float r = unit(rng), g = unit(rng), b = unit(rng);
+    if (i % 37 == 0) g = std::numeric_limits<float>::quiet_NaN();
+    if (i % 41 == 0) r = -1.0f;
+    if (i % 43 == 0) b = std::numeric_limits<float>::infinity();
+    if (i % 47 == 0) r = 1e30f;
+    if (i % 11 == 0) r = g = b = 0.0f;  // black: nothing to add
+    c.r.push_back(r);
+    c.g.push_back(g);
+    c.b.push_back(b);
+    c.skip.push_back(rng() % 5 == 0 ? 1 : 0);
+  }
+  return c;
+}
+
+TEST_CASE("PixelSumTable: the sums and counters of Framebuffer::Add, across flushes") {
+  // 30,000 pixels: far more than a table holds, so it flushes when half full many times; a
+  // small image: many contributions per pixel meet in the table.
+  for (const int w : {200, 7}) {
+    const int h = w == 200 ? 150 : 3;
+    INFO("image ", w, "x", h);
+    const uint32_t pixels = uint32_t(w * h);
+    const ContributionArrays c = HostileContributions(100000, pixels, 21);
+    Framebuffer direct(w, h), combined(w, h);
+    std::mutex lock;
+    PixelSumTable table;
+    // in calls of varying size (the engine's calls), some over the 256-contribution block
+    for (size_t i = 0, k = 1; i < c.pixel.size(); i += k, k = k * 7 % 601 + 1) {
+      const size_t n = std::min(k, c.pixel.size() - i);
+      direct.Add(c.pixel.data() + i, c.r.data() + i, c.g.data() + i, c.b.data() + i,
+                 c.skip.data() + i, n);
+      table.Add(combined, lock, c.pixel.data() + i, c.r.data() + i, c.g.data() + i,
+                c.b.data() + i, c.skip.data() + i, n);
+      CHECK(table.size() < PixelSumTable::kSlots / 2);  // the lock is free: flushed at half
+    }
+    table.Flush(combined, lock);
+    CHECK(table.size() == 0);
+    CHECK(std::memcmp(direct.sums(), combined.sums(), size_t(pixels) * 3 * sizeof(int64_t)) == 0);
+    CHECK(combined.dropped_nan() == direct.dropped_nan());
+    CHECK(combined.clamped() == direct.clamped());
+    CHECK(direct.dropped_nan() > 0);
+    CHECK(direct.clamped() > 0);
+    // Clear drops what is held: nothing more arrives
+    table.Add(combined, lock, c.pixel.data(), c.r.data(), c.g.data(), c.b.data(), nullptr, 100);
+    table.Clear();
+    table.Flush(combined, lock);
+    CHECK(std::memcmp(direct.sums(), combined.sums(), size_t(pixels) * 3 * sizeof(int64_t)) == 0);
+    CHECK(combined.dropped_nan() == direct.dropped_nan());
+  }
+}
+
+TEST_CASE("PixelSumTable: a busy lock delays the flush to 7/8 full, same sums") {
+  const int w = 100, h = 100;
+  const ContributionArrays c = HostileContributions(20000, uint32_t(w * h), 9);
+  Framebuffer direct(w, h), combined(w, h);
+  direct.Add(c.pixel.data(), c.r.data(), c.g.data(), c.b.data(), c.skip.data(), c.pixel.size());
+  std::mutex lock;
+  PixelSumTable table;
+  size_t most = 0;
+  // another thread holds the lock while the table fills
+  std::atomic<bool> held{false}, release{false};
+  std::thread holder([&] {
+    const std::lock_guard<std::mutex> hold(lock);
+    held.store(true);
+    while (!release.load()) std::this_thread::yield();
+  });
+  while (!held.load()) std::this_thread::yield();
+  size_t i = 0;
+  for (; i < c.pixel.size() && table.size() + 1 < PixelSumTable::kSlots / 8 * 7; ++i) {
+    table.Add(combined, lock, &c.pixel[i], &c.r[i], &c.g[i], &c.b[i], &c.skip[i], 1);
+    most = std::max(most, table.size());
+  }
+  CHECK(most > PixelSumTable::kSlots / 2);  // kept filling past half
+  release.store(true);
+  holder.join();
+  table.Add(combined, lock, c.pixel.data() + i, c.r.data() + i, c.g.data() + i, c.b.data() + i,
+            c.skip.data() + i, c.pixel.size() - i);
+  table.Flush(combined, lock);
+  CHECK(std::memcmp(direct.sums(), combined.sums(), size_t(w * h) * 3 * sizeof(int64_t)) == 0);
+  CHECK(combined.dropped_nan() == direct.dropped_nan());
+  CHECK(combined.clamped() == direct.clamped());
+}
+
+TEST_CASE("PixelSumTable: 4 threads, one table each and one lock, give the serial bits") {
+  const int w = 64, h = 48;
+  const uint32_t pixels = uint32_t(w * h);
+  const ContributionArrays c = HostileContributions(80000, pixels, 5);
+  Framebuffer serial(w, h), shared(w, h);
+  serial.Add(c.pixel.data(), c.r.data(), c.g.data(), c.b.data(), c.skip.data(), c.pixel.size());
+  std::mutex lock;
+  std::vector<std::thread> threads;
+  const size_t part = c.pixel.size() / 4;
+  for (size_t t = 0; t < 4; ++t) {
+    threads.emplace_back([&, t] {
+      PixelSumTable table;
+      for (size_t i = t * part; i < (t + 1) * part; i += 100) {
+        table.Add(shared, lock, c.pixel.data() + i, c.r.data() + i, c.g.data() + i,
+                  c.b.data() + i, c.skip.data() + i, std::min<size_t>(100, (t + 1) * part - i));
+      }
+      table.Flush(shared, lock);
+    });
+  }
+  for (auto& t : threads) t.join();
+  CHECK(std::memcmp(serial.sums(), shared.sums(), size_t(pixels) * 3 * sizeof(int64_t)) == 0);
+  CHECK(shared.dropped_nan() == serial.dropped_nan());
+  CHECK(shared.clamped() == serial.clamped());
 }
 
 TEST_CASE("size checks and moves") {
