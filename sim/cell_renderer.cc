@@ -50,6 +50,7 @@ CellRenderer::~CellRenderer() = default;
 
 CellFrameStats CellRenderer::Render(const FrameContext& ctx, Framebuffer& fb) {
   const int w = ctx.options.width, h = ctx.options.height;
+  measure_ = TilePlanMeasure{};
   if (config_.pbt_tiles_per_spe == 0) {
     // Regular tiles: the SPEs compute a tile's rectangle from its counter value.
     return RenderTiles(ctx, fb, GridTiles(w, h, config_.tile_width, config_.tile_height), false);
@@ -66,7 +67,6 @@ CellFrameStats CellRenderer::Render(const FrameContext& ctx, Framebuffer& fb) {
     plan_.reset();
     plan_ = std::make_unique<TilePlan>(w, h, p);
   }
-  measure_ = TilePlanMeasure{};
   const TilePlanFrame& frame = plan_->Begin();
   BlockWork* record = nullptr;
   if (plan_->uses_cost_map()) {
@@ -128,6 +128,7 @@ CellFrameStats CellRenderer::Render(const FrameContext& ctx, Framebuffer& fb) {
 
 CellFrameStats CellRenderer::Render(const FrameContext& ctx, Framebuffer& fb,
                                     std::span<const Tile> tiles) {
+  measure_ = TilePlanMeasure{};
   return RenderTiles(ctx, fb, tiles, true);
 }
 

@@ -861,6 +861,28 @@ TEST_CASE("PBT cost map: the SPEs' cycles per block, hit distances, cameras") {
   const std::vector<Frame> still = run(2, PbtAssign::kCounter, 4, false);
   CHECK(still[0].work == moved[0].work);
   CHECK(still[1].predicted != moved[1].predicted);
+  // No record without the cost map: regular tiles, the paper's predictor, static.
+  for (const int k : {0, 2}) {
+    for (const PbtPredict predict : {PbtPredict::kPaper, PbtPredict::kCostMap}) {
+      for (const PbtAssign assign : {PbtAssign::kCounter, PbtAssign::kStatic}) {
+        SimConfig c;
+        c.num_spes = 2;
+        c.pbt_tiles_per_spe = k;
+        CellPlanOptions plan;
+        plan.predict = predict;
+        plan.assign = assign;
+        CellRenderer r(c, plan);
+        Framebuffer fb(w, h);
+        r.Render(context(0, true), fb);
+        const bool on = k > 0 && predict == PbtPredict::kCostMap && assign != PbtAssign::kStatic;
+        INFO("k ", k, " predict ", std::string(PbtPredictName(predict)), " assign ",
+             std::string(PbtAssignName(assign)));
+        CHECK((r.cost_map_measure().blocks != nullptr) == on);
+        CHECK(r.cost_map_measure().pixel_depth.empty() == !on);
+        CHECK(DifferingPixels(serial[0], fb) == 0);
+      }
+    }
+  }
 }
 
 }  // namespace
