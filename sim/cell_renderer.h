@@ -86,7 +86,10 @@ struct CellPlanOptions {
   // gets the SPEs' cycles per block: each pipeline iteration's cycles charged to its rays'
   // pixels in the shares of CellTileRecord::cycles (FrameOutputs::block_work), and the
   // primaries' hit distances with the frame's and the next frame's camera
-  // (FrameContext::next_camera), so it is reprojected like the host backends' maps.
+  // (FrameContext::next_camera), so it is reprojected like the host backends' maps. The record
+  // is the same in every run of a configuration; like the tile cycles it depends on the SPE
+  // count (DMA waits at the shared MIC, which rays share an iteration). The hit distances do
+  // not: they are the host backends' bit for bit.
   PbtPredict predict = PbtPredict::kCostMap;
   int cost_block = 4;
 };
