@@ -83,8 +83,10 @@ struct BackendOptions {
   // every trace call's counts, cell steps and triangle tests included; lock / lfree / local:
   // each ray's own count, which does not depend on how the rays were grouped into calls,
   // RayEngine::SetBlockWork) and store the primary hit distances, and the map is moved to the
-  // next camera (FrameContext::next_camera); the other backends give the plan only the tile
-  // costs (spread evenly over each tile). The image does not change.
+  // next camera (FrameContext::next_camera); so do the cell backend (each pipeline iteration's
+  // simulated cycles charged to its rays' blocks, sim/spe.h FrameOutputs) and the mpi backend
+  // (the workers' engines record as the tiles backend's and return each tile's blocks and hit
+  // distances with its result). The image does not change.
   PbtPredict pbt_predict = PbtPredict::kCostMap;
   int pbt_cost_block = 4;
   // Time queue operations (LOCK/LFREE/LOCAL) and tile-counter accesses (tiles), the paper's

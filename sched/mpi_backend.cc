@@ -9,7 +9,12 @@
 //                                   and tile in one word, the tile's wall and CPU time, NaN /
 //                                   clamped counts, its FrameStats: tasks, rays by kind, cell
 //                                   steps, triangle tests, shading calls, generate / trace /
-//                                   shade seconds) + the tile's fixed-point sums
+//                                   shade seconds) + the tile's fixed-point sums; with PBT's
+//                                   cost map (UsesCostMap of the plan's options, which every
+//                                   rank derives from its BackendConfig) then the cost map's
+//                                   record of the tile (TileRecordWords): the block work of the
+//                                   cost blocks the tile overlaps (row-major) and the tile's
+//                                   primary hit distances (row-major floats, two per word)
 //   master -> worker  kTagStop      int32[1] (after the last frame)
 //   worker -> master  kTagBye       int32[1] (then MPI_Finalize)
 // Every wait of the master is bounded by timeout_seconds: it never blocks in MPI, it posts
@@ -36,6 +41,7 @@
 #include <cstring>
 #include <deque>
 #include <exception>
+#include <limits>
 #include <memory>
 #include <string>
 #include <thread>
@@ -103,6 +109,42 @@ FrameStats UnpackTileStats(const int64_t* header) {
 }
 
 double Seconds(Clock::duration d) { return std::chrono::duration<double>(d).count(); }
+
+// The master's tile plan options (a worker derives from them whether and in which blocks it
+// records the cost map: every rank has the same BackendConfig).
+TilePlanOptions PlanOptions(const BackendConfig& c, int workers) {
+  TilePlanOptions p;
+  p.tile_width = c.host.tile_width;
+  p.tile_height = c.host.tile_height;
+  p.pbt_tiles_per_worker = c.host.pbt_tiles_per_worker;
+  p.workers = workers;
+  p.assign = c.host.assign;
+  p.seed = c.host.seed;
+  p.steal = c.host.pbt_tiles_per_worker > 0 && c.host.assign != PbtAssign::kCounter;  // lists
+  p.cost = c.host.pbt_cost;
+  p.predict = c.host.pbt_predict;
+  p.cost_block = c.host.pbt_cost_block;
+  return p;
+}
+
+// The cost-map blocks a tile overlaps: [bx0, bx1) x [by0, by1) of blocks of `block` pixels.
+struct BlockRect {
+  int bx0, by0, bx1, by1;
+  size_t NumBlocks() const {
+    return static_cast<size_t>(bx1 - bx0) * static_cast<size_t>(by1 - by0);
+  }
+};
+BlockRect BlocksOf(const Tile& tile, int block) {
+  return BlockRect{tile.x0 / block, tile.y0 / block, (tile.x1 - 1) / block + 1,
+                   (tile.y1 - 1) / block + 1};
+}
+
+// Words of a result after the sums for the cost map's record of `tile` (block 0: none): a word
+// per overlapped block, then the tile's hit distances, two floats a word.
+size_t TileRecordWords(const Tile& tile, int block) {
+  if (block == 0) return 0;
+  return BlocksOf(tile, block).NumBlocks() + (static_cast<size_t>(tile.NumPixels()) + 1) / 2;
+}
 
 Clock::time_point Deadline(double seconds) {
   return Clock::now() +
@@ -231,6 +273,53 @@ class TileRenderer {
  public:
   explicit TileRenderer(int threads) : renderers_(static_cast<size_t>(threads)) {}
 
+  // PBT's cost map (sched/cost_map.h): every render thread's engine charges its own BlockWork
+  // of a width x height image in block x block blocks, and stores the primaries' hit distances
+  // into one array (one writer per pixel). Sized once per layout; block 0: no record.
+  void SetRecord(int width, int height, int block) {
+    if (block == 0) {
+      for (SerialRenderer& r : renderers_) r.engine().SetBlockWork(nullptr);
+      return;
+    }
+    if (sinks_.size() == renderers_.size() && sinks_[0].Matches(width, height, block)) return;
+    sinks_.assign(renderers_.size(), BlockWork{});
+    depth_.assign(static_cast<size_t>(width) * static_cast<size_t>(height),
+                  std::numeric_limits<float>::quiet_NaN());
+    for (size_t t = 0; t < renderers_.size(); ++t) {
+      sinks_[t].Resize(width, height, block);
+      sinks_[t].pixel_depth = depth_.data();
+      renderers_[t].engine().SetBlockWork(&sinks_[t]);
+    }
+  }
+
+  // After Render of `tile` with a record: its blocks' work summed over the threads (and zeroed
+  // for the next tile; a tile's rays charge only the blocks of its own pixels) and its pixels'
+  // hit distances, into dst (TileRecordWords(tile, block) words).
+  void TakeRecord(const Tile& tile, int64_t* dst) {
+    const BlockWork& first = sinks_[0];
+    const BlockRect r = BlocksOf(tile, first.block);
+    for (int by = r.by0; by < r.by1; ++by) {
+      for (int bx = r.bx0; bx < r.bx1; ++bx) {
+        const size_t b =
+            static_cast<size_t>(by) * static_cast<size_t>(first.blocks_x) + static_cast<size_t>(bx);
+        int64_t sum = 0;
+        for (BlockWork& s : sinks_) {
+          sum += s.work[b];
+          s.work[b] = 0;
+        }
+        *dst++ = sum;
+      }
+    }
+    const size_t w = static_cast<size_t>(first.width), tw = static_cast<size_t>(tile.Width());
+    char* bytes = reinterpret_cast<char*>(dst);
+    for (int y = tile.y0; y < tile.y1; ++y) {
+      std::memcpy(bytes, depth_.data() + static_cast<size_t>(y) * w + static_cast<size_t>(tile.x0),
+                  tw * sizeof(float));
+      bytes += tw * sizeof(float);
+    }
+    if (tile.NumPixels() % 2 != 0) std::memset(bytes, 0, sizeof(float));  // the last word's pad
+  }
+
   // Adds the tile's contributions to fb and its counters to stats; returns the CPU seconds of
   // all its render threads.
   double Render(const FrameContext& ctx, const Tile& tile, Framebuffer& fb, FrameStats& stats) {
@@ -271,6 +360,8 @@ class TileRenderer {
 
  private:
   std::vector<SerialRenderer> renderers_;  // one per render thread
+  std::vector<BlockWork> sinks_;           // cost map: one per render thread
+  std::vector<float> depth_;               // cost map: per pixel, the primary hit distance
 };
 
 // A worker rank: serves the master's tiles one frame at a time. A frame ends when the next
@@ -285,11 +376,17 @@ class Worker {
         hang_rank_(EnvRank("RAYSTREAM_MPI_TEST_HANG_RANK")),
         hang_end_rank_(EnvRank("RAYSTREAM_MPI_TEST_HANG_END_RANK")),
         stall_rank_(EnvRank("RAYSTREAM_MPI_TEST_STALL_RANK")),
-        renderer_(c.host.threads) {}
+        renderer_(c.host.threads) {
+    int ranks = 0;
+    MPI_Comm_size(MPI_COMM_WORLD, &ranks);
+    const TilePlanOptions plan = PlanOptions(c, ranks - 1);
+    record_block_ = UsesCostMap(plan) ? plan.cost_block : 0;
+  }
 
   void ServeFrame(const FrameContext& ctx, int frame) {
     const int w = ctx.options.width, h = ctx.options.height;
     if (!fb_ || fb_->width() != w || fb_->height() != h) fb_ = std::make_unique<Framebuffer>(w, h);
+    renderer_.SetRecord(w, h, record_block_);
     for (;;) {
       Receive();
       if (tag_ == kTagStop) return;  // for Finish
@@ -345,7 +442,8 @@ class Worker {
     const double cpu = renderer_.Render(ctx, tile, fb, stats);
     const double seconds = Seconds(Clock::now() - t0);
     const size_t tw = static_cast<size_t>(tile.Width());
-    result_.resize(kHeader + 3 * tile.NumPixels());
+    const size_t sums_words = kHeader + 3 * static_cast<size_t>(tile.NumPixels());
+    result_.resize(sums_words + TileRecordWords(tile, record_block_));
     result_[kResFrameTile] = (int64_t{frame} << 32) | static_cast<int64_t>(index);
     result_[kResSeconds] = std::bit_cast<int64_t>(seconds);
     result_[kResCpuSeconds] = std::bit_cast<int64_t>(cpu);
@@ -357,6 +455,7 @@ class Worker {
       std::memcpy(dst, sums + 3 * (y * w + tile.x0), 3 * tw * sizeof(int64_t));
       dst += 3 * tw;
     }
+    if (record_block_ > 0) renderer_.TakeRecord(tile, result_.data() + sums_words);
     if (tiles_done_ == 0 && rank_ == stall_rank_) {
       // Test hook: start sending the first result, then never make MPI progress again. The
       // result is larger than the eager limit, so the master matches it but cannot receive it.
@@ -380,6 +479,7 @@ class Worker {
   int rank_;
   int kill_rank_, hang_rank_, hang_end_rank_, stall_rank_;
   TileRenderer renderer_;  // one tile's whole ray tree on this rank
+  int record_block_ = 0;   // PBT's cost map: its block size (0: no record)
   std::unique_ptr<Framebuffer> fb_;
   std::vector<int64_t> result_;
   uint64_t tiles_done_ = 0;
@@ -402,23 +502,20 @@ class Master {
  public:
   Master(const BackendConfig& c, int ranks)
       : c_(c), workers_(ranks - 1), fb_(c.render.width, c.render.height) {
-    TilePlanOptions p;
-    p.tile_width = c.host.tile_width;
-    p.tile_height = c.host.tile_height;
-    p.pbt_tiles_per_worker = c.host.pbt_tiles_per_worker;
-    p.workers = workers_;
-    p.assign = c.host.assign;
-    p.seed = c.host.seed;
-    p.steal = c.host.pbt_tiles_per_worker > 0 && c.host.assign != PbtAssign::kCounter;  // lists
-    p.cost = c.host.pbt_cost;
-    p.predict = c.host.pbt_predict;
-    p.cost_block = c.host.pbt_cost_block;
-    plan_ = std::make_unique<TilePlan>(c.render.width, c.render.height, p);
+    plan_ = std::make_unique<TilePlan>(c.render.width, c.render.height, PlanOptions(c, workers_));
+    if (plan_->uses_cost_map()) {
+      record_block_ = plan_->options().cost_block;
+      record_.Resize(c.render.width, c.render.height, record_block_);
+      depth_.assign(static_cast<size_t>(c.render.width) * static_cast<size_t>(c.render.height),
+                    std::numeric_limits<float>::quiet_NaN());
+    }
   }
 
   const Framebuffer& image() const { return fb_; }
   const FrameReport& report() const { return report_; }
   bool uses_lists() const { return plan_->options().steal; }
+  // What the last frame gave the plan's cost map (empty without one).
+  const TilePlanMeasure& cost_map_measure() const { return measure_; }
 
   // After the last frame: stop every worker and wait (bounded) for each one's goodbye, so that
   // MPI_Finalize cannot hang on a worker that stopped after its last tile, and a run that fails
@@ -457,7 +554,7 @@ class Master {
 
   // Renders one frame into fb_ (cleared first); report() then holds its statistics and the
   // cluster's fields. Aborts the run on a silent worker or a malformed result.
-  void RenderFrame(int frame) { RenderFrameBody(frame); }
+  void RenderFrame(const FrameContext& ctx, int frame) { RenderFrameBody(ctx, frame); }
 
  private:
   // Tiles, per-worker preference lists (PBT) or the shared hand-out order, and predictions for
@@ -544,11 +641,16 @@ class Master {
     }
   }
 
-  void RenderFrameBody(int frame) {
+  void RenderFrameBody(const FrameContext& ctx, int frame) {
     const auto begin = Clock::now();
     const double cpu0 = ThreadCpuSeconds();
     PlanFrame();
     fb_.Clear();
+    measure_ = TilePlanMeasure{};
+    if (record_block_ > 0) {  // every pixel is rewritten: the tiles cover the image
+      record_.Clear();
+      std::fill(depth_.begin(), depth_.end(), std::numeric_limits<float>::quiet_NaN());
+    }
     const size_t m = tiles_.size();
     report_ = FrameReport{};
     HostFrameStats& f = report_.stats;
@@ -623,9 +725,11 @@ class Master {
                              src, rf, t, frame, flight.empty() ? -1 : flight.front()));
       }
       const Tile& tile = tiles_[static_cast<size_t>(t)];
-      if (static_cast<size_t>(count) != kHeader + 3 * tile.NumPixels()) {
+      const size_t sums_words = kHeader + 3 * static_cast<size_t>(tile.NumPixels());
+      const size_t words = sums_words + TileRecordWords(tile, record_block_);
+      if (static_cast<size_t>(count) != words) {
         Abort(0, fmt::format("result of tile {} from rank {} has {} words, expected {}", t, src,
-                             count, kHeader + 3 * tile.NumPixels()));
+                             count, words));
       }
       flight.pop_front();
       last_heard_[static_cast<size_t>(w)] = Clock::now();
@@ -640,6 +744,7 @@ class Master {
         for (size_t i = 0; i < 3 * tw; ++i) row[i] += src_sums[i];
         src_sums += 3 * tw;
       }
+      if (record_block_ > 0) AddRecord(tile, buf.data() + sums_words);
       const FrameStats work = UnpackTileStats(buf.data());
       TileRecord& rec = f.tiles[static_cast<size_t>(t)];
       rec.thread = w;
@@ -660,6 +765,12 @@ class Master {
       ++traffic.msgs_recv;
       traffic.bytes_recv += static_cast<uint64_t>(count) * sizeof(int64_t);
       FeedWorker(w, frame, f);
+    }
+    if (record_block_ > 0) {
+      measure_.blocks = &record_;
+      measure_.pixel_depth = depth_;
+      measure_.camera = &ctx.camera;
+      measure_.next_camera = ctx.has_next_camera ? &ctx.next_camera : nullptr;
     }
     FinishFrame(f, Seconds(Clock::now() - t0));
     f.total.total_seconds = Seconds(Clock::now() - begin);
@@ -701,16 +812,41 @@ class Master {
       costs[i] = TileCost(r, c_.host.pbt_cost);
       ran_by[i] = r.thread;
     }
-    const TilePlanReport report = plan_->End(costs, ran_by);  // PBT-Update between frames
+    // PBT-Update between frames (the cost map from the workers' records, if any).
+    const TilePlanReport report = plan_->End(costs, ran_by, measure_);
     frame_ = nullptr;
     if (!report.pbt) return;
     ApplyPlanReport(report, f);
+  }
+
+  // A tile's cost-map record (Worker, TileRenderer::TakeRecord) into the frame's: block work
+  // added (integer sums: the same whichever worker rendered a tile and in which order the
+  // results arrive; a block that several tiles overlap gets each tile's rays), hit distances
+  // copied.
+  void AddRecord(const Tile& tile, const int64_t* src) {
+    const BlockRect r = BlocksOf(tile, record_block_);
+    for (int by = r.by0; by < r.by1; ++by) {
+      int64_t* row =
+          record_.work.data() + static_cast<size_t>(by) * static_cast<size_t>(record_.blocks_x);
+      for (int bx = r.bx0; bx < r.bx1; ++bx) row[bx] += *src++;
+    }
+    const size_t w = static_cast<size_t>(c_.render.width), tw = static_cast<size_t>(tile.Width());
+    const char* bytes = reinterpret_cast<const char*>(src);
+    for (int y = tile.y0; y < tile.y1; ++y) {
+      std::memcpy(depth_.data() + static_cast<size_t>(y) * w + static_cast<size_t>(tile.x0), bytes,
+                  tw * sizeof(float));
+      bytes += tw * sizeof(float);
+    }
   }
 
   const BackendConfig& c_;
   int workers_;
   Framebuffer fb_;
   std::unique_ptr<TilePlan> plan_;
+  int record_block_ = 0;                  // PBT's cost map: its block size (0: none)
+  BlockWork record_;                      // the frame's block work, the workers' records summed
+  std::vector<float> depth_;              // the frame's primary hit distances
+  TilePlanMeasure measure_;               // the last frame's, for plan_->End
   const TilePlanFrame* frame_ = nullptr;  // the plan's frame being rendered
   std::vector<Tile> tiles_;
   bool lists_mode_ = false;                 // PBT per-worker lists (else: shared_)
@@ -865,7 +1001,7 @@ class MpiBackend final : public Backend {
     if (state_ != State::kRunning) throw Error("mpi backend: BeginFrame before a successful Setup");
     try {
       if (master_) {
-        master_->RenderFrame(frame_);
+        master_->RenderFrame(ctx, frame_);
       } else {
         worker_->ServeFrame(ctx, frame_);
       }

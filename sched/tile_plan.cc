@@ -219,10 +219,12 @@ TilePlan::TilePlan(int width, int height, const TilePlanOptions& options)
   Plan();
 }
 
-bool TilePlan::uses_cost_map() const {
-  return uses_pbt() && options_.predict == PbtPredict::kCostMap &&
-         options_.assign != PbtAssign::kStatic;
+bool UsesCostMap(const TilePlanOptions& options) {
+  return options.pbt_tiles_per_worker > 0 && options.predict == PbtPredict::kCostMap &&
+         options.assign != PbtAssign::kStatic;
 }
+
+bool TilePlan::uses_cost_map() const { return UsesCostMap(options_); }
 
 TilePlan::~TilePlan() = default;
 

@@ -126,6 +126,11 @@ struct TilePlanOptions {
 // or demand with kCounter or without PBT, steal with demand.
 void ValidateTilePlanOptions(const TilePlanOptions& options);
 
+// Whether a plan with these options uses the cost-map predictor (TilePlan::uses_cost_map): PBT,
+// predict kCostMap, not static. For a process that measures for a plan it does not hold (an
+// MPI worker).
+bool UsesCostMap(const TilePlanOptions& options);
+
 // What a frame is rendered with (TilePlan::Begin).
 struct TilePlanFrame {
   uint64_t frame = 0;           // frames ended by the plan before this one

@@ -94,6 +94,7 @@ class CellBackend final : public Backend {
     plan.seed = c.host.seed;
     plan.pbt_workers = c.host.pbt_workers;
     plan.predict = c.host.pbt_predict;
+    plan.cost_block = c.host.pbt_cost_block;
     return plan;
   }
 

@@ -4,6 +4,7 @@
 
 #include <algorithm>
 #include <chrono>
+#include <cmath>
 #include <cstdio>
 #include <cstring>
 #include <limits>
@@ -49,6 +50,7 @@ CellRenderer::~CellRenderer() = default;
 
 CellFrameStats CellRenderer::Render(const FrameContext& ctx, Framebuffer& fb) {
   const int w = ctx.options.width, h = ctx.options.height;
+  measure_ = TilePlanMeasure{};
   if (config_.pbt_tiles_per_spe == 0) {
     // Regular tiles: the SPEs compute a tile's rectangle from its counter value.
     return RenderTiles(ctx, fb, GridTiles(w, h, config_.tile_width, config_.tile_height), false);
@@ -60,11 +62,25 @@ CellFrameStats CellRenderer::Render(const FrameContext& ctx, Framebuffer& fb) {
     p.assign = plan_options_.assign;
     p.seed = plan_options_.seed;
     p.predict = plan_options_.predict;
+    p.cost_block = plan_options_.cost_block;
     p.cost = PbtCost::kWork;  // the simulated tile cycles: deterministic
     plan_.reset();
     plan_ = std::make_unique<TilePlan>(w, h, p);
   }
   const TilePlanFrame& frame = plan_->Begin();
+  BlockWork* record = nullptr;
+  if (plan_->uses_cost_map()) {
+    const int block = plan_->options().cost_block;
+    if (!block_work_.Matches(w, h, block)) {
+      block_work_.Resize(w, h, block);
+    } else {
+      block_work_.Clear();
+    }
+    // NaN (unknown) where no primary ray reports: the plan's tiles cover every pixel.
+    pixel_depth_.assign(size_t(w) * size_t(h), std::numeric_limits<float>::quiet_NaN());
+    block_work_.pixel_depth = pixel_depth_.data();
+    record = &block_work_;
+  }
   std::vector<std::vector<int32_t>> queues;
   if (frame.assignment.tiles.empty()) {
     queues.push_back(frame.order);  // one counter, costliest predicted first
@@ -78,7 +94,7 @@ CellFrameStats CellRenderer::Render(const FrameContext& ctx, Framebuffer& fb) {
   }
   CellFrameStats stats;
   try {
-    stats = RenderTiles(ctx, fb, frame.tiles, true, queues);
+    stats = RenderTiles(ctx, fb, frame.tiles, true, queues, record);
   } catch (...) {
     plan_->Cancel();
     throw;
@@ -94,7 +110,13 @@ CellFrameStats CellRenderer::Render(const FrameContext& ctx, Framebuffer& fb) {
   }
   // Counter: the SPEs are the workers only when there are as many (else a model of n).
   if (plan_->options().workers != config_.num_spes) ran_by.clear();
-  const TilePlanReport report = plan_->End(cycles, ran_by);
+  if (record != nullptr) {
+    measure_.blocks = record;
+    measure_.pixel_depth = pixel_depth_;
+    measure_.camera = &ctx.camera;
+    measure_.next_camera = ctx.has_next_camera ? &ctx.next_camera : nullptr;
+  }
+  const TilePlanReport report = plan_->End(cycles, ran_by, measure_);
   stats.pbt = true;
   stats.has_prediction = report.has_prediction;
   stats.accuracy = report.accuracy;
@@ -106,12 +128,14 @@ CellFrameStats CellRenderer::Render(const FrameContext& ctx, Framebuffer& fb) {
 
 CellFrameStats CellRenderer::Render(const FrameContext& ctx, Framebuffer& fb,
                                     std::span<const Tile> tiles) {
+  measure_ = TilePlanMeasure{};
   return RenderTiles(ctx, fb, tiles, true);
 }
 
 CellFrameStats CellRenderer::RenderTiles(const FrameContext& ctx, Framebuffer& fb,
                                          std::span<const Tile> tiles, bool explicit_tiles,
-                                         const std::vector<std::vector<int32_t>>& queues_in) {
+                                         const std::vector<std::vector<int32_t>>& queues_in,
+                                         BlockWork* block_work) {
   const int width = ctx.options.width, height = ctx.options.height;
   if (fb.width() != width || fb.height() != height) {
     throw Error("cell backend: framebuffer is " + std::to_string(fb.width()) + "x" +
@@ -232,6 +256,11 @@ CellFrameStats CellRenderer::RenderTiles(const FrameContext& ctx, Framebuffer& f
     queue_spe[q].assign(queues[q].size(), -1);
     outputs[q].tile_cycles = &queue_cycles[q];
     outputs[q].tile_spe = &queue_spe[q];
+    outputs[q].block_work = block_work;
+    // A cycle in kBlockWorkUnit, rounded: the blocks' work is simulated seconds (3.2 GHz:
+    // 351844 units a cycle, 8e-7 relative).
+    outputs[q].block_units_per_cycle =
+        static_cast<uint64_t>(std::max(1.0, std::round(1.0 / (config_.clock_hz * kBlockWorkUnit))));
   }
   std::vector<std::unique_ptr<Spe>> spes;
   for (int i = 0; i < config_.num_spes; ++i) {

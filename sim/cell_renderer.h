@@ -82,9 +82,16 @@ struct CellPlanOptions {
   PbtAssign assign = PbtAssign::kCounter;
   uint64_t seed = 1;    // PBT-Random / static
   int pbt_workers = 0;  // PBT workers n (0: config.num_spes); m = k n tiles
-  // PBT-Update's predictor (tile_plan.h); the cost map gets the SPEs' tile cycles spread evenly
-  // over each tile (no per-block record in the simulator).
+  // PBT-Update's predictor (tile_plan.h). The cost map (cost_block x cost_block pixel blocks)
+  // gets the SPEs' cycles per block: each pipeline iteration's cycles charged to its rays'
+  // pixels in the shares of CellTileRecord::cycles (FrameOutputs::block_work), and the
+  // primaries' hit distances with the frame's and the next frame's camera
+  // (FrameContext::next_camera), so it is reprojected like the host backends' maps. The record
+  // is the same in every run of a configuration; like the tile cycles it depends on the SPE
+  // count (DMA waits at the shared MIC, which rays share an iteration). The hit distances do
+  // not: they are the host backends' bit for bit.
   PbtPredict predict = PbtPredict::kCostMap;
+  int cost_block = 4;
 };
 
 class CellRenderer {
@@ -113,6 +120,11 @@ class CellRenderer {
   const SimConfig& config() const { return config_; }
   const CellPlanOptions& plan_options() const { return plan_options_; }
   const Pbt* pbt() const { return plan_ ? plan_->pbt() : nullptr; }
+  // What the last PBT frame gave its plan's cost map (TilePlan::End): the blocks' cycles in
+  // kBlockWorkUnit (FrameOutputs::block_units_per_cycle units a cycle: seconds at clock_hz),
+  // the primaries' hit distances and ctx's cameras; empty without a cost map (regular tiles,
+  // predict kPaper, assign static). Valid until the next Render.
+  const TilePlanMeasure& cost_map_measure() const { return measure_; }
   // The main-memory image of the last frame's scene (nullptr before the first frame).
   const CellImage* image() const { return image_.get(); }
 
@@ -121,13 +133,18 @@ class CellRenderer {
   // queues: SPE s takes from queue s only. Empty: one queue of all tiles in list order.
   CellFrameStats RenderTiles(const FrameContext& ctx, Framebuffer& fb, std::span<const Tile> tiles,
                              bool explicit_tiles,
-                             const std::vector<std::vector<int32_t>>& queues = {});
+                             const std::vector<std::vector<int32_t>>& queues = {},
+                             BlockWork* block_work = nullptr);
 
   SimConfig config_;
   CellPlanOptions plan_options_;
   std::unique_ptr<CellImage> image_;
   std::unique_ptr<TilePlan> plan_;
   AlignedBuffer pixels_;
+  // PBT's cost-map record (sized once per image layout, cleared per frame).
+  BlockWork block_work_;
+  std::vector<float> pixel_depth_;
+  TilePlanMeasure measure_;
   uint64_t frames_ = 0;
 };
 

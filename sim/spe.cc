@@ -38,6 +38,7 @@ constexpr uint32_t kPixelTagBase = 20;  // + pixel buffer (< 8)
 constexpr int kMaxInFlight = 8;
 static_assert(std::size(SpeCounters{}.iterations_by_rays) == kMaxInFlight + 1);
 constexpr int32_t kShadowKind = static_cast<int32_t>(RayKind::kShadow);
+constexpr int32_t kPrimaryKind = static_cast<int32_t>(RayKind::kPrimary);
 constexpr uint32_t kBundleBytes = sizeof(TriangleBundle);
 
 static_assert(std::is_trivially_copyable_v<FrameConstants>);
@@ -76,6 +77,7 @@ struct FlightInfo {
   bool refined_top = false;  // its top-level cell turned out refined (sharers re-resolve)
   Lsa sub_lsa = 0;           // LS line holding the SubGridRecord of the ray's sub-grid
   int32_t tile = -1;         // tile the ray belongs to, for the tile times
+  uint32_t pixel = 0;        // its image pixel, for the cost map's block work
 };
 
 struct PixelSlot {
@@ -496,6 +498,7 @@ void Spe::Impl::Refill() {
     Compute(costs.ray_copy);
     flight[r] = FlightInfo{};
     flight[r].tile = pixel_slots[FlightRecord(r).subtile].tile;
+    flight[r].pixel = FlightRecord(r).pixel;
   }
   micro_cache_size = 0;
   loaded_count = 0;
@@ -1150,6 +1153,11 @@ void Spe::Impl::Shade() {
       rv.kind[i] = rec.kind;
       batch_pixel[i] = rec.pixel;
       batch_subtile[i] = rec.subtile;
+      if (rec.kind == kPrimaryKind && out.block_work != nullptr &&
+          out.block_work->pixel_depth != nullptr) {  // host-side record: no cycles
+        out.block_work->pixel_depth[rec.pixel] =
+            st == Flight::kDoneHit ? rec.best_t : std::numeric_limits<float>::infinity();
+      }
       if (st == Flight::kDoneHit) {
         mfc.WaitTagsAll(1u << (kHitTagBase + uint32_t(r)));
         ShadingRecord sr;
@@ -1279,6 +1287,18 @@ void Spe::Impl::Shade() {
     const double share = double(clock.now() - iteration_start) / double(n);
     for (int r = 0; r < n; ++r) {
       if (flight[r].tile >= 0) (*out.tile_cycles)[size_t(flight[r].tile)] += share;
+    }
+  }
+  // The same shares per ray for the cost map's blocks, in fixed point (FrameOutputs).
+  if (out.block_work != nullptr) {
+    BlockWork& b = *out.block_work;
+    const uint64_t units = (clock.now() - iteration_start) * out.block_units_per_cycle;
+    const uint64_t share = units / uint64_t(n);
+    const uint64_t extra = units - share * uint64_t(n);
+    for (int r = 0; r < n; ++r) {
+      if (flight[r].tile < 0) continue;
+      b.work[b.BlockOf(flight[r].pixel)] +=
+          static_cast<int64_t>(share + (uint64_t(r) < extra ? 1 : 0));
     }
   }
   ++counters.iterations;

@@ -15,6 +15,7 @@
 
 #include "include/raystream/raystream.h"
 #include "kernels/shade.h"
+#include "sched/cost_map.h"
 #include "sim/config.h"
 #include "sim/local_store.h"
 #include "sim/mfc.h"
@@ -82,6 +83,15 @@ struct FrameOutputs {
   // among the iteration's rays, from the refill that starts it to the end of its shading).
   std::vector<double>* tile_cycles = nullptr;
   std::vector<int32_t>* tile_spe = nullptr;  // per tile: the SPE that took it
+  // PBT's cost map (sched/cost_map.h; nullptr: no record): each iteration's cycles charged to
+  // the blocks of its rays' pixels in the same equal shares as tile_cycles, in fixed point
+  // (block_units_per_cycle units a cycle; each ray gets units / n, the first units % n rays of
+  // the iteration one more), so the blocks' sum is exactly the attributed cycles times
+  // block_units_per_cycle and does not depend on the order the SPEs are stepped in. Each
+  // primary ray's hit distance (+inf: a miss) goes to block_work->pixel_depth[pixel] if that is
+  // not null. One host thread steps every SPE, so they all share one record.
+  BlockWork* block_work = nullptr;
+  uint64_t block_units_per_cycle = 1;
 };
 
 // Occupancy-bit capacity of an SPE's local store: the cells whose bits fit after the code/stack

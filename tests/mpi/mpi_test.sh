@@ -9,7 +9,8 @@
 # serial render's ray counts; every PBT run's tiles and per-tile owners equal a replay of the
 # master's PBT from the run's own tile times (pbt_check.py: re-tiling between frames, PBT-Greedy
 # and PBT-Visit affinity as sched/pbt.h defines them). The replay is the paper's Algorithm 1, so
-# those runs take --pbt-predict paper (the default cost map is checked by the host tests).
+# those runs take --pbt-predict paper; the default cost map (the workers return each tile's
+# block work and hit distances) must give the tiles backend's tiles and predictions exactly.
 # usage: mpi_test.sh RAYSTREAM_BINARY MPIRUN   (env CI=true: a missing shared scene is a FAIL)
 set -uo pipefail
 rs=$1
@@ -139,6 +140,57 @@ if "$rs" render --backend serial "${usize[@]}" --out "$u/serial/i#.png" --dump-r
   else bad "uneven -np 3: options.worker_threads is not 2"; fi
 else
   bad "uneven: serial render"
+fi
+
+# PBT's cost map (the default predictor) over the cluster: the workers' engines record each
+# tile's block work and primary hit distances as the tiles backend's threads do and return them
+# with the tile's result, the master sums them and moves the map to the next camera. With one
+# render thread per worker (a tile's batches are then the tiles backend's) and the deterministic
+# work cost, every frame's tiles, predictions and tile costs equal the tiles backend's at as
+# many threads as workers, exactly; with 2 render threads per worker (a tile's rows split into
+# bands) the images stay the serial ones. Each result carries the record after the sums: a word
+# per cost block the tile overlaps (4x4 pixels), then the hit distances, two floats a word.
+cm=(--pbt 4 --pbt-cost work)
+if "$rs" render --backend tiles --threads 4 "${usize[@]}" "${cm[@]}" --out "$u/cm_tiles.png" \
+     --stats "$u/cm_tiles.json"; then
+  for run in "5 1" "3 2"; do
+    read -r np threads <<<"$run"
+    d="$u/cm_np$np"; mkdir -p "$d"
+    if run_mpi "$np" "$rs" render --backend mpi "${usize[@]}" "${cm[@]}" --threads "$threads" \
+        --out "$d/i#.png" --dump-raw "$d/r#.raw" --stats "$d/s.json" >"$d/log" 2>&1; then
+      compare "uneven -np $np cost map, $threads thread(s) per worker" "$u/serial" "$d"
+      if python3 - "$d/s.json" "$u/cm_tiles.json" "$threads" <<'PY'
+import json, sys
+d, host = (json.load(open(p)) for p in sys.argv[1:3])
+same = sys.argv[3] == "1"
+kh = 16  # result header words (sched/mpi_backend.cc ResultWord)
+for fr, hf in zip(d["frames"], host["frames"]):
+    tiles = fr["tiles"]
+    # 6 int32 per tile message; back the header, 3 sums per pixel, then the record.
+    want = 0
+    for t in tiles:
+        w, h = t["x1"] - t["x0"], t["y1"] - t["y0"]
+        blocks = ((t["x1"] - 1) // 4 + 1 - t["x0"] // 4) * ((t["y1"] - 1) // 4 + 1 - t["y0"] // 4)
+        want += 24 + 8 * (kh + 3 * w * h + blocks + (w * h + 1) // 2)
+    assert fr["bytes"] == want, (fr["frame"], fr["bytes"], want)
+    assert fr["pbt"]["has_prediction"] == (fr["frame"] > 0)
+    if same:
+        key = lambda t: (t["x0"], t["y0"], t["x1"], t["y1"], t["predicted_seconds"], t["work"])
+        assert [key(t) for t in tiles] == [key(t) for t in hf["tiles"]], fr["frame"]
+        assert fr["pbt"].get("within10") == hf["pbt"].get("within10"), fr["frame"]
+print(f"{len(d['frames'])} frames, within10 " +
+      " ".join(f"{fr['pbt']['within10']:.3f}" for fr in d["frames"][1:]))
+PY
+      then
+        same=""; [ "$threads" = 1 ] && same=", tiles and predictions = the tiles backend's"
+        ok "uneven -np $np cost map: result bytes with the record$same"
+      else bad "uneven -np $np cost map: statistics"; fi
+    else
+      bad "uneven -np $np cost map: mpirun failed"; cat "$d/log"
+    fi
+  done
+else
+  bad "uneven: tiles backend with the cost map"
 fi
 
 # Statistics: the host backends' format (the tiles backend's keys and CSV columns, the same

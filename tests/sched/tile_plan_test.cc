@@ -647,5 +647,30 @@ TEST_CASE("cost map: backend options refuse an unknown predictor and a bad block
   CHECK_THROWS_AS(ValidateBackendOptions(o), Error);
 }
 
+// UsesCostMap is the plan's uses_cost_map for its options (what an MPI worker, which holds no
+// plan, records by): PBT, the cost-map predictor, not static.
+TEST_CASE("cost map: UsesCostMap(options) == TilePlan::uses_cost_map") {
+  int on = 0;
+  for (const int k : {0, 2}) {
+    for (const PbtPredict predict : {PbtPredict::kPaper, PbtPredict::kCostMap}) {
+      for (int a = 0; a <= static_cast<int>(PbtAssign::kLpt); ++a) {
+        TilePlanOptions o;
+        o.pbt_tiles_per_worker = k;
+        o.workers = 2;
+        o.predict = predict;
+        o.assign = static_cast<PbtAssign>(a);
+        const TilePlan plan(16, 16, o);
+        INFO("k ", k, " predict ", std::string(PbtPredictName(predict)), " assign ",
+             std::string(PbtAssignName(o.assign)));
+        CHECK(UsesCostMap(o) == plan.uses_cost_map());
+        CHECK(UsesCostMap(o) == (k > 0 && predict == PbtPredict::kCostMap &&
+                                 o.assign != PbtAssign::kStatic));
+        on += UsesCostMap(o) ? 1 : 0;
+      }
+    }
+  }
+  CHECK(on == static_cast<int>(PbtAssign::kLpt));  // every assignment but static
+}
+
 }  // namespace
 }  // namespace rs

@@ -4,16 +4,20 @@
 // on and off, spills, chunked cells, tile shapes, PBT, explicit tile lists); the image comes out
 // of the SPEs' LS pixel buffers through main memory (clamp counts too, overlapping tiles
 // refused); the tile times PBT gets are the simulated cycles and it re-tiles, with the shared
-// counter or per-SPE lists (the tile plan's assignments); deterministic
-// simulated cycles; refusal of grids whose occupancy bits do not fit the local store.
+// counter or per-SPE lists (the tile plan's assignments), its cost map from the SPEs' cycles
+// per block, the primaries' hit distances and the cameras; deterministic simulated cycles;
+// refusal of grids whose occupancy bits do not fit the local store.
 #include <doctest/doctest.h>
 
+#include <algorithm>
+#include <cmath>
 #include <cstring>
 #include <iterator>
 #include <string>
 #include <vector>
 
 #include "scenes/load.h"
+#include "sched/backends.h"
 #include "sched/cost_map.h"
 #include "sched/pbt.h"
 #include "sched/render.h"
@@ -436,8 +440,9 @@ TEST_CASE("PBT lists: each SPE runs its own workers' lists through a counter of 
 // an iteration, its program start or its tail (SpeCounters), so the tile times add up to the
 // SPEs' busy cycles less start and tail. A second PBT updated with exactly those times gives
 // the next frame's tiles and predictions; PBT-Update only halves and sums estimates (the paper's
-// predictor) or sums a cost map of the tiles' cycles spread over their pixels (the default: the
-// simulator records no blocks), so the predictions add up to the measured total.
+// predictor) or sums the cost map of the SPEs' cycles per block (the default; the backend's
+// record, scaled to the tiles' total as the plan does; no next camera here, so not moved), so
+// the predictions add up to the measured total.
 TEST_CASE("PBT is fed the simulated tile cycles and re-tiles between frames") {
   const Scene scene = LoadScene("cornell");  // glass and mirror: uneven cost over the image
   const Accel accel(scene.mesh());
@@ -489,7 +494,16 @@ TEST_CASE("PBT is fed the simulated tile cycles and re-tiles between frames") {
       }
       CostMap map;
       map.Resize(64, 48, TilePlanOptions{}.cost_block);
-      for (size_t i = 0; i < tiles.size(); ++i) map.AddTile(tiles[i], measured[i]);
+      if (predict == PbtPredict::kCostMap) {
+        const TilePlanMeasure& m = r.cost_map_measure();
+        REQUIRE(m.blocks != nullptr);
+        CHECK(m.next_camera == nullptr);
+        int64_t work = 0;
+        for (const int64_t b : m.blocks->work) work += b;
+        double total = 0;
+        for (const double c : measured) total += c;
+        map.SetFromWork(*m.blocks, total / (double(work) * kBlockWorkUnit));
+      }
       const PbtUpdateStats u =
           predict == PbtPredict::kPaper ? mirror.Update(measured) : mirror.Update(measured, map);
       CHECK(u.steps == s.update.steps);
@@ -717,6 +731,157 @@ TEST_CASE("drain_individually: the last rays one at a time, same rays and image"
     MESSAGE("rays per iteration ", per_iteration, ": ", tails_off, " interleaved tail iterations; ",
             "drained: ", by(b, 1), " single-ray iterations, cycles ", a.cycles, " -> ", b.cycles);
     CHECK(b.cycles > a.cycles);  // the drained rays hide no memory latency
+  }
+}
+
+// The cost map of the cell backend's PBT (CellPlanOptions::predict kCostMap): each pipeline
+// iteration's cycles charged to the blocks of its rays' pixels in the shares of the tile cycles
+// (FrameOutputs::block_work), the primaries' hit distances and the cameras, so the plan's map
+// is moved to the next camera like the host backends'. Per block of one pixel, a tile's pixels
+// hold exactly its cycles (up to the doubles' rounding of the tile cycles); the blocks sum to
+// the SPEs' attributed cycles; the hit distances are the tiles backend's bit for bit (the same
+// primary rays); the record is the same in every run of a configuration. It is not the same at
+// every SPE count: the tile cycles themselves are not (DMA waits on the shared MIC, and which
+// rays share an iteration, depend on how many SPEs run and which tiles each took). The images
+// stay the serial ones.
+TEST_CASE("PBT cost map: the SPEs' cycles per block, hit distances, cameras") {
+  const Scene scene = LoadScene("erw6");  // a closed room: every primary hits
+  const Accel accel(scene.mesh());
+  const int w = 48, h = 40, frames = 3;
+  const float speed = 2.0f;
+  RenderOptions ro;
+  ro.width = w;
+  ro.height = h;
+  ro.max_depth = 4;
+  auto context = [&](int f, bool next) {
+    FrameContext ctx = MakeFrameContext(scene, accel, scene.path.At(f, speed, scene.camera), ro);
+    if (next) SetNextCamera(ctx, scene.path.At(f + 1, speed, scene.camera));
+    return ctx;
+  };
+  // The tiles backend's hit distances and the serial images of the walk-through.
+  std::vector<std::vector<float>> host_depth;
+  std::vector<Framebuffer> serial;
+  {
+    BackendOptions o;
+    o.kind = BackendKind::kTiles;
+    o.threads = 1;
+    o.pbt_tiles_per_worker = 2;
+    o.pbt_cost = PbtCost::kWork;
+    HostRenderer host(o);
+    for (int f = 0; f < frames; ++f) {
+      const FrameContext ctx = context(f, true);
+      Framebuffer fb(w, h);
+      host.RenderFrame(ctx, fb);
+      const TilePlanMeasure m = host.cost_map_measure();
+      REQUIRE(m.pixel_depth.size() == size_t(w * h));
+      host_depth.emplace_back(m.pixel_depth.begin(), m.pixel_depth.end());
+      serial.emplace_back(w, h);
+      RenderSerial(ctx, serial.back());
+    }
+  }
+  struct Frame {
+    std::vector<int64_t> work;
+    std::vector<float> depth;
+    std::vector<double> predicted;
+  };
+  auto run = [&](int spes, PbtAssign assign, int block, bool next) {
+    SimConfig c;
+    c.num_spes = spes;
+    c.pbt_tiles_per_spe = 2;
+    CellPlanOptions plan;
+    plan.assign = assign;
+    plan.pbt_workers = 4;  // the same 8 PBT tiles at every SPE count
+    plan.cost_block = block;
+    CellRenderer r(c, plan);
+    const uint64_t units_per_cycle = uint64_t(std::llround(1.0 / (c.clock_hz * kBlockWorkUnit)));
+    std::vector<Frame> out;
+    for (int f = 0; f < frames; ++f) {
+      INFO("SPEs ", spes, " assign ", std::string(PbtAssignName(assign)), " block ", block,
+           " frame ", f);
+      const FrameContext ctx = context(f, next);
+      Framebuffer fb(w, h);
+      const CellFrameStats s = r.Render(ctx, fb);
+      CHECK(DifferingPixels(serial[size_t(f)], fb) == 0);
+      const TilePlanMeasure& m = r.cost_map_measure();
+      REQUIRE(m.blocks != nullptr);
+      REQUIRE(m.blocks->Matches(w, h, block));
+      CHECK(m.camera == &ctx.camera);
+      CHECK((m.next_camera != nullptr) == next);
+      REQUIRE(m.pixel_depth.size() == size_t(w * h));
+      CHECK(std::equal(m.pixel_depth.begin(), m.pixel_depth.end(), host_depth[size_t(f)].begin()));
+      // The blocks hold exactly the attributed cycles, units_per_cycle units each.
+      int64_t total = 0;
+      for (const int64_t b : m.blocks->work) total += b;
+      double cycles = 0;
+      for (const sim::CellTileRecord& t : s.tiles) cycles += t.cycles;
+      CHECK(double(total) == doctest::Approx(cycles * double(units_per_cycle)).epsilon(1e-12));
+      if (block == 1) {  // a block per pixel: each tile's pixels hold its own cycles
+        for (const sim::CellTileRecord& t : s.tiles) {
+          int64_t tile_units = 0;
+          for (int y = t.tile.y0; y < t.tile.y1; ++y) {
+            for (int x = t.tile.x0; x < t.tile.x1; ++x) {
+              tile_units += m.blocks->work[size_t(y) * size_t(w) + size_t(x)];
+            }
+          }
+          CHECK(double(tile_units) ==
+                doctest::Approx(t.cycles * double(units_per_cycle)).epsilon(1e-9));
+        }
+      }
+      Frame fr;
+      fr.work = m.blocks->work;
+      fr.depth.assign(m.pixel_depth.begin(), m.pixel_depth.end());
+      for (const sim::CellTileRecord& t : s.tiles) fr.predicted.push_back(t.predicted);
+      out.push_back(std::move(fr));
+    }
+    return out;
+  };
+  for (const PbtAssign assign : {PbtAssign::kCounter, PbtAssign::kGreedy}) {
+    const std::vector<Frame> one = run(1, assign, 4, true);
+    const std::vector<Frame> again = run(1, assign, 4, true);
+    for (int f = 0; f < frames; ++f) {
+      CHECK(again[size_t(f)].work == one[size_t(f)].work);  // deterministic
+      CHECK(again[size_t(f)].predicted == one[size_t(f)].predicted);
+    }
+    for (const int spes : {3, 8}) {
+      const std::vector<Frame> many = run(spes, assign, 4, true);
+      double diff = 0, sum = 0;
+      for (size_t b = 0; b < one[0].work.size(); ++b) {
+        diff += std::abs(double(many[0].work[b]) - double(one[0].work[b]));
+        sum += double(one[0].work[b]);
+      }
+      MESSAGE("assign ", std::string(PbtAssignName(assign)), ": block work at ", spes,
+              " SPEs differs from 1 SPE's by ", 100.0 * diff / sum, " % (sum of |difference|)");
+      CHECK(many[0].depth == one[0].depth);
+    }
+    run(3, assign, 1, true);
+  }
+  // Without the next camera the map is not moved: the same first frame's record, other
+  // predictions for the second (the camera moves along the path).
+  const std::vector<Frame> moved = run(2, PbtAssign::kCounter, 4, true);
+  const std::vector<Frame> still = run(2, PbtAssign::kCounter, 4, false);
+  CHECK(still[0].work == moved[0].work);
+  CHECK(still[1].predicted != moved[1].predicted);
+  // No record without the cost map: regular tiles, the paper's predictor, static.
+  for (const int k : {0, 2}) {
+    for (const PbtPredict predict : {PbtPredict::kPaper, PbtPredict::kCostMap}) {
+      for (const PbtAssign assign : {PbtAssign::kCounter, PbtAssign::kStatic}) {
+        SimConfig c;
+        c.num_spes = 2;
+        c.pbt_tiles_per_spe = k;
+        CellPlanOptions plan;
+        plan.predict = predict;
+        plan.assign = assign;
+        CellRenderer r(c, plan);
+        Framebuffer fb(w, h);
+        r.Render(context(0, true), fb);
+        const bool on = k > 0 && predict == PbtPredict::kCostMap && assign != PbtAssign::kStatic;
+        INFO("k ", k, " predict ", std::string(PbtPredictName(predict)), " assign ",
+             std::string(PbtAssignName(assign)));
+        CHECK((r.cost_map_measure().blocks != nullptr) == on);
+        CHECK(r.cost_map_measure().pixel_depth.empty() == !on);
+        CHECK(DifferingPixels(serial[0], fb) == 0);
+      }
+    }
   }
 }
 
