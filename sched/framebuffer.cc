@@ -79,7 +79,7 @@ void PixelSumTable::Reserve() {
   if (!keys_.empty()) return;
   keys_.assign(kSlots, kEmpty);
   sums_.assign(3 * kSlots, 0);
-  used_.reserve(kSlots / 2);
+  used_.reserve(kSlots);  // up to 7/8 full while the lock is busy
 }
 
 void PixelSumTable::Add(Framebuffer& fb, std::mutex& lock, const uint32_t* pixel, const float* r,

@@ -264,7 +264,7 @@ class PixelSumTable {
   static constexpr uint32_t kEmpty = 0xffffffffu;
   std::vector<uint32_t> keys_;  // per slot: its pixel, or kEmpty
   std::vector<int64_t> sums_;   // per slot: 3 fixed-point channels
-  std::vector<uint32_t> used_;  // the slots in use (capacity kSlots / 2)
+  std::vector<uint32_t> used_;  // the slots in use (capacity kSlots)
   uint64_t nan_ = 0, clamped_ = 0;
 };
 
