@@ -290,7 +290,7 @@ class Octree {
     pairs_.clear();
     GatherListed(tris_, ids, n, &node_tris_);
     BinListed<2>(
-        node_tris_, geo, n, &bin_, [&](size_t most) { pairs_.reserve(pairs_.size() + most); },
+        node_tris_, geo, n, &bin_, [](size_t) {},  // pairs_ grows geometrically
         [&](size_t t, uint32_t c) {  // c = x + 2 (y + 2 z)
           pairs_.push_back((uint64_t(c) << 32) | ids[t]);
           ++count[c];

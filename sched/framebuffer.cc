@@ -85,39 +85,31 @@ void PixelSumTable::Reserve() {
 void PixelSumTable::Add(Framebuffer& fb, std::mutex& lock, const uint32_t* pixel, const float* r,
                         const float* g, const float* b, const int32_t* skip, size_t n) {
   Reserve();
-  constexpr size_t kBlock = 256;
   constexpr uint32_t kMask = kSlots - 1;
-  alignas(64) int64_t f[3][kBlock];
-  for (size_t i0 = 0; i0 < n; i0 += kBlock) {
-    const size_t m = std::min(kBlock, n - i0);
-    ContributionsToFixed(r + i0, g + i0, b + i0, skip != nullptr ? skip + i0 : nullptr, m, f[0],
-                         f[1], f[2], &nan_, &clamped_);
-    for (size_t k = 0; k < m; ++k) {
-      if ((f[0][k] | f[1][k] | f[2][k]) == 0) continue;  // skipped, dropped or black
-      const uint32_t p = pixel[i0 + k];
-      uint32_t slot = (p * 0x9E3779B1u) >> 20;  // 12 bits: kSlots
-      while (keys_[slot] != p && keys_[slot] != kEmpty) slot = (slot + 1) & kMask;
-      int64_t* sum = sums_.data() + 3 * size_t(slot);
-      if (keys_[slot] == kEmpty) {
-        keys_[slot] = p;
-        used_.push_back(slot);
-        sum[0] = f[0][k];
-        sum[1] = f[1][k];
-        sum[2] = f[2][k];
-        // half full: flush if the lock is free, else keep adding (probes stay short up to
-        // 7/8 full, where the flush waits for the lock)
-        if (used_.size() >= kSlots / 2 && (used_.size() >= kSlots / 8 * 7 || lock.try_lock())) {
-          if (used_.size() >= kSlots / 8 * 7) lock.lock();
-          FlushLocked(fb);
-          lock.unlock();
-        }
-      } else {
-        sum[0] += f[0][k];
-        sum[1] += f[1][k];
-        sum[2] += f[2][k];
-      }
+  ForFixedContributions(r, g, b, skip, n, &nan_, &clamped_, [&](size_t i, const int64_t f[3]) {
+    if ((f[0] | f[1] | f[2]) == 0) return;  // skipped, dropped or black
+    const uint32_t p = pixel[i];
+    uint32_t slot = (p * 0x9E3779B1u) >> 20;  // 12 bits: kSlots
+    while (keys_[slot] != p && keys_[slot] != kEmpty) slot = (slot + 1) & kMask;
+    int64_t* sum = sums_.data() + 3 * size_t(slot);
+    if (keys_[slot] != kEmpty) {
+      for (int c = 0; c < 3; ++c) sum[c] += f[c];
+      return;
     }
-  }
+    keys_[slot] = p;
+    used_.push_back(slot);
+    for (int c = 0; c < 3; ++c) sum[c] = f[c];
+    // half full: flush if the lock is free, else keep filling (probes stay short up to 7/8
+    // full, where the flush waits for the lock)
+    if (used_.size() < kSlots / 2) return;
+    if (used_.size() >= kSlots / 8 * 7) {
+      lock.lock();
+    } else if (!lock.try_lock()) {
+      return;
+    }
+    FlushLocked(fb);
+    lock.unlock();
+  });
 }
 
 void PixelSumTable::Flush(Framebuffer& fb, std::mutex& lock) {

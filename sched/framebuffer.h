@@ -43,10 +43,11 @@ void ContributionsToFixed(const float* r, const float* g, const float* b, const 
 // fixed-point sums[3 * index[i] + channel], as adding them one by one with ContributionToFixed
 // does (NaN contributions dropped and counted in *nan, clamped ones counted in *clamped).
 // kShared: relaxed atomic adds (other threads may add to the same sums); else plain adds.
-template <bool kShared>
-void AddFixedContributions(int64_t* sums, const uint32_t* index, const float* r, const float* g,
-                           const float* b, const int32_t* skip, size_t n, uint64_t* nan,
-                           uint64_t* clamped) {
+// ContributionsToFixed over contributions [0, n) a block at a time: fn(i, f) for each i with
+// its three fixed-point channels f (all 0 for a skipped or dropped one), in order.
+template <class Fn>
+void ForFixedContributions(const float* r, const float* g, const float* b, const int32_t* skip,
+                           size_t n, uint64_t* nan, uint64_t* clamped, const Fn& fn) {
   constexpr size_t kBlock = 256;
   alignas(64) int64_t f[3][kBlock];
   for (size_t i0 = 0; i0 < n; i0 += kBlock) {
@@ -54,18 +55,26 @@ void AddFixedContributions(int64_t* sums, const uint32_t* index, const float* r,
     ContributionsToFixed(r + i0, g + i0, b + i0, skip != nullptr ? skip + i0 : nullptr, m, f[0],
                          f[1], f[2], nan, clamped);
     for (size_t k = 0; k < m; ++k) {
-      int64_t* p = sums + 3 * static_cast<size_t>(index[i0 + k]);
-      for (int c = 0; c < 3; ++c) {
-        if constexpr (kShared) {
-          if (f[c][k] != 0) {
-            std::atomic_ref<int64_t>(p[c]).fetch_add(f[c][k], std::memory_order_relaxed);
-          }
-        } else {
-          p[c] += f[c][k];  // 0 for a skipped or dropped lane
-        }
-      }
+      const int64_t fk[3] = {f[0][k], f[1][k], f[2][k]};
+      fn(i0 + k, fk);
     }
   }
+}
+
+template <bool kShared>
+void AddFixedContributions(int64_t* sums, const uint32_t* index, const float* r, const float* g,
+                           const float* b, const int32_t* skip, size_t n, uint64_t* nan,
+                           uint64_t* clamped) {
+  ForFixedContributions(r, g, b, skip, n, nan, clamped, [&](size_t i, const int64_t f[3]) {
+    int64_t* p = sums + 3 * static_cast<size_t>(index[i]);
+    for (int c = 0; c < 3; ++c) {
+      if constexpr (kShared) {
+        if (f[c] != 0) std::atomic_ref<int64_t>(p[c]).fetch_add(f[c], std::memory_order_relaxed);
+      } else {
+        p[c] += f[c];  // 0 for a skipped or dropped lane
+      }
+    }
+  });
 }
 
 // One fixed-point pixel channel sum as the image's float: sum * 2^-32 (exact in double),
