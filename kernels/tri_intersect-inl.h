@@ -442,6 +442,74 @@ HWY_INLINE V PickAxis(M is_x, M is_y, V x, V y, V z) {
   return hn::IfThenElse(is_x, x, hn::IfThenElse(is_y, y, z));
 }
 
+// RayIsValid per lane of `live` (all six finite: NaN fails Lt; some |d| >= kMinDirection), and
+// tmin < tmax (else (tmin, tmax] is empty, or NaN).
+template <class D, class V = hn::Vec<D>>
+HWY_INLINE hn::Mask<D> StreamRayValid(D d, hn::Mask<D> live, V ox, V oy, V oz, V dx, V dy, V dz,
+                                      V tmin, V tmax) {
+  const V inf = hn::Set(d, std::numeric_limits<float>::infinity());
+  const V min_dir = hn::Set(d, kMinDirection);
+  const V adx = hn::Abs(dx), ady = hn::Abs(dy), adz = hn::Abs(dz);
+  auto valid = hn::And(live, hn::And(hn::And(hn::Lt(hn::Abs(ox), inf), hn::Lt(hn::Abs(oy), inf)),
+                                     hn::Lt(hn::Abs(oz), inf)));
+  valid = hn::And(valid, hn::And(hn::And(hn::Lt(adx, inf), hn::Lt(ady, inf)), hn::Lt(adz, inf)));
+  valid = hn::And(
+      valid, hn::Or(hn::Or(hn::Ge(adx, min_dir), hn::Ge(ady, min_dir)), hn::Ge(adz, min_dir)));
+  return hn::And(valid, hn::Lt(tmin, tmax));
+}
+
+// The watertight setup of a vector of rays, PrepareWatertightRay lane by lane: kz = axis of the
+// largest |d| (first on ties), kx = kz + 1, ky = kx + 1 (mod 3), swapped where d[kz] < 0 to keep
+// the winding. Returns true if every lane of `valid` has the same (kx, ky, kz), given in k[3]
+// (coherent rays: the triangle can be broadcast without blends).
+template <class D, class V = hn::Vec<D>>
+HWY_INLINE bool SetupStreamRays(D d, V ox, V oy, V oz, V dx, V dy, V dz, hn::Mask<D> valid,
+                                StreamRays<D>* r, int k[3]) {
+  const V zero = hn::Zero(d), one = hn::Set(d, 1.0f);
+  const V adx = hn::Abs(dx), ady = hn::Abs(dy), adz = hn::Abs(dz);
+  const auto y_gt_x = hn::Gt(ady, adx);
+  const auto kz2 = hn::Gt(adz, hn::IfThenElse(y_gt_x, ady, adx));
+  const auto kz1 = hn::AndNot(kz2, y_gt_x);
+  const auto kz0 = hn::Not(hn::Or(y_gt_x, kz2));
+  const V dkz = PickAxis(kz0, kz1, dx, dy, dz);
+  const auto swap = hn::Lt(dkz, zero);
+  const auto keep = hn::Not(swap);
+  r->kz0 = kz0;
+  r->kz1 = kz1;
+  // unswapped kx = kz + 1: kz = 2 -> 0, kz = 0 -> 1; swapped kx = kz + 2: kz = 1 -> 0, ...
+  r->kx0 = hn::Or(hn::And(kz2, keep), hn::And(kz1, swap));
+  r->kx1 = hn::Or(hn::And(kz0, keep), hn::And(kz2, swap));
+  r->ky0 = hn::Or(hn::And(kz1, keep), hn::And(kz2, swap));
+  r->ky1 = hn::Or(hn::And(kz2, keep), hn::And(kz0, swap));
+  const V dkx = PickAxis(r->kx0, r->kx1, dx, dy, dz);
+  const V dky = PickAxis(r->ky0, r->ky1, dx, dy, dz);
+  r->o0 = PickAxis(r->kx0, r->kx1, ox, oy, oz);
+  r->o1 = PickAxis(r->ky0, r->ky1, ox, oy, oz);
+  r->o2 = PickAxis(kz0, kz1, ox, oy, oz);
+  r->sx = hn::Div(dkx, dkz);
+  r->sy = hn::Div(dky, dkz);
+  r->sz = hn::Div(one, dkz);
+  const auto dead = hn::Not(valid);
+  int kz = -1;
+  if (hn::AllTrue(d, hn::Or(kz0, dead))) kz = 0;
+  if (hn::AllTrue(d, hn::Or(kz1, dead))) kz = 1;
+  if (hn::AllTrue(d, hn::Or(kz2, dead))) kz = 2;
+  const bool all_swap = hn::AllTrue(d, hn::Or(swap, dead));
+  const bool no_swap = hn::AllTrue(d, hn::Or(keep, dead));
+  if (kz < 0 || !(all_swap || no_swap)) return false;
+  int kx = kz + 1 == 3 ? 0 : kz + 1;
+  int ky = kx + 1 == 3 ? 0 : kx + 1;
+  if (all_swap) {
+    const int tmp = kx;
+    kx = ky;
+    ky = tmp;
+  }
+  k[0] = kx;
+  k[1] = ky;
+  k[2] = kz;
+  return true;
+}
+
 // Closest hit so far of a vector of rays (registers; stored once per vector of rays).
 // Watertight: (a, b, w) = (det, V, W) of the winner, divided once at the end; Moller-Trumbore:
 // (a, b) = (u, v). changed: lanes whose hit must be written back.
@@ -531,8 +599,7 @@ HWY_INLINE void StreamT(const RayStreamView& rays, const TriBundleSpan& tris,
   HWY_DASSERT(hits.size == rays.size);
   const size_t n = hn::Lanes(d);
   const V zero = hn::Zero(d), one = hn::Set(d, 1.0f);
-  const V inf = hn::Set(d, std::numeric_limits<float>::infinity());
-  const V flt_max = hn::Set(d, FLT_MAX), min_dir = hn::Set(d, kMinDirection);
+  const V flt_max = hn::Set(d, FLT_MAX);
   const size_t lanes = tris.lanes();
   for (size_t i = 0; i < rays.size; i += n) {
     const auto live = hn::FirstN(d, rays.size - i);  // padded: whole-vector loads are safe
@@ -542,14 +609,7 @@ HWY_INLINE void StreamT(const RayStreamView& rays, const TriBundleSpan& tris,
     const V tmin = hn::Load(d, rays.tmin + i), tmax = hn::Load(d, rays.tmax + i);
     // +inf -> FLT_MAX as in the scalar tests; NaN stays NaN (no hit)
     const V tmax_f = hn::IfThenElse(hn::Gt(tmax, flt_max), flt_max, tmax);
-    // RayIsValid per lane: all six finite (NaN fails Lt), some |d| >= kMinDirection
-    const V adx = hn::Abs(dx), ady = hn::Abs(dy), adz = hn::Abs(dz);
-    auto valid = hn::And(live, hn::And(hn::And(hn::Lt(hn::Abs(ox), inf), hn::Lt(hn::Abs(oy), inf)),
-                                       hn::Lt(hn::Abs(oz), inf)));
-    valid = hn::And(valid, hn::And(hn::And(hn::Lt(adx, inf), hn::Lt(ady, inf)), hn::Lt(adz, inf)));
-    valid = hn::And(
-        valid, hn::Or(hn::Or(hn::Ge(adx, min_dir), hn::Ge(ady, min_dir)), hn::Ge(adz, min_dir)));
-    valid = hn::And(valid, hn::Lt(tmin, tmax_f));  // else (tmin, tmax] is empty (or NaN)
+    const auto valid = StreamRayValid(d, live, ox, oy, oz, dx, dy, dz, tmin, tmax_f);
     if (hn::AllFalse(d, valid)) continue;
 
     StreamBest<D> best;
@@ -559,48 +619,9 @@ HWY_INLINE void StreamT(const RayStreamView& rays, const TriBundleSpan& tris,
     best.changed = hn::Lt(zero, zero);  // all false
 
     if constexpr (kTest == TriTest::kWatertight) {
-      // kz: axis of the largest |d| (first on ties), as PrepareWatertightRay; kx = kz + 1,
-      // ky = kx + 1 (mod 3), swapped where d[kz] < 0 to keep the winding
-      const auto y_gt_x = hn::Gt(ady, adx);
-      const auto kz2 = hn::Gt(adz, hn::IfThenElse(y_gt_x, ady, adx));
-      const auto kz1 = hn::AndNot(kz2, y_gt_x);
-      const auto kz0 = hn::Not(hn::Or(y_gt_x, kz2));
-      const V dkz = PickAxis(kz0, kz1, dx, dy, dz);
-      const auto swap = hn::Lt(dkz, zero);
-      const auto keep = hn::Not(swap);
       StreamRays<D> r;
-      r.kz0 = kz0;
-      r.kz1 = kz1;
-      // unswapped kx = kz + 1: kz = 2 -> 0, kz = 0 -> 1; swapped kx = kz + 2: kz = 1 -> 0, ...
-      r.kx0 = hn::Or(hn::And(kz2, keep), hn::And(kz1, swap));
-      r.kx1 = hn::Or(hn::And(kz0, keep), hn::And(kz2, swap));
-      r.ky0 = hn::Or(hn::And(kz1, keep), hn::And(kz2, swap));
-      r.ky1 = hn::Or(hn::And(kz2, keep), hn::And(kz0, swap));
-      const V dkx = PickAxis(r.kx0, r.kx1, dx, dy, dz);
-      const V dky = PickAxis(r.ky0, r.ky1, dx, dy, dz);
-      r.o0 = PickAxis(r.kx0, r.kx1, ox, oy, oz);
-      r.o1 = PickAxis(r.ky0, r.ky1, ox, oy, oz);
-      r.o2 = PickAxis(kz0, kz1, ox, oy, oz);
-      r.sx = hn::Div(dkx, dkz);
-      r.sy = hn::Div(dky, dkz);
-      r.sz = hn::Div(one, dkz);
-      // one permutation for all valid lanes (coherent rays): broadcast, no blends
-      const auto dead = hn::Not(valid);
-      int kz = -1;
-      if (hn::AllTrue(d, hn::Or(kz0, dead))) kz = 0;
-      if (hn::AllTrue(d, hn::Or(kz1, dead))) kz = 1;
-      if (hn::AllTrue(d, hn::Or(kz2, dead))) kz = 2;
-      const bool all_swap = hn::AllTrue(d, hn::Or(swap, dead));
-      const bool no_swap = hn::AllTrue(d, hn::Or(keep, dead));
-      if (kz >= 0 && (all_swap || no_swap)) {
-        int kx = kz + 1 == 3 ? 0 : kz + 1;
-        int ky = kx + 1 == 3 ? 0 : kx + 1;
-        if (all_swap) {
-          const int tmp = kx;
-          kx = ky;
-          ky = tmp;
-        }
-        const int k[3] = {kx, ky, kz};
+      int k[3];
+      if (SetupStreamRays(d, ox, oy, oz, dx, dy, dz, valid, &r, k)) {
         const float* perm[9];
         for (int vtx = 0; vtx < 3; ++vtx) {
           for (int a = 0; a < 3; ++a) perm[3 * vtx + a] = tris.Component(vtx, k[a]);

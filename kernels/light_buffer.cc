@@ -1,0 +1,341 @@
+// Light buffer build (kernels/light_buffer.h), scalar double: per triangle its distance from the
+// light and its projections on the cube faces, then the lists by a counting sort of the
+// references in ascending reach order. And rs::LightBuffer, the public wrapper.
+#include "kernels/light_buffer.h"
+
+#include <algorithm>
+#include <array>
+#include <cfloat>
+#include <chrono>
+#include <cmath>
+#include <numeric>
+#include <string>
+#include <vector>
+
+#include "kernels/accel_impl.h"
+#include "kernels/grid_binning.h"  // AllocateBuildArray
+
+namespace rs {
+namespace {
+
+using Vec3 = std::array<double, 3>;
+
+Vec3 Sub(const Vec3& a, const Vec3& b) { return {a[0] - b[0], a[1] - b[1], a[2] - b[2]}; }
+double Dot(const Vec3& a, const Vec3& b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
+Vec3 Lerp(const Vec3& a, const Vec3& b, double s) {
+  return {a[0] + (b[0] - a[0]) * s, a[1] + (b[1] - a[1]) * s, a[2] + (b[2] - a[2]) * s};
+}
+
+// Distance from the origin to the triangle (a, b, c), in double: the closest point by Voronoi
+// regions (Ericson, Real-Time Collision Detection, 5.1.5).
+double OriginDistance(const Vec3& a, const Vec3& b, const Vec3& c) {
+  const Vec3 p = {0.0, 0.0, 0.0};
+  const auto dist = [&](const Vec3& q) { return std::sqrt(Dot(q, q)); };
+  const Vec3 ab = Sub(b, a), ac = Sub(c, a), ap = Sub(p, a);
+  const double d1 = Dot(ab, ap), d2 = Dot(ac, ap);
+  if (d1 <= 0.0 && d2 <= 0.0) return dist(a);
+  const Vec3 bp = Sub(p, b);
+  const double d3 = Dot(ab, bp), d4 = Dot(ac, bp);
+  if (d3 >= 0.0 && d4 <= d3) return dist(b);
+  const double vc = d1 * d4 - d3 * d2;
+  if (vc <= 0.0 && d1 >= 0.0 && d3 <= 0.0) return dist(Lerp(a, b, d1 / (d1 - d3)));
+  const Vec3 cp = Sub(p, c);
+  const double d5 = Dot(ab, cp), d6 = Dot(ac, cp);
+  if (d6 >= 0.0 && d5 <= d6) return dist(c);
+  const double vb = d5 * d2 - d1 * d6;
+  if (vb <= 0.0 && d2 >= 0.0 && d6 <= 0.0) return dist(Lerp(a, c, d2 / (d2 - d6)));
+  const double va = d3 * d6 - d5 * d4;
+  if (va <= 0.0 && d4 - d3 >= 0.0 && d5 - d6 >= 0.0) {
+    return dist(Lerp(b, c, (d4 - d3) / ((d4 - d3) + (d5 - d6))));
+  }
+  const double denom = 1.0 / (va + vb + vc);
+  const Vec3 q = {a[0] + ab[0] * vb * denom + ac[0] * vc * denom,
+                  a[1] + ab[1] * vb * denom + ac[1] * vc * denom,
+                  a[2] + ab[2] * vb * denom + ac[2] * vc * denom};
+  return dist(q);
+}
+
+// A triangle's projection on one face: face coordinates, widened by kLightMargin, in [-1, 1].
+struct FaceRect {
+  uint32_t tri;
+  int face;
+  double u0, u1, v0, v1;
+};
+
+// The face of direction q: the axis of the largest |q| (first on ties), as the query picks it.
+int FaceOf(const Vec3& q) {
+  int k = 0;
+  if (std::fabs(q[1]) > std::fabs(q[0])) k = 1;
+  if (std::fabs(q[2]) > std::fabs(q[k])) k = 2;
+  return 2 * k + (q[k] < 0.0 ? 1 : 0);
+}
+
+// The projections of triangle q (vertices relative to the light) on the faces it reaches,
+// appended to *rects. False if the triangle reaches the light itself (some clipped point at the
+// pyramid's apex): it then goes to the list every ray reads.
+bool ProjectTriangle(uint32_t tri, const Vec3 q[3], std::vector<FaceRect>* rects) {
+  const double widen = 1.0 + kLightMargin;
+  const auto add = [&](int face, double u0, double u1, double v0, double v1) {
+    rects->push_back({tri, face, std::max(-1.0, u0 - kLightMargin), std::min(1.0, u1 + kLightMargin),
+                      std::max(-1.0, v0 - kLightMargin), std::min(1.0, v1 + kLightMargin)});
+  };
+  // fast path: the three vertices on one face, strictly inside its (unwidened) pyramid; the
+  // pyramid is convex, so the whole triangle is
+  const int f0 = FaceOf(q[0]);
+  if (FaceOf(q[1]) == f0 && FaceOf(q[2]) == f0) {
+    const int k = f0 >> 1, u = (k + 1) % 3, v = (k + 2) % 3;
+    const double s = (f0 & 1) ? -1.0 : 1.0;
+    double u0 = DBL_MAX, u1 = -DBL_MAX, v0 = DBL_MAX, v1 = -DBL_MAX;
+    bool ok = true;
+    for (int c = 0; c < 3; ++c) {
+      const double z = s * q[c][k];
+      if (!(z > 0.0)) {
+        ok = false;
+        break;
+      }
+      const double pu = q[c][u] / z, pv = q[c][v] / z;
+      u0 = std::min(u0, pu), u1 = std::max(u1, pu);
+      v0 = std::min(v0, pv), v1 = std::max(v1, pv);
+    }
+    if (ok) {
+      add(f0, u0, u1, v0, v1);
+      return true;
+    }
+  }
+  // general case: clip to each face's widened pyramid (|x_u|, |x_v| <= widen s x_k: four planes
+  // through the light), then project the clipped polygon
+  for (int face = 0; face < 6; ++face) {
+    const int k = face >> 1, u = (k + 1) % 3, v = (k + 2) % 3;
+    const double s = (face & 1) ? -1.0 : 1.0;
+    Vec3 poly[9], next[9];
+    int n = 3;
+    for (int c = 0; c < 3; ++c) poly[c] = {q[c][u], q[c][v], s * q[c][k]};
+    for (int plane = 0; plane < 4 && n > 0; ++plane) {
+      const int axis = plane >> 1;
+      const double sign = (plane & 1) ? -1.0 : 1.0;
+      const auto inside = [&](const Vec3& p) { return widen * p[2] - sign * p[axis]; };
+      int m = 0;
+      for (int a = 0; a < n; ++a) {
+        const Vec3& p = poly[a];
+        const Vec3& r = poly[(a + 1) % n];
+        const double dp = inside(p), dr = inside(r);
+        if (dp >= 0.0) next[m++] = p;
+        if ((dp >= 0.0) != (dr >= 0.0)) next[m++] = Lerp(p, r, dp / (dp - dr));
+      }
+      n = m;
+      std::copy(next, next + n, poly);
+    }
+    if (n == 0) continue;
+    double u0 = DBL_MAX, u1 = -DBL_MAX, v0 = DBL_MAX, v1 = -DBL_MAX;
+    for (int a = 0; a < n; ++a) {
+      if (!(poly[a][2] > 0.0)) return false;  // the apex: the triangle touches the light
+      const double pu = poly[a][0] / poly[a][2], pv = poly[a][1] / poly[a][2];
+      u0 = std::min(u0, pu), u1 = std::max(u1, pu);
+      v0 = std::min(v0, pv), v1 = std::max(v1, pv);
+    }
+    add(face, u0, u1, v0, v1);
+  }
+  return true;
+}
+
+// Face coordinate -> cell along one axis, clamped (as the query's).
+int CellOf(double x, int res) {
+  return std::clamp(int(std::floor((x + 1.0) * 0.5 * double(res))), 0, res - 1);
+}
+
+// Largest float <= x (x >= 0).
+float FloatDown(double x) {
+  float f = static_cast<float>(x);
+  if (double(f) > x) f = std::nextafter(f, 0.0f);
+  return f;
+}
+
+}  // namespace
+
+void BuildLightBuffer(const TriangleSoA& tris, const float light[3], double cells_per_triangle,
+                      LightBufferData* out) {
+  LightBufferData& lb = *out;
+  lb = LightBufferData();
+  for (int a = 0; a < 3; ++a) lb.light[a] = light[a];
+  const Vec3 l = {double(light[0]), double(light[1]), double(light[2])};
+  std::vector<float> reach(tris.size, 0.0f);
+  std::vector<FaceRect> rects;
+  rects.reserve(tris.size + tris.size / 8);
+  std::vector<uint32_t> listed, always;  // triangles with projections / touching the light
+  listed.reserve(tris.size);
+  for (size_t i = 0; i < tris.size; ++i) {
+    if (tris.degenerate[i]) continue;
+    Vec3 q[3];
+    double farthest = 0.0;
+    for (int c = 0; c < 3; ++c) {
+      for (int a = 0; a < 3; ++a) q[c][a] = double(tris.p[c][a][i]) - l[a];
+      farthest = std::max(farthest, std::sqrt(Dot(q[c], q[c])));
+    }
+    const double near = OriginDistance(q[0], q[1], q[2]);
+    reach[i] = FloatDown(std::max(
+        0.0, near * (1.0 - kLightReachSlack) - kLightReachSlack * farthest));
+    const size_t before = rects.size();
+    if (near <= 1e-6 * farthest || !ProjectTriangle(uint32_t(i), q, &rects)) {
+      rects.resize(before);
+      always.push_back(uint32_t(i));
+    } else {
+      listed.push_back(uint32_t(i));
+    }
+  }
+  const size_t valid = listed.size() + always.size();
+  if (valid == 0) return;
+  // resolution: about cells_per_triangle cells per triangle, coarsened to the reference budget
+  const size_t budget = kLightRefsPerTriangle * valid + (size_t{1} << 16);
+  int res = std::clamp(int(std::lround(std::sqrt(cells_per_triangle * double(valid) / 6.0))), 1,
+                       kLightMaxRes);
+  const auto count_refs = [&](int r) {
+    size_t refs = 0;
+    for (const FaceRect& f : rects) {
+      refs += size_t(CellOf(f.u1, r) - CellOf(f.u0, r) + 1) *
+              size_t(CellOf(f.v1, r) - CellOf(f.v0, r) + 1);
+    }
+    return refs;
+  };
+  size_t refs = count_refs(res);
+  while (refs > budget && res > 1) {
+    res = std::max(1, int(double(res) * 0.75));
+    refs = count_refs(res);
+  }
+  lb.res = res;
+  lb.half_res = 0.5f * float(res);
+  lb.num_cells = size_t(6) * size_t(res) * size_t(res);
+  lb.num_always = always.size();
+  lb.num_refs = refs + always.size();
+  // references in ascending (reach, id) order: sort the triangles, then a stable counting sort
+  // of their rectangles' cells
+  const auto by_reach = [&](uint32_t a, uint32_t b) {
+    return reach[a] < reach[b] || (reach[a] == reach[b] && a < b);
+  };
+  std::sort(always.begin(), always.end(), by_reach);
+  std::vector<uint32_t> rank(tris.size, 0);
+  {
+    std::vector<uint32_t> order = listed;
+    std::sort(order.begin(), order.end(), by_reach);
+    for (size_t r = 0; r < order.size(); ++r) rank[order[r]] = uint32_t(r);
+  }
+  std::stable_sort(rects.begin(), rects.end(),
+                   [&](const FaceRect& a, const FaceRect& b) { return rank[a.tri] < rank[b.tri]; });
+  lb.cell_begin = AllocateBuildArray<uint32_t>(lb.num_cells + 2, "light buffer cell offsets");
+  const size_t pad = 16;  // one vector of the widest target past the end
+  lb.verts = AllocateBuildArray<float>(9 * lb.num_refs, "light buffer triangles");
+  lb.reach = AllocateBuildArray<float>(lb.num_refs + pad, "light buffer reaches");
+  uint32_t* begin = lb.cell_begin.get();
+  std::fill(begin, begin + lb.num_cells + 2, 0u);
+  const auto for_cells = [&](const FaceRect& f, const auto& fn) {
+    const size_t base = size_t(f.face) * size_t(res) * size_t(res);
+    const int x0 = CellOf(f.u0, res), x1 = CellOf(f.u1, res);
+    const int y0 = CellOf(f.v0, res), y1 = CellOf(f.v1, res);
+    for (int y = y0; y <= y1; ++y) {
+      for (int x = x0; x <= x1; ++x) fn(base + size_t(y) * size_t(res) + size_t(x));
+    }
+  };
+  for (const FaceRect& f : rects) for_cells(f, [&](size_t c) { ++begin[c + 1]; });
+  begin[lb.num_cells + 1] = uint32_t(always.size());
+  for (size_t c = 0; c <= lb.num_cells; ++c) begin[c + 1] += begin[c];
+  std::vector<uint32_t> cursor(begin, begin + lb.num_cells + 1);
+  float* verts = lb.verts.get();
+  float* rch = lb.reach.get();
+  const auto put = [&](uint32_t at, uint32_t tri) {
+    for (int c = 0; c < 3; ++c) {
+      for (int a = 0; a < 3; ++a) verts[9 * size_t(at) + 3 * c + a] = tris.p[c][a][tri];
+    }
+    rch[at] = reach[tri];
+  };
+  for (const FaceRect& f : rects) for_cells(f, [&](size_t c) { put(cursor[c]++, f.tri); });
+  for (size_t a = 0; a < always.size(); ++a) put(uint32_t(cursor[lb.num_cells] + a), always[a]);
+  for (size_t p = 0; p < pad; ++p) rch[lb.num_refs + p] = FLT_MAX;
+}
+
+// ---- rs::LightBuffer -------------------------------------------------------------------------
+
+struct LightBuffer::Impl {
+  const Accel* accel = nullptr;
+  LightBufferData data;
+  double build_seconds = 0.0;
+};
+
+LightBuffer::LightBuffer(const Accel& accel, const float light[3])
+    : impl_(std::make_unique<Impl>()) {
+  const auto start = std::chrono::steady_clock::now();
+  if (light == nullptr || !std::isfinite(light[0]) || !std::isfinite(light[1]) ||
+      !std::isfinite(light[2])) {
+    throw Error("LightBuffer: the light position must be three finite numbers");
+  }
+  impl_->accel = &accel;
+  const Accel::Impl& m = AccelImpl(accel);
+  BuildLightBuffer(m.triangles, light, kLightCellsPerTriangle, &impl_->data);
+  impl_->build_seconds =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+}
+
+LightBuffer::~LightBuffer() = default;
+LightBuffer::LightBuffer(LightBuffer&&) noexcept = default;
+LightBuffer& LightBuffer::operator=(LightBuffer&&) noexcept = default;
+
+void LightBuffer::Occluded(const RayStreamView& rays, int32_t* occluded, TraceStats* stats) const {
+  if (!impl_) throw Error("LightBuffer::Occluded: this LightBuffer was moved from");
+  const Impl& m = *impl_;
+  if (rays.size == 0) return;
+  const float* arrays[] = {rays.ox, rays.oy, rays.oz, rays.dx, rays.dy, rays.dz, rays.tmin,
+                           rays.tmax};
+  for (const float* a : arrays) {
+    if (a == nullptr) {
+      throw Error("LightBuffer::Occluded: a ray array is null for " + std::to_string(rays.size) +
+                  " rays");
+    }
+  }
+  if (occluded == nullptr) {
+    throw Error("LightBuffer::Occluded: occluded is null for " + std::to_string(rays.size) +
+                " rays");
+  }
+  // chunks of rays copied to aligned, padded arrays (the kernel loads whole vectors); those not
+  // starting at the light go to the Accel from the same copy
+  constexpr size_t kChunk = 256;
+  alignas(kStreamAlign) float f[8][kChunk];
+  alignas(kStreamAlign) int32_t result[kChunk];
+  uint32_t far[kChunk];
+  const float* const src[8] = {rays.ox, rays.oy, rays.oz, rays.dx, rays.dy, rays.dz, rays.tmin,
+                               rays.tmax};
+  for (size_t first = 0; first < rays.size; first += kChunk) {
+    const size_t n = std::min(kChunk, rays.size - first);
+    for (int a = 0; a < 8; ++a) {
+      std::copy(src[a] + first, src[a] + first + n, f[a]);
+      std::fill(f[a] + n, f[a] + PaddedSize(n), 0.0f);
+    }
+    RayStreamView part{};
+    part.ox = f[0], part.oy = f[1], part.oz = f[2];
+    part.dx = f[3], part.dy = f[4], part.dz = f[5];
+    part.tmin = f[6], part.tmax = f[7];
+    part.size = n;
+    size_t num_far = 0;
+    OccludedLightBuffer(m.data, part, result, far, &num_far, stats);
+    std::copy(result, result + n, occluded + first);
+    if (num_far == 0) continue;
+    for (int a = 0; a < 8; ++a) {
+      for (size_t j = 0; j < num_far; ++j) f[a][j] = f[a][far[j]];  // far ascends: in place
+    }
+    part.size = num_far;
+    m.accel->Occluded(part, result, stats);
+    for (size_t j = 0; j < num_far; ++j) occluded[first + far[j]] = result[j];
+  }
+}
+
+LightBufferInfo LightBuffer::Info() const {
+  if (!impl_) throw Error("LightBuffer::Info: this LightBuffer was moved from");
+  const LightBufferData& d = impl_->data;
+  LightBufferInfo info;
+  info.resolution = d.res;
+  info.cells = d.num_cells;
+  info.references = d.num_refs;
+  info.always = d.num_always;
+  info.bytes = d.Bytes();
+  info.build_seconds = impl_->build_seconds;
+  return info;
+}
+
+}  // namespace rs

@@ -1,0 +1,74 @@
+// Light buffer (Haines & Greenberg 1986, "The light buffer: a shadow-testing accelerator"): the
+// triangles of a scene binned by the directions under which one point light sees them, on the
+// six faces of a cube around the light, each cell listing its triangles by ascending distance.
+// A shadow ray traced from the light reads the one cell of its direction and tests that cell's
+// triangles nearer than its far end; no cell walk. rs::LightBuffer (raystream.h) wraps it.
+//
+// Why a cell lists every triangle a ray of its directions can hit (the lists are conservative):
+// the watertight test (kernels/triangle.h) translates the vertices to the ray origin, here the
+// light, in float (rounding relative to each vertex's distance from the light) and decides the
+// edge functions on those coordinates; what it accepts lies within a few float ulps of angle of
+// the triangle as seen from the light. A triangle is binned into every cell its projection,
+// clipped to the face's pyramid widened by kLightMargin and enlarged by kLightMargin (about 840
+// float ulps) on each side, overlaps; the ray's face coordinates are rounded once or twice.
+// Triangles that pass within 1e-6 of their size of the light (or through it) have no stable
+// projection and are listed in an extra list every ray reads.
+// Why the distance cut is exact: a triangle at distance `near` from the light is hit at t with
+// t |d| >= near up to the rounding of t (relative to the vertices' distances); each reference
+// stores reach = near (1 - kLightReachSlack) - kLightReachSlack x (farthest vertex distance),
+// rounded down, and a ray with tmax stops reading its cell at the first reach > tmax |d|
+// (rounded up).
+#pragma once
+
+#include <hwy/aligned_allocator.h>
+
+#include <cstddef>
+#include <cstdint>
+
+#include "include/raystream/raystream.h"
+#include "kernels/triangle.h"
+
+namespace rs {
+
+inline constexpr double kLightMargin = 1e-4;       // face coordinates (tangents in [-1, 1])
+inline constexpr double kLightReachSlack = 1e-5;   // relative, see above
+inline constexpr double kLightCellsPerTriangle = 1.0;
+inline constexpr size_t kLightRefsPerTriangle = 8;  // reference budget, as the grid's
+inline constexpr int kLightMaxRes = 2048;           // cells per face axis
+
+struct LightBufferData {
+  float light[3] = {0.0f, 0.0f, 0.0f};
+  int res = 0;              // cells per face axis; 0: no triangle can be hit
+  float half_res = 0.0f;    // res / 2: cell x = (u + 1) res / 2 for face coordinate u
+  size_t num_cells = 0;     // 6 res^2; cell num_cells is the list every ray reads
+  size_t num_refs = 0;
+  size_t num_always = 0;    // length of that list
+  // Face f = 2 k + (d[k] < 0) for the axis k of the largest |d|; its u, v axes are k + 1, k + 2
+  // (mod 3); cell (f, x, y) = (f res + y) res + x.
+  hwy::AlignedFreeUniquePtr<uint32_t[]> cell_begin;  // num_cells + 2 offsets
+  // per reference, in list order: the triangle's vertices (x0 y0 z0 x1 ... z2: a list is read
+  // front to back, so its triangles stream through the caches instead of 9 scattered loads
+  // from the triangle SoA each) and its reach, ascending in each cell
+  hwy::AlignedFreeUniquePtr<float[]> verts;  // 9 num_refs
+  hwy::AlignedFreeUniquePtr<float[]> reach;  // num_refs (+ FLT_MAX padding)
+
+  bool empty() const { return res == 0; }
+  size_t Bytes() const { return (num_cells + 2) * 4 + num_refs * 40; }
+};
+
+// Builds the light buffer of `tris` (non-degenerate triangles only) for a light at `light`
+// (finite; the caller checks). cells_per_triangle: about that many cells per triangle, lowered
+// while the references would pass kLightRefsPerTriangle per triangle. Throws rs::Error if an
+// allocation fails.
+void BuildLightBuffer(const TriangleSoA& tris, const float light[3], double cells_per_triangle,
+                      LightBufferData* out);
+
+// Any hit with t in (tmin, tmax] of the rays [0, size) that start exactly at the light (origin
+// == light, all three components) with tmin >= 0: occluded[i] = 1 or 0, the result of Accel::Occluded bit for
+// bit. The others are left to the caller: their indices are written to far[0, *num_far) in
+// ascending order (far holds rays.size entries). stats: rays (at the light), cell_steps (cells
+// read: one or two per ray), triangle_tests (lanes tested). No allocation.
+void OccludedLightBuffer(const LightBufferData& lb, const RayStreamView& rays, int32_t* occluded,
+                         uint32_t* far, size_t* num_far, TraceStats* stats);
+
+}  // namespace rs

@@ -1,0 +1,336 @@
+// rs::LightBuffer (kernels/light_buffer.h) on every compiled target against Accel::Occluded on
+// the same rays (itself the exact watertight any-hit, checked against the scalar walk in
+// packet_dda_test): the same occlusion for every ray. Rays from the light to the vertices, edge
+// midpoints and random points of every triangle, with tmax 1, just below 1, 0.5 and +inf, and in
+// random directions; lights inside and outside the scenes, at a mesh vertex, on a triangle's
+// plane and on face-diagonal directions; scenes at 1.5e5 and scaled by 1e-3; NaN, Inf and zero
+// directions, tmin < 0 and rays not from the light in the same stream; an empty mesh; reference
+// budgets for 10,000 identical triangles and a 30,000-triangle fan.
+#include <doctest/doctest.h>
+
+#include <array>
+#include <cmath>
+#include <cstdint>
+#include <string>
+#include <vector>
+
+#include "include/raystream/raystream.h"
+#include "scenes/icosphere.h"
+#include "scenes/load.h"
+#include "streams/ray_stream.h"
+#include "tests/kernels/dda_util.h"
+#include "tests/kernels/geometry_util.h"
+#include "tests/test_util.h"
+
+namespace rs {
+namespace {
+
+using test::F;
+using test::kInf;
+using test::kNaN;
+using test::MakeStream;
+using test::Ray;
+using test::Rng;
+using test::Soup;
+
+// Rays from `light` to points of every triangle of `mesh` (vertices, edge midpoints, a random
+// interior point, each with several tmax) and in random directions.
+std::vector<Ray> LightRays(const MeshView& mesh, const float light[3], Rng& rng, size_t max_tris) {
+  std::vector<Ray> rays;
+  const size_t step = std::max<size_t>(1, mesh.num_triangles / max_tris);
+  const float tmaxes[] = {1.0f, F(1.0 - 1e-6), 0.5f, kInf};
+  for (size_t i = 0; i < mesh.num_triangles; i += step) {
+    double p[3][3];
+    for (int k = 0; k < 3; ++k) {
+      const float* v = mesh.positions + size_t{mesh.indices[3 * i + k]} * mesh.stride;
+      for (int a = 0; a < 3; ++a) p[k][a] = v[a];
+    }
+    double targets[7][3];
+    const double u = rng.Uniform(0, 1), w = rng.Uniform(0, 1 - u);
+    for (int a = 0; a < 3; ++a) {
+      for (int k = 0; k < 3; ++k) targets[k][a] = p[k][a];
+      targets[3][a] = 0.5 * (p[0][a] + p[1][a]);
+      targets[4][a] = 0.5 * (p[1][a] + p[2][a]);
+      targets[5][a] = 0.5 * (p[2][a] + p[0][a]);
+      targets[6][a] = (1 - u - w) * p[0][a] + u * p[1][a] + w * p[2][a];
+    }
+    for (int t = 0; t < 7; ++t) {
+      Ray r;
+      for (int a = 0; a < 3; ++a) {
+        r.o[a] = light[a];
+        r.d[a] = F(targets[t][a] - double(light[a]));
+      }
+      r.tmin = 0.0f;
+      r.tmax = tmaxes[(i + size_t(t)) % 4];
+      rays.push_back(r);
+    }
+    Ray r;
+    for (int a = 0; a < 3; ++a) r.o[a] = light[a];
+    rng.Direction(r.d);
+    r.tmin = 0.0f;
+    r.tmax = kInf;
+    rays.push_back(r);
+  }
+  return rays;
+}
+
+// LightBuffer::Occluded equals Accel::Occluded on `rays`, on every target; returns the
+// occluded count.
+size_t CheckSame(const Accel& accel, const LightBuffer& lb, const std::vector<Ray>& rays,
+                 const std::string& what) {
+  RayStream s = MakeStream(rays);
+  std::vector<int32_t> want(rays.size() + 16, -7);
+  accel.Occluded(s.view(), want.data());
+  size_t occluded = 0;
+  for (size_t i = 0; i < rays.size(); ++i) occluded += want[i] != 0;
+  test::ForEachTarget([&](const char* target) {
+    std::vector<int32_t> got(rays.size() + 16, -7);
+    TraceStats st;
+    lb.Occluded(s.view(), got.data(), &st);
+    size_t differ = 0, first = rays.size();
+    for (size_t i = 0; i < rays.size(); ++i) {
+      if (got[i] != want[i]) {
+        if (differ++ == 0) first = i;
+      }
+    }
+    INFO(what, " on ", target, ": first differing ray ", first);
+    CHECK(differ == 0);
+    CHECK(got[rays.size()] == -7);  // nothing written past the end
+  });
+  return occluded;
+}
+
+void CheckScene(const MeshView& mesh, const std::vector<std::array<float, 3>>& lights,
+                const std::string& what, size_t max_tris = 4000) {
+  const Accel accel(mesh);
+  Rng rng(7);
+  for (const auto& l : lights) {
+    const LightBuffer lb(accel, l.data());
+    const LightBufferInfo info = lb.Info();
+    CHECK(info.references <= 8 * mesh.num_triangles + (size_t{1} << 16) + info.always);
+    const std::vector<Ray> rays = LightRays(mesh, l.data(), rng, max_tris);
+    const size_t occluded = CheckSame(accel, lb, rays, what);
+    MESSAGE(what, ": light (", l[0], ", ", l[1], ", ", l[2], "): ", rays.size(), " rays, ",
+            occluded, " occluded, resolution ", info.resolution, ", ", info.references,
+            " references, ", info.always, " always");
+  }
+}
+
+std::vector<float> Positions(const Scene& scene) {
+  const MeshView m = scene.mesh();
+  std::vector<float> p(m.num_vertices * 3);
+  for (size_t v = 0; v < m.num_vertices; ++v) {
+    for (int a = 0; a < 3; ++a) p[3 * v + a] = m.positions[v * m.stride + a];
+  }
+  return p;
+}
+
+TEST_CASE("light buffer: built-in scenes, lights inside, outside, at a vertex, on a plane") {
+  for (const char* name : {"erw6", "cornell", "spherebox"}) {
+    const Scene scene = LoadScene(name);
+    const MeshView mesh = scene.mesh();
+    float lo[3] = {INFINITY, INFINITY, INFINITY}, hi[3] = {-INFINITY, -INFINITY, -INFINITY};
+    for (size_t v = 0; v < mesh.num_vertices; ++v) {
+      for (int a = 0; a < 3; ++a) {
+        lo[a] = std::min(lo[a], mesh.positions[v * mesh.stride + a]);
+        hi[a] = std::max(hi[a], mesh.positions[v * mesh.stride + a]);
+      }
+    }
+    std::vector<std::array<float, 3>> lights;
+    const float* v0 = mesh.positions + size_t{mesh.indices[0]} * mesh.stride;
+    const float* v1 = mesh.positions + size_t{mesh.indices[1]} * mesh.stride;
+    lights.push_back({F(0.5 * (lo[0] + hi[0])), F(lo[1] + 0.95 * (hi[1] - lo[1])),
+                      F(0.5 * (lo[2] + hi[2]))});                       // inside, near the top
+    lights.push_back({F(0.3 * lo[0] + 0.7 * hi[0]), F(0.5 * (lo[1] + hi[1])),
+                      F(0.6 * lo[2] + 0.4 * hi[2])});                   // inside
+    lights.push_back({F(hi[0] + 2.0 * (hi[0] - lo[0])), F(hi[1] + 1.0), F(lo[2] - 3.0)});  // out
+    lights.push_back({v0[0], v0[1], v0[2]});                            // at a vertex
+    lights.push_back({F(0.5 * (double(v0[0]) + v1[0])), F(0.5 * (double(v0[1]) + v1[1])),
+                      F(0.5 * (double(v0[2]) + v1[2]))});               // on an edge
+    CheckScene(mesh, lights, name);
+  }
+}
+
+TEST_CASE("light buffer: a closed sphere around and beside the light, at the origin and at 1.5e5") {
+  for (const double cx : {0.0, 148376.0}) {
+    const Icosphere s = MakeIcosphere(4, 1.0, {cx, cx == 0.0 ? 0.0 : 1234.0, -cx}, cx == 0 ? 0 : 64);
+    Soup soup;
+    for (const auto& t : s.tri) soup.AddTriangle(s.v[t[0]].data(), s.v[t[1]].data(), s.v[t[2]].data());
+    const float y = cx == 0.0 ? 0.0f : 1234.0f;
+    // inside: every ray from the centre is blocked (closed mesh: no leaks); outside
+    std::vector<std::array<float, 3>> lights = {{F(cx), y, F(-cx)},
+                                                {F(cx + 0.25), F(y + 0.125), F(-cx)},
+                                                {F(cx + 3.0), F(y + 2.0), F(-cx - 1.0)}};
+    CheckScene(soup.view(), lights, cx == 0 ? "sphere at 0" : "sphere at 1.5e5");
+    // from the centre, rays towards every vertex and edge midpoint with tmax = 2: all blocked
+    const Accel accel(soup.view());
+    const LightBuffer lb(accel, lights[0].data());
+    std::vector<Ray> rays;
+    Rng rng(3);
+    for (size_t k = 0; k < 4000; ++k) {
+      Ray r;
+      for (int a = 0; a < 3; ++a) r.o[a] = lights[0][a];
+      if (k < s.v.size()) {
+        for (int a = 0; a < 3; ++a) r.d[a] = F(double(s.v[k][a]) - double(lights[0][a]));
+      } else {
+        rng.Direction(r.d);
+      }
+      r.tmin = 0.0f;
+      r.tmax = 4.0f;
+      rays.push_back(r);
+    }
+    CHECK(CheckSame(accel, lb, rays, "sphere centre") == rays.size());
+  }
+}
+
+TEST_CASE("light buffer: axis and face-diagonal directions, tiny scale") {
+  // a box of quads around the light, scaled by 1e-3: rays along the axes and along |dx| = |dy|
+  // (the edges between cube faces) and |dx| = |dy| = |dz| (the corners)
+  Soup soup;
+  const double s = 1e-3;
+  for (int axis = 0; axis < 3; ++axis) {
+    for (const double side : {-1.0, 1.0}) {
+      for (int i = 0; i < 8; ++i) {
+        for (int j = 0; j < 8; ++j) {
+          float q[4][3];
+          for (int c = 0; c < 4; ++c) {
+            const double u = -1.0 + 0.25 * (i + (c == 1 || c == 2)), w = -1.0 + 0.25 * (j + (c >= 2));
+            q[c][axis] = F(side * s);
+            q[c][(axis + 1) % 3] = F(u * s);
+            q[c][(axis + 2) % 3] = F(w * s);
+          }
+          soup.AddTriangle(q[0], q[1], q[2]);
+          soup.AddTriangle(q[0], q[2], q[3]);
+        }
+      }
+    }
+  }
+  const Accel accel(soup.view());
+  const float light[3] = {0.0f, 0.0f, 0.0f};
+  const LightBuffer lb(accel, light);
+  std::vector<Ray> rays;
+  const float e = 1e-3f;
+  for (int x = -1; x <= 1; ++x) {
+    for (int y = -1; y <= 1; ++y) {
+      for (int z = -1; z <= 1; ++z) {
+        if (x == 0 && y == 0 && z == 0) continue;
+        for (const float len : {1.0f, 0.5f, 2.0f}) {
+          for (const float tmax : {0.999f, 1.0f, kInf}) {
+            Ray r;
+            r.o[0] = r.o[1] = r.o[2] = 0.0f;
+            r.d[0] = x * e * len, r.d[1] = y * e * len, r.d[2] = z * e * len;
+            r.tmax = tmax;
+            rays.push_back(r);
+            // just off the diagonal, both ways
+            Ray q = r;
+            q.d[0] = std::nextafter(q.d[0], 1.0f);
+            rays.push_back(q);
+            q.d[0] = std::nextafter(r.d[0], -1.0f);
+            rays.push_back(q);
+          }
+        }
+      }
+    }
+  }
+  Rng rng(11);
+  const std::vector<Ray> more = LightRays(soup.view(), light, rng, 1000);
+  rays.insert(rays.end(), more.begin(), more.end());
+  const size_t occluded = CheckSame(accel, lb, rays, "box of quads");
+  CHECK(occluded > rays.size() / 2);
+}
+
+TEST_CASE("light buffer: invalid rays, tmin < 0, rays not from the light, empty mesh") {
+  const Scene scene = LoadScene("cornell");
+  const Accel accel(scene.mesh());
+  const std::vector<float> p = Positions(scene);
+  const float light[3] = {F(0.5 * (p[0] + p[3])), F(0.5 * (p[1] + p[4]) + 0.01), F(p[2] + 0.01)};
+  const LightBuffer lb(accel, light);
+  Rng rng(5);
+  std::vector<Ray> rays = LightRays(scene.mesh(), light, rng, 300);
+  const size_t n = rays.size();
+  for (size_t i = 0; i < n; i += 3) {
+    Ray r = rays[i];
+    switch (i % 7) {
+      case 0: r.d[1] = kNaN; break;
+      case 1: r.d[0] = r.d[1] = r.d[2] = 0.0f; break;
+      case 2: r.d[2] = kInf; break;
+      case 3: r.tmin = -1.0f; break;              // behind the light too: the Accel's
+      case 4: r.o[0] = std::nextafter(r.o[0], kInf); break;  // not from the light
+      case 5: r.o[1] = kNaN; break;
+      default: r.tmin = kNaN; break;
+    }
+    rays.push_back(r);
+    rays.insert(rays.begin() + long(i), r);  // mixed into runs of light rays
+  }
+  CheckSame(accel, lb, rays, "invalid and foreign rays");
+  // an unaligned, unpadded stream of 37 rays (the public contract: any alignment, exact size)
+  std::vector<float> a[8];
+  for (auto& v : a) v.resize(38);
+  for (size_t i = 0; i < 37; ++i) {
+    const Ray& r = rays[i];
+    const float f[8] = {r.o[0], r.o[1], r.o[2], r.d[0], r.d[1], r.d[2], r.tmin, r.tmax};
+    for (int c = 0; c < 8; ++c) a[c][i + 1] = f[c];
+  }
+  RayStreamView v{};
+  v.ox = a[0].data() + 1, v.oy = a[1].data() + 1, v.oz = a[2].data() + 1;
+  v.dx = a[3].data() + 1, v.dy = a[4].data() + 1, v.dz = a[5].data() + 1;
+  v.tmin = a[6].data() + 1, v.tmax = a[7].data() + 1;
+  v.size = 37;
+  std::vector<int32_t> got(38, -7), want(38, -7);
+  lb.Occluded(v, got.data());
+  accel.Occluded(v, want.data());
+  CHECK(got == want);
+  // errors
+  CHECK_THROWS_AS(lb.Occluded(v, nullptr), Error);
+  const float bad[3] = {0.0f, kNaN, 0.0f};
+  CHECK_THROWS_AS(LightBuffer(accel, bad), Error);
+  // an empty mesh never occludes
+  const Accel none(MeshView{});
+  const LightBuffer empty(none, light);
+  CHECK(empty.Info().resolution == 0);
+  std::vector<int32_t> out(rays.size() + 16, -7);
+  RayStream s = MakeStream(rays);
+  empty.Occluded(s.view(), out.data());
+  for (size_t i = 0; i < rays.size(); ++i) CHECK(out[i] == 0);
+}
+
+TEST_CASE("light buffer: references within budget for identical triangles and a long fan") {
+  Soup same, fan;
+  const float a[3] = {0.0f, 0.0f, 0.0f}, b[3] = {1.0f, 0.0f, 0.0f}, c[3] = {0.0f, 1.0f, 0.0f};
+  for (int i = 0; i < 10000; ++i) same.AddTriangle(a, b, c);
+  const int corners = 30000;
+  const float centre[3] = {0.0f, 0.0f, 0.0f};
+  for (int i = 0; i < corners; ++i) {
+    const double t0 = 2 * M_PI * i / corners, t1 = 2 * M_PI * (i + 1) / corners;
+    const float p[3] = {F(std::cos(t0)), F(std::sin(t0)), 0.0f};
+    const float q[3] = {F(std::cos(t1)), F(std::sin(t1)), 0.0f};
+    fan.AddTriangle(centre, p, q);
+  }
+  const std::vector<std::array<float, 3>> lights = {{0.25f, 0.25f, 0.5f}, {0.1f, 0.2f, -3.0f}};
+  CheckScene(same.view(), lights, "10,000 identical triangles", 50);
+  CheckScene(fan.view(), lights, "30,000-triangle fan", 3000);
+}
+
+TEST_CASE("light buffer: shared scenes, the benchmark light") {
+  for (const char* name : {"bunny", "sponza"}) {
+    if (!test::HaveSharedScene(name == std::string("bunny") ? "bunny/bun_zipper.ply"
+                                                             : "sponza/sponza.obj")) {
+      continue;
+    }
+    const Scene scene = LoadScene(name);
+    const MeshView mesh = scene.mesh();
+    float lo[3] = {INFINITY, INFINITY, INFINITY}, hi[3] = {-INFINITY, -INFINITY, -INFINITY};
+    for (size_t v = 0; v < mesh.num_vertices; ++v) {
+      for (int k = 0; k < 3; ++k) {
+        lo[k] = std::min(lo[k], mesh.positions[v * mesh.stride + k]);
+        hi[k] = std::max(hi[k], mesh.positions[v * mesh.stride + k]);
+      }
+    }
+    const std::vector<std::array<float, 3>> lights = {
+        {F(0.5 * (lo[0] + hi[0])), F(lo[1] + 0.95 * (hi[1] - lo[1])), F(0.5 * (lo[2] + hi[2]))}};
+    CheckScene(mesh, lights, name, test::kSlowBuild ? 2000 : 20000);
+  }
+}
+
+}  // namespace
+}  // namespace rs
