@@ -143,10 +143,15 @@ int CellOf(double x, int res) {
   return std::clamp(int(std::floor((x + 1.0) * 0.5 * double(res))), 0, res - 1);
 }
 
-// Largest float <= x (x >= 0).
-float FloatDown(double x) {
+// The float nearest to x below (at most x) and above (at least x).
+float FloatBelow(double x) {
   float f = static_cast<float>(x);
-  if (double(f) > x) f = std::nextafter(f, 0.0f);
+  if (double(f) > x) f = std::nextafter(f, -FLT_MAX);
+  return f;
+}
+float FloatAbove(double x) {
+  float f = static_cast<float>(x);
+  if (double(f) < x) f = std::nextafter(f, FLT_MAX);
   return f;
 }
 
@@ -172,7 +177,7 @@ void BuildLightBuffer(const TriangleSoA& tris, const float light[3], double cell
       farthest = std::max(farthest, std::sqrt(Dot(q[c], q[c])));
     }
     const double near = OriginDistance(q[0], q[1], q[2]);
-    reach[i] = FloatDown(std::max(
+    reach[i] = FloatBelow(std::max(
         0.0, near * (1.0 - kLightReachSlack) - kLightReachSlack * farthest));
     const size_t before = rects.size();
     if (near <= 1e-6 * farthest || !ProjectTriangle(uint32_t(i), q, &rects)) {
@@ -221,9 +226,11 @@ void BuildLightBuffer(const TriangleSoA& tris, const float light[3], double cell
   std::stable_sort(rects.begin(), rects.end(),
                    [&](const FaceRect& a, const FaceRect& b) { return rank[a.tri] < rank[b.tri]; });
   lb.cell_begin = AllocateBuildArray<uint32_t>(lb.num_cells + 2, "light buffer cell offsets");
-  const size_t pad = 16;  // one vector of the widest target past the end
+  const size_t pad = 16;  // one vector of the widest target
+  for (auto* a : {&lb.reach, &lb.u0, &lb.u1, &lb.v0, &lb.v1}) {
+    *a = AllocateBuildArray<float>(lb.num_refs + pad, "light buffer references");
+  }
   lb.verts = AllocateBuildArray<float>(9 * lb.num_refs, "light buffer triangles");
-  lb.reach = AllocateBuildArray<float>(lb.num_refs + pad, "light buffer reaches");
   uint32_t* begin = lb.cell_begin.get();
   std::fill(begin, begin + lb.num_cells + 2, 0u);
   const auto for_cells = [&](const FaceRect& f, const auto& fn) {
@@ -238,17 +245,27 @@ void BuildLightBuffer(const TriangleSoA& tris, const float light[3], double cell
   begin[lb.num_cells + 1] = uint32_t(always.size());
   for (size_t c = 0; c <= lb.num_cells; ++c) begin[c + 1] += begin[c];
   std::vector<uint32_t> cursor(begin, begin + lb.num_cells + 1);
-  float* verts = lb.verts.get();
-  float* rch = lb.reach.get();
-  const auto put = [&](uint32_t at, uint32_t tri) {
+  const auto put = [&](uint32_t at, uint32_t tri, const FaceRect* f) {
+    lb.reach[at] = reach[tri];
+    // the rectangle rounded outwards (the whole face for the list every ray reads)
+    lb.u0[at] = f ? FloatBelow(f->u0) : -FLT_MAX;
+    lb.u1[at] = f ? FloatAbove(f->u1) : FLT_MAX;
+    lb.v0[at] = f ? FloatBelow(f->v0) : -FLT_MAX;
+    lb.v1[at] = f ? FloatAbove(f->v1) : FLT_MAX;
+    float* rec = lb.verts.get() + 9 * size_t(at);
     for (int c = 0; c < 3; ++c) {
-      for (int a = 0; a < 3; ++a) verts[9 * size_t(at) + 3 * c + a] = tris.p[c][a][tri];
+      for (int a = 0; a < 3; ++a) rec[3 * c + a] = tris.p[c][a][tri];
     }
-    rch[at] = reach[tri];
   };
-  for (const FaceRect& f : rects) for_cells(f, [&](size_t c) { put(cursor[c]++, f.tri); });
-  for (size_t a = 0; a < always.size(); ++a) put(uint32_t(cursor[lb.num_cells] + a), always[a]);
-  for (size_t p = 0; p < pad; ++p) rch[lb.num_refs + p] = FLT_MAX;
+  for (const FaceRect& f : rects) for_cells(f, [&](size_t c) { put(cursor[c]++, f.tri, &f); });
+  for (size_t a = 0; a < always.size(); ++a) {
+    put(uint32_t(cursor[lb.num_cells] + a), always[a], nullptr);
+  }
+  for (size_t p = lb.num_refs; p < lb.num_refs + pad; ++p) {
+    lb.reach[p] = FLT_MAX;
+    lb.u0[p] = lb.v0[p] = FLT_MAX;
+    lb.u1[p] = lb.v1[p] = -FLT_MAX;
+  }
 }
 
 // ---- rs::LightBuffer -------------------------------------------------------------------------
@@ -293,34 +310,47 @@ void LightBuffer::Occluded(const RayStreamView& rays, int32_t* occluded, TraceSt
     throw Error("LightBuffer::Occluded: occluded is null for " + std::to_string(rays.size) +
                 " rays");
   }
-  // chunks of rays copied to aligned, padded arrays (the kernel loads whole vectors); those not
-  // starting at the light go to the Accel from the same copy
-  constexpr size_t kChunk = 256;
-  alignas(kStreamAlign) float f[8][kChunk];
-  alignas(kStreamAlign) int32_t result[kChunk];
-  uint32_t far[kChunk];
-  const float* const src[8] = {rays.ox, rays.oy, rays.oz, rays.dx, rays.dy, rays.dz, rays.tmin,
-                               rays.tmax};
-  for (size_t first = 0; first < rays.size; first += kChunk) {
-    const size_t n = std::min(kChunk, rays.size - first);
-    for (int a = 0; a < 8; ++a) {
-      std::copy(src[a] + first, src[a] + first + n, f[a]);
-      std::fill(f[a] + n, f[a] + PaddedSize(n), 0.0f);
-    }
-    RayStreamView part{};
-    part.ox = f[0], part.oy = f[1], part.oz = f[2];
-    part.dx = f[3], part.dy = f[4], part.dz = f[5];
-    part.tmin = f[6], part.tmax = f[7];
-    part.size = n;
+  // chunks of whole vectors traced in place (the kernel loads and stores whole vectors, so the
+  // last size % kStreamPad rays go through a padded copy); rays not starting at the light go to
+  // the Accel through a copy
+  alignas(kStreamAlign) float f[8][kLightChunk];
+  alignas(kStreamAlign) int32_t result[kLightChunk];
+  uint32_t far[kLightChunk];
+  float* const src[8] = {rays.ox, rays.oy, rays.oz, rays.dx, rays.dy, rays.dz, rays.tmin,
+                         rays.tmax};
+  const auto view = [](float* const a[8], size_t offset, size_t n) {
+    RayStreamView v{};
+    v.ox = a[0] + offset, v.oy = a[1] + offset, v.oz = a[2] + offset;
+    v.dx = a[3] + offset, v.dy = a[4] + offset, v.dz = a[5] + offset;
+    v.tmin = a[6] + offset, v.tmax = a[7] + offset;
+    v.size = n;
+    return v;
+  };
+  float* const copy[8] = {f[0], f[1], f[2], f[3], f[4], f[5], f[6], f[7]};
+  const size_t body = rays.size / kStreamPad * kStreamPad;
+  for (size_t first = 0; first < rays.size; first += kLightChunk) {
+    const size_t n = std::min(kLightChunk, rays.size - first);
     size_t num_far = 0;
-    OccludedLightBuffer(m.data, part, result, far, &num_far, stats);
-    std::copy(result, result + n, occluded + first);
-    if (num_far == 0) continue;
-    for (int a = 0; a < 8; ++a) {
-      for (size_t j = 0; j < num_far; ++j) f[a][j] = f[a][far[j]];  // far ascends: in place
+    RayStreamView part;
+    if (first + n <= body) {
+      part = view(src, first, n);
+      OccludedLightBuffer(m.data, part, occluded + first, far, &num_far, stats);
+    } else {  // the tail: fewer than kStreamPad rays
+      for (int a = 0; a < 8; ++a) {
+        std::copy(src[a] + first, src[a] + first + n, f[a]);
+        std::fill(f[a] + n, f[a] + PaddedSize(n), 0.0f);
+      }
+      part = view(copy, 0, n);
+      OccludedLightBuffer(m.data, part, result, far, &num_far, stats);
+      std::copy(result, result + n, occluded + first);
     }
-    part.size = num_far;
-    m.accel->Occluded(part, result, stats);
+    if (num_far == 0) continue;
+    const float* const from[8] = {part.ox, part.oy, part.oz, part.dx, part.dy, part.dz,
+                                  part.tmin, part.tmax};
+    for (int a = 0; a < 8; ++a) {
+      for (size_t j = 0; j < num_far; ++j) f[a][j] = from[a][far[j]];  // far ascends
+    }
+    m.accel->Occluded(view(copy, 0, num_far), result, stats);
     for (size_t j = 0; j < num_far; ++j) occluded[first + far[j]] = result[j];
   }
 }

@@ -32,9 +32,15 @@ namespace rs {
 
 inline constexpr double kLightMargin = 1e-4;       // face coordinates (tangents in [-1, 1])
 inline constexpr double kLightReachSlack = 1e-5;   // relative, see above
-inline constexpr double kLightCellsPerTriangle = 1.0;
+// Cells per triangle: coarse cells, long lists culled a vector of references at a time. Measured
+// (trace_bench light rays, 1024x1024, AVX-512, raystream / Embree rtcOccluded1M, 04:28 UTC, load
+// 0.7): 1 cell per triangle office-graz 0.70, conference 0.63, sponza 0.61; 1/4: 0.87, 0.76,
+// 0.63; 1/16: 0.85, 1.11, 0.63; 1/32: 0.92, 1.08, 0.89; 1/64: 0.83, 1.26, 0.80; 1/128: 0.70,
+// 1.35, 0.73; 1/256: 0.74, 1.18, 0.66.
+inline constexpr double kLightCellsPerTriangle = 1.0 / 32.0;
 inline constexpr size_t kLightRefsPerTriangle = 8;  // reference budget, as the grid's
 inline constexpr int kLightMaxRes = 2048;           // cells per face axis
+inline constexpr size_t kLightChunk = 256;          // rays per OccludedLightBuffer call, at most
 
 struct LightBufferData {
   float light[3] = {0.0f, 0.0f, 0.0f};
@@ -46,14 +52,17 @@ struct LightBufferData {
   // Face f = 2 k + (d[k] < 0) for the axis k of the largest |d|; its u, v axes are k + 1, k + 2
   // (mod 3); cell (f, x, y) = (f res + y) res + x.
   hwy::AlignedFreeUniquePtr<uint32_t[]> cell_begin;  // num_cells + 2 offsets
-  // per reference, in list order: the triangle's vertices (x0 y0 z0 x1 ... z2: a list is read
-  // front to back, so its triangles stream through the caches instead of 9 scattered loads
-  // from the triangle SoA each) and its reach, ascending in each cell
-  hwy::AlignedFreeUniquePtr<float[]> verts;  // 9 num_refs
-  hwy::AlignedFreeUniquePtr<float[]> reach;  // num_refs (+ FLT_MAX padding)
+  // per reference, in list order: its reach (ascending in each cell) and the triangle's
+  // rectangle on the cell's face (u0 u1 v0 v1, as binned, rounded outwards: a ray whose face
+  // coordinates fall outside cannot hit it), SoA so that a vector of references is culled at
+  // once, each padded by one vector (reach FLT_MAX); and its vertices x0 y0 z0 x1 ... z2 (9
+  // floats: a list is read front to back, so its triangles stream through the caches instead of
+  // 9 scattered loads from the triangle SoA each).
+  hwy::AlignedFreeUniquePtr<float[]> reach, u0, u1, v0, v1;
+  hwy::AlignedFreeUniquePtr<float[]> verts;
 
   bool empty() const { return res == 0; }
-  size_t Bytes() const { return (num_cells + 2) * 4 + num_refs * 40; }
+  size_t Bytes() const { return (num_cells + 2) * 4 + num_refs * 14 * 4; }
 };
 
 // Builds the light buffer of `tris` (non-degenerate triangles only) for a light at `light`
@@ -63,7 +72,8 @@ struct LightBufferData {
 void BuildLightBuffer(const TriangleSoA& tris, const float light[3], double cells_per_triangle,
                       LightBufferData* out);
 
-// Any hit with t in (tmin, tmax] of the rays [0, size) that start exactly at the light (origin
+// Any hit with t in (tmin, tmax] of the rays [0, size <= kLightChunk) (arrays of any alignment,
+// read and occluded written in whole vectors up to PaddedSize(size)) that start exactly at the light (origin
 // == light, all three components) with tmin >= 0: occluded[i] = 1 or 0, the result of Accel::Occluded bit for
 // bit. The others are left to the caller: their indices are written to far[0, *num_far) in
 // ascending order (far holds rays.size entries). stats: rays (at the light), cell_steps (cells

@@ -8,12 +8,14 @@
 
 #include <cfloat>
 #include <cmath>
+#include <cstring>
 #include <limits>
 
 #undef HWY_TARGET_INCLUDE
 #define HWY_TARGET_INCLUDE "kernels/light_buffer_trace.cc"
 #include <hwy/foreach_target.h>  // IWYU pragma: keep
 #include <hwy/highway.h>         // must follow foreach_target.h
+#include <hwy/cache_control.h>  // Prefetch
 
 #include "kernels/tri_intersect-inl.h"
 
@@ -28,77 +30,110 @@ using V = hn::Vec<D>;
 using M = hn::Mask<D>;
 
 // The rays of `lanes` (one vector, set up in r) against the references [b, e) in order: a lane
-// stops at its first hit or at the first reference whose reach passes its limit. kUniform: all
-// lanes share the permutation of `perm` (the triangle's components in (kx, ky, kz) order are
-// broadcast), else each lane picks its own with blends. Returns the lanes hit.
+// stops at its first hit or at the first reference whose reach passes its limit. A vector of
+// references at a time is culled against the lanes' box of face coordinates (u, v) and their
+// largest limit; a lane whose (u, v) falls outside a remaining reference's rectangle (the one
+// the triangle was binned by) cannot hit it and skips its test. kUniform: all lanes share the
+// permutation of `perm` (the triangle's components in (kx, ky, kz) order are broadcast), else
+// each lane picks its own with blends. Returns the lanes hit.
 template <bool kUniform>
 HWY_INLINE M WalkList(D d, const LightBufferData& lb, const StreamRays<D>& r, const int perm[9],
-                      M lanes, V limit, V tmin, V tmax, size_t b, size_t e, uint64_t* tests) {
-  const float* reach = lb.reach.get();
-  M live = lanes, hit = hn::Not(hn::FirstN(d, hn::Lanes(d)));  // none
-  const float most = hn::GetLane(hn::MaxOfLanes(d, hn::IfThenElseZero(live, limit)));
-  for (size_t j = b; j < e; ++j) {
-    const float rj = reach[j];
-    if (rj > most) break;  // ascending: no lane reaches further
-    live = hn::And(live, hn::Le(hn::Set(d, rj), limit));
-    if (hn::AllFalse(d, live)) break;
-    const float* tri = lb.verts.get() + 9 * j;
-    const auto load = [&r, tri, perm](V* p) {
-      const D dd;
-      if constexpr (kUniform) {
-        for (int c = 0; c < 9; ++c) p[c] = hn::Set(dd, tri[perm[c]]);
-      } else {
-        for (int vtx = 0; vtx < 3; ++vtx) {
-          const V x = hn::Set(dd, tri[3 * vtx + 0]);
-          const V y = hn::Set(dd, tri[3 * vtx + 1]);
-          const V z = hn::Set(dd, tri[3 * vtx + 2]);
-          p[3 * vtx + 0] = PickAxis(r.kx0, r.kx1, x, y, z);
-          p[3 * vtx + 1] = PickAxis(r.ky0, r.ky1, x, y, z);
-          p[3 * vtx + 2] = PickAxis(r.kz0, r.kz1, x, y, z);
+                      M lanes, V u, V v, V limit, V tmin, V tmax, size_t b, size_t e,
+                      uint64_t* tests) {
+  const size_t n = hn::Lanes(d);
+  M live = lanes, hit = hn::Not(hn::FirstN(d, n));  // none
+  const V big = hn::Set(d, FLT_MAX), nbig = hn::Set(d, -FLT_MAX);
+  const V most = hn::MaxOfLanes(d, hn::IfThenElseZero(live, limit));
+  const V umin = hn::MinOfLanes(d, hn::IfThenElse(live, u, big));
+  const V umax = hn::MaxOfLanes(d, hn::IfThenElse(live, u, nbig));
+  const V vmin = hn::MinOfLanes(d, hn::IfThenElse(live, v, big));
+  const V vmax = hn::MaxOfLanes(d, hn::IfThenElse(live, v, nbig));
+  const float* const reach = lb.reach.get();
+  for (size_t j0 = b; j0 < e; j0 += n) {
+    // the padding after the last reference makes whole-vector loads safe
+    const V rv = hn::LoadU(d, reach + j0);
+    M cand = hn::And(hn::FirstN(d, e - j0), hn::Le(rv, most));
+    cand = hn::And(cand, hn::And(hn::Le(hn::LoadU(d, lb.u0.get() + j0), umax),
+                                 hn::Ge(hn::LoadU(d, lb.u1.get() + j0), umin)));
+    cand = hn::And(cand, hn::And(hn::Le(hn::LoadU(d, lb.v0.get() + j0), vmax),
+                                 hn::Ge(hn::LoadU(d, lb.v1.get() + j0), vmin)));
+    uint8_t bytes[8] = {};
+    hn::StoreMaskBits(d, cand, bytes);
+    uint64_t bits = 0;
+    std::memcpy(&bits, bytes, sizeof bits);
+    for (; bits != 0; bits &= bits - 1) {
+      const size_t j = j0 + size_t(hwy::Num0BitsBelowLS1Bit_Nonzero64(bits));
+      live = hn::And(live, hn::Le(hn::Set(d, reach[j]), limit));
+      if (hn::AllFalse(d, live)) return hit;
+      const M in = hn::And(
+          hn::And(live, hn::And(hn::Ge(u, hn::Set(d, lb.u0[j])), hn::Le(u, hn::Set(d, lb.u1[j])))),
+          hn::And(hn::Ge(v, hn::Set(d, lb.v0[j])), hn::Le(v, hn::Set(d, lb.v1[j]))));
+      if (hn::AllFalse(d, in)) continue;
+      const float* tri = lb.verts.get() + 9 * j;
+      const auto load = [&r, tri, perm](V* p) {
+        const D dd;
+        if constexpr (kUniform) {
+          for (int c = 0; c < 9; ++c) p[c] = hn::Set(dd, tri[perm[c]]);
+        } else {
+          for (int vtx = 0; vtx < 3; ++vtx) {
+            const V x = hn::Set(dd, tri[3 * vtx + 0]);
+            const V y = hn::Set(dd, tri[3 * vtx + 1]);
+            const V z = hn::Set(dd, tri[3 * vtx + 2]);
+            p[3 * vtx + 0] = PickAxis(r.kx0, r.kx1, x, y, z);
+            p[3 * vtx + 1] = PickAxis(r.ky0, r.ky1, x, y, z);
+            p[3 * vtx + 2] = PickAxis(r.kz0, r.kz1, x, y, z);
+          }
         }
-      }
-    };
-    V p[9];
-    load(p);
-    WatertightLanes<D> wt;
-    const M m = hn::And(live, WatertightTest<false>(d, p[0], p[1], p[2], p[3], p[4], p[5], p[6],
+      };
+      V p[9];
+      load(p);
+      WatertightLanes<D> wt;
+      const M m = hn::And(in, WatertightTest<false>(d, p[0], p[1], p[2], p[3], p[4], p[5], p[6],
                                                     p[7], p[8], r.o0, r.o1, r.o2, r.sx, r.sy,
                                                     r.sz, tmin, tmax, load, &wt));
-    *tests += hn::CountTrue(d, live);
-    if (hn::AllFalse(d, m)) continue;
-    hit = hn::Or(hit, m);
-    live = hn::AndNot(m, live);
-    if (hn::AllFalse(d, live)) break;
+      *tests += hn::CountTrue(d, in);
+      if (hn::AllFalse(d, m)) continue;
+      hit = hn::Or(hit, m);
+      live = hn::AndNot(m, live);
+      if (hn::AllFalse(d, live)) return hit;
+    }
+    if (hn::GetLane(hn::MaxOfLanes(d, rv)) > hn::GetLane(most)) break;  // ascending: done
   }
   return hit;
 }
 
-// rays: 64-B aligned, padded to PaddedSize(size) (the caller's chunk copy).
+// rays: any alignment, readable (and occluded writable) to PaddedSize(size); size <= kLightChunk.
+// Pass 1 finds every ray's cell and prefetches the head of each new cell's list, so the walks of
+// pass 2 find their first records in the caches (a list is read front to back from there).
 void OccludedLightBufferT(const LightBufferData& lb, const RayStreamView& rays, int32_t* occluded,
                           uint32_t* far, size_t* num_far, TraceStats* stats) {
   const D d;
   const DI di;
   const size_t n = hn::Lanes(d);
+  HWY_DASSERT(rays.size <= kLightChunk);
   size_t nfar = 0, at_light = 0, cells = 0;
   uint64_t tests = 0;
   const V lx = hn::Set(d, lb.light[0]), ly = hn::Set(d, lb.light[1]), lz = hn::Set(d, lb.light[2]);
   const V zero = hn::Zero(d), one = hn::Set(d, 1.0f), flt_max = hn::Set(d, FLT_MAX);
   const V half_res = hn::Set(d, lb.half_res), slack = hn::Set(d, 1.0f + 1e-5f);
   const auto res = hn::Set(di, lb.res), top = hn::Set(di, lb.res - 1), izero = hn::Zero(di);
+  const auto none = hn::Set(di, -1);
   const uint32_t* begin = lb.cell_begin.get();
-  HWY_ALIGN int32_t cell_of[HWY_MAX_BYTES / sizeof(float)];
+  HWY_ALIGN int32_t cell_of[kLightChunk + HWY_MAX_BYTES / sizeof(float)];
+  HWY_ALIGN float u_of[kLightChunk + HWY_MAX_BYTES / sizeof(float)];
+  HWY_ALIGN float v_of[kLightChunk + HWY_MAX_BYTES / sizeof(float)];
+  int32_t last = -1;
   for (size_t i = 0; i < rays.size; i += n) {
     const M live = hn::FirstN(d, rays.size - i);
-    const V ox = hn::Load(d, rays.ox + i), oy = hn::Load(d, rays.oy + i);
-    const V oz = hn::Load(d, rays.oz + i), dx = hn::Load(d, rays.dx + i);
-    const V dy = hn::Load(d, rays.dy + i), dz = hn::Load(d, rays.dz + i);
-    const V tmin = hn::Load(d, rays.tmin + i), tmax = hn::Load(d, rays.tmax + i);
+    const V ox = hn::LoadU(d, rays.ox + i), oy = hn::LoadU(d, rays.oy + i);
+    const V oz = hn::LoadU(d, rays.oz + i), dx = hn::LoadU(d, rays.dx + i);
+    const V dy = hn::LoadU(d, rays.dy + i), dz = hn::LoadU(d, rays.dz + i);
+    const V tmin = hn::LoadU(d, rays.tmin + i), tmax = hn::LoadU(d, rays.tmax + i);
     // from the light with tmin >= 0; the others (NaN origins too, and rays reaching behind
     // the light: the opposite cell) are the Accel's
     const M at = hn::And(live, hn::And(hn::And(hn::Eq(ox, lx), hn::Eq(oy, ly)),
                                        hn::And(hn::Eq(oz, lz), hn::Ge(tmin, zero))));
-    const M away = hn::AndNot(at, live);
-    if (!hn::AllFalse(d, away)) {
+    if (!hn::AllTrue(d, hn::Or(at, hn::Not(live)))) {
       for (size_t j = 0; j < n && i + j < rays.size; ++j) {
         const bool here = rays.ox[i + j] == lb.light[0] && rays.oy[i + j] == lb.light[1] &&
                           rays.oz[i + j] == lb.light[2] && rays.tmin[i + j] >= 0.0f;
@@ -109,10 +144,51 @@ void OccludedLightBufferT(const LightBufferData& lb, const RayStreamView& rays, 
     const V tmax_f = hn::IfThenElse(hn::Gt(tmax, flt_max), flt_max, tmax);  // +inf as scalar
     const M valid = lb.res == 0 ? hn::And(at, hn::Lt(one, zero))
                                 : StreamRayValid(d, at, ox, oy, oz, dx, dy, dz, tmin, tmax_f);
+    // the cell of each direction: face axis kz (the largest |d|, first on ties: the watertight
+    // kz), u, v axes kz + 1, kz + 2
+    const V adx = hn::Abs(dx), ady = hn::Abs(dy), adz = hn::Abs(dz);
+    const M y_gt_x = hn::Gt(ady, adx);
+    const M kz2 = hn::Gt(adz, hn::IfThenElse(y_gt_x, ady, adx));
+    const M kz1 = hn::AndNot(kz2, y_gt_x);
+    const M kz0 = hn::Not(hn::Or(y_gt_x, kz2));
+    const V dk = PickAxis(kz0, kz1, dx, dy, dz);
+    const V du = PickAxis(kz0, kz1, dy, dz, dx);
+    const V dv = PickAxis(kz0, kz1, dz, dx, dy);
+    const V inv = hn::Div(one, hn::Abs(dk));
+    const V fu = hn::Mul(du, inv), fv = hn::Mul(dv, inv);  // in [-1, 1]
+    hn::Store(fu, d, u_of + i);
+    hn::Store(fv, d, v_of + i);
+    const auto cx = hn::Min(
+        top, hn::Max(izero, hn::ConvertTo(di, hn::Mul(hn::Add(fu, one), half_res))));
+    const auto cy = hn::Min(
+        top, hn::Max(izero, hn::ConvertTo(di, hn::Mul(hn::Add(fv, one), half_res))));
+    const auto kz = hn::IfThenElse(hn::RebindMask(di, kz0), izero,
+                                   hn::IfThenElse(hn::RebindMask(di, kz1), hn::Set(di, 1),
+                                                  hn::Set(di, 2)));
+    const auto face = hn::Add(
+        hn::Add(kz, kz), hn::IfThenElseZero(hn::RebindMask(di, hn::Lt(dk, zero)), hn::Set(di, 1)));
+    const auto cell = hn::Add(hn::Mul(hn::Add(hn::Mul(face, res), cy), res), cx);
+    hn::Store(hn::IfThenElse(hn::RebindMask(di, valid), cell, none), di, cell_of + i);
+    for (size_t j = 0; j < n; ++j) {
+      const int32_t c = cell_of[i + j];
+      if (c < 0 || c == last) continue;
+      last = c;
+      hwy::Prefetch(lb.reach.get() + begin[c]);
+      hwy::Prefetch(lb.verts.get() + 9 * size_t(begin[c]));
+    }
+  }
+  for (size_t i = 0; i < rays.size; i += n) {
+    const auto cell = hn::Load(di, cell_of + i);
+    const M valid = hn::RebindMask(d, hn::Gt(cell, none));
     if (hn::AllFalse(d, valid)) {
-      hn::Store(hn::Zero(di), di, occluded + i);
+      hn::StoreU(hn::Zero(di), di, occluded + i);
       continue;
     }
+    const V ox = hn::LoadU(d, rays.ox + i), oy = hn::LoadU(d, rays.oy + i);
+    const V oz = hn::LoadU(d, rays.oz + i), dx = hn::LoadU(d, rays.dx + i);
+    const V dy = hn::LoadU(d, rays.dy + i), dz = hn::LoadU(d, rays.dz + i);
+    const V tmin = hn::LoadU(d, rays.tmin + i);
+    const V tmax_f = hn::Min(hn::LoadU(d, rays.tmax + i), flt_max);  // valid: not NaN
     StreamRays<D> r;
     int k[3];
     const bool uniform = SetupStreamRays(d, ox, oy, oz, dx, dy, dz, valid, &r, k);
@@ -122,25 +198,15 @@ void OccludedLightBufferT(const LightBufferData& lb, const RayStreamView& rays, 
         for (int a = 0; a < 3; ++a) perm[3 * vtx + a] = 3 * vtx + k[a];
       }
     }
-    // the cell of each direction: face axis kz (the watertight one), u, v axes kz + 1, kz + 2
-    const V dk = PickAxis(r.kz0, r.kz1, dx, dy, dz);
-    const V du = PickAxis(r.kz0, r.kz1, dy, dz, dx);
-    const V dv = PickAxis(r.kz0, r.kz1, dz, dx, dy);
-    const V inv = hn::Div(one, hn::Abs(dk));
-    const auto cx = hn::Min(top, hn::Max(izero, hn::ConvertTo(di, hn::Mul(hn::Add(hn::Mul(du, inv), one), half_res))));
-    const auto cy = hn::Min(top, hn::Max(izero, hn::ConvertTo(di, hn::Mul(hn::Add(hn::Mul(dv, inv), one), half_res))));
-    const auto kz = hn::IfThenElse(hn::RebindMask(di, r.kz0), izero,
-                                   hn::IfThenElse(hn::RebindMask(di, r.kz1), hn::Set(di, 1),
-                                                  hn::Set(di, 2)));
-    const auto face = hn::Add(hn::Add(kz, kz), hn::IfThenElseZero(hn::RebindMask(di, hn::Lt(dk, zero)),
-                                                                   hn::Set(di, 1)));
-    const auto cell = hn::Add(hn::Mul(hn::Add(hn::Mul(face, res), cy), res), cx);
     // reach bound tmax |d|, rounded up (the float products and root are within 4 ulps)
     const V len = hn::Sqrt(hn::Add(hn::Add(hn::Mul(dx, dx), hn::Mul(dy, dy)), hn::Mul(dz, dz)));
     const V limit = hn::Mul(hn::Mul(tmax_f, len), slack);
+    const V fu = hn::Load(d, u_of + i), fv = hn::Load(d, v_of + i);
     const auto walk = [&](M lanes, size_t b, size_t e) {
-      return uniform ? WalkList<true>(d, lb, r, perm, lanes, limit, tmin, tmax_f, b, e, &tests)
-                     : WalkList<false>(d, lb, r, perm, lanes, limit, tmin, tmax_f, b, e, &tests);
+      return uniform ? WalkList<true>(d, lb, r, perm, lanes, fu, fv, limit, tmin, tmax_f, b, e,
+                                      &tests)
+                     : WalkList<false>(d, lb, r, perm, lanes, fu, fv, limit, tmin, tmax_f, b, e,
+                                       &tests);
     };
     M hit = hn::Lt(one, zero);  // none
     if (lb.num_always != 0) {
@@ -148,17 +214,15 @@ void OccludedLightBufferT(const LightBufferData& lb, const RayStreamView& rays, 
       hit = walk(valid, begin[lb.num_cells], begin[lb.num_cells + 1]);
     }
     // one walk per distinct cell among the lanes
-    hn::Store(cell, di, cell_of);
     M todo = hn::AndNot(hit, valid);
     while (!hn::AllFalse(d, todo)) {
-      const intptr_t first = hn::FindFirstTrue(d, todo);
-      const int32_t c = cell_of[first];
+      const int32_t c = cell_of[i + size_t(hn::FindFirstTrue(d, todo))];
       const M same = hn::And(todo, hn::RebindMask(d, hn::Eq(cell, hn::Set(di, c))));
       ++cells;
       hit = hn::Or(hit, walk(same, begin[c], begin[c + 1]));
       todo = hn::AndNot(same, todo);
     }
-    hn::Store(hn::IfThenElseZero(hn::RebindMask(di, hit), hn::Set(di, 1)), di, occluded + i);
+    hn::StoreU(hn::IfThenElseZero(hn::RebindMask(di, hit), hn::Set(di, 1)), di, occluded + i);
   }
   *num_far = nfar;
   if (stats != nullptr) {

@@ -119,6 +119,7 @@ struct SceneData {
   Scene scene;
   MeshView mesh;
   std::unique_ptr<Accel> accel;
+  std::unique_ptr<LightBuffer> light_buffer;  // over accel, for the light set
   std::unique_ptr<EmbreePeer> embree;
   RaySets sets;
   HitStream hits;                  // scratch for timed closest-hit runs
@@ -130,6 +131,7 @@ struct SceneData {
   RayStream frame_primary;
   HitStream frame_hits;
   RayStream frame_shadow;
+  RayStream frame_light;
   AlignedArray<int32_t> frame_occluded;
   std::unique_ptr<EmbreePeer> rebuild_peer;  // rebuilt every iteration (build and frame)
   glm::vec3 light{0.0f};
@@ -174,6 +176,15 @@ SceneData& GetScene(const std::string& name) {
     data->embree = std::make_unique<EmbreePeer>(data->mesh);
     data->sets = MakeRaySets(data->scene, *data->embree, Cfg().width, Cfg().height);
     data->light = data->sets.light;
+    const float light[3] = {data->light.x, data->light.y, data->light.z};
+    data->light_buffer = std::make_unique<LightBuffer>(*data->accel, light);
+    const LightBufferInfo lbi = data->light_buffer->Info();
+    std::fprintf(stderr,
+                 "[trace_bench] %s: light buffer %d^2 x 6 cells, %zu references (%.2f per "
+                 "triangle), %zu always, %.1f MB\n",
+                 name.c_str(), lbi.resolution, lbi.references,
+                 double(lbi.references) / double(std::max<size_t>(1, data->mesh.num_triangles)),
+                 lbi.always, double(lbi.bytes) * 1e-6);
     const size_t n =
         std::max({data->sets.primary.size(), data->sets.shadow.size(), data->sets.diffuse.size()});
     data->hits.Resize(n);
@@ -207,9 +218,22 @@ const std::string& Validate(SceneData& d, RaySet set) {
   const Coherence hint = RaySetCoherence(set);
   std::string report = std::string(RaySetName(set)) + "/" + d.name + ": ";
   bool ok = true;
-  if (set == RaySet::kShadow) {
+  if (set == RaySet::kShadow || set == RaySet::kLight) {
     AlignedArray<int32_t> ours(n), theirs(n);
-    d.accel->Occluded(view, ours.data(), &d.stats[s]);
+    if (set == RaySet::kLight) {
+      // the light buffer must give the grid's results exactly (light_buffer_test)
+      d.light_buffer->Occluded(view, ours.data(), &d.stats[s]);
+      d.accel->Occluded(view, theirs.data());
+      for (size_t i = 0; i < n; ++i) {
+        if (ours[i] != theirs[i]) {
+          ok = false;
+          report += "light buffer differs from the grid at ray " + std::to_string(i) + "; ";
+          break;
+        }
+      }
+    } else {
+      d.accel->Occluded(view, ours.data(), &d.stats[s]);
+    }
     for (int m = 0; m < kNumEmbreeModes; ++m) {
       const auto mode = static_cast<EmbreeMode>(m);
       d.embree->Occluded(mode, view, theirs.data(), hint);
@@ -274,15 +298,19 @@ void BM_Trace(benchmark::State& state, const std::string& scene, RaySet set, int
   HitStreamView hits = d.hits.view();
   hits.size = rays.size;
   const Coherence hint = RaySetCoherence(set);
-  const bool occlusion = set == RaySet::kShadow;
+  const bool occlusion = set == RaySet::kShadow || set == RaySet::kLight;
   const TickMeter meter;
   for (auto _ : state) {
     if (tracer == -1) {
-      if (occlusion) {
+      if (set == RaySet::kLight) {
+        d.light_buffer->Occluded(rays, d.occluded.data());
+      } else if (occlusion) {
         d.accel->Occluded(rays, d.occluded.data());
       } else {
         d.accel->Intersect(rays, hits);
       }
+    } else if (tracer == -3) {  // the light set through the grid (Accel::Occluded)
+      d.accel->Occluded(rays, d.occluded.data());
     } else if (tracer == -2) {  // the same structure without packets: the per-ray stream DDA
       const Accel::Impl& m = AccelImpl(*d.accel);
       if (occlusion) {
@@ -367,6 +395,24 @@ void BM_Build(benchmark::State& state, const std::string& scene, bool embree, bo
   state.SetItemsProcessed(state.iterations() * static_cast<int64_t>(d.mesh.num_triangles));
 }
 
+// "build-light/<scene>/raystream": rs::LightBuffer's build over the scene's Accel for the
+// benchmark light (items are triangles).
+void BM_BuildLight(benchmark::State& state, const std::string& scene) {
+  SceneData& d = GetScene(scene);
+  if (!d.load_error.empty()) {
+    state.SkipWithError(d.load_error.c_str());
+    return;
+  }
+  const float light[3] = {d.light.x, d.light.y, d.light.z};
+  const TickMeter meter;
+  for (auto _ : state) {
+    LightBuffer lb(*d.accel, light);
+    benchmark::DoNotOptimize(&lb);
+  }
+  meter.Report(state, d.mesh.num_triangles, "ticks/tri", "cpu_ticks/tri");
+  state.SetItemsProcessed(state.iterations() * static_cast<int64_t>(d.mesh.num_triangles));
+}
+
 // "frame/<scene>/<tracer>": time to image for one frame_size^2 frame of a dynamic scene:
 // build, primary closest hits, shadow ray generation from those hits, occlusion. Primary
 // rays are generated once, outside the timing. Items are frames (items_per_second = fps).
@@ -387,7 +433,15 @@ void BM_Frame(benchmark::State& state, const std::string& scene, int tracer) {
   size_t shadow_rays = 0;
   size_t occluded = 0;
   for (auto _ : state) {
-    if (tracer < 0) {
+    if (tracer == -3) {  // raystream-light: the shadow rays from the light, a LightBuffer
+      Accel accel(d.mesh, BenchBuildOptions());
+      accel.Intersect(primary, hits);
+      MakeShadowRays(d.scene, primary, hits, d.light, d.frame_shadow);
+      MakeLightRays(d.frame_shadow.view(), d.light, d.frame_light);
+      const float light[3] = {d.light.x, d.light.y, d.light.z};
+      const LightBuffer lb(accel, light);
+      lb.Occluded(d.frame_light.view(), d.frame_occluded.data());
+    } else if (tracer < 0) {
       Accel accel(d.mesh, BenchBuildOptions());
       accel.Intersect(primary, hits);
       MakeShadowRays(d.scene, primary, hits, d.light, d.frame_shadow);
@@ -523,14 +577,23 @@ void Register(const std::string& scene) {
           [scene, set, m](benchmark::State& s) { BM_Trace(s, scene, set, m); });
     }
     Add(prefix + "raystream", [scene, set](benchmark::State& s) { BM_Trace(s, scene, set, -1); });
+    if (set == RaySet::kLight) {  // raystream = the LightBuffer; raystream-grid = the Accel
+      Add(prefix + "raystream-grid",
+          [scene, set](benchmark::State& s) { BM_Trace(s, scene, set, -3); });
+      continue;
+    }
     Add(prefix + "raystream-rays",
         [scene, set](benchmark::State& s) { BM_Trace(s, scene, set, -2); });
   }
+  Add("build-light/" + scene + "/raystream",
+      [scene](benchmark::State& s) { BM_BuildLight(s, scene); });
   for (int m = 0; m < kNumEmbreeModes; ++m) {
     Add("frame/" + scene + "/" + EmbreeModeName(static_cast<EmbreeMode>(m)),
         [scene, m](benchmark::State& s) { BM_Frame(s, scene, m); });
   }
   Add("frame/" + scene + "/raystream", [scene](benchmark::State& s) { BM_Frame(s, scene, -1); });
+  Add("frame/" + scene + "/raystream-light",
+      [scene](benchmark::State& s) { BM_Frame(s, scene, -3); });
 }
 
 int Main(int argc, char** argv) {

@@ -20,6 +20,7 @@ const char* RaySetName(RaySet set) {
     case RaySet::kPrimary: return "primary";
     case RaySet::kShadow: return "shadow";
     case RaySet::kDiffuse: return "diffuse";
+    case RaySet::kLight: return "light";
   }
   return "unknown";
 }
@@ -173,6 +174,25 @@ void MakeShadowRays(const Scene& scene, const RayStreamView& rays, const HitStre
   out.FillPadding();
 }
 
+void MakeLightRays(const RayStreamView& shadow, const glm::vec3& light, RayStream& out) {
+  out.Clear();
+  out.Reserve(shadow.size);
+  out.Resize(shadow.size);
+  RayStreamView o = out.view();
+  for (size_t i = 0; i < shadow.size; ++i) {
+    o.ox[i] = light.x;
+    o.oy[i] = light.y;
+    o.oz[i] = light.z;
+    o.dx[i] = shadow.ox[i] - light.x;
+    o.dy[i] = shadow.oy[i] - light.y;
+    o.dz[i] = shadow.oz[i] - light.z;
+    o.tmin[i] = 0.0f;
+    o.tmax[i] = 1.0f;
+    if (shadow.pixel != nullptr) o.pixel[i] = shadow.pixel[i];
+  }
+  out.FillPadding();
+}
+
 void MakeDiffuseRays(const Scene& scene, const RayStreamView& rays, const HitStreamView& hits,
                      uint64_t seed, RayStream& out) {
   const float offset = SpawnOffset(scene);
@@ -262,6 +282,7 @@ RayStream& RaySets::rays(RaySet set) {
     case RaySet::kPrimary: return primary;
     case RaySet::kShadow: return shadow;
     case RaySet::kDiffuse: return diffuse;
+    case RaySet::kLight: return from_light;
   }
   return primary;
 }
@@ -281,6 +302,7 @@ RaySets MakeRaySets(const Scene& scene, const EmbreePeer& embree, int width, int
   sets.primary_hit_count = CountHits(sets.primary_hits.view(), sets.primary.size());
   MakeShadowRays(scene, sets.primary.view(), sets.primary_hits.view(), sets.light, sets.shadow);
   MakeDiffuseRays(scene, sets.primary.view(), sets.primary_hits.view(), seed, sets.diffuse);
+  MakeLightRays(sets.shadow.view(), sets.light, sets.from_light);
   return sets;
 }
 

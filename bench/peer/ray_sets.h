@@ -19,9 +19,9 @@ namespace rs::bench {
 inline constexpr uint64_t kRaySetSeed = 0x2026112200000001ull;
 inline constexpr float kBenchFovDeg = 60.0f;
 
-enum class RaySet : int { kPrimary = 0, kShadow = 1, kDiffuse = 2 };
-inline constexpr int kNumRaySets = 3;
-// "primary", "shadow", "diffuse": the first part of the benchmark names.
+enum class RaySet : int { kPrimary = 0, kShadow = 1, kDiffuse = 2, kLight = 3 };
+inline constexpr int kNumRaySets = 4;
+// "primary", "shadow", "diffuse", "light": the first part of the benchmark names.
 const char* RaySetName(RaySet set);
 // The coherence hint ANCHORS.md gives Embree for the set (incoherent for diffuse only).
 Coherence RaySetCoherence(RaySet set);
@@ -61,6 +61,11 @@ void MakeShadowRays(const Scene& scene, const RayStreamView& rays, const HitStre
 void MakeDiffuseRays(const Scene& scene, const RayStreamView& rays, const HitStreamView& hits,
                      uint64_t seed, RayStream& out);
 
+// Clears `out` and writes the shadow rays `shadow` (MakeShadowRays) traced from the light
+// instead: origin `light`, direction (shadow origin - light), t in (0, 1]: the same segments,
+// for rs::LightBuffer (and every tracer, so they compare on the same rays).
+void MakeLightRays(const RayStreamView& shadow, const glm::vec3& light, RayStream& out);
+
 // Clears `out` and writes n random rays for agreement tests: origins uniform in the bounds
 // grown by 10 %; even rays aim at a uniform point of a uniformly chosen triangle (so most
 // hit), odd rays take a uniform direction on the sphere. tmin 0, tmax +inf. Deterministic.
@@ -82,6 +87,7 @@ struct RaySets {
   size_t primary_hit_count = 0;
   RayStream shadow;   // one per primary hit
   RayStream diffuse;  // one per primary hit
+  RayStream from_light;  // the shadow rays traced from the light (MakeLightRays)
 
   RayStream& rays(RaySet set);
 };
