@@ -5,6 +5,7 @@
 
 #include <algorithm>
 #include <array>
+#include <bit>
 #include <cfloat>
 #include <chrono>
 #include <cmath>
@@ -55,11 +56,23 @@ double OriginDistance(const Vec3& a, const Vec3& b, const Vec3& c) {
   return dist(q);
 }
 
-// A triangle's projection on one face: face coordinates, widened by kLightMargin, in [-1, 1].
+// The float nearest to x below (at most x) and above (at least x), x finite: one step of the
+// bit pattern when the conversion rounded the wrong way.
+float FloatBelow(double x) {
+  float f = static_cast<float>(x);
+  if (double(f) > x) f = f > 0.0f ? std::bit_cast<float>(std::bit_cast<uint32_t>(f) - 1)
+                                   : -std::bit_cast<float>(std::bit_cast<uint32_t>(-f) + 1);
+  return f;
+}
+float FloatAbove(double x) { return -FloatBelow(-x); }
+
+// A triangle's projection on one face: face coordinates, widened by kLightMargin, within
+// [-1, 1], rounded outwards to float; its cells [x0, x1] x [y0, y1] once the resolution is known.
 struct FaceRect {
   uint32_t tri;
-  int face;
-  double u0, u1, v0, v1;
+  int32_t face;
+  float u0, u1, v0, v1;
+  int32_t x0, x1, y0, y1;
 };
 
 // The face of direction q: the axis of the largest |q| (first on ties), as the query picks it.
@@ -76,8 +89,10 @@ int FaceOf(const Vec3& q) {
 bool ProjectTriangle(uint32_t tri, const Vec3 q[3], std::vector<FaceRect>* rects) {
   const double widen = 1.0 + kLightMargin;
   const auto add = [&](int face, double u0, double u1, double v0, double v1) {
-    rects->push_back({tri, face, std::max(-1.0, u0 - kLightMargin), std::min(1.0, u1 + kLightMargin),
-                      std::max(-1.0, v0 - kLightMargin), std::min(1.0, v1 + kLightMargin)});
+    rects->push_back({tri, face, FloatBelow(std::max(-1.0, u0 - kLightMargin)),
+                      FloatAbove(std::min(1.0, u1 + kLightMargin)),
+                      FloatBelow(std::max(-1.0, v0 - kLightMargin)),
+                      FloatAbove(std::min(1.0, v1 + kLightMargin)), 0, 0, 0, 0});
   };
   // fast path: the three vertices on one face, strictly inside its (unwidened) pyramid; the
   // pyramid is convex, so the whole triangle is
@@ -143,18 +158,6 @@ int CellOf(double x, int res) {
   return std::clamp(int(std::floor((x + 1.0) * 0.5 * double(res))), 0, res - 1);
 }
 
-// The float nearest to x below (at most x) and above (at least x).
-float FloatBelow(double x) {
-  float f = static_cast<float>(x);
-  if (double(f) > x) f = std::nextafter(f, -FLT_MAX);
-  return f;
-}
-float FloatAbove(double x) {
-  float f = static_cast<float>(x);
-  if (double(f) < x) f = std::nextafter(f, FLT_MAX);
-  return f;
-}
-
 }  // namespace
 
 void BuildLightBuffer(const TriangleSoA& tris, const float light[3], double cells_per_triangle,
@@ -166,8 +169,8 @@ void BuildLightBuffer(const TriangleSoA& tris, const float light[3], double cell
   std::vector<float> reach(tris.size, 0.0f);
   std::vector<FaceRect> rects;
   rects.reserve(tris.size + tris.size / 8);
-  std::vector<uint32_t> listed, always;  // triangles with projections / touching the light
-  listed.reserve(tris.size);
+  std::vector<uint32_t> always;  // triangles touching the light
+  size_t listed = 0;             // and those with projections
   for (size_t i = 0; i < tris.size; ++i) {
     if (tris.degenerate[i]) continue;
     Vec3 q[3];
@@ -184,10 +187,10 @@ void BuildLightBuffer(const TriangleSoA& tris, const float light[3], double cell
       rects.resize(before);
       always.push_back(uint32_t(i));
     } else {
-      listed.push_back(uint32_t(i));
+      ++listed;
     }
   }
-  const size_t valid = listed.size() + always.size();
+  const size_t valid = listed + always.size();
   if (valid == 0) return;
   // resolution: about cells_per_triangle cells per triangle, coarsened to the reference budget
   const size_t budget = kLightRefsPerTriangle * valid + (size_t{1} << 16);
@@ -211,55 +214,64 @@ void BuildLightBuffer(const TriangleSoA& tris, const float light[3], double cell
   lb.num_cells = size_t(6) * size_t(res) * size_t(res);
   lb.num_always = always.size();
   lb.num_refs = refs + always.size();
-  // references in ascending (reach, id) order: sort the triangles, then a stable counting sort
-  // of their rectangles' cells
-  const auto by_reach = [&](uint32_t a, uint32_t b) {
-    return reach[a] < reach[b] || (reach[a] == reach[b] && a < b);
-  };
-  std::sort(always.begin(), always.end(), by_reach);
-  std::vector<uint32_t> rank(tris.size, 0);
-  {
-    std::vector<uint32_t> order = listed;
-    std::sort(order.begin(), order.end(), by_reach);
-    for (size_t r = 0; r < order.size(); ++r) rank[order[r]] = uint32_t(r);
-  }
-  std::stable_sort(rects.begin(), rects.end(),
-                   [&](const FaceRect& a, const FaceRect& b) { return rank[a.tri] < rank[b.tri]; });
+  // a counting sort of the references by cell, in rectangle order (= triangle order), then
+  // each cell's references sorted by (reach, triangle): keys reach bits << 32 | rectangle
+  // (non-negative floats order like their bit patterns)
   lb.cell_begin = AllocateBuildArray<uint32_t>(lb.num_cells + 2, "light buffer cell offsets");
+  uint32_t* begin = lb.cell_begin.get();
+  std::fill(begin, begin + lb.num_cells + 2, 0u);
+  const size_t face_cells = size_t(res) * size_t(res);
+  for (FaceRect& f : rects) {
+    f.x0 = CellOf(f.u0, res), f.x1 = CellOf(f.u1, res);
+    f.y0 = CellOf(f.v0, res), f.y1 = CellOf(f.v1, res);
+    const size_t base = size_t(f.face) * face_cells;
+    for (int y = f.y0; y <= f.y1; ++y) {
+      uint32_t* row = begin + 1 + base + size_t(y) * size_t(res);
+      for (int x = f.x0; x <= f.x1; ++x) ++row[x];
+    }
+  }
+  begin[lb.num_cells + 1] = uint32_t(always.size());
+  for (size_t c = 0; c <= lb.num_cells; ++c) begin[c + 1] += begin[c];
+  std::vector<uint64_t> keys(lb.num_refs);
+  {
+    std::vector<uint32_t> cursor(begin, begin + lb.num_cells + 1);
+    for (size_t r = 0; r < rects.size(); ++r) {
+      const FaceRect& f = rects[r];
+      const uint64_t key = uint64_t(std::bit_cast<uint32_t>(reach[f.tri])) << 32 | r;
+      const size_t base = size_t(f.face) * face_cells;
+      for (int y = f.y0; y <= f.y1; ++y) {
+        uint32_t* row = cursor.data() + base + size_t(y) * size_t(res);
+        for (int x = f.x0; x <= f.x1; ++x) keys[row[x]++] = key;
+      }
+    }
+    for (size_t a = 0; a < always.size(); ++a) {  // always: keyed by triangle
+      keys[cursor[lb.num_cells] + a] =
+          uint64_t(std::bit_cast<uint32_t>(reach[always[a]])) << 32 | always[a];
+    }
+  }
+  for (size_t c = 0; c <= lb.num_cells; ++c) {
+    if (begin[c + 1] - begin[c] > 1) std::sort(keys.data() + begin[c], keys.data() + begin[c + 1]);
+  }
   const size_t pad = 16;  // one vector of the widest target
   for (auto* a : {&lb.reach, &lb.u0, &lb.u1, &lb.v0, &lb.v1}) {
     *a = AllocateBuildArray<float>(lb.num_refs + pad, "light buffer references");
   }
   lb.verts = AllocateBuildArray<float>(9 * lb.num_refs, "light buffer triangles");
-  uint32_t* begin = lb.cell_begin.get();
-  std::fill(begin, begin + lb.num_cells + 2, 0u);
-  const auto for_cells = [&](const FaceRect& f, const auto& fn) {
-    const size_t base = size_t(f.face) * size_t(res) * size_t(res);
-    const int x0 = CellOf(f.u0, res), x1 = CellOf(f.u1, res);
-    const int y0 = CellOf(f.v0, res), y1 = CellOf(f.v1, res);
-    for (int y = y0; y <= y1; ++y) {
-      for (int x = x0; x <= x1; ++x) fn(base + size_t(y) * size_t(res) + size_t(x));
-    }
-  };
-  for (const FaceRect& f : rects) for_cells(f, [&](size_t c) { ++begin[c + 1]; });
-  begin[lb.num_cells + 1] = uint32_t(always.size());
-  for (size_t c = 0; c <= lb.num_cells; ++c) begin[c + 1] += begin[c];
-  std::vector<uint32_t> cursor(begin, begin + lb.num_cells + 1);
-  const auto put = [&](uint32_t at, uint32_t tri, const FaceRect* f) {
-    lb.reach[at] = reach[tri];
-    // the rectangle rounded outwards (the whole face for the list every ray reads)
-    lb.u0[at] = f ? FloatBelow(f->u0) : -FLT_MAX;
-    lb.u1[at] = f ? FloatAbove(f->u1) : FLT_MAX;
-    lb.v0[at] = f ? FloatBelow(f->v0) : -FLT_MAX;
-    lb.v1[at] = f ? FloatAbove(f->v1) : FLT_MAX;
-    float* rec = lb.verts.get() + 9 * size_t(at);
+  const size_t listed_refs = begin[lb.num_cells];
+  for (size_t j = 0; j < lb.num_refs; ++j) {
+    const uint32_t low = uint32_t(keys[j]);
+    const FaceRect* f = j < listed_refs ? &rects[low] : nullptr;
+    const uint32_t tri = f ? f->tri : low;
+    lb.reach[j] = reach[tri];
+    // the rectangle (the whole face for the list every ray reads)
+    lb.u0[j] = f ? f->u0 : -FLT_MAX;
+    lb.u1[j] = f ? f->u1 : FLT_MAX;
+    lb.v0[j] = f ? f->v0 : -FLT_MAX;
+    lb.v1[j] = f ? f->v1 : FLT_MAX;
+    float* rec = lb.verts.get() + 9 * j;
     for (int c = 0; c < 3; ++c) {
       for (int a = 0; a < 3; ++a) rec[3 * c + a] = tris.p[c][a][tri];
     }
-  };
-  for (const FaceRect& f : rects) for_cells(f, [&](size_t c) { put(cursor[c]++, f.tri, &f); });
-  for (size_t a = 0; a < always.size(); ++a) {
-    put(uint32_t(cursor[lb.num_cells] + a), always[a], nullptr);
   }
   for (size_t p = lb.num_refs; p < lb.num_refs + pad; ++p) {
     lb.reach[p] = FLT_MAX;

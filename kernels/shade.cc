@@ -324,8 +324,8 @@ HWY_INLINE size_t EmitContributions(MF m, const V3& c, hn::Vec<DU> pixel,
 
 // One secondary ray per lane of m, appended at out[pos] with its live lanes packed to the front;
 // may write up to a vector of garbage past the new end, which `out` has room for.
-HWY_INLINE size_t Emit(MF m, const V3& o, const V3& d, VF tmax, hn::Vec<DU> pixel, const V3& w,
-                       VI depth, VI kind, const RayStreamView& out, size_t pos) {
+HWY_INLINE size_t Emit(MF m, const V3& o, const V3& d, VF tmin, VF tmax, hn::Vec<DU> pixel,
+                       const V3& w, VI depth, VI kind, const RayStreamView& out, size_t pos) {
   const DF df;
   const DI di;
 #if HWY_TARGET == HWY_AVX2 || HWY_TARGET == HWY_SSE4 || HWY_TARGET == HWY_SSSE3
@@ -341,7 +341,7 @@ HWY_INLINE size_t Emit(MF m, const V3& o, const V3& d, VF tmax, hn::Vec<DU> pixe
   put(d.x, out.dx + pos);
   put(d.y, out.dy + pos);
   put(d.z, out.dz + pos);
-  put(hn::Zero(df), out.tmin + pos);
+  put(tmin, out.tmin + pos);
   put(tmax, out.tmax + pos);
   put_bits(hn::BitCast(df, pixel), out.pixel + pos);
   put(w.x, out.wr + pos);
@@ -359,7 +359,7 @@ HWY_INLINE size_t Emit(MF m, const V3& o, const V3& d, VF tmax, hn::Vec<DU> pixe
   hn::CompressStore(d.x, m, df, out.dx + pos);
   hn::CompressStore(d.y, m, df, out.dy + pos);
   hn::CompressStore(d.z, m, df, out.dz + pos);
-  hn::CompressStore(hn::Zero(df), m, df, out.tmin + pos);
+  hn::CompressStore(tmin, m, df, out.tmin + pos);
   hn::CompressStore(tmax, m, df, out.tmax + pos);
   hn::CompressStore(pixel, hn::RebindMask(du, m), du, out.pixel + pos);
   hn::CompressStore(w.x, m, df, out.wr + pos);
@@ -371,11 +371,11 @@ HWY_INLINE size_t Emit(MF m, const V3& o, const V3& d, VF tmax, hn::Vec<DU> pixe
 }
 
 // Emit at the end of `to`, grown first if it lacks room for a vector; returns the rays added.
-HWY_INLINE size_t EmitTo(RayStream& to, MF m, const V3& o, const V3& d, VF tmax,
+HWY_INLINE size_t EmitTo(RayStream& to, MF m, const V3& o, const V3& d, VF tmin, VF tmax,
                          hn::Vec<DU> pixel, const V3& w, VI depth, VI kind) {
   const size_t at = to.size();
   if (at + kStreamPad > to.capacity()) to.Reserve(2 * (at + kStreamPad));
-  const size_t end = Emit(m, o, d, tmax, pixel, w, depth, kind, to.view(), at);
+  const size_t end = Emit(m, o, d, tmin, tmax, pixel, w, depth, kind, to.view(), at);
   to.Resize(end);
   return end - at;
 }
@@ -647,7 +647,7 @@ HWY_NOINLINE void ShadeBlocks(const detail::ShadeArgs& a) {
                                            hn::Gt(MaxChannel3(spec), zero)));
         }
         const V3 view = Neg3(d);
-        const VF shadow_tmax = hn::Set(df, kShadowTmax);
+        const VF shadow_tmin = hn::Set(df, kShadowTmin), shadow_tmax = hn::Set(df, 1.0f);
         const VI shadow_kind = hn::Set(di, static_cast<int32_t>(RayKind::kShadow));
         for (size_t li = 0; li < scene.lights.size(); ++li) {
           const PointLight& light = scene.lights[li];
@@ -682,8 +682,8 @@ HWY_NOINLINE void ShadeBlocks(const detail::ShadeArgs& a) {
           const MF spawn = hn::And(ok, hn::Gt(MaxChannel3(contrib), zero));
           if (hn::AllFalse(df, spawn)) continue;
           s.spawned[static_cast<int>(RayKind::kShadow)] +=
-              EmitTo(*a.shadow[li * a.shadow_stride], spawn, front, Sub3(lpos, front),
-                     shadow_tmax, pixel_v, contrib, depth, shadow_kind);
+              EmitTo(*a.shadow[li * a.shadow_stride], spawn, lpos, Sub3(front, lpos),
+                     shadow_tmin, shadow_tmax, pixel_v, contrib, depth, shadow_kind);
         }
       }
     }
@@ -708,7 +708,7 @@ HWY_NOINLINE void ShadeBlocks(const detail::ShadeArgs& a) {
           const MF go = hn::And(rl, pass);
           if (!hn::AllFalse(df, go)) {
             s.spawned[static_cast<int>(RayKind::kReflection)] +=
-                EmitTo(*a.bounce, go, front, mirror(), inf, pixel_v, wr, depth1,
+                EmitTo(*a.bounce, go, front, mirror(), zero, inf, pixel_v, wr, depth1,
                        hn::Set(di, static_cast<int32_t>(RayKind::kReflection)));
           }
         }
@@ -743,7 +743,7 @@ HWY_NOINLINE void ShadeBlocks(const detail::ShadeArgs& a) {
                 hn::CountTrue(df, hn::And(go, through));
             s.spawned[static_cast<int>(RayKind::kReflection)] +=
                 hn::CountTrue(df, hn::AndNot(through, go));
-            EmitTo(*a.bounce, go, origin, dir, inf, pixel_v, wt, depth1, kind);
+            EmitTo(*a.bounce, go, origin, dir, zero, inf, pixel_v, wt, depth1, kind);
           }
         }
       }
@@ -884,9 +884,9 @@ namespace {
 
 float MaxChannel(const glm::vec3& c) { return std::max(c.x, std::max(c.y, c.z)); }
 
-void PushRay(RayStream& out, const glm::vec3& o, const glm::vec3& d, float tmax,
+void PushRay(RayStream& out, const glm::vec3& o, const glm::vec3& d, float tmin, float tmax,
              uint32_t pixel, const glm::vec3& w, int32_t depth, RayKind kind) {
-  out.Push(o.x, o.y, o.z, d.x, d.y, d.z, 0.0f, tmax, pixel, w.x, w.y, w.z, depth, kind);
+  out.Push(o.x, o.y, o.z, d.x, d.y, d.z, tmin, tmax, pixel, w.x, w.y, w.z, depth, kind);
 }
 
 uint32_t EffectiveStages(const ShadeScene& scene, const ShadeOptions& options) {
@@ -1006,8 +1006,8 @@ void Shade(const ShadeScene& scene, const ShadeOptions& options, const RayStream
           const float atten = light.falloff > 0.0f ? 1.0f / (1.0f + light.falloff * dist2) : 1.0f;
           const glm::vec3 contrib = c * light.color * atten * wl;
           if (!(MaxChannel(contrib) > 0.0f)) continue;
-          PushRay(secondary, front, light.position - front, kShadowTmax, pixel, contrib, depth,
-                  RayKind::kShadow);
+          PushRay(secondary, light.position, front - light.position, kShadowTmin, 1.0f, pixel,
+                  contrib, depth, RayKind::kShadow);
           ++s.spawned[static_cast<int>(RayKind::kShadow)];
         }
       }
@@ -1021,7 +1021,7 @@ void Shade(const ShadeScene& scene, const ShadeOptions& options, const RayStream
       if (MaxChannel(wr) >= options.weight_cutoff) {
         glm::vec3 r = Reflect(d, ns);
         if (glm::dot(r, ng) <= 0.0f) r = Reflect(d, ng);  // shading normal bent it below
-        PushRay(secondary, front, r, inf, pixel, wr, depth + 1, RayKind::kReflection);
+        PushRay(secondary, front, r, 0.0f, inf, pixel, wr, depth + 1, RayKind::kReflection);
         ++s.spawned[static_cast<int>(RayKind::kReflection)];
       } else {
         ++s.culled;
@@ -1039,13 +1039,13 @@ void Shade(const ShadeScene& scene, const ShadeOptions& options, const RayStream
         bool through = Refract(d, nr, eta, &t);
         if (through && glm::dot(t, ng) >= 0.0f) through = Refract(d, ng, eta, &t);
         if (through) {
-          PushRay(secondary, OffsetRayOrigin(p, -ng, unit), t, inf, pixel, wt, depth + 1,
+          PushRay(secondary, OffsetRayOrigin(p, -ng, unit), t, 0.0f, inf, pixel, wt, depth + 1,
                   RayKind::kRefraction);
           ++s.spawned[static_cast<int>(RayKind::kRefraction)];
         } else {  // total internal reflection
           glm::vec3 r = Reflect(d, ns);
           if (glm::dot(r, ng) <= 0.0f) r = Reflect(d, ng);
-          PushRay(secondary, front, r, inf, pixel, wt, depth + 1, RayKind::kReflection);
+          PushRay(secondary, front, r, 0.0f, inf, pixel, wt, depth + 1, RayKind::kReflection);
           ++s.spawned[static_cast<int>(RayKind::kReflection)];
         }
       } else {

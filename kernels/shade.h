@@ -108,10 +108,12 @@ struct ShadeStats {
   void Merge(const ShadeStats& o);
 };
 
-// A shadow ray runs from the offset hit point o to the light L as o + t (L - o); it stops at
-// t = kShadowTmax so geometry within 1e-4 of the distance around the light (e.g. a lamp
-// touching the ceiling it hangs from) does not shadow it. tmin is 0: o is already offset.
-inline constexpr float kShadowTmax = 1.0f - 1e-4f;
+// A shadow ray runs from the light L to the offset hit point o as L + t (o - L), t in
+// (kShadowTmin, 1]: traced from the light, so that the shadow rays of one light share their
+// origin (rs::LightBuffer reads one list per ray instead of walking cells). It starts at
+// t = kShadowTmin so geometry within 1e-4 of the distance around the light (e.g. a lamp
+// touching the ceiling it hangs from) does not shadow it, and ends at o, already offset.
+inline constexpr float kShadowTmin = 1e-4f;
 
 // Shades rays[0, n) with their closest hits (hits.size == rays.size; the rays must not be
 // shadow rays, and pixel/weight/depth/kind must be non-null). Per ray, with weight w:

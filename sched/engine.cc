@@ -41,38 +41,20 @@ void MoveRays(const RayStreamView& v, size_t from, size_t end, size_t to) {
   for (size_t i = from; i < end; ++i, ++to) CopyRay<true>(v, i, v, to);
 }
 
-// The light a shadow ray runs to: it goes from o to o + d = the light's position (up to
-// rounding), so the nearest light to o + d. Shadow rays come in runs of one light, so `guess`
-// (the previous ray's light) is tried first and taken when o + d lies within `near2` (a quarter of
-// the smallest distance between two lights, squared) of it.
+// The light a shadow ray comes from: its origin is the light's position (kernels/shade.h), so
+// the light at o. Shadow rays come in runs of one light, so `guess` (the previous ray's light)
+// is tried first. (A ray whose origin is no light's, impossible from Shade, gets light 0.)
 uint32_t LightOf(const RayStreamView& r, size_t i, std::span<const PointLight> lights,
-                 uint32_t guess, float near2) {
-  const glm::vec3 end(r.ox[i] + r.dx[i], r.oy[i] + r.dy[i], r.oz[i] + r.dz[i]);
-  const glm::vec3 g = end - lights[guess].position;
-  if (glm::dot(g, g) < near2) return guess;
-  uint32_t best = 0;
-  float best_d2 = std::numeric_limits<float>::infinity();
+                 uint32_t guess) {
+  const auto at = [&](uint32_t l) {
+    const glm::vec3& p = lights[l].position;
+    return r.ox[i] == p.x && r.oy[i] == p.y && r.oz[i] == p.z;
+  };
+  if (at(guess)) return guess;
   for (uint32_t l = 0; l < lights.size(); ++l) {
-    const glm::vec3 e = end - lights[l].position;
-    const float d2 = glm::dot(e, e);
-    if (d2 < best_d2) {
-      best_d2 = d2;
-      best = l;
-    }
+    if (at(l)) return l;
   }
-  return best;
-}
-
-// A quarter of the smallest distance between two of the lights, squared (0 if two coincide).
-float NearLight2(std::span<const PointLight> lights) {
-  float d2 = std::numeric_limits<float>::infinity();
-  for (size_t a = 0; a < lights.size(); ++a) {
-    for (size_t b = a + 1; b < lights.size(); ++b) {
-      const glm::vec3 e = lights[a].position - lights[b].position;
-      d2 = std::min(d2, glm::dot(e, e));
-    }
-  }
-  return d2 / 16.0f;
+  return 0;
 }
 
 // The rays of `from` (a RayStream's view, a generation of mixed kinds) appended by class, in one
@@ -88,14 +70,13 @@ void Partition(const RayStreamView& from, std::span<const PointLight> lights,
   light_of.resize(from.size);
   start.assign(groups + 1, 0);
   size_t bounce = 0;
-  const float near2 = lights.size() > 1 ? NearLight2(lights) : 0.0f;
   uint32_t guess = 0;
   for (size_t i = 0; i < from.size; ++i) {
     if (from.kind[i] != kShadowKind) {
       ++bounce;
       continue;
     }
-    if (lights.size() > 1) guess = LightOf(from, i, lights, guess, near2);
+    if (lights.size() > 1) guess = LightOf(from, i, lights, guess);
     light_of[i] = guess;
     ++start[guess + 1];
   }
@@ -257,7 +238,10 @@ void RayEngine::Occlude(const FrameContext& ctx, const RayStreamView& rays, Fram
   occluded_.Reserve(n);
   int32_t* occluded = occluded_.data();
   const AccelTracer accel(*ctx.accel);
-  const Tracer& tracer = ctx.tracer != nullptr ? *ctx.tracer : accel;
+  const LightAccelTracer lights(*ctx.accel, ctx.scene->lights, ctx.light_buffers);
+  const Tracer& tracer = ctx.tracer != nullptr      ? *ctx.tracer
+                         : ctx.light_buffers.empty() ? static_cast<const Tracer&>(accel)
+                                                     : lights;
   const uint64_t steps0 = stats.trace.cell_steps, tests0 = stats.trace.triangle_tests;
   const auto t0 = Clock::now();
   tracer.Occluded(rays, occluded, &stats.trace);

@@ -105,6 +105,16 @@ FrameContext MakeFrameContext(const Scene& scene, const Accel& accel, const Came
   return ctx;
 }
 
+std::vector<LightBuffer> BuildLightBuffers(const Scene& scene, const Accel& accel) {
+  std::vector<LightBuffer> buffers;
+  buffers.reserve(scene.lights.size());
+  for (const PointLight& light : scene.lights) {
+    const float p[3] = {light.position.x, light.position.y, light.position.z};
+    buffers.emplace_back(accel, p);
+  }
+  return buffers;
+}
+
 void SetNextCamera(FrameContext& ctx, const Camera& next) {
   ctx.next_camera = MakeCameraBasis(next, ctx.options.width, ctx.options.height);
   ctx.has_next_camera = true;

@@ -7,6 +7,7 @@
 #include <cstddef>
 #include <cstdint>
 #include <deque>
+#include <span>
 #include <vector>
 
 #include "include/raystream/raystream.h"
@@ -84,6 +85,10 @@ struct FrameContext {
   // What the host engine traces with; nullptr: accel (through AccelTracer). Same image for
   // any Tracer that returns the same hits.
   const Tracer* tracer = nullptr;
+  // One rs::LightBuffer per scene light (light_buffers[l] for scene->lights[l], over accel),
+  // or none: the host engine then traces shadow rays through the LightBuffers (same image, only
+  // faster; BuildLightBuffers). Ignored when `tracer` is set.
+  std::span<const LightBuffer> light_buffers;
   CameraBasis camera;
   // The next frame's camera, when the frame loop knows it (a camera path): PBT's cost-map
   // predictor moves this frame's costs to where their content lands in the next frame. Only
@@ -98,6 +103,11 @@ struct FrameContext {
 // The scene must have its features computed (ComputeFeatures) and outlive the context.
 FrameContext MakeFrameContext(const Scene& scene, const Accel& accel, const Camera& camera,
                               const RenderOptions& options);
+
+// One rs::LightBuffer per light of `scene` over `accel` (built from scene.mesh()), for
+// FrameContext::light_buffers; none for a scene without lights. Throws rs::Error if memory
+// runs out.
+std::vector<LightBuffer> BuildLightBuffers(const Scene& scene, const Accel& accel);
 
 // Sets ctx.next_camera (and has_next_camera) to `next` for ctx's image. Throws as
 // MakeCameraBasis.

@@ -4,8 +4,10 @@
 #pragma once
 
 #include <cstdint>
+#include <span>
 
 #include "include/raystream/raystream.h"
+#include "scenes/scene.h"
 
 namespace rs {
 
@@ -21,6 +23,51 @@ class Tracer {
                          TraceStats* stats) const = 0;
   // occluded[i] = 1 if ray i hits anything in [tmin, tmax], else 0, for i < rays.size.
   virtual void Occluded(const RayStreamView& rays, int32_t* occluded, TraceStats* stats) const = 0;
+};
+
+// rs::Accel with one rs::LightBuffer per light (buffers[l] built for lights[l]): a run of
+// shadow rays from light l (origin == its position, kernels/shade.h) is traced through
+// buffers[l], any other ray by the Accel. The results are AccelTracer's bit for bit (the
+// LightBuffer's contract), only faster.
+class LightAccelTracer final : public Tracer {
+ public:
+  LightAccelTracer(const Accel& accel, std::span<const PointLight> lights,
+                   std::span<const LightBuffer> buffers)
+      : accel_(&accel), lights_(lights), buffers_(buffers) {}
+  void Intersect(const RayStreamView& rays, const HitStreamView& hits,
+                 TraceStats* stats) const override {
+    accel_->Intersect(rays, hits, stats);
+  }
+  void Occluded(const RayStreamView& rays, int32_t* occluded, TraceStats* stats) const override {
+    for (size_t i = 0; i < rays.size;) {
+      const float x = rays.ox[i], y = rays.oy[i], z = rays.oz[i];
+      size_t j = i + 1;  // the run of rays from ray i's origin (a NaN origin is a run of 1)
+      while (j < rays.size && rays.ox[j] == x && rays.oy[j] == y && rays.oz[j] == z) ++j;
+      RayStreamView run = rays;
+      run.ox += i, run.oy += i, run.oz += i, run.dx += i, run.dy += i, run.dz += i;
+      run.tmin += i, run.tmax += i;
+      run.size = j - i;
+      const LightBuffer* buffer = nullptr;
+      for (size_t l = 0; l < lights_.size() && l < buffers_.size(); ++l) {
+        const auto& p = lights_[l].position;
+        if (p.x == x && p.y == y && p.z == z) {
+          buffer = &buffers_[l];
+          break;
+        }
+      }
+      if (buffer != nullptr) {
+        buffer->Occluded(run, occluded + i, stats);
+      } else {
+        accel_->Occluded(run, occluded + i, stats);
+      }
+      i = j;
+    }
+  }
+
+ private:
+  const Accel* accel_;
+  std::span<const PointLight> lights_;
+  std::span<const LightBuffer> buffers_;
 };
 
 // rs::Accel behind the interface.

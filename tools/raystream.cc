@@ -530,6 +530,10 @@ int RunRender(RenderArgs args) {
                scene->source, info.triangles);
   }
 
+  // shadow rays from each light through its light buffer (the same image, faster); built once:
+  // the scene and its lights do not move
+  const std::vector<LightBuffer> light_buffers = BuildLightBuffers(*scene, *accel);
+
   std::vector<FrameReport> reports;
   reports.reserve(owner ? static_cast<size_t>(args.frames) : 0);
   // Every output of the run is staged (a complete, fsynced temporary beside its target) and put
@@ -557,6 +561,7 @@ int RunRender(RenderArgs args) {
     FrameContext ctx;
     try {
       ctx = MakeFrameContext(*scene, *accel, camera, options);
+      ctx.light_buffers = light_buffers;
       // PBT's cost map moves this frame's costs to the next frame's view.
       if (frame < last) SetNextCamera(ctx, scene->path.At(frame + 1, args.speed, scene->camera));
     } catch (const Error& e) {

@@ -42,7 +42,8 @@ expect_error "unknown image format" "x\\.xyz" "$rs" render "${small[@]}" --out x
 # 3: SIGINT / SIGTERM during a multi-frame render: no temporary left, no frame placed.
 for sig in INT TERM; do
   mkdir -p "sig_$sig"
-  "$rs" render --width 64 --height 64 --depth 2 --frames 100000 -q --out "sig_$sig/f#.png" --stats "sig_$sig/s.json" &
+  # 512x512: slow enough that fewer than the 256 outputs the command may stage are done in 1.5 s
+  "$rs" render --width 512 --height 512 --depth 2 --frames 100000 -q --out "sig_$sig/f#.png" --stats "sig_$sig/s.json" &
   pid=$!
   sleep 1.5
   kill -s "$sig" "$pid"
