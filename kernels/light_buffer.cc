@@ -154,8 +154,9 @@ bool ProjectTriangle(uint32_t tri, const Vec3 q[3], std::vector<FaceRect>* rects
 }
 
 // Face coordinate -> cell along one axis, clamped (as the query's).
-int CellOf(double x, int res) {
-  return std::clamp(int(std::floor((x + 1.0) * 0.5 * double(res))), 0, res - 1);
+int CellOf(float x, int res) {
+  // x >= -1: truncation is the floor
+  return std::min(int((double(x) + 1.0) * 0.5 * double(res)), res - 1);
 }
 
 }  // namespace
@@ -196,11 +197,12 @@ void BuildLightBuffer(const TriangleSoA& tris, const float light[3], double cell
   const size_t budget = kLightRefsPerTriangle * valid + (size_t{1} << 16);
   int res = std::clamp(int(std::lround(std::sqrt(cells_per_triangle * double(valid) / 6.0))), 1,
                        kLightMaxRes);
-  const auto count_refs = [&](int r) {
+  const auto count_refs = [&](int r) {  // and each rectangle's cells
     size_t refs = 0;
-    for (const FaceRect& f : rects) {
-      refs += size_t(CellOf(f.u1, r) - CellOf(f.u0, r) + 1) *
-              size_t(CellOf(f.v1, r) - CellOf(f.v0, r) + 1);
+    for (FaceRect& f : rects) {
+      f.x0 = CellOf(f.u0, r), f.x1 = CellOf(f.u1, r);
+      f.y0 = CellOf(f.v0, r), f.y1 = CellOf(f.v1, r);
+      refs += size_t(f.x1 - f.x0 + 1) * size_t(f.y1 - f.y0 + 1);
     }
     return refs;
   };
@@ -221,9 +223,7 @@ void BuildLightBuffer(const TriangleSoA& tris, const float light[3], double cell
   uint32_t* begin = lb.cell_begin.get();
   std::fill(begin, begin + lb.num_cells + 2, 0u);
   const size_t face_cells = size_t(res) * size_t(res);
-  for (FaceRect& f : rects) {
-    f.x0 = CellOf(f.u0, res), f.x1 = CellOf(f.u1, res);
-    f.y0 = CellOf(f.v0, res), f.y1 = CellOf(f.v1, res);
+  for (const FaceRect& f : rects) {
     const size_t base = size_t(f.face) * face_cells;
     for (int y = f.y0; y <= f.y1; ++y) {
       uint32_t* row = begin + 1 + base + size_t(y) * size_t(res);

@@ -1,10 +1,12 @@
 // The renderer's time to image, raystream vs Embree 3 in the same run: the serial frame engine
-// (rs::SerialRenderer, one thread, depth 4) renders each scene through rs::Accel and through
-// Embree (bench/peer/embree_tracer.h), with the same camera (BenchCamera: ANCHORS.md's views), the
+// (rs::SerialRenderer, one thread, depth 4) renders each scene through rs::Accel (its shadow
+// rays through one rs::LightBuffer per light, as the raystream command does) and through
+// Embree (bench/peer/embree_tracer.h: every ray, the shadow rays from the light too), with the
+// same camera (BenchCamera: ANCHORS.md's views), the
 // scene's lights and shading, and the same default RenderOptions (batch, ray_budget). Rows:
 //   render/<scene>/<tracer>  one frame, the structure built once before timing;
-//   image/<scene>/<tracer>   time to image of a dynamic scene: rebuild (rs::Accel construction
-//                            or EmbreePeer::Build) + frame, every iteration.
+//   image/<scene>/<tracer>   time to image of a dynamic scene: rebuild (rs::Accel and the
+//                            light buffers, or EmbreePeer::Build) + frame, every iteration.
 // Before timing, both images are rendered once and compared; a scene whose images differ
 // (beyond kPixelTolerance) in more than 0.1 % of pixels fails its rows (diff_pixels and
 // max_abs_diff are on every row). Counters: frame_s (the renderer's wall time; build_s on image
@@ -23,6 +25,7 @@
 #include <cstdio>
 #include <map>
 #include <memory>
+#include <span>
 #include <string>
 #include <vector>
 
@@ -62,6 +65,7 @@ struct SceneData {
   Scene scene;
   MeshView mesh;
   std::unique_ptr<Accel> accel;
+  std::vector<LightBuffer> light_buffers;  // over accel: raystream's shadow rays
   std::unique_ptr<EmbreePeer> peer;
   Camera camera;
   RenderOptions options;
@@ -74,10 +78,13 @@ struct SceneData {
 
 std::unique_ptr<SceneData> g_current;
 
-// Renders the frame of `d` through `tracer` (nullptr: d.accel) into a cleared d.fb.
-FrameStats RenderOnce(SceneData& d, const Accel& accel, const Tracer* tracer) {
+// Renders the frame of `d` through `tracer` (nullptr: accel and its light buffers) into a
+// cleared d.fb.
+FrameStats RenderOnce(SceneData& d, const Accel& accel, std::span<const LightBuffer> buffers,
+                      const Tracer* tracer) {
   FrameContext ctx = MakeFrameContext(d.scene, accel, d.camera, d.options);
   ctx.tracer = tracer;
+  ctx.light_buffers = buffers;
   d.fb.Clear();
   return d.renderer.Render(ctx, d.fb);
 }
@@ -85,9 +92,9 @@ FrameStats RenderOnce(SceneData& d, const Accel& accel, const Tracer* tracer) {
 // Renders both images once and counts the pixels that differ.
 void CheckImages(SceneData& d) {
   const EmbreeTracer embree(*d.peer, kEmbreeMode);
-  RenderOnce(d, *d.accel, &embree);
+  RenderOnce(d, *d.accel, {}, &embree);
   const std::vector<float> theirs = d.fb.ToRgb();
-  RenderOnce(d, *d.accel, nullptr);
+  RenderOnce(d, *d.accel, d.light_buffers, nullptr);
   const std::vector<float> ours = d.fb.ToRgb();
   for (size_t p = 0; p < d.fb.num_pixels(); ++p) {
     bool differs = false, inexact = false;
@@ -123,6 +130,7 @@ SceneData& GetScene(const std::string& name) {
     d.scene = LoadScene(name);
     d.mesh = d.scene.mesh();
     d.accel = std::make_unique<Accel>(d.mesh);
+    d.light_buffers = BuildLightBuffers(d.scene, *d.accel);
     d.peer = std::make_unique<EmbreePeer>(d.mesh);
     d.camera = BenchCamera(d.scene);
     d.options.width = g_config.width;
@@ -175,11 +183,18 @@ void BM_Render(benchmark::State& state, const std::string& scene, bool embree, b
     const double cpu0 = ThreadCpuSeconds();
     const auto t0 = std::chrono::steady_clock::now();
     std::unique_ptr<Accel> rebuilt;
+    std::vector<LightBuffer> rebuilt_lights;  // the grid's and the light buffers' build
     if (rebuild && embree) d.peer->Build(d.mesh);
-    if (rebuild && !embree) rebuilt = std::make_unique<Accel>(d.mesh);
+    if (rebuild && !embree) {
+      rebuilt = std::make_unique<Accel>(d.mesh);
+      rebuilt_lights = BuildLightBuffers(d.scene, *rebuilt);
+    }
     build_seconds += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-    last = RenderOnce(d, rebuilt ? *rebuilt : *d.accel, embree ? &tracer : nullptr);
-    rebuilt.reset();  // a dynamic scene frees last frame's structure every frame
+    last = embree ? RenderOnce(d, *d.accel, {}, &tracer)
+           : rebuilt ? RenderOnce(d, *rebuilt, rebuilt_lights, nullptr)
+                     : RenderOnce(d, *d.accel, d.light_buffers, nullptr);
+    rebuilt_lights.clear();  // a dynamic scene frees last frame's structures every frame
+    rebuilt.reset();
     cpu_seconds += ThreadCpuSeconds() - cpu0;
     sum.trace_seconds += last.trace_seconds;
     sum.shade_seconds += last.shade_seconds;
