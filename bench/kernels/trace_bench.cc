@@ -513,7 +513,7 @@ class RatioReporter : public Base {
       const auto& tracers = rates_.at(key);
       if (!agg.empty() && agg != "median") continue;
       const bool frame = group.rfind("frame/", 0) == 0;
-      const bool build = group.rfind("build/", 0) == 0 || group.rfind("build-cold/", 0) == 0;
+      const bool build = group.rfind("build", 0) == 0;  // build/, build-cold/, build-light/
       const auto ours = tracers.find("raystream");
       std::fprintf(out, "%-24s", group.c_str());
       for (const auto& [tracer, rate] : tracers) {
