@@ -46,11 +46,14 @@ bool Quick() {
 struct Loaded {
   Scene scene;
   std::unique_ptr<Accel> accel;
+  std::vector<LightBuffer> lights;  // over *accel: CheckBackend's backends trace shadow rays
+                                    // through them, the serial references through the grid
 };
 
 Loaded Load(const std::string& name) {
-  Loaded l{LoadScene(name), nullptr};
+  Loaded l{LoadScene(name), nullptr, {}};
   l.accel = std::make_unique<Accel>(l.scene.mesh());
+  l.lights = BuildLightBuffers(l.scene, *l.accel);
   return l;
 }
 
@@ -347,7 +350,8 @@ void CheckBackend(const Loaded& l, const RenderOptions& ro, References& refs,
   Framebuffer fb(ro.width, ro.height);
   for (int f = 0; f < frames; ++f) {
     const Camera camera = l.scene.path.At(f, speed, l.scene.camera);
-    const FrameContext ctx = MakeFrameContext(l.scene, *l.accel, camera, ro);
+    FrameContext ctx = MakeFrameContext(l.scene, *l.accel, camera, ro);
+    ctx.light_buffers = l.lights;  // the same image as the grid's (LightBuffer's contract)
     const Reference& ref = refs.Get(f, speed);
     fb.Clear();
     const std::vector<Tile> expected = o.pbt_tiles_per_worker > 0 && renderer.pbt() != nullptr
