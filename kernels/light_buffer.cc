@@ -94,8 +94,9 @@ bool ProjectTriangle(uint32_t tri, const Vec3 q[3], std::vector<FaceRect>* rects
                       FloatBelow(std::max(-1.0, v0 - kLightMargin)),
                       FloatAbove(std::min(1.0, v1 + kLightMargin)), 0, 0, 0, 0});
   };
-  // fast path: the three vertices on one face, strictly inside its (unwidened) pyramid; the
-  // pyramid is convex, so the whole triangle is
+  // fast path: the three vertices on one face, at least kLightMargin of face coordinate inside
+  // its pyramid; the pyramid is convex, so the whole triangle is, and no ray that picks a
+  // neighbouring face (a tie of |d| components, decided by the rounding) can reach it
   const int f0 = FaceOf(q[0]);
   if (FaceOf(q[1]) == f0 && FaceOf(q[2]) == f0) {
     const int k = f0 >> 1, u = (k + 1) % 3, v = (k + 2) % 3;
@@ -109,6 +110,10 @@ bool ProjectTriangle(uint32_t tri, const Vec3 q[3], std::vector<FaceRect>* rects
         break;
       }
       const double pu = q[c][u] / z, pv = q[c][v] / z;
+      if (std::fabs(pu) > 1.0 - kLightMargin || std::fabs(pv) > 1.0 - kLightMargin) {
+        ok = false;
+        break;
+      }
       u0 = std::min(u0, pu), u1 = std::max(u1, pu);
       v0 = std::min(v0, pv), v1 = std::max(v1, pv);
     }
@@ -172,8 +177,20 @@ void BuildLightBuffer(const TriangleSoA& tris, const float light[3], double cell
   rects.reserve(tris.size + tris.size / 8);
   std::vector<uint32_t> always;  // triangles touching the light
   size_t listed = 0;             // and those with projections
+  LightProjection block;
   for (size_t i = 0; i < tris.size; ++i) {
+    const size_t in_block = i % kLightProjectBlock;
+    if (in_block == 0) {
+      ProjectLightBlock(tris, light, i, std::min(kLightProjectBlock, tris.size - i), &block);
+    }
     if (tris.degenerate[i]) continue;
+    if (block.face[in_block] >= 0) {  // the SIMD pass's common case
+      rects.push_back({uint32_t(i), block.face[in_block], block.u0[in_block], block.u1[in_block],
+                       block.v0[in_block], block.v1[in_block], 0, 0, 0, 0});
+      reach[i] = block.reach[in_block];
+      ++listed;
+      continue;
+    }
     Vec3 q[3];
     double farthest = 0.0;
     for (int c = 0; c < 3; ++c) {

@@ -72,6 +72,24 @@ struct LightBufferData {
 void BuildLightBuffer(const TriangleSoA& tris, const float light[3], double cells_per_triangle,
                       LightBufferData* out);
 
+// The build's common case a vector of triangles at a time, in float (kernels/light_buffer_trace.cc):
+// for triangles [first, first + count <= kLightProjectBlock) whose three vertices lie at least
+// kLightMargin of face coordinate inside one face's pyramid, that face's rectangle (widened by kLightMargin: the float
+// rounding, a few ulps of a face coordinate, stays far inside it) and a reach from a lower
+// bound of the distance (the larger of the plane's and the bounding box's; float error far
+// inside the reach slack). face[j] = -1 for the others (several faces, near the light, outside
+// 2^30 of it): the scalar double-precision path decides those. Degenerate triangles are the
+// caller's to skip.
+inline constexpr size_t kLightProjectBlock = 256;
+struct LightProjection {
+  int32_t face[kLightProjectBlock];
+  float u0[kLightProjectBlock], u1[kLightProjectBlock];
+  float v0[kLightProjectBlock], v1[kLightProjectBlock];
+  float reach[kLightProjectBlock];
+};
+void ProjectLightBlock(const TriangleSoA& tris, const float light[3], size_t first, size_t count,
+                       LightProjection* out);
+
 // Any hit with t in (tmin, tmax] of the rays [0, size <= kLightChunk) (arrays of any alignment,
 // read and occluded written in whole vectors up to PaddedSize(size)) that start exactly at the light (origin
 // == light, all three components) with tmin >= 0: occluded[i] = 1 or 0, the result of Accel::Occluded bit for

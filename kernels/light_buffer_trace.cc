@@ -232,6 +232,94 @@ void OccludedLightBufferT(const LightBufferData& lb, const RayStreamView& rays, 
   }
 }
 
+void ProjectLightBlockT(const TriangleSoA& tris, const float light[3], size_t first,
+                        size_t count, LightProjection* out) {
+  const D d;
+  const DI di;
+  const size_t n = hn::Lanes(d);
+  const V zero = hn::Zero(d), one = hn::Set(d, 1.0f), none = hn::Set(d, -1.0f);
+  const V margin = hn::Set(d, float(kLightMargin)), inside = hn::Set(d, float(1.0 - kLightMargin));
+  const V slack_near = hn::Set(d, float(1.0 - kLightReachSlack));
+  const V slack_far = hn::Set(d, float(kLightReachSlack));
+  const V touch = hn::Set(d, 1e-6f), limit = hn::Set(d, 1073741824.0f);  // 2^30
+  const V l[3] = {hn::Set(d, light[0]), hn::Set(d, light[1]), hn::Set(d, light[2])};
+  for (size_t j = 0; j < count; j += n) {
+    const size_t i = first + j;
+    V q[3][3];
+    for (int c = 0; c < 3; ++c) {
+      for (int a = 0; a < 3; ++a) q[c][a] = hn::Sub(hn::LoadU(d, tris.p[c][a].data() + i), l[a]);
+    }
+    // each vertex's face: the axis of the largest |q| (first on ties) and its sign
+    M ok = hn::FirstN(d, count - j);
+    V axis[3], sign[3];
+    for (int c = 0; c < 3; ++c) {
+      const V ax = hn::Abs(q[c][0]), ay = hn::Abs(q[c][1]), az = hn::Abs(q[c][2]);
+      const M y_gt_x = hn::Gt(ay, ax);
+      const M k2 = hn::Gt(az, hn::IfThenElse(y_gt_x, ay, ax));
+      const M k1 = hn::AndNot(k2, y_gt_x);
+      axis[c] = hn::IfThenElse(k2, hn::Set(d, 2.0f), hn::IfThenElseZero(k1, one));
+      sign[c] = hn::IfThenElse(hn::Lt(PickAxis(hn::Not(hn::Or(k1, k2)), k1, q[c][0], q[c][1],
+                                               q[c][2]),
+                                      zero),
+                               none, one);
+      ok = hn::And(ok, hn::Lt(hn::Max(hn::Max(ax, ay), az), limit));
+    }
+    ok = hn::And(ok, hn::And(hn::Eq(axis[0], axis[1]), hn::Eq(axis[0], axis[2])));
+    ok = hn::And(ok, hn::And(hn::Eq(sign[0], sign[1]), hn::Eq(sign[0], sign[2])));
+    const M k0 = hn::Eq(axis[0], zero), k1 = hn::Eq(axis[0], one);
+    V u_lo = hn::Set(d, FLT_MAX), u_hi = hn::Set(d, -FLT_MAX), v_lo = u_lo, v_hi = u_hi;
+    V farthest = zero;
+    for (int c = 0; c < 3; ++c) {
+      // (k, u, v) = (0, 1, 2), (1, 2, 0) or (2, 0, 1)
+      const V z = hn::Mul(sign[0], PickAxis(k0, k1, q[c][0], q[c][1], q[c][2]));
+      const V qu = PickAxis(k0, k1, q[c][1], q[c][2], q[c][0]);
+      const V qv = PickAxis(k0, k1, q[c][2], q[c][0], q[c][1]);
+      ok = hn::And(ok, hn::Gt(z, zero));
+      const V inv = hn::Div(one, z);
+      const V pu = hn::Mul(qu, inv), pv = hn::Mul(qv, inv);
+      // at least a margin inside the face: no ray of a neighbouring face can reach it
+      ok = hn::And(ok, hn::And(hn::Le(hn::Abs(pu), inside), hn::Le(hn::Abs(pv), inside)));
+      u_lo = hn::Min(u_lo, pu), u_hi = hn::Max(u_hi, pu);
+      v_lo = hn::Min(v_lo, pv), v_hi = hn::Max(v_hi, pv);
+      farthest = hn::Max(farthest, hn::Sqrt(hn::Add(hn::Add(hn::Mul(q[c][0], q[c][0]),
+                                                            hn::Mul(q[c][1], q[c][1])),
+                                                    hn::Mul(q[c][2], q[c][2]))));
+    }
+    // distance bound: the plane's and the bounding box's
+    V e1[3], e2[3];
+    for (int a = 0; a < 3; ++a) {
+      e1[a] = hn::Sub(q[1][a], q[0][a]);
+      e2[a] = hn::Sub(q[2][a], q[0][a]);
+    }
+    const V nx = hn::Sub(hn::Mul(e1[1], e2[2]), hn::Mul(e1[2], e2[1]));
+    const V ny = hn::Sub(hn::Mul(e1[2], e2[0]), hn::Mul(e1[0], e2[2]));
+    const V nz = hn::Sub(hn::Mul(e1[0], e2[1]), hn::Mul(e1[1], e2[0]));
+    const V nn = hn::Add(hn::Add(hn::Mul(nx, nx), hn::Mul(ny, ny)), hn::Mul(nz, nz));
+    const V dot = hn::Add(hn::Add(hn::Mul(nx, q[0][0]), hn::Mul(ny, q[0][1])), hn::Mul(nz, q[0][2]));
+    ok = hn::And(ok, hn::Gt(nn, zero));
+    const V plane = hn::Div(hn::Abs(dot), hn::Sqrt(hn::IfThenElse(hn::Gt(nn, zero), nn, one)));
+    V box2 = zero;
+    for (int a = 0; a < 3; ++a) {
+      const V lo = hn::Min(hn::Min(q[0][a], q[1][a]), q[2][a]);
+      const V hi = hn::Max(hn::Max(q[0][a], q[1][a]), q[2][a]);
+      const V gap = hn::Max(zero, hn::Max(lo, hn::Neg(hi)));
+      box2 = hn::Add(box2, hn::Mul(gap, gap));
+    }
+    const V near = hn::Max(plane, hn::Sqrt(box2));
+    ok = hn::And(ok, hn::Gt(near, hn::Mul(touch, farthest)));
+    const V reach = hn::Max(zero, hn::Sub(hn::Mul(near, slack_near), hn::Mul(slack_far, farthest)));
+    const auto face = hn::Add(hn::Add(hn::ConvertTo(di, axis[0]), hn::ConvertTo(di, axis[0])),
+                              hn::IfThenElseZero(hn::RebindMask(di, hn::Lt(sign[0], zero)),
+                                                 hn::Set(di, 1)));
+    hn::StoreU(hn::IfThenElse(hn::RebindMask(di, ok), face, hn::Set(di, -1)), di, out->face + j);
+    hn::StoreU(hn::Max(none, hn::Sub(u_lo, margin)), d, out->u0 + j);
+    hn::StoreU(hn::Min(one, hn::Add(u_hi, margin)), d, out->u1 + j);
+    hn::StoreU(hn::Max(none, hn::Sub(v_lo, margin)), d, out->v0 + j);
+    hn::StoreU(hn::Min(one, hn::Add(v_hi, margin)), d, out->v1 + j);
+    hn::StoreU(reach, d, out->reach + j);
+  }
+}
+
 }  // namespace HWY_NAMESPACE
 }  // namespace rs
 HWY_AFTER_NAMESPACE();
@@ -240,6 +328,12 @@ HWY_AFTER_NAMESPACE();
 namespace rs {
 
 HWY_EXPORT(OccludedLightBufferT);
+HWY_EXPORT(ProjectLightBlockT);
+
+void ProjectLightBlock(const TriangleSoA& tris, const float light[3], size_t first, size_t count,
+                       LightProjection* out) {
+  HWY_DYNAMIC_DISPATCH(ProjectLightBlockT)(tris, light, first, count, out);
+}
 
 void OccludedLightBuffer(const LightBufferData& lb, const RayStreamView& rays, int32_t* occluded,
                          uint32_t* far, size_t* num_far, TraceStats* stats) {

@@ -239,6 +239,63 @@ TEST_CASE("light buffer: axis and face-diagonal directions, tiny scale") {
   CHECK(occluded > rays.size() / 2);
 }
 
+TEST_CASE("light buffer: triangles that end on the edge between two cube faces") {
+  // seen from the light at the origin, the plane x = y separates faces +x and +y: triangles
+  // whose vertices lie on it or within 1e-7 .. 1e-3 of it on either side, and rays through
+  // their vertices, edges and interiors, along the edge and one float step off it
+  Soup soup;
+  const double offsets[] = {0.0, 1e-7, -1e-7, 1e-6, -1e-6, 1e-5, -1e-5, 1e-4, -1e-4, 1e-3, -1e-3};
+  for (const double off : offsets) {
+    for (int k = 0; k < 8; ++k) {
+      const double z = -0.4 + 0.1 * k, x = 2.0 + 0.05 * k;
+      const float a[3] = {F(x), F(x * (1.0 + off)), F(z)};
+      const float b[3] = {F(x + 0.3), F((x + 0.3) * (1.0 + off) + 0.2), F(z + 0.05)};
+      const float c[3] = {F(x - 0.1), F((x - 0.1) * (1.0 + off) + 0.15), F(z + 0.1)};
+      soup.AddTriangle(a, b, c);
+      const float e[3] = {F(x * (1.0 + off) + 0.2), F(x + 0.3), F(z + 0.05)};  // x > y side
+      soup.AddTriangle(a, e, c);
+    }
+  }
+  const Accel accel(soup.view());
+  const float light[3] = {0.0f, 0.0f, 0.0f};
+  const LightBuffer lb(accel, light);
+  Rng rng(17);
+  std::vector<Ray> rays = LightRays(soup.view(), light, rng, 1000);
+  for (int k = 0; k < 2000; ++k) {  // directions on and next to the x = y plane
+    Ray r;
+    r.o[0] = r.o[1] = r.o[2] = 0.0f;
+    r.d[0] = rng.UniformF(1.5, 3.0);
+    r.d[1] = r.d[0];
+    r.d[2] = rng.UniformF(-0.6, 0.6);
+    if (k % 3 == 1) r.d[1] = std::nextafter(r.d[1], 10.0f);
+    if (k % 3 == 2) r.d[1] = std::nextafter(r.d[1], -10.0f);
+    r.tmax = kInf;
+    rays.push_back(r);
+  }
+  // towards each vertex, moved onto the plane (|dx| = |dy|: the ray picks face +x) and one and
+  // two float steps either side
+  const MeshView m = soup.view();
+  for (size_t v = 0; v < m.num_vertices; ++v) {
+    const float* p = m.positions + 3 * v;
+    for (int step = -2; step <= 2; ++step) {
+      Ray r;
+      r.o[0] = r.o[1] = r.o[2] = 0.0f;
+      r.d[0] = p[0];
+      r.d[1] = p[0];
+      for (int k = 0; k < std::abs(step); ++k) r.d[1] = std::nextafter(r.d[1], step > 0 ? 10.0f : -10.0f);
+      r.d[2] = p[2];
+      r.tmax = kInf;
+      rays.push_back(r);
+      r.d[0] = p[1];  // and onto the plane the other way
+      r.d[1] = p[1];
+      for (int k = 0; k < std::abs(step); ++k) r.d[0] = std::nextafter(r.d[0], step > 0 ? 10.0f : -10.0f);
+      rays.push_back(r);
+    }
+  }
+  const size_t occluded = CheckSame(accel, lb, rays, "face edge");
+  CHECK(occluded > 0);
+}
+
 TEST_CASE("light buffer: invalid rays, tmin < 0, rays not from the light, empty mesh") {
   const Scene scene = LoadScene("cornell");
   const Accel accel(scene.mesh());
