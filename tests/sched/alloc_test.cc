@@ -106,6 +106,8 @@ TEST_CASE("the counter sees allocations") {
 TEST_CASE("no heap allocation while a later frame renders, on every host backend") {
   const Scene s = test::HandScene();
   const Accel accel(test::MeshOf(s));
+  const std::vector<LightBuffer> lights = BuildLightBuffers(s, accel);
+  REQUIRE(!lights.empty());
   RenderOptions o;
   o.width = 96;
   o.height = 80;
@@ -113,6 +115,17 @@ TEST_CASE("no heap allocation while a later frame renders, on every host backend
   for (const char* name : {"serial", "lock", "lfree", "local", "tiles"}) {
     for (const int batch : {20, 1024}) {
       INFO("backend ", std::string(name), " batch ", batch);
+      {  // the shadow rays through light buffers
+        BackendOptions b;
+        REQUIRE(ParseBackendKind(name, &b.kind));
+        b.threads = b.kind == BackendKind::kSerial ? 1 : 2;
+        o.batch = batch;
+        HostRenderer r(b);
+        Framebuffer fb(o.width, o.height);
+        FrameContext ctx = MakeFrameContext(s, accel, s.camera, o);
+        ctx.light_buffers = lights;
+        CHECK(LaterFrameAllocations(r, ctx, fb, 3) == 0);
+      }
       BackendOptions b;
       REQUIRE(ParseBackendKind(name, &b.kind));
       b.threads = b.kind == BackendKind::kSerial ? 1 : 2;
