@@ -608,9 +608,13 @@ int RunRender(RenderArgs args) {
   fmt::print("scene      {}: {} triangles, {} lights, grid {} {}x{}x{}\n", scene->name,
              info.triangles, scene->lights.size(), info.kind, info.resolution[0],
              info.resolution[1], info.resolution[2]);
-  fmt::print("load       {:.1f} ms, grid build {:.1f} ms ({:.1f} Mtris/s)\n", 1e3 * load_seconds,
-             1e3 * info.build_seconds,
-             info.build_seconds > 0 ? info.triangles / info.build_seconds * 1e-6 : 0.0);
+  double light_seconds = 0;
+  for (const LightBuffer& b : light_buffers) light_seconds += b.Info().build_seconds;
+  fmt::print("load       {:.1f} ms, grid build {:.1f} ms ({:.1f} Mtris/s), {} light buffer{} "
+             "{:.1f} ms\n",
+             1e3 * load_seconds, 1e3 * info.build_seconds,
+             info.build_seconds > 0 ? info.triangles / info.build_seconds * 1e-6 : 0.0,
+             light_buffers.size(), light_buffers.size() == 1 ? "" : "s", 1e3 * light_seconds);
   fmt::print("image      {}x{}, depth {}, {} frame(s), backend {}\n", args.width, args.height,
              args.depth, args.frames, backend->Describe());
   std::string by_kind;
