@@ -164,18 +164,43 @@ int CellOf(float x, int res) {
   return std::min(int((double(x) + 1.0) * 0.5 * double(res)), res - 1);
 }
 
+// Grows *a to hold n elements if it holds fewer (contents not kept); *capacity tracks it.
+template <typename T>
+void Ensure(hwy::AlignedFreeUniquePtr<T[]>* a, size_t n, size_t* capacity, const char* what) {
+  if (*a && n <= *capacity) return;
+  a->reset();  // first: the old and the new array are never held at once
+  *a = AllocateBuildArray<T>(n, what);
+  *capacity = n;
+}
+
 }  // namespace
 
+// The build's temporaries, kept between rebuilds (no fresh pages for a same-sized rebuild).
+struct LightBuildScratch {
+  std::vector<float> reach;
+  std::vector<FaceRect> rects;
+  std::vector<uint32_t> always;
+  std::vector<uint64_t> keys;
+  std::vector<uint32_t> cursor;
+};
+
 void BuildLightBuffer(const TriangleSoA& tris, const float light[3], double cells_per_triangle,
-                      LightBufferData* out) {
+                      LightBufferData* out, LightBuildScratch* reuse) {
+  LightBuildScratch local;
+  LightBuildScratch& sc = reuse != nullptr ? *reuse : local;
   LightBufferData& lb = *out;
-  lb = LightBufferData();
+  lb.res = 0;
+  lb.half_res = 0.0f;
+  lb.num_cells = lb.num_refs = lb.num_always = 0;
   for (int a = 0; a < 3; ++a) lb.light[a] = light[a];
   const Vec3 l = {double(light[0]), double(light[1]), double(light[2])};
-  std::vector<float> reach(tris.size, 0.0f);
-  std::vector<FaceRect> rects;
+  std::vector<float>& reach = sc.reach;
+  reach.assign(tris.size, 0.0f);
+  std::vector<FaceRect>& rects = sc.rects;
+  rects.clear();
   rects.reserve(tris.size + tris.size / 8);
-  std::vector<uint32_t> always;  // triangles touching the light
+  std::vector<uint32_t>& always = sc.always;  // triangles touching the light
+  always.clear();
   size_t listed = 0;             // and those with projections
   LightProjection block;
   for (size_t i = 0; i < tris.size; ++i) {
@@ -236,7 +261,7 @@ void BuildLightBuffer(const TriangleSoA& tris, const float light[3], double cell
   // a counting sort of the references by cell, in rectangle order (= triangle order), then
   // each cell's references sorted by (reach, triangle): keys reach bits << 32 | rectangle
   // (non-negative floats order like their bit patterns)
-  lb.cell_begin = AllocateBuildArray<uint32_t>(lb.num_cells + 2, "light buffer cell offsets");
+  Ensure(&lb.cell_begin, lb.num_cells + 2, &lb.cell_capacity, "light buffer cell offsets");
   uint32_t* begin = lb.cell_begin.get();
   std::fill(begin, begin + lb.num_cells + 2, 0u);
   const size_t face_cells = size_t(res) * size_t(res);
@@ -249,9 +274,11 @@ void BuildLightBuffer(const TriangleSoA& tris, const float light[3], double cell
   }
   begin[lb.num_cells + 1] = uint32_t(always.size());
   for (size_t c = 0; c <= lb.num_cells; ++c) begin[c + 1] += begin[c];
-  std::vector<uint64_t> keys(lb.num_refs);
+  std::vector<uint64_t>& keys = sc.keys;
+  keys.resize(lb.num_refs);  // every element is written below
   {
-    std::vector<uint32_t> cursor(begin, begin + lb.num_cells + 1);
+    std::vector<uint32_t>& cursor = sc.cursor;
+    cursor.assign(begin, begin + lb.num_cells + 1);
     for (size_t r = 0; r < rects.size(); ++r) {
       const FaceRect& f = rects[r];
       const uint64_t key = uint64_t(std::bit_cast<uint32_t>(reach[f.tri])) << 32 | r;
@@ -270,10 +297,14 @@ void BuildLightBuffer(const TriangleSoA& tris, const float light[3], double cell
     if (begin[c + 1] - begin[c] > 1) std::sort(keys.data() + begin[c], keys.data() + begin[c + 1]);
   }
   const size_t pad = 16;  // one vector of the widest target
-  for (auto* a : {&lb.reach, &lb.u0, &lb.u1, &lb.v0, &lb.v1}) {
-    *a = AllocateBuildArray<float>(lb.num_refs + pad, "light buffer references");
+  if (lb.num_refs + pad > lb.ref_capacity || !lb.verts) {
+    for (auto* a : {&lb.reach, &lb.u0, &lb.u1, &lb.v0, &lb.v1, &lb.verts}) a->reset();
+    for (auto* a : {&lb.reach, &lb.u0, &lb.u1, &lb.v0, &lb.v1}) {
+      *a = AllocateBuildArray<float>(lb.num_refs + pad, "light buffer references");
+    }
+    lb.verts = AllocateBuildArray<float>(9 * (lb.num_refs + pad), "light buffer triangles");
+    lb.ref_capacity = lb.num_refs + pad;
   }
-  lb.verts = AllocateBuildArray<float>(9 * lb.num_refs, "light buffer triangles");
   const size_t listed_refs = begin[lb.num_cells];
   for (size_t j = 0; j < lb.num_refs; ++j) {
     const uint32_t low = uint32_t(keys[j]);
@@ -302,19 +333,28 @@ void BuildLightBuffer(const TriangleSoA& tris, const float light[3], double cell
 struct LightBuffer::Impl {
   const Accel* accel = nullptr;
   LightBufferData data;
+  LightBuildScratch scratch;
   double build_seconds = 0.0;
+  bool built = false;  // false while (or after a failed) Rebuild
 };
 
 LightBuffer::LightBuffer(const Accel& accel, const float light[3])
     : impl_(std::make_unique<Impl>()) {
+  Rebuild(accel, light);
+}
+
+void LightBuffer::Rebuild(const Accel& accel, const float light[3]) {
   const auto start = std::chrono::steady_clock::now();
+  if (!impl_) throw Error("LightBuffer::Rebuild: this LightBuffer was moved from");
   if (light == nullptr || !std::isfinite(light[0]) || !std::isfinite(light[1]) ||
       !std::isfinite(light[2])) {
     throw Error("LightBuffer: the light position must be three finite numbers");
   }
-  impl_->accel = &accel;
   const Accel::Impl& m = AccelImpl(accel);
-  BuildLightBuffer(m.triangles, light, kLightCellsPerTriangle, &impl_->data);
+  impl_->built = false;
+  impl_->accel = &accel;
+  BuildLightBuffer(m.triangles, light, kLightCellsPerTriangle, &impl_->data, &impl_->scratch);
+  impl_->built = true;
   impl_->build_seconds =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
 }
@@ -326,6 +366,7 @@ LightBuffer& LightBuffer::operator=(LightBuffer&&) noexcept = default;
 void LightBuffer::Occluded(const RayStreamView& rays, int32_t* occluded, TraceStats* stats) const {
   if (!impl_) throw Error("LightBuffer::Occluded: this LightBuffer was moved from");
   const Impl& m = *impl_;
+  if (!m.built) throw Error("LightBuffer::Occluded: the last Rebuild failed");
   if (rays.size == 0) return;
   const float* arrays[] = {rays.ox, rays.oy, rays.oz, rays.dx, rays.dy, rays.dz, rays.tmin,
                            rays.tmax};

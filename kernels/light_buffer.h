@@ -60,17 +60,20 @@ struct LightBufferData {
   // 9 scattered loads from the triangle SoA each).
   hwy::AlignedFreeUniquePtr<float[]> reach, u0, u1, v0, v1;
   hwy::AlignedFreeUniquePtr<float[]> verts;
+  size_t cell_capacity = 0, ref_capacity = 0;  // what the arrays hold (kept by rebuilds)
 
   bool empty() const { return res == 0; }
   size_t Bytes() const { return (num_cells + 2) * 4 + num_refs * 14 * 4; }
 };
 
 // Builds the light buffer of `tris` (non-degenerate triangles only) for a light at `light`
-// (finite; the caller checks). cells_per_triangle: about that many cells per triangle, lowered
-// while the references would pass kLightRefsPerTriangle per triangle. Throws rs::Error if an
-// allocation fails.
+// (finite; the caller checks) into *out, reusing its arrays (and the temporaries in *reuse,
+// if given) where they are large enough. cells_per_triangle: about that many cells per
+// triangle, lowered while the references would pass kLightRefsPerTriangle per triangle. Throws
+// rs::Error if an allocation fails.
+struct LightBuildScratch;
 void BuildLightBuffer(const TriangleSoA& tris, const float light[3], double cells_per_triangle,
-                      LightBufferData* out);
+                      LightBufferData* out, LightBuildScratch* reuse = nullptr);
 
 // The build's common case a vector of triangles at a time, in float (kernels/light_buffer_trace.cc):
 // for triangles [first, first + count <= kLightProjectBlock) whose three vertices lie at least

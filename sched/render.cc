@@ -107,12 +107,22 @@ FrameContext MakeFrameContext(const Scene& scene, const Accel& accel, const Came
 
 std::vector<LightBuffer> BuildLightBuffers(const Scene& scene, const Accel& accel) {
   std::vector<LightBuffer> buffers;
-  buffers.reserve(scene.lights.size());
-  for (const PointLight& light : scene.lights) {
-    const float p[3] = {light.position.x, light.position.y, light.position.z};
-    buffers.emplace_back(accel, p);
-  }
+  RebuildLightBuffers(scene, accel, &buffers);
   return buffers;
+}
+
+void RebuildLightBuffers(const Scene& scene, const Accel& accel, std::vector<LightBuffer>* buffers) {
+  while (buffers->size() > scene.lights.size()) buffers->pop_back();
+  buffers->reserve(scene.lights.size());
+  for (size_t l = 0; l < scene.lights.size(); ++l) {
+    const glm::vec3& q = scene.lights[l].position;
+    const float p[3] = {q.x, q.y, q.z};
+    if (l < buffers->size()) {
+      (*buffers)[l].Rebuild(accel, p);
+    } else {
+      buffers->emplace_back(accel, p);
+    }
+  }
 }
 
 void SetNextCamera(FrameContext& ctx, const Camera& next) {

@@ -108,6 +108,9 @@ FrameContext MakeFrameContext(const Scene& scene, const Accel& accel, const Came
 // FrameContext::light_buffers; none for a scene without lights. Throws rs::Error if memory
 // runs out.
 std::vector<LightBuffer> BuildLightBuffers(const Scene& scene, const Accel& accel);
+// The same into *buffers, rebuilding the ones it holds in place (LightBuffer::Rebuild: no fresh
+// memory for a rebuild of the same size), for a scene whose Accel is rebuilt every frame.
+void RebuildLightBuffers(const Scene& scene, const Accel& accel, std::vector<LightBuffer>* buffers);
 
 // Sets ctx.next_camera (and has_next_camera) to `next` for ctx's image. Throws as
 // MakeCameraBasis.

@@ -233,6 +233,12 @@ class RS_API LightBuffer {
   LightBuffer(LightBuffer&&) noexcept;
   LightBuffer& operator=(LightBuffer&&) noexcept;
 
+  // Rebuilds for `accel` (a rebuilt Accel of a moving scene, or the same one) and `light`,
+  // reusing this buffer's memory where it is large enough: a rebuild of the same size touches
+  // no fresh page. Throws as the constructor (or if moved from); on a throw the buffer must be
+  // rebuilt before it is used again.
+  void Rebuild(const Accel& accel, const float light[3]);
+
   // Any hit with t in (tmin, tmax], as Accel::Occluded (same contract and errors).
   void Occluded(const RayStreamView& rays, int32_t* occluded, TraceStats* stats = nullptr) const;
   LightBufferInfo Info() const;

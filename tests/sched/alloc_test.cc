@@ -137,6 +137,25 @@ TEST_CASE("no heap allocation while a later frame renders, on every host backend
   }
 }
 
+TEST_CASE("no heap allocation when light buffers are rebuilt at the same size") {
+  const Scene s = test::HandScene();
+  const Accel accel(test::MeshOf(s));
+  std::vector<LightBuffer> lights = BuildLightBuffers(s, accel);
+  REQUIRE(!lights.empty());
+  RebuildLightBuffers(s, accel, &lights);  // the scratch reaches its size
+  g_allocations.store(0);
+  g_counting.store(true);
+  RebuildLightBuffers(s, accel, &lights);
+  const Accel again(test::MeshOf(s));  // (allocates: not counted below)
+  g_counting.store(false);
+  CHECK(g_allocations.load() > 0);  // the counter works: the Accel allocated
+  g_allocations.store(0);
+  g_counting.store(true);
+  RebuildLightBuffers(s, again, &lights);  // a rebuilt Accel of the same scene
+  g_counting.store(false);
+  CHECK(g_allocations.load() == 0);
+}
+
 // PBT tiles feeding the queues, and the tiles backend's PBT lists (static, stealing, the
 // demand-driven master): nothing allocates in a later frame, on any thread. Counted: the whole
 // BeginFrame / EndFrame of frames 1-3, so on the application thread also the tile plan's work
