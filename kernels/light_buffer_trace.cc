@@ -146,11 +146,8 @@ void OccludedLightBufferT(const LightBufferData& lb, const RayStreamView& rays, 
                                 : StreamRayValid(d, at, ox, oy, oz, dx, dy, dz, tmin, tmax_f);
     // the cell of each direction: face axis kz (the largest |d|, first on ties: the watertight
     // kz), u, v axes kz + 1, kz + 2
-    const V adx = hn::Abs(dx), ady = hn::Abs(dy), adz = hn::Abs(dz);
-    const M y_gt_x = hn::Gt(ady, adx);
-    const M kz2 = hn::Gt(adz, hn::IfThenElse(y_gt_x, ady, adx));
-    const M kz1 = hn::AndNot(kz2, y_gt_x);
-    const M kz0 = hn::Not(hn::Or(y_gt_x, kz2));
+    M kz0, kz1;
+    LargestAxis(d, dx, dy, dz, &kz0, &kz1);
     const V dk = PickAxis(kz0, kz1, dx, dy, dz);
     const V du = PickAxis(kz0, kz1, dy, dz, dx);
     const V dv = PickAxis(kz0, kz1, dz, dx, dy);
@@ -253,16 +250,12 @@ void ProjectLightBlockT(const TriangleSoA& tris, const float light[3], size_t fi
     M ok = hn::FirstN(d, count - j);
     V axis[3], sign[3];
     for (int c = 0; c < 3; ++c) {
-      const V ax = hn::Abs(q[c][0]), ay = hn::Abs(q[c][1]), az = hn::Abs(q[c][2]);
-      const M y_gt_x = hn::Gt(ay, ax);
-      const M k2 = hn::Gt(az, hn::IfThenElse(y_gt_x, ay, ax));
-      const M k1 = hn::AndNot(k2, y_gt_x);
-      axis[c] = hn::IfThenElse(k2, hn::Set(d, 2.0f), hn::IfThenElseZero(k1, one));
-      sign[c] = hn::IfThenElse(hn::Lt(PickAxis(hn::Not(hn::Or(k1, k2)), k1, q[c][0], q[c][1],
-                                               q[c][2]),
-                                      zero),
-                               none, one);
-      ok = hn::And(ok, hn::Lt(hn::Max(hn::Max(ax, ay), az), limit));
+      M k0, k1;
+      LargestAxis(d, q[c][0], q[c][1], q[c][2], &k0, &k1);
+      axis[c] = hn::IfThenElse(k0, zero, hn::IfThenElse(k1, one, hn::Set(d, 2.0f)));
+      const V qk = PickAxis(k0, k1, q[c][0], q[c][1], q[c][2]);
+      sign[c] = hn::IfThenElse(hn::Lt(qk, zero), none, one);
+      ok = hn::And(ok, hn::Lt(hn::Abs(qk), limit));  // the largest |q|
     }
     ok = hn::And(ok, hn::And(hn::Eq(axis[0], axis[1]), hn::Eq(axis[0], axis[2])));
     ok = hn::And(ok, hn::And(hn::Eq(sign[0], sign[1]), hn::Eq(sign[0], sign[2])));

@@ -458,6 +458,18 @@ HWY_INLINE hn::Mask<D> StreamRayValid(D d, hn::Mask<D> live, V ox, V oy, V oz, V
   return hn::And(valid, hn::Lt(tmin, tmax));
 }
 
+// The axis of the largest |d| per lane (first on ties, as PrepareWatertightRay's kz): *k0,
+// *k1 = the lanes where it is x, y (z elsewhere).
+template <class D, class V = hn::Vec<D>>
+HWY_INLINE void LargestAxis(D d, V dx, V dy, V dz, hn::Mask<D>* k0, hn::Mask<D>* k1) {
+  const V adx = hn::Abs(dx), ady = hn::Abs(dy), adz = hn::Abs(dz);
+  const auto y_gt_x = hn::Gt(ady, adx);
+  const auto k2 = hn::Gt(adz, hn::IfThenElse(y_gt_x, ady, adx));
+  *k1 = hn::AndNot(k2, y_gt_x);
+  *k0 = hn::Not(hn::Or(y_gt_x, k2));
+  (void)d;
+}
+
 // The watertight setup of a vector of rays, PrepareWatertightRay lane by lane: kz = axis of the
 // largest |d| (first on ties), kx = kz + 1, ky = kx + 1 (mod 3), swapped where d[kz] < 0 to keep
 // the winding. Returns true if every lane of `valid` has the same (kx, ky, kz), given in k[3]
@@ -466,11 +478,9 @@ template <class D, class V = hn::Vec<D>>
 HWY_INLINE bool SetupStreamRays(D d, V ox, V oy, V oz, V dx, V dy, V dz, hn::Mask<D> valid,
                                 StreamRays<D>* r, int k[3]) {
   const V zero = hn::Zero(d), one = hn::Set(d, 1.0f);
-  const V adx = hn::Abs(dx), ady = hn::Abs(dy), adz = hn::Abs(dz);
-  const auto y_gt_x = hn::Gt(ady, adx);
-  const auto kz2 = hn::Gt(adz, hn::IfThenElse(y_gt_x, ady, adx));
-  const auto kz1 = hn::AndNot(kz2, y_gt_x);
-  const auto kz0 = hn::Not(hn::Or(y_gt_x, kz2));
+  hn::Mask<D> kz0, kz1;
+  LargestAxis(d, dx, dy, dz, &kz0, &kz1);
+  const auto kz2 = hn::Not(hn::Or(kz0, kz1));
   const V dkz = PickAxis(kz0, kz1, dx, dy, dz);
   const auto swap = hn::Lt(dkz, zero);
   const auto keep = hn::Not(swap);
