@@ -158,10 +158,10 @@ bool ProjectTriangle(uint32_t tri, const Vec3 q[3], std::vector<FaceRect>* rects
   return true;
 }
 
-// Face coordinate -> cell along one axis, clamped (as the query's).
-int CellOf(float x, int res) {
-  // x >= -1: truncation is the floor
-  return std::min(int((double(x) + 1.0) * 0.5 * double(res)), res - 1);
+// Face coordinate -> cell along one axis of a face's window, clamped (as the query's).
+int CellOf(float x, float lo, float scale, int top) {
+  // x >= lo for a binned rectangle: truncation is the floor
+  return std::clamp(int((double(x) - double(lo)) * double(scale)), 0, top);
 }
 
 // Grows *a to hold n elements if it holds fewer (contents not kept); *capacity tracks it.
@@ -173,6 +173,22 @@ void Ensure(hwy::AlignedFreeUniquePtr<T[]>* a, size_t n, size_t* capacity, const
   *capacity = n;
 }
 
+// keys sorted by their high 32 bits, stable (ties keep their order): an LSD radix sort of
+// 11-bit digits, skipping a digit every key shares. Reaches are >= 0, so their float bits sort
+// as the values do.
+void SortByReach(std::vector<uint64_t>* keys, std::vector<uint64_t>* tmp) {
+  const size_t n = keys->size();
+  tmp->resize(n);
+  for (int shift = 32; shift < 64; shift += 11) {
+    uint32_t count[2049] = {};
+    for (const uint64_t k : *keys) ++count[1 + ((k >> shift) & 2047)];
+    if (std::find(count + 1, count + 2049, n) != count + 2049) continue;  // one digit for all
+    for (int b = 0; b < 2048; ++b) count[b + 1] += count[b];
+    for (const uint64_t k : *keys) (*tmp)[count[(k >> shift) & 2047]++] = k;
+    keys->swap(*tmp);
+  }
+}
+
 }  // namespace
 
 // The build's temporaries, kept between rebuilds (no fresh pages for a same-sized rebuild).
@@ -180,7 +196,7 @@ struct LightBuildScratch {
   std::vector<float> reach;
   std::vector<FaceRect> rects;
   std::vector<uint32_t> always;
-  std::vector<uint64_t> keys;
+  std::vector<uint64_t> keys, keys_tmp;  // reach bits << 32 | rectangle (SortByReach)
   std::vector<uint32_t> cursor;
 };
 
@@ -190,7 +206,7 @@ void BuildLightBuffer(const TriangleSoA& tris, const float light[3], double cell
   LightBuildScratch& sc = reuse != nullptr ? *reuse : local;
   LightBufferData& lb = *out;
   lb.res = 0;
-  lb.half_res = 0.0f;
+  lb.faces = LightFaces{};
   lb.num_cells = lb.num_refs = lb.num_always = 0;
   for (int a = 0; a < 3; ++a) lb.light[a] = light[a];
   const Vec3 l = {double(light[0]), double(light[1]), double(light[2])};
@@ -235,27 +251,62 @@ void BuildLightBuffer(const TriangleSoA& tris, const float light[3], double cell
   }
   const size_t valid = listed + always.size();
   if (valid == 0) return;
-  // resolution: about cells_per_triangle cells per triangle, coarsened to the reference budget
-  const size_t budget = kLightRefsPerTriangle * valid + (size_t{1} << 16);
-  int res = std::clamp(int(std::lround(std::sqrt(cells_per_triangle * double(valid) / 6.0))), 1,
-                       kLightMaxRes);
-  const auto count_refs = [&](int r) {  // and each rectangle's cells
+  // each face's window: the union of its rectangles
+  struct Window {
+    double lo_u = DBL_MAX, hi_u = -DBL_MAX, lo_v = DBL_MAX, hi_v = -DBL_MAX;
+    size_t rects = 0;
+  } win[6];
+  for (const FaceRect& f : rects) {
+    Window& w = win[f.face];
+    w.lo_u = std::min(w.lo_u, double(f.u0)), w.hi_u = std::max(w.hi_u, double(f.u1));
+    w.lo_v = std::min(w.lo_v, double(f.v0)), w.hi_v = std::max(w.hi_v, double(f.v1));
+    ++w.rects;
+  }
+  // about `cells` cells over the faces, shared by their rectangle counts, square-ish cells over
+  // each window; returns the references (and sets each rectangle's cells)
+  LightFaces& fc = lb.faces;
+  const auto layout = [&](double cells) {
+    int32_t base = 0;
+    lb.res = 0;
+    for (int face = 0; face < 6; ++face) {
+      const Window& w = win[face];
+      int ru = 1, rv = 1;
+      float lo_u = 0.0f, lo_v = 0.0f, su = 0.0f, sv = 0.0f;
+      if (w.rects > 0) {
+        const double wu = w.hi_u - w.lo_u, wv = w.hi_v - w.lo_v;  // >= 2 kLightMargin
+        const double cf = std::max(1.0, cells * double(w.rects) / double(rects.size()));
+        ru = std::clamp(int(std::lround(std::sqrt(cf * wu / wv))), 1, kLightMaxRes);
+        rv = std::clamp(int(std::lround(cf / double(ru))), 1, kLightMaxRes);
+        lo_u = float(w.lo_u), lo_v = float(w.lo_v);  // rectangle bounds: floats already
+        su = float(double(ru) / wu), sv = float(double(rv) / wv);
+      }
+      fc.lo_u[face] = lo_u, fc.lo_v[face] = lo_v, fc.scale_u[face] = su, fc.scale_v[face] = sv;
+      fc.res_u[face] = ru, fc.res_v[face] = rv, fc.top_u[face] = ru - 1, fc.top_v[face] = rv - 1;
+      fc.base[face] = base;
+      base += ru * rv;
+      lb.res = std::max({lb.res, ru, rv});
+    }
+    lb.num_cells = size_t(base);
     size_t refs = 0;
     for (FaceRect& f : rects) {
-      f.x0 = CellOf(f.u0, r), f.x1 = CellOf(f.u1, r);
-      f.y0 = CellOf(f.v0, r), f.y1 = CellOf(f.v1, r);
+      const int face = f.face;
+      f.x0 = CellOf(f.u0, fc.lo_u[face], fc.scale_u[face], fc.top_u[face]);
+      f.x1 = CellOf(f.u1, fc.lo_u[face], fc.scale_u[face], fc.top_u[face]);
+      f.y0 = CellOf(f.v0, fc.lo_v[face], fc.scale_v[face], fc.top_v[face]);
+      f.y1 = CellOf(f.v1, fc.lo_v[face], fc.scale_v[face], fc.top_v[face]);
       refs += size_t(f.x1 - f.x0 + 1) * size_t(f.y1 - f.y0 + 1);
     }
     return refs;
   };
-  size_t refs = count_refs(res);
-  while (refs > budget && res > 1) {
-    res = std::max(1, int(double(res) * 0.75));
-    refs = count_refs(res);
+  // about cells_per_triangle cells per triangle, fewer while the references pass the budget
+  const size_t budget = kLightRefsPerTriangle * valid + (size_t{1} << 16);
+  double cells = std::max(1.0, cells_per_triangle * double(valid));
+  size_t refs = layout(cells);
+  while (refs > budget && lb.num_cells > 6) {
+    cells *= 0.5625;  // 0.75 per axis
+    refs = layout(cells);
   }
-  lb.res = res;
-  lb.half_res = 0.5f * float(res);
-  lb.num_cells = size_t(6) * size_t(res) * size_t(res);
+  lb.res = std::max(lb.res, 1);  // something can be hit (the list every ray reads, at least)
   lb.num_always = always.size();
   lb.num_refs = refs + always.size();
   // a counting sort of the references by cell, in rectangle order (= triangle order), then
@@ -264,38 +315,16 @@ void BuildLightBuffer(const TriangleSoA& tris, const float light[3], double cell
   Ensure(&lb.cell_begin, lb.num_cells + 2, &lb.cell_capacity, "light buffer cell offsets");
   uint32_t* begin = lb.cell_begin.get();
   std::fill(begin, begin + lb.num_cells + 2, 0u);
-  const size_t face_cells = size_t(res) * size_t(res);
   for (const FaceRect& f : rects) {
-    const size_t base = size_t(f.face) * face_cells;
+    const size_t base = size_t(fc.base[f.face]), row_len = size_t(fc.res_u[f.face]);
     for (int y = f.y0; y <= f.y1; ++y) {
-      uint32_t* row = begin + 1 + base + size_t(y) * size_t(res);
+      uint32_t* row = begin + 1 + base + size_t(y) * row_len;
       for (int x = f.x0; x <= f.x1; ++x) ++row[x];
     }
   }
   begin[lb.num_cells + 1] = uint32_t(always.size());
   for (size_t c = 0; c <= lb.num_cells; ++c) begin[c + 1] += begin[c];
-  std::vector<uint64_t>& keys = sc.keys;
-  keys.resize(lb.num_refs);  // every element is written below
-  {
-    std::vector<uint32_t>& cursor = sc.cursor;
-    cursor.assign(begin, begin + lb.num_cells + 1);
-    for (size_t r = 0; r < rects.size(); ++r) {
-      const FaceRect& f = rects[r];
-      const uint64_t key = uint64_t(std::bit_cast<uint32_t>(reach[f.tri])) << 32 | r;
-      const size_t base = size_t(f.face) * face_cells;
-      for (int y = f.y0; y <= f.y1; ++y) {
-        uint32_t* row = cursor.data() + base + size_t(y) * size_t(res);
-        for (int x = f.x0; x <= f.x1; ++x) keys[row[x]++] = key;
-      }
-    }
-    for (size_t a = 0; a < always.size(); ++a) {  // always: keyed by triangle
-      keys[cursor[lb.num_cells] + a] =
-          uint64_t(std::bit_cast<uint32_t>(reach[always[a]])) << 32 | always[a];
-    }
-  }
-  for (size_t c = 0; c <= lb.num_cells; ++c) {
-    if (begin[c + 1] - begin[c] > 1) std::sort(keys.data() + begin[c], keys.data() + begin[c + 1]);
-  }
+  // the output arrays (reused by Rebuild when large enough)
   const size_t pad = 16;  // one vector of the widest target
   if (lb.num_refs + pad > lb.ref_capacity || !lb.verts) {
     for (auto* a : {&lb.reach, &lb.u0, &lb.u1, &lb.v0, &lb.v1, &lb.verts}) a->reset();
@@ -305,21 +334,54 @@ void BuildLightBuffer(const TriangleSoA& tris, const float light[3], double cell
     lb.verts = AllocateBuildArray<float>(9 * (lb.num_refs + pad), "light buffer triangles");
     lb.ref_capacity = lb.num_refs + pad;
   }
-  const size_t listed_refs = begin[lb.num_cells];
-  for (size_t j = 0; j < lb.num_refs; ++j) {
-    const uint32_t low = uint32_t(keys[j]);
-    const FaceRect* f = j < listed_refs ? &rects[low] : nullptr;
-    const uint32_t tri = f ? f->tri : low;
-    lb.reach[j] = reach[tri];
-    // the rectangle (the whole face for the list every ray reads)
-    lb.u0[j] = f ? f->u0 : -FLT_MAX;
-    lb.u1[j] = f ? f->u1 : FLT_MAX;
-    lb.v0[j] = f ? f->v0 : -FLT_MAX;
-    lb.v1[j] = f ? f->v1 : FLT_MAX;
-    float* rec = lb.verts.get() + 9 * j;
+  // the rectangles by ascending reach (ties in rectangle order = triangle order), scattered in
+  // that order: every cell's list comes out sorted; each reference gets its reach, its
+  // rectangle (the whole face for the list every ray reads) and its triangle's vertices
+  std::vector<uint64_t>& keys = sc.keys;
+  keys.resize(rects.size());
+  for (size_t r = 0; r < rects.size(); ++r) {
+    keys[r] = uint64_t(std::bit_cast<uint32_t>(reach[rects[r].tri])) << 32 | r;
+  }
+  SortByReach(&keys, &sc.keys_tmp);
+  // (local pointers: the stores below cannot alias them)
+  float* const out_reach = lb.reach.get();
+  float* const out_u0 = lb.u0.get();
+  float* const out_u1 = lb.u1.get();
+  float* const out_v0 = lb.v0.get();
+  float* const out_v1 = lb.v1.get();
+  float* const out_verts = lb.verts.get();
+  const auto vertices = [&](uint32_t tri, float rec[9]) {
     for (int c = 0; c < 3; ++c) {
       for (int a = 0; a < 3; ++a) rec[3 * c + a] = tris.p[c][a][tri];
     }
+  };
+  const auto put = [&](size_t j, const float rec[9], float rch, float u0, float u1, float v0,
+                       float v1) {
+    out_reach[j] = rch;
+    out_u0[j] = u0, out_u1[j] = u1, out_v0[j] = v0, out_v1[j] = v1;
+    std::copy(rec, rec + 9, out_verts + 9 * j);
+  };
+  std::vector<uint32_t>& cursor = sc.cursor;
+  cursor.assign(begin, begin + lb.num_cells + 1);
+  uint32_t* const cur = cursor.data();
+  for (size_t i = 0; i < keys.size(); ++i) {
+    if (i + 8 < keys.size()) __builtin_prefetch(&rects[uint32_t(keys[i + 8])]);
+    const FaceRect f = rects[uint32_t(keys[i])];
+    const float rch = std::bit_cast<float>(uint32_t(keys[i] >> 32));
+    float rec[9];
+    vertices(f.tri, rec);
+    const size_t base = size_t(fc.base[f.face]), row_len = size_t(fc.res_u[f.face]);
+    for (int y = f.y0; y <= f.y1; ++y) {
+      uint32_t* row = cur + base + size_t(y) * row_len;
+      for (int x = f.x0; x <= f.x1; ++x) put(row[x]++, rec, rch, f.u0, f.u1, f.v0, f.v1);
+    }
+  }
+  std::stable_sort(always.begin(), always.end(),  // in triangle order already
+                   [&](uint32_t a, uint32_t b) { return reach[a] < reach[b]; });
+  for (size_t a = 0; a < always.size(); ++a) {
+    float rec[9];
+    vertices(always[a], rec);
+    put(cur[lb.num_cells] + a, rec, reach[always[a]], -FLT_MAX, FLT_MAX, -FLT_MAX, FLT_MAX);
   }
   for (size_t p = lb.num_refs; p < lb.num_refs + pad; ++p) {
     lb.reach[p] = FLT_MAX;
@@ -433,6 +495,9 @@ LightBufferInfo LightBuffer::Info() const {
   info.cells = d.num_cells;
   info.references = d.num_refs;
   info.always = d.num_always;
+  for (size_t c = 0; c < d.num_cells; ++c) {
+    info.longest = std::max<size_t>(info.longest, d.cell_begin[c + 1] - d.cell_begin[c]);
+  }
   info.bytes = d.Bytes();
   info.build_seconds = impl_->build_seconds;
   return info;

@@ -9,7 +9,7 @@
 // light, in float (rounding relative to each vertex's distance from the light) and decides the
 // edge functions on those coordinates; what it accepts lies within a few float ulps of angle of
 // the triangle as seen from the light. A triangle is binned into every cell its projection,
-// clipped to the face's pyramid widened by kLightMargin and enlarged by kLightMargin (about 840
+// clipped to the face's pyramid widened by kLightMargin and enlarged by kLightMargin (about 84
 // float ulps) on each side, overlaps; the ray's face coordinates are rounded once or twice.
 // Triangles that pass within 1e-6 of their size of the light (or through it) have no stable
 // projection and are listed in an extra list every ray reads.
@@ -30,7 +30,7 @@
 
 namespace rs {
 
-inline constexpr double kLightMargin = 1e-4;       // face coordinates (tangents in [-1, 1])
+inline constexpr double kLightMargin = 1e-5;       // face coordinates (tangents in [-1, 1])
 inline constexpr double kLightReachSlack = 1e-5;   // relative, see above
 // Cells per triangle: coarse cells, long lists culled a vector of references at a time. Measured
 // (trace_bench light rays, 1024x1024, AVX-512, raystream / Embree rtcOccluded1M, 04:28 UTC, load
@@ -39,18 +39,31 @@ inline constexpr double kLightReachSlack = 1e-5;   // relative, see above
 // 1.35, 0.73; 1/256: 0.74, 1.18, 0.66.
 inline constexpr double kLightCellsPerTriangle = 1.0 / 32.0;
 inline constexpr size_t kLightRefsPerTriangle = 8;  // reference budget, as the grid's
-inline constexpr int kLightMaxRes = 2048;           // cells per face axis
+inline constexpr int kLightMaxRes = 2048;           // cells per face axis, at most
 inline constexpr size_t kLightChunk = 256;          // rays per OccludedLightBuffer call, at most
+
+// One cube face's cells: a res_u x res_v grid over the window [lo_u, lo_u + res_u / scale_u) x
+// [lo_v, ...) of face coordinates that holds every rectangle binned on the face (a light far
+// from the scene sees it under a small angle: its cells go where its triangles are). Cell x of
+// face coordinate u is (u - lo_u) scale_u, truncated and clamped to [0, res_u - 1], in float in
+// the query and in double from the same floats in the build (kLightMargin, tens of ulps,
+// covers the difference); cell (x, y) is base + y res_u + x. A face without triangles has one
+// empty cell.
+struct LightFaces {
+  float lo_u[6] = {}, lo_v[6] = {}, scale_u[6] = {}, scale_v[6] = {};
+  int32_t res_u[6] = {}, res_v[6] = {}, top_u[6] = {}, top_v[6] = {};  // top = res - 1
+  int32_t base[6] = {};
+};
 
 struct LightBufferData {
   float light[3] = {0.0f, 0.0f, 0.0f};
-  int res = 0;              // cells per face axis; 0: no triangle can be hit
-  float half_res = 0.0f;    // res / 2: cell x = (u + 1) res / 2 for face coordinate u
-  size_t num_cells = 0;     // 6 res^2; cell num_cells is the list every ray reads
+  int res = 0;              // the largest cells per axis of any face; 0: no triangle can be hit
+  LightFaces faces;
+  size_t num_cells = 0;     // sum of the faces' res_u res_v; cell num_cells is the list every ray reads
   size_t num_refs = 0;
   size_t num_always = 0;    // length of that list
   // Face f = 2 k + (d[k] < 0) for the axis k of the largest |d|; its u, v axes are k + 1, k + 2
-  // (mod 3); cell (f, x, y) = (f res + y) res + x.
+  // (mod 3).
   hwy::AlignedFreeUniquePtr<uint32_t[]> cell_begin;  // num_cells + 2 offsets
   // per reference, in list order: its reach (ascending in each cell) and the triangle's
   // rectangle on the cell's face (u0 u1 v0 v1, as binned, rounded outwards: a ray whose face

@@ -115,8 +115,9 @@ void OccludedLightBufferT(const LightBufferData& lb, const RayStreamView& rays, 
   uint64_t tests = 0;
   const V lx = hn::Set(d, lb.light[0]), ly = hn::Set(d, lb.light[1]), lz = hn::Set(d, lb.light[2]);
   const V zero = hn::Zero(d), one = hn::Set(d, 1.0f), flt_max = hn::Set(d, FLT_MAX);
-  const V half_res = hn::Set(d, lb.half_res), slack = hn::Set(d, 1.0f + 1e-5f);
-  const auto res = hn::Set(di, lb.res), top = hn::Set(di, lb.res - 1), izero = hn::Zero(di);
+  const V slack = hn::Set(d, 1.0f + 1e-5f);
+  const auto izero = hn::Zero(di);
+  const LightFaces& fc = lb.faces;
   const auto none = hn::Set(di, -1);
   const uint32_t* begin = lb.cell_begin.get();
   HWY_ALIGN int32_t cell_of[kLightChunk + HWY_MAX_BYTES / sizeof(float)];
@@ -155,16 +156,22 @@ void OccludedLightBufferT(const LightBufferData& lb, const RayStreamView& rays, 
     const V fu = hn::Mul(du, inv), fv = hn::Mul(dv, inv);  // in [-1, 1]
     hn::Store(fu, d, u_of + i);
     hn::Store(fv, d, v_of + i);
-    const auto cx = hn::Min(
-        top, hn::Max(izero, hn::ConvertTo(di, hn::Mul(hn::Add(fu, one), half_res))));
-    const auto cy = hn::Min(
-        top, hn::Max(izero, hn::ConvertTo(di, hn::Mul(hn::Add(fv, one), half_res))));
     const auto kz = hn::IfThenElse(hn::RebindMask(di, kz0), izero,
                                    hn::IfThenElse(hn::RebindMask(di, kz1), hn::Set(di, 1),
                                                   hn::Set(di, 2)));
     const auto face = hn::Add(
         hn::Add(kz, kz), hn::IfThenElseZero(hn::RebindMask(di, hn::Lt(dk, zero)), hn::Set(di, 1)));
-    const auto cell = hn::Add(hn::Mul(hn::Add(hn::Mul(face, res), cy), res), cx);
+    // the cell in the face's window (LightFaces); face < 6 on every lane
+    const auto cx = hn::Min(
+        hn::GatherIndex(di, fc.top_u, face),
+        hn::Max(izero, hn::ConvertTo(di, hn::Mul(hn::Sub(fu, hn::GatherIndex(d, fc.lo_u, face)),
+                                                 hn::GatherIndex(d, fc.scale_u, face)))));
+    const auto cy = hn::Min(
+        hn::GatherIndex(di, fc.top_v, face),
+        hn::Max(izero, hn::ConvertTo(di, hn::Mul(hn::Sub(fv, hn::GatherIndex(d, fc.lo_v, face)),
+                                                 hn::GatherIndex(d, fc.scale_v, face)))));
+    const auto cell = hn::Add(hn::GatherIndex(di, fc.base, face),
+                              hn::Add(hn::Mul(cy, hn::GatherIndex(di, fc.res_u, face)), cx));
     hn::Store(hn::IfThenElse(hn::RebindMask(di, valid), cell, none), di, cell_of + i);
     for (size_t j = 0; j < n; ++j) {
       const int32_t c = cell_of[i + j];

@@ -180,11 +180,11 @@ SceneData& GetScene(const std::string& name) {
     data->light_buffer = std::make_unique<LightBuffer>(*data->accel, light);
     const LightBufferInfo lbi = data->light_buffer->Info();
     std::fprintf(stderr,
-                 "[trace_bench] %s: light buffer %d^2 x 6 cells, %zu references (%.2f per "
-                 "triangle), %zu always, %.1f MB\n",
-                 name.c_str(), lbi.resolution, lbi.references,
+                 "[trace_bench] %s: light buffer %zu cells (at most %d along an axis), %zu "
+                 "references (%.2f per triangle, at most %zu in a cell), %zu always, %.1f MB\n",
+                 name.c_str(), lbi.cells, lbi.resolution, lbi.references,
                  double(lbi.references) / double(std::max<size_t>(1, data->mesh.num_triangles)),
-                 lbi.always, double(lbi.bytes) * 1e-6);
+                 lbi.longest, lbi.always, double(lbi.bytes) * 1e-6);
     const size_t n =
         std::max({data->sets.primary.size(), data->sets.shadow.size(), data->sets.diffuse.size()});
     data->hits.Resize(n);

@@ -206,10 +206,11 @@ class RS_API Accel {
 };
 
 struct LightBufferInfo {
-  int resolution = 0;     // cells per cube face axis (0: nothing can be hit)
-  size_t cells = 0;       // 6 x resolution^2
+  int resolution = 0;     // the most cells along an axis of a cube face (0: nothing can be hit)
+  size_t cells = 0;       // over the six faces, each a grid over the window its triangles cover
   size_t references = 0;  // triangle ids in the cells' lists
   size_t always = 0;      // triangles touching the light, read by every ray
+  size_t longest = 0;     // the longest cell's list (without the always list)
   size_t bytes = 0;
   double build_seconds = 0.0;
 };

@@ -5,7 +5,8 @@
 // random directions; lights inside and outside the scenes, at a mesh vertex, on a triangle's
 // plane and on face-diagonal directions; scenes at 1.5e5 and scaled by 1e-3; NaN, Inf and zero
 // directions, tmin < 0 and rays not from the light in the same stream; an empty mesh; reference
-// budgets for 10,000 identical triangles and a 30,000-triangle fan.
+// budgets for 10,000 identical triangles and a 30,000-triangle fan; a small sphere 10 and 1e3
+// away from the light, whose cells must go where it is (the longest list well below its size).
 #include <doctest/doctest.h>
 
 #include <array>
@@ -180,6 +181,29 @@ TEST_CASE("light buffer: a closed sphere around and beside the light, at the ori
       rays.push_back(r);
     }
     CHECK(CheckSame(accel, lb, rays, "sphere centre") == rays.size());
+  }
+}
+
+TEST_CASE("light buffer: a small mesh far from the light gets cells over the window it covers") {
+  // a sphere of radius 0.1 seen from 10 (and from 1e3) away covers a few thousandths of a cube
+  // face: cells uniform over the face would put all its triangles into one or four cells
+  for (const double far : {10.0, 1000.0}) {
+    const Icosphere s = MakeIcosphere(4, 0.1, {0.0, 0.0, 0.0}, 0);
+    Soup soup;
+    for (const auto& t : s.tri) soup.AddTriangle(s.v[t[0]].data(), s.v[t[1]].data(), s.v[t[2]].data());
+    const size_t n = s.tri.size();
+    const std::vector<std::array<float, 3>> lights = {
+        {F(far), F(0.3 * far), F(-0.2 * far)}, {0.0f, F(far), 0.0f}, {F(-far), F(far), F(far)}};
+    CheckScene(soup.view(), lights, far == 10.0 ? "sphere 10 away" : "sphere 1e3 away", 2000);
+    const Accel accel(soup.view());
+    for (const auto& l : lights) {
+      const LightBufferInfo info = LightBuffer(accel, l.data()).Info();
+      INFO("light (", l[0], ", ", l[1], ", ", l[2], "): ", info.cells, " cells, longest list ",
+           info.longest, " of ", n, " triangles");
+      CHECK(info.always == 0);
+      CHECK(info.resolution >= 8);
+      CHECK(info.longest * 8 <= n);  // one cell over a whole face held all 5120
+    }
   }
 }
 
