@@ -179,12 +179,16 @@ void Ensure(hwy::AlignedFreeUniquePtr<T[]>* a, size_t n, size_t* capacity, const
 void SortByReach(std::vector<uint64_t>* keys, std::vector<uint64_t>* tmp) {
   const size_t n = keys->size();
   tmp->resize(n);
-  for (int shift = 32; shift < 64; shift += 11) {
-    uint32_t count[2049] = {};
-    for (const uint64_t k : *keys) ++count[1 + ((k >> shift) & 2047)];
-    if (std::find(count + 1, count + 2049, n) != count + 2049) continue;  // one digit for all
-    for (int b = 0; b < 2048; ++b) count[b + 1] += count[b];
-    for (const uint64_t k : *keys) (*tmp)[count[(k >> shift) & 2047]++] = k;
+  uint32_t count[3][2049] = {};  // the three digits' histograms, counted at once (no heap)
+  for (const uint64_t k : *keys) {
+    for (int p = 0; p < 3; ++p) ++count[p][1 + ((k >> (32 + 11 * p)) & 2047)];
+  }
+  for (int p = 0; p < 3; ++p) {
+    uint32_t* c = count[p];
+    if (std::find(c + 1, c + 2049, n) != c + 2049) continue;  // one digit for all
+    for (int b = 0; b < 2048; ++b) c[b + 1] += c[b];
+    const int shift = 32 + 11 * p;
+    for (const uint64_t k : *keys) (*tmp)[c[(k >> shift) & 2047]++] = k;
     keys->swap(*tmp);
   }
 }
@@ -306,22 +310,21 @@ void BuildLightBuffer(const TriangleSoA& tris, const float light[3], double cell
     cells *= 0.5625;  // 0.75 per axis
     refs = layout(cells);
   }
-  lb.res = std::max(lb.res, 1);  // something can be hit (the list every ray reads, at least)
   lb.num_always = always.size();
   lb.num_refs = refs + always.size();
-  // a counting sort of the references by cell, in rectangle order (= triangle order), then
-  // each cell's references sorted by (reach, triangle): keys reach bits << 32 | rectangle
-  // (non-negative floats order like their bit patterns)
+  // a counting sort of the references by cell (each cell's list in (reach, triangle) order, see
+  // below); calls fn(cell) for each cell of rectangle f
+  const auto for_cells = [&](const FaceRect& f, auto&& fn) {
+    const size_t base = size_t(fc.base[f.face]), row_len = size_t(fc.res_u[f.face]);
+    for (int y = f.y0; y <= f.y1; ++y) {
+      const size_t row = base + size_t(y) * row_len;
+      for (int x = f.x0; x <= f.x1; ++x) fn(row + size_t(x));
+    }
+  };
   Ensure(&lb.cell_begin, lb.num_cells + 2, &lb.cell_capacity, "light buffer cell offsets");
   uint32_t* begin = lb.cell_begin.get();
   std::fill(begin, begin + lb.num_cells + 2, 0u);
-  for (const FaceRect& f : rects) {
-    const size_t base = size_t(fc.base[f.face]), row_len = size_t(fc.res_u[f.face]);
-    for (int y = f.y0; y <= f.y1; ++y) {
-      uint32_t* row = begin + 1 + base + size_t(y) * row_len;
-      for (int x = f.x0; x <= f.x1; ++x) ++row[x];
-    }
-  }
+  for (const FaceRect& f : rects) for_cells(f, [&](size_t c) { ++begin[1 + c]; });
   begin[lb.num_cells + 1] = uint32_t(always.size());
   for (size_t c = 0; c <= lb.num_cells; ++c) begin[c + 1] += begin[c];
   // the output arrays (reused by Rebuild when large enough)
@@ -370,14 +373,11 @@ void BuildLightBuffer(const TriangleSoA& tris, const float light[3], double cell
     const float rch = std::bit_cast<float>(uint32_t(keys[i] >> 32));
     float rec[9];
     vertices(f.tri, rec);
-    const size_t base = size_t(fc.base[f.face]), row_len = size_t(fc.res_u[f.face]);
-    for (int y = f.y0; y <= f.y1; ++y) {
-      uint32_t* row = cur + base + size_t(y) * row_len;
-      for (int x = f.x0; x <= f.x1; ++x) put(row[x]++, rec, rch, f.u0, f.u1, f.v0, f.v1);
-    }
+    for_cells(f, [&](size_t c) { put(cur[c]++, rec, rch, f.u0, f.u1, f.v0, f.v1); });
   }
-  std::stable_sort(always.begin(), always.end(),  // in triangle order already
-                   [&](uint32_t a, uint32_t b) { return reach[a] < reach[b]; });
+  std::sort(always.begin(), always.end(), [&](uint32_t a, uint32_t b) {  // (reach, triangle)
+    return reach[a] < reach[b] || (reach[a] == reach[b] && a < b);
+  });
   for (size_t a = 0; a < always.size(); ++a) {
     float rec[9];
     vertices(always[a], rec);
