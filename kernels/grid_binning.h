@@ -16,6 +16,7 @@
 #include <vector>
 
 #include "kernels/grid.h"
+#include "streams/ray_stream.h"  // AdviseHugePages
 
 namespace rs {
 
@@ -45,6 +46,7 @@ hwy::AlignedFreeUniquePtr<T[]> AllocateBuildArray(size_t n, const char* what) {
                 BytesText(double(count) * double(sizeof(T))) +
                 "); lower BuildOptions::lambda or max_resolution");
   }
+  AdviseHugePages(p.get(), count * sizeof(T));
   return p;
 }
 

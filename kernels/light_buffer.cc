@@ -8,6 +8,7 @@
 #include <bit>
 #include <cfloat>
 #include <chrono>
+#include <cstring>
 #include <cmath>
 #include <numeric>
 #include <string>
@@ -73,6 +74,7 @@ struct FaceRect {
   int32_t face;
   float u0, u1, v0, v1;
   int32_t x0, x1, y0, y1;
+  bool whole;  // the rectangle holds the projections of the three vertices (LightPlanes)
 };
 
 // The face of direction q: the axis of the largest |q| (first on ties), as the query picks it.
@@ -88,11 +90,11 @@ int FaceOf(const Vec3& q) {
 // pyramid's apex): it then goes to the list every ray reads.
 bool ProjectTriangle(uint32_t tri, const Vec3 q[3], std::vector<FaceRect>* rects) {
   const double widen = 1.0 + kLightMargin;
-  const auto add = [&](int face, double u0, double u1, double v0, double v1) {
+  const auto add = [&](int face, double u0, double u1, double v0, double v1, bool whole) {
     rects->push_back({tri, face, FloatBelow(std::max(-1.0, u0 - kLightMargin)),
                       FloatAbove(std::min(1.0, u1 + kLightMargin)),
                       FloatBelow(std::max(-1.0, v0 - kLightMargin)),
-                      FloatAbove(std::min(1.0, v1 + kLightMargin)), 0, 0, 0, 0});
+                      FloatAbove(std::min(1.0, v1 + kLightMargin)), 0, 0, 0, 0, whole});
   };
   // fast path: the three vertices on one face, at least kLightMargin of face coordinate inside
   // its pyramid; the pyramid is convex, so the whole triangle is, and no ray that picks a
@@ -118,7 +120,7 @@ bool ProjectTriangle(uint32_t tri, const Vec3 q[3], std::vector<FaceRect>* rects
       v0 = std::min(v0, pv), v1 = std::max(v1, pv);
     }
     if (ok) {
-      add(f0, u0, u1, v0, v1);
+      add(f0, u0, u1, v0, v1, true);
       return true;
     }
   }
@@ -153,9 +155,47 @@ bool ProjectTriangle(uint32_t tri, const Vec3 q[3], std::vector<FaceRect>* rects
       u0 = std::min(u0, pu), u1 = std::max(u1, pu);
       v0 = std::min(v0, pv), v1 = std::max(v1, pv);
     }
-    add(face, u0, u1, v0, v1);
+    add(face, u0, u1, v0, v1, false);  // a clipped polygon's rectangle
   }
   return true;
+}
+
+// The edge planes of triangle `v` (9 floats, x0 y0 z0 x1 ...) on `face` for a light at `light`
+// (light_buffer.h, kLightPlaneFloats): a, b, c of the edges (2, 1), (0, 2), (1, 0), then M, plus
+// 4 if the rectangle does not hold the vertices' projections (whole = false: W <= 2 bounds
+// the sheared coordinates instead).
+void LightPlanes(const float v[9], const float light[3], int face, bool whole,
+                 float out[kLightPlaneFloats]) {
+  double q[3][3], r[3];
+  for (int c = 0; c < 3; ++c) {
+    r[c] = 0.0;
+    for (int a = 0; a < 3; ++a) {
+      q[c][a] = double(v[3 * c + a] - light[a]);  // the float translation of the test
+      r[c] = std::max(r[c], std::fabs(q[c][a]));
+    }
+  }
+  const int k = face >> 1, ua = (k + 1) % 3, va = (k + 2) % 3;
+  const double s = (face & 1) ? -1.0 : 1.0;
+  static constexpr int kEdges[3][2] = {{2, 1}, {0, 2}, {1, 0}};
+  // 1 / (R_b R_c) = R_a / (R_0 R_1 R_2): one division (a vertex at the light: no planes)
+  const double inv = 1.0 / (r[0] * r[1] * r[2]);
+  if (!std::isfinite(inv)) {
+    std::fill(out, out + kLightPlaneFloats, 0.0f);
+    return;
+  }
+  double most = 0.0;
+  for (int e = 0; e < 3; ++e) {
+    const double* p = q[kEdges[e][0]];
+    const double* t = q[kEdges[e][1]];
+    // products of floats are exact in double; each difference rounds once (2^-53 relative)
+    const double n[3] = {p[1] * t[2] - p[2] * t[1], p[2] * t[0] - p[0] * t[2],
+                         p[0] * t[1] - p[1] * t[0]};
+    const double scale = r[e] * inv;  // edge e is opposite vertex e
+    float* abc = out + 3 * e;
+    abc[0] = float(s * n[k] * scale), abc[1] = float(n[ua] * scale), abc[2] = float(n[va] * scale);
+    most = std::max(most, double(std::fabs(abc[0])) + std::fabs(abc[1]) + std::fabs(abc[2]));
+  }
+  out[9] = FloatAbove((most + (whole ? 0.0 : 4.0)) * (1.0 + 1e-6));
 }
 
 // Face coordinate -> cell along one axis of a face's window, clamped (as the query's).
@@ -171,6 +211,14 @@ void Ensure(hwy::AlignedFreeUniquePtr<T[]>* a, size_t n, size_t* capacity, const
   a->reset();  // first: the old and the new array are never held at once
   *a = AllocateBuildArray<T>(n, what);
   *capacity = n;
+}
+
+// v->reserve(n), with huge pages for a new large array (AdviseHugePages: before any write).
+template <typename T>
+void Reserve(std::vector<T>* v, size_t n) {
+  if (n <= v->capacity()) return;
+  v->reserve(n);
+  AdviseHugePages(v->data(), v->capacity() * sizeof(T));
 }
 
 // keys sorted by their high 32 bits, stable (ties keep their order): an LSD radix sort of
@@ -195,13 +243,23 @@ void SortByReach(std::vector<uint64_t>* keys, std::vector<uint64_t>* tmp) {
 
 }  // namespace
 
-// The build's temporaries, kept between rebuilds (no fresh pages for a same-sized rebuild).
+// A reference's floats as the output arrays hold them (BuildLightBuffer writes them list by list).
+struct LightRecord {
+  float reach, u0, u1, v0, v1;
+  float verts[9];
+  float planes[kLightPlaneFloats];
+};
+
+// The build's temporaries, kept between builds (no fresh pages for a build no larger than an
+// earlier one: rs::LightBuffer keeps one per thread, shared by all its light buffers).
 struct LightBuildScratch {
   std::vector<float> reach;
   std::vector<FaceRect> rects;
   std::vector<uint32_t> always;
   std::vector<uint64_t> keys, keys_tmp;  // reach bits << 32 | rectangle (SortByReach)
   std::vector<uint32_t> cursor;
+  std::vector<LightRecord> records;  // per rectangle in reach order
+  std::vector<uint32_t> order;       // per reference: its record
 };
 
 void BuildLightBuffer(const TriangleSoA& tris, const float light[3], double cells_per_triangle,
@@ -218,7 +276,31 @@ void BuildLightBuffer(const TriangleSoA& tris, const float light[3], double cell
   reach.assign(tris.size, 0.0f);
   std::vector<FaceRect>& rects = sc.rects;
   rects.clear();
-  rects.reserve(tris.size + tris.size / 8);
+  Reserve(&rects, tris.size + tris.size / 8);
+  std::vector<LightRecord>& records = sc.records;  // rects[r]'s reference floats
+  records.clear();
+  Reserve(&records, rects.capacity());
+  // the records of the rectangles [first, rects.size()) of triangle i, in triangle order
+  // (sequential reads of the triangles; the lists are written from them below)
+  // (planes: the SIMD pass's, or null: computed here in double)
+  const auto add_records = [&](size_t i, size_t first, const LightProjection* planes) {
+    for (size_t r = first; r < rects.size(); ++r) {
+      const FaceRect& f = rects[r];
+      LightRecord rec;  // (every field written below; emplace_back() would zero it first)
+      rec.reach = reach[i];
+      rec.u0 = f.u0, rec.u1 = f.u1, rec.v0 = f.v0, rec.v1 = f.v1;
+      for (int c = 0; c < 3; ++c) {
+        for (int a = 0; a < 3; ++a) rec.verts[3 * c + a] = tris.p[c][a][i];
+      }
+      if (planes != nullptr) {
+        const size_t at = i % kLightProjectBlock;
+        for (int c = 0; c < kLightPlaneFloats; ++c) rec.planes[c] = planes->planes[c][at];
+      } else {
+        LightPlanes(rec.verts, light, f.face, f.whole, rec.planes);
+      }
+      records.push_back(rec);
+    }
+  };
   std::vector<uint32_t>& always = sc.always;  // triangles touching the light
   always.clear();
   size_t listed = 0;             // and those with projections
@@ -231,8 +313,9 @@ void BuildLightBuffer(const TriangleSoA& tris, const float light[3], double cell
     if (tris.degenerate[i]) continue;
     if (block.face[in_block] >= 0) {  // the SIMD pass's common case
       rects.push_back({uint32_t(i), block.face[in_block], block.u0[in_block], block.u1[in_block],
-                       block.v0[in_block], block.v1[in_block], 0, 0, 0, 0});
+                       block.v0[in_block], block.v1[in_block], 0, 0, 0, 0, true});
       reach[i] = block.reach[in_block];
+      add_records(i, rects.size() - 1, &block);
       ++listed;
       continue;
     }
@@ -250,6 +333,7 @@ void BuildLightBuffer(const TriangleSoA& tris, const float light[3], double cell
       rects.resize(before);
       always.push_back(uint32_t(i));
     } else {
+      add_records(i, before, nullptr);
       ++listed;
     }
   }
@@ -330,17 +414,21 @@ void BuildLightBuffer(const TriangleSoA& tris, const float light[3], double cell
   // the output arrays (reused by Rebuild when large enough)
   const size_t pad = 16;  // one vector of the widest target
   if (lb.num_refs + pad > lb.ref_capacity || !lb.verts) {
-    for (auto* a : {&lb.reach, &lb.u0, &lb.u1, &lb.v0, &lb.v1, &lb.verts}) a->reset();
+    for (auto* a : {&lb.reach, &lb.u0, &lb.u1, &lb.v0, &lb.v1, &lb.verts, &lb.planes}) a->reset();
     for (auto* a : {&lb.reach, &lb.u0, &lb.u1, &lb.v0, &lb.v1}) {
       *a = AllocateBuildArray<float>(lb.num_refs + pad, "light buffer references");
     }
     lb.verts = AllocateBuildArray<float>(9 * (lb.num_refs + pad), "light buffer triangles");
+    lb.planes = AllocateBuildArray<float>(kLightPlaneFloats * (lb.num_refs + pad),
+                                          "light buffer edge planes");
     lb.ref_capacity = lb.num_refs + pad;
   }
   // the rectangles by ascending reach (ties in rectangle order = triangle order), scattered in
   // that order: every cell's list comes out sorted; each reference gets its reach, its
   // rectangle (the whole face for the list every ray reads) and its triangle's vertices
   std::vector<uint64_t>& keys = sc.keys;
+  Reserve(&keys, rects.size());
+  Reserve(&sc.keys_tmp, rects.size());
   keys.resize(rects.size());
   for (size_t r = 0; r < rects.size(); ++r) {
     keys[r] = uint64_t(std::bit_cast<uint32_t>(reach[rects[r].tri])) << 32 | r;
@@ -353,40 +441,59 @@ void BuildLightBuffer(const TriangleSoA& tris, const float light[3], double cell
   float* const out_v0 = lb.v0.get();
   float* const out_v1 = lb.v1.get();
   float* const out_verts = lb.verts.get();
+  float* out_planes[kLightPlaneFloats];
+  for (int c = 0; c < kLightPlaneFloats; ++c) out_planes[c] = lb.planes.get() + c * lb.ref_capacity;
   const auto vertices = [&](uint32_t tri, float rec[9]) {
     for (int c = 0; c < 3; ++c) {
       for (int a = 0; a < 3; ++a) rec[3 * c + a] = tris.p[c][a][tri];
     }
   };
-  const auto put = [&](size_t j, const float rec[9], float rch, float u0, float u1, float v0,
-                       float v1) {
-    out_reach[j] = rch;
-    out_u0[j] = u0, out_u1[j] = u1, out_v0[j] = v0, out_v1[j] = v1;
-    std::copy(rec, rec + 9, out_verts + 9 * j);
+  const auto put = [&](size_t j, const LightRecord& r) {
+    out_reach[j] = r.reach;
+    out_u0[j] = r.u0, out_u1[j] = r.u1, out_v0[j] = r.v0, out_v1[j] = r.v1;
+    float* const v = out_verts + 9 * j;  // (fixed-size copies: std::copy called memmove)
+    std::memcpy(v, r.verts, 16);
+    std::memcpy(v + 4, r.verts + 4, 16);
+    v[8] = r.verts[8];
+    for (int c = 0; c < kLightPlaneFloats; ++c) out_planes[c][j] = r.planes[c];
   };
+  // The rectangles in reach order append their index to each of their cells' lists (one 4-B
+  // stream per cell); then the references are written list by list from the rectangles'
+  // records: the output arrays in order, instead of every reference's 24 floats scattered
+  // over 16 arrays per cell.
+  std::vector<uint32_t>& order = sc.order;
+  Reserve(&order, refs);
+  order.resize(refs);
   std::vector<uint32_t>& cursor = sc.cursor;
   cursor.assign(begin, begin + lb.num_cells + 1);
   uint32_t* const cur = cursor.data();
   for (size_t i = 0; i < keys.size(); ++i) {
     if (i + 8 < keys.size()) __builtin_prefetch(&rects[uint32_t(keys[i + 8])]);
-    const FaceRect f = rects[uint32_t(keys[i])];
-    const float rch = std::bit_cast<float>(uint32_t(keys[i] >> 32));
-    float rec[9];
-    vertices(f.tri, rec);
-    for_cells(f, [&](size_t c) { put(cur[c]++, rec, rch, f.u0, f.u1, f.v0, f.v1); });
+    const uint32_t r = uint32_t(keys[i]);
+    for_cells(rects[r], [&](size_t c) { order[cur[c]++] = r; });
+  }
+  constexpr size_t kAhead = 16;  // records in flight (2 cache lines each)
+  for (size_t j = 0; j < refs; ++j) {
+    if (j + kAhead < refs) {
+      const char* next = reinterpret_cast<const char*>(&records[order[j + kAhead]]);
+      __builtin_prefetch(next);
+      __builtin_prefetch(next + sizeof(LightRecord) - 1);
+    }
+    put(j, records[order[j]]);
   }
   std::sort(always.begin(), always.end(), [&](uint32_t a, uint32_t b) {  // (reach, triangle)
     return reach[a] < reach[b] || (reach[a] == reach[b] && a < b);
   });
   for (size_t a = 0; a < always.size(); ++a) {
-    float rec[9];
-    vertices(always[a], rec);
-    put(cur[lb.num_cells] + a, rec, reach[always[a]], -FLT_MAX, FLT_MAX, -FLT_MAX, FLT_MAX);
+    LightRecord r{reach[always[a]], -FLT_MAX, FLT_MAX, -FLT_MAX, FLT_MAX, {}, {}};
+    vertices(always[a], r.verts);
+    put(refs + a, r);  // planes 0: never culled
   }
   for (size_t p = lb.num_refs; p < lb.num_refs + pad; ++p) {
     lb.reach[p] = FLT_MAX;
     lb.u0[p] = lb.v0[p] = FLT_MAX;
     lb.u1[p] = lb.v1[p] = -FLT_MAX;
+    for (int c = 0; c < kLightPlaneFloats; ++c) out_planes[c][p] = 0.0f;
   }
 }
 
@@ -395,7 +502,6 @@ void BuildLightBuffer(const TriangleSoA& tris, const float light[3], double cell
 struct LightBuffer::Impl {
   const Accel* accel = nullptr;
   LightBufferData data;
-  LightBuildScratch scratch;
   double build_seconds = 0.0;
   bool built = false;  // false while (or after a failed) Rebuild
 };
@@ -415,7 +521,10 @@ void LightBuffer::Rebuild(const Accel& accel, const float light[3]) {
   const Accel::Impl& m = AccelImpl(accel);
   impl_->built = false;
   impl_->accel = &accel;
-  BuildLightBuffer(m.triangles, light, kLightCellsPerTriangle, &impl_->data, &impl_->scratch);
+  // one scratch per thread for every light buffer it builds: a scene's lights pay the fresh
+  // pages of the temporaries once, not once each (and hold them once)
+  static thread_local LightBuildScratch scratch;
+  BuildLightBuffer(m.triangles, light, kLightCellsPerTriangle, &impl_->data, &scratch);
   impl_->built = true;
   impl_->build_seconds =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();

@@ -42,6 +42,32 @@ inline constexpr size_t kLightRefsPerTriangle = 8;  // reference budget, as the 
 inline constexpr int kLightMaxRes = 2048;           // cells per face axis, at most
 inline constexpr size_t kLightChunk = 256;          // rays per OccludedLightBuffer call, at most
 
+// The edge-plane cull of a light buffer reference (kernels/light_buffer_trace.cc: a vector of
+// references at a time against the box of face coordinates of a walk's rays). For the
+// triangle's vertices q_a = v_a - light (in float, as the watertight test translates them) and
+// each edge (b, c) in the watertight test's order ((2, 1), (0, 2), (1, 0)), n = q_b x q_c in
+// double, over R_b R_c (the vertices' max-norms), on the reference's face (axis k, sign s, u
+// and v axes k + 1, k + 2): g(u, v) = a + b u + c v with (a, b, c) = (s n_k, n_u, n_v) / (R_b
+// R_c) is the watertight test's exact edge function U* of the ray of face coordinates (u, v),
+// over R_b R_c |d_k|. Stored per reference: a, b, c of the three edges and
+// M = max over edges of |a| + |b| + |c| (kLightPlaneFloats floats).
+// Why the cull is exact: the test's float edge function differs from U* by at most
+// 24.2 ulp R_b R_c W + 65 ulp^2 R_b R_c, W bounding the face-coordinate distance |p - l| per
+// axis between the ray's (u, v) and every vertex's projection p (the sheared vertex coordinates
+// are q_k (p - l), computed with error 4 ulp R; ulp = 2^-24). A reference whose three vertices
+// lie on its face (the rectangle holds their projections) culls the rays of a box when, over
+// the whole box, one edge's g stays below -tau and another's above tau, with
+// tau = ulp (32 W + 16 M) + 2^-40 (W from the box and the rectangle; 16 M ulp covers the float
+// evaluation of g, the rounding of a, b, c and of the rays' (u, v)): then the test's float edge
+// functions have opposite signs on every ray of the box and it rejects them all. Planes
+// computed in float (ProjectLightBlock: n to 4 ulp R_b R_c, the scale to 2 ulp, so g to
+// 12.3 ulp + 2 ulp M) store M + 1; in double (the build's other triangles) M. A reference
+// whose vertices do not all project into its rectangle (clipped to the face) has sheared
+// coordinates within 2 R instead of R W: it stores M + 4 (16 (M + 4) ulp >= 64 ulp = 32 x 2
+// ulp). The list every ray reads stores zeros (never culled).
+inline constexpr int kLightPlaneFloats = 10;
+inline constexpr double kLightPlaneUlp = 1.0 / 16777216.0;  // 2^-24
+
 // One cube face's cells: a res_u x res_v grid over the window [lo_u, lo_u + res_u / scale_u) x
 // [lo_v, ...) of face coordinates that holds every rectangle binned on the face (a light far
 // from the scene sees it under a small angle: its cells go where its triangles are). Cell x of
@@ -73,10 +99,14 @@ struct LightBufferData {
   // 9 scattered loads from the triangle SoA each).
   hwy::AlignedFreeUniquePtr<float[]> reach, u0, u1, v0, v1;
   hwy::AlignedFreeUniquePtr<float[]> verts;
+  // per reference, the triangle's three edge planes through the light on the cell's face
+  // (LightPlanes below): component c of reference j at planes[c * ref_capacity + j]
+  hwy::AlignedFreeUniquePtr<float[]> planes;
   size_t cell_capacity = 0, ref_capacity = 0;  // what the arrays hold (kept by rebuilds)
 
   bool empty() const { return res == 0; }
-  size_t Bytes() const { return (num_cells + 2) * 4 + num_refs * 14 * 4; }
+  const float* Plane(int c) const { return planes.get() + size_t(c) * ref_capacity; }
+  size_t Bytes() const { return (num_cells + 2) * 4 + num_refs * (14 + kLightPlaneFloats) * 4; }
 };
 
 // Builds the light buffer of `tris` (non-degenerate triangles only) for a light at `light`
@@ -102,6 +132,7 @@ struct LightProjection {
   float u0[kLightProjectBlock], u1[kLightProjectBlock];
   float v0[kLightProjectBlock], v1[kLightProjectBlock];
   float reach[kLightProjectBlock];
+  float planes[kLightPlaneFloats][kLightProjectBlock];  // the edge planes on that face, in float
 };
 void ProjectLightBlock(const TriangleSoA& tris, const float light[3], size_t first, size_t count,
                        LightProjection* out);

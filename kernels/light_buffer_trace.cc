@@ -49,14 +49,39 @@ HWY_INLINE M WalkList(D d, const LightBufferData& lb, const StreamRays<D>& r, co
   const V vmin = hn::MinOfLanes(d, hn::IfThenElse(live, v, big));
   const V vmax = hn::MaxOfLanes(d, hn::IfThenElse(live, v, nbig));
   const float* const reach = lb.reach.get();
+  const V w_ulps = hn::Set(d, float(32.0 * kLightPlaneUlp));
+  const V m_ulps = hn::Set(d, float(16.0 * kLightPlaneUlp));
+  const V tiny = hn::Set(d, float(0x1p-40));
   for (size_t j0 = b; j0 < e; j0 += n) {
     // the padding after the last reference makes whole-vector loads safe
     const V rv = hn::LoadU(d, reach + j0);
+    const V ru0 = hn::LoadU(d, lb.u0.get() + j0), ru1 = hn::LoadU(d, lb.u1.get() + j0);
+    const V rv0 = hn::LoadU(d, lb.v0.get() + j0), rv1 = hn::LoadU(d, lb.v1.get() + j0);
     M cand = hn::And(hn::FirstN(d, e - j0), hn::Le(rv, most));
-    cand = hn::And(cand, hn::And(hn::Le(hn::LoadU(d, lb.u0.get() + j0), umax),
-                                 hn::Ge(hn::LoadU(d, lb.u1.get() + j0), umin)));
-    cand = hn::And(cand, hn::And(hn::Le(hn::LoadU(d, lb.v0.get() + j0), vmax),
-                                 hn::Ge(hn::LoadU(d, lb.v1.get() + j0), vmin)));
+    cand = hn::And(cand, hn::And(hn::Le(ru0, umax), hn::Ge(ru1, umin)));
+    cand = hn::And(cand, hn::And(hn::Le(rv0, vmax), hn::Ge(rv1, vmin)));
+    if (!hn::AllFalse(d, cand)) {
+      // the edge-plane cull (light_buffer.h, kLightPlaneFloats): a reference whose edge
+      // functions take opposite signs, beyond tau, over the whole box of the lanes' (u, v)
+      const V w = hn::Max(hn::Sub(hn::Max(umax, ru1), hn::Min(umin, ru0)),
+                          hn::Sub(hn::Max(vmax, rv1), hn::Min(vmin, rv0)));
+      const V tau = hn::MulAdd(w, w_ulps,
+                               hn::MulAdd(hn::LoadU(d, lb.Plane(9) + j0), m_ulps, tiny));
+      const V ntau = hn::Neg(tau);
+      M below = hn::Not(hn::FirstN(d, n)), above = below;  // none
+      for (int edge = 0; edge < 3; ++edge) {
+        const V pa = hn::LoadU(d, lb.Plane(3 * edge) + j0);
+        const V pb = hn::LoadU(d, lb.Plane(3 * edge + 1) + j0);
+        const V pc = hn::LoadU(d, lb.Plane(3 * edge + 2) + j0);
+        const V bu0 = hn::Mul(pb, umin), bu1 = hn::Mul(pb, umax);
+        const V cv0 = hn::Mul(pc, vmin), cv1 = hn::Mul(pc, vmax);
+        const V gmax = hn::Add(hn::Add(pa, hn::Max(bu0, bu1)), hn::Max(cv0, cv1));
+        const V gmin = hn::Add(hn::Add(pa, hn::Min(bu0, bu1)), hn::Min(cv0, cv1));
+        below = hn::Or(below, hn::Lt(gmax, ntau));
+        above = hn::Or(above, hn::Gt(gmin, tau));
+      }
+      cand = hn::AndNot(hn::And(below, above), cand);
+    }
     uint8_t bytes[8] = {};
     hn::StoreMaskBits(d, cand, bytes);
     uint64_t bits = 0;
@@ -317,6 +342,34 @@ void ProjectLightBlockT(const TriangleSoA& tris, const float light[3], size_t fi
     hn::StoreU(hn::Max(none, hn::Sub(v_lo, margin)), d, out->v0 + j);
     hn::StoreU(hn::Min(one, hn::Add(v_hi, margin)), d, out->v1 + j);
     hn::StoreU(reach, d, out->reach + j);
+    // the edge planes (light_buffer.h): n = q_b x q_c over R_b R_c on the face's (k, u, v) axes,
+    // in float; lanes not ok are the scalar path's
+    V r[3];
+    for (int c = 0; c < 3; ++c) {
+      r[c] = hn::Max(hn::Max(hn::Abs(q[c][0]), hn::Abs(q[c][1])), hn::Abs(q[c][2]));
+    }
+    static constexpr int kEdges[3][2] = {{2, 1}, {0, 2}, {1, 0}};
+    V most = zero;
+    for (int e = 0; e < 3; ++e) {
+      const V* p = q[kEdges[e][0]];
+      const V* t = q[kEdges[e][1]];
+      const V n0 = hn::Sub(hn::Mul(p[1], t[2]), hn::Mul(p[2], t[1]));
+      const V n1 = hn::Sub(hn::Mul(p[2], t[0]), hn::Mul(p[0], t[2]));
+      const V n2 = hn::Sub(hn::Mul(p[0], t[1]), hn::Mul(p[1], t[0]));
+      const V scale = hn::Mul(r[kEdges[e][0]], r[kEdges[e][1]]);
+      // a normal, finite scale (else no planes: zeros are never culled)
+      const M fine = hn::And(hn::Ge(scale, hn::Set(d, FLT_MIN)), hn::Le(scale, hn::Set(d, FLT_MAX)));
+      const V inv = hn::IfThenElseZero(fine, hn::Div(one, hn::IfThenElse(fine, scale, one)));
+      const V pa = hn::Mul(hn::Mul(sign[0], PickAxis(k0, k1, n0, n1, n2)), inv);
+      const V pb = hn::Mul(PickAxis(k0, k1, n1, n2, n0), inv);
+      const V pc = hn::Mul(PickAxis(k0, k1, n2, n0, n1), inv);
+      hn::StoreU(pa, d, out->planes[3 * e] + j);
+      hn::StoreU(pb, d, out->planes[3 * e + 1] + j);
+      hn::StoreU(pc, d, out->planes[3 * e + 2] + j);
+      most = hn::Max(most, hn::Add(hn::Add(hn::Abs(pa), hn::Abs(pb)), hn::Abs(pc)));
+    }
+    // M + 1, rounded up (float planes)
+    hn::StoreU(hn::Mul(hn::Add(most, one), hn::Set(d, 1.0f + 1e-6f)), d, out->planes[9] + j);
   }
 }
 

@@ -320,6 +320,117 @@ TEST_CASE("light buffer: triangles that end on the edge between two cube faces")
   CHECK(occluded > 0);
 }
 
+// Coherent rays (a vector's worth in a row, so a walk's box of face coordinates is small) aimed
+// at points on every edge and at every vertex of `mesh`, moved off the edge by a relative
+// offset of 0 to 1e-3 both ways, with tmax 1 (the target) and +inf: where the edge-plane cull
+// (light_buffer.h) decides hardest.
+std::vector<Ray> EdgeRays(const MeshView& mesh, const float light[3], size_t max_tris) {
+  std::vector<Ray> rays;
+  const size_t step = std::max<size_t>(1, mesh.num_triangles / max_tris);
+  const double offsets[] = {0.0, 1e-7, -1e-7, 1e-6, -1e-6, 1e-5, -1e-5, 1e-3, -1e-3};
+  for (size_t i = 0; i < mesh.num_triangles; i += step) {
+    double p[3][3];
+    for (int k = 0; k < 3; ++k) {
+      const float* v = mesh.positions + size_t{mesh.indices[3 * i + k]} * mesh.stride;
+      for (int a = 0; a < 3; ++a) p[k][a] = v[a];
+    }
+    double centre[3];
+    for (int a = 0; a < 3; ++a) centre[a] = (p[0][a] + p[1][a] + p[2][a]) / 3.0;
+    for (int e = 0; e < 3; ++e) {
+      const double* a = p[e];
+      const double* b = p[(e + 1) % 3];
+      for (const double off : offsets) {
+        for (int k = 0; k <= 3; ++k) {  // the vertex, points along the edge
+          const double s = k / 4.0;
+          Ray r;
+          for (int c = 0; c < 3; ++c) {
+            const double on = a[c] + s * (b[c] - a[c]);
+            r.o[c] = light[c];
+            r.d[c] = F(on + off * (on - centre[c]) - double(light[c]));  // off > 0: outside
+          }
+          r.tmin = 0.0f;
+          r.tmax = (k & 1) ? 1.0f : kInf;
+          rays.push_back(r);
+        }
+      }
+    }
+  }
+  return rays;
+}
+
+TEST_CASE("light buffer: coherent rays at edges and vertices (the edge-plane cull)") {
+  // small triangles far from the light (the planes' scale R_b R_c is large against their
+  // normals), the same sphere at 1.5e5, and large triangles around the light that cross cube
+  // faces (clipped rectangles: planes with the 2 R bound)
+  struct Case {
+    const char* what;
+    double radius, distance, offset;
+    int levels;
+  };
+  const Case cases[] = {{"small sphere 10 away", 0.1, 10.0, 0.0, 3},
+                        {"small sphere 1e3 away", 0.1, 1e3, 0.0, 3},
+                        {"sphere at 1.5e5, light 2 away", 1.0, 2.0, 1.5e5, 2},
+                        {"sphere around the light", 3.0, 0.0, 0.0, 1}};
+  for (const Case& c : cases) {
+    const Icosphere s = MakeIcosphere(c.levels, c.radius, {c.offset, c.offset, c.offset}, 0);
+    Soup soup;
+    for (const auto& t : s.tri) soup.AddTriangle(s.v[t[0]].data(), s.v[t[1]].data(), s.v[t[2]].data());
+    const Accel accel(soup.view());
+    const float light[3] = {F(c.offset + c.distance), F(c.offset + 0.3 * c.distance),
+                            F(c.offset - 0.2 * c.distance + 0.01)};
+    const LightBuffer lb(accel, light);
+    const std::vector<Ray> rays = EdgeRays(soup.view(), light, 400);
+    const size_t occluded = CheckSame(accel, lb, rays, c.what);
+    MESSAGE(std::string(c.what), ": ", rays.size(), " rays, ", occluded, " occluded");
+    CHECK(occluded > 0);
+    CHECK(occluded < rays.size());
+  }
+}
+
+TEST_CASE("light buffer: the edge-plane cull skips rays inside a rectangle but off the triangle") {
+  // one right triangle on face +z: rays into the half of its rectangle beyond the hypotenuse
+  // pass the rectangle test; the planes must reject them without a triangle test, and rays
+  // into the triangle must still be tested and hit
+  Soup soup;
+  const float a[3] = {-1.0f, -1.0f, 5.0f}, b[3] = {1.0f, -1.0f, 5.0f}, c[3] = {-1.0f, 1.0f, 5.0f};
+  soup.AddTriangle(a, b, c);
+  const Accel accel(soup.view());
+  const float light[3] = {0.0f, 0.0f, 0.0f};
+  const LightBuffer lb(accel, light);
+  const auto rays_at = [&](double x0, double y0) {
+    std::vector<Ray> rays;
+    for (int i = 0; i < 64; ++i) {  // a patch of 8 x 8 directions
+      Ray r;
+      r.o[0] = r.o[1] = r.o[2] = 0.0f;
+      r.d[0] = F(x0 + 0.01 * (i % 8)), r.d[1] = F(y0 + 0.01 * (i / 8)), r.d[2] = 10.0f;
+      r.tmax = kInf;
+      rays.push_back(r);
+    }
+    return rays;
+  };
+  const std::vector<Ray> off = rays_at(0.5, 0.5), on = rays_at(-0.9, -0.9);
+  for (const auto* set : {&off, &on}) {
+    RayStream st = MakeStream(*set);
+    test::ForEachTarget([&](const char* target) {
+      std::vector<int32_t> got(set->size() + 16, -7);
+      TraceStats stats;
+      lb.Occluded(st.view(), got.data(), &stats);
+      size_t hits = 0;
+      for (size_t i = 0; i < set->size(); ++i) hits += got[i] != 0;
+      INFO(target);
+      if (set == &off) {
+        CHECK(hits == 0);
+        CHECK(stats.triangle_tests == 0);
+      } else {
+        CHECK(hits == set->size());
+        CHECK(stats.triangle_tests == set->size());
+      }
+    });
+  }
+  CheckSame(accel, lb, off, "off the triangle");
+  CheckSame(accel, lb, on, "on the triangle");
+}
+
 TEST_CASE("light buffer: invalid rays, tmin < 0, rays not from the light, empty mesh") {
   const Scene scene = LoadScene("cornell");
   const Accel accel(scene.mesh());
