@@ -9,10 +9,13 @@
 // away from the light, whose cells must go where it is (the longest list well below its size).
 #include <doctest/doctest.h>
 
+#include <algorithm>
 #include <array>
 #include <cmath>
 #include <cstdint>
+#include <optional>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include "include/raystream/raystream.h"
@@ -429,6 +432,43 @@ TEST_CASE("light buffer: the edge-plane cull skips rays inside a rectangle but o
   }
   CheckSame(accel, lb, off, "off the triangle");
   CheckSame(accel, lb, on, "on the triangle");
+}
+
+TEST_CASE("light buffer: built on several threads at once (one build scratch per thread)") {
+  // four lights built and rebuilt concurrently give the buffers built one after another: the
+  // same sizes and the same occlusion on the same rays
+  const Scene scene = LoadScene("cornell");
+  const Accel accel(scene.mesh());
+  const std::vector<float> p = Positions(scene);
+  std::vector<std::array<float, 3>> lights;
+  for (int l = 0; l < 4; ++l) {
+    lights.push_back({F(0.5 * (p[0] + p[3]) + 0.01 * l), F(0.5 * (p[1] + p[4]) + 0.01),
+                      F(p[2] + 0.01 + 0.02 * l)});
+  }
+  std::vector<LightBuffer> serial;
+  for (const auto& l : lights) serial.emplace_back(accel, l.data());
+  std::vector<std::optional<LightBuffer>> parallel(lights.size());
+  std::vector<std::thread> threads;
+  for (size_t t = 0; t < lights.size(); ++t) {
+    threads.emplace_back([&, t] {
+      parallel[t].emplace(accel, lights[(t + 1) % lights.size()].data());  // another light first
+      parallel[t]->Rebuild(accel, lights[t].data());
+    });
+  }
+  for (std::thread& th : threads) th.join();
+  Rng rng(23);
+  for (size_t l = 0; l < lights.size(); ++l) {
+    const LightBufferInfo a = serial[l].Info(), b = parallel[l]->Info();
+    CHECK(a.cells == b.cells);
+    CHECK(a.references == b.references);
+    CHECK(a.longest == b.longest);
+    const std::vector<Ray> rays = LightRays(scene.mesh(), lights[l].data(), rng, 200);
+    RayStream st = MakeStream(rays);
+    std::vector<int32_t> want(rays.size() + 16), got(rays.size() + 16);
+    serial[l].Occluded(st.view(), want.data());
+    parallel[l]->Occluded(st.view(), got.data());
+    CHECK(std::equal(want.begin(), want.begin() + long(rays.size()), got.begin()));
+  }
 }
 
 TEST_CASE("light buffer: invalid rays, tmin < 0, rays not from the light, empty mesh") {
