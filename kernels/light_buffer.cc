@@ -176,7 +176,6 @@ void LightPlanes(const float v[9], const float light[3], int face, bool whole,
   }
   const int k = face >> 1, ua = (k + 1) % 3, va = (k + 2) % 3;
   const double s = (face & 1) ? -1.0 : 1.0;
-  static constexpr int kEdges[3][2] = {{2, 1}, {0, 2}, {1, 0}};
   // 1 / (R_b R_c) = R_a / (R_0 R_1 R_2): one division (a vertex at the light: no planes)
   const double inv = 1.0 / (r[0] * r[1] * r[2]);
   if (!std::isfinite(inv)) {
@@ -185,8 +184,8 @@ void LightPlanes(const float v[9], const float light[3], int face, bool whole,
   }
   double most = 0.0;
   for (int e = 0; e < 3; ++e) {
-    const double* p = q[kEdges[e][0]];
-    const double* t = q[kEdges[e][1]];
+    const double* p = q[kLightPlaneEdges[e][0]];
+    const double* t = q[kLightPlaneEdges[e][1]];
     // products of floats are exact in double; each difference rounds once (2^-53 relative)
     const double n[3] = {p[1] * t[2] - p[2] * t[1], p[2] * t[0] - p[0] * t[2],
                          p[0] * t[1] - p[1] * t[0]};
@@ -280,6 +279,11 @@ void BuildLightBuffer(const TriangleSoA& tris, const float light[3], double cell
   std::vector<LightRecord>& records = sc.records;  // rects[r]'s reference floats
   records.clear();
   Reserve(&records, rects.capacity());
+  const auto vertices = [&](uint32_t tri, float rec[9]) {
+    for (int c = 0; c < 3; ++c) {
+      for (int a = 0; a < 3; ++a) rec[3 * c + a] = tris.p[c][a][tri];
+    }
+  };
   // the records of the rectangles [first, rects.size()) of triangle i, in triangle order
   // (sequential reads of the triangles; the lists are written from them below)
   // (planes: the SIMD pass's, or null: computed here in double)
@@ -289,9 +293,7 @@ void BuildLightBuffer(const TriangleSoA& tris, const float light[3], double cell
       LightRecord rec;  // (every field written below; emplace_back() would zero it first)
       rec.reach = reach[i];
       rec.u0 = f.u0, rec.u1 = f.u1, rec.v0 = f.v0, rec.v1 = f.v1;
-      for (int c = 0; c < 3; ++c) {
-        for (int a = 0; a < 3; ++a) rec.verts[3 * c + a] = tris.p[c][a][i];
-      }
+      vertices(uint32_t(i), rec.verts);
       if (planes != nullptr) {
         const size_t at = i % kLightProjectBlock;
         for (int c = 0; c < kLightPlaneFloats; ++c) rec.planes[c] = planes->planes[c][at];
@@ -443,11 +445,6 @@ void BuildLightBuffer(const TriangleSoA& tris, const float light[3], double cell
   float* const out_verts = lb.verts.get();
   float* out_planes[kLightPlaneFloats];
   for (int c = 0; c < kLightPlaneFloats; ++c) out_planes[c] = lb.planes.get() + c * lb.ref_capacity;
-  const auto vertices = [&](uint32_t tri, float rec[9]) {
-    for (int c = 0; c < 3; ++c) {
-      for (int a = 0; a < 3; ++a) rec[3 * c + a] = tris.p[c][a][tri];
-    }
-  };
   const auto put = [&](size_t j, const LightRecord& r) {
     out_reach[j] = r.reach;
     out_u0[j] = r.u0, out_u1[j] = r.u1, out_v0[j] = r.v0, out_v1[j] = r.v1;

@@ -66,6 +66,8 @@ inline constexpr size_t kLightChunk = 256;          // rays per OccludedLightBuf
 // coordinates within 2 R instead of R W: it stores M + 4 (16 (M + 4) ulp >= 64 ulp = 32 x 2
 // ulp). The list every ray reads stores zeros (never culled).
 inline constexpr int kLightPlaneFloats = 10;
+// The edges (b, c) of the planes, in the watertight test's U, V, W order (n = q_b x q_c).
+inline constexpr int kLightPlaneEdges[3][2] = {{2, 1}, {0, 2}, {1, 0}};
 inline constexpr double kLightPlaneUlp = 1.0 / 16777216.0;  // 2^-24
 
 // One cube face's cells: a res_u x res_v grid over the window [lo_u, lo_u + res_u / scale_u) x

@@ -361,15 +361,14 @@ void ProjectLightBlockT(const TriangleSoA& tris, const float light[3], size_t fi
     for (int c = 0; c < 3; ++c) {
       r[c] = hn::Max(hn::Max(hn::Abs(q[c][0]), hn::Abs(q[c][1])), hn::Abs(q[c][2]));
     }
-    static constexpr int kEdges[3][2] = {{2, 1}, {0, 2}, {1, 0}};
     V most = zero;
     for (int e = 0; e < 3; ++e) {
-      const V* p = q[kEdges[e][0]];
-      const V* t = q[kEdges[e][1]];
+      const V* p = q[kLightPlaneEdges[e][0]];
+      const V* t = q[kLightPlaneEdges[e][1]];
       const V n0 = hn::Sub(hn::Mul(p[1], t[2]), hn::Mul(p[2], t[1]));
       const V n1 = hn::Sub(hn::Mul(p[2], t[0]), hn::Mul(p[0], t[2]));
       const V n2 = hn::Sub(hn::Mul(p[0], t[1]), hn::Mul(p[1], t[0]));
-      const V scale = hn::Mul(r[kEdges[e][0]], r[kEdges[e][1]]);
+      const V scale = hn::Mul(r[kLightPlaneEdges[e][0]], r[kLightPlaneEdges[e][1]]);
       // a normal, finite scale (else no planes: zeros are never culled)
       const M fine = hn::And(hn::Ge(scale, hn::Set(d, FLT_MIN)), hn::Le(scale, hn::Set(d, FLT_MAX)));
       const V inv = hn::IfThenElseZero(fine, hn::Div(one, hn::IfThenElse(fine, scale, one)));
