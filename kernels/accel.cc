@@ -97,7 +97,11 @@ bool IndicesInRange(const MeshView& mesh) {
 
 }  // namespace
 
-Accel::Accel(const MeshView& mesh, const BuildOptions& options) : impl_(std::make_unique<Impl>()) {
+namespace {
+
+// Builds into `m`, whose structures are empty, allocating through m->cache.
+void Build(const MeshView& mesh, const BuildOptions& options, Accel::Impl* impl) {
+  const BlockCacheScope scope(&impl->cache);
   const auto start = std::chrono::steady_clock::now();
   // Validation without a pass of its own over the positions: the indices are checked first (the
   // gather must not read out of range), then the gather's degenerate pass counts non-finite
@@ -105,7 +109,7 @@ Accel::Accel(const MeshView& mesh, const BuildOptions& options) : impl_(std::mak
   // bad element exactly as checking everything up front would.
   ValidateOptionsAndArrays(mesh, options);
   if (!IndicesInRange(mesh)) ValidateTriangles(mesh);
-  Impl& m = *impl_;
+  Accel::Impl& m = *impl;
   BuildTriangleSoA(mesh, &m.triangles, options.build_threads);
   if (m.triangles.num_nonfinite != 0) ValidateTriangles(mesh);
   const GridCostModel model;
@@ -151,24 +155,56 @@ Accel::Accel(const MeshView& mesh, const BuildOptions& options) : impl_(std::mak
   m.flat_cost_estimate = FlatGridCost(m.grid, model);
   m.cost_estimate = TwoLevelGridCost(m.grid, m.two_level, model);
   m.build_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  m.built = true;
+}
+
+}  // namespace
+
+Accel::Accel(const MeshView& mesh, const BuildOptions& options) : impl_(std::make_unique<Impl>()) {
+  Build(mesh, options, impl_.get());
+  impl_->cache.EndBuild(/*keep_freed=*/false);  // a one-off build keeps no temporaries
+}
+
+void Accel::Rebuild(const MeshView& mesh, const BuildOptions& options) {
+  if (!impl_) impl_ = std::make_unique<Impl>();
+  Impl& m = *impl_;
+  m.built = false;
+  // Free every structure into the cache (the blocks stay mapped), then build taking them back.
+  m.triangles = TriangleSoA();
+  m.grid = Grid();
+  m.two_level = TwoLevelGrid();
+  m.irregular = IrregularGrid();
+  m.irregular_dda = IrregularDda();
+  m.dda = DdaGrid();
+  m.dda_options = DdaOptions();
+  m.cache.BeginBuild();
+  try {
+    Build(mesh, options, &m);
+  } catch (...) {
+    m.cache.EndBuild(/*keep_freed=*/false);
+    throw;
+  }
+  m.cache.EndBuild(/*keep_freed=*/true);  // the build's temporaries serve the next Rebuild
 }
 
 Accel::~Accel() = default;
 Accel::Accel(Accel&&) noexcept = default;
 Accel& Accel::operator=(Accel&&) noexcept = default;
 
-const Accel::Impl& AccelImpl(const Accel& accel) {
-  HWY_ASSERT(accel.impl_ != nullptr);
-  return *accel.impl_;
-}
-
 namespace {
 
 // The checks of the public entry points (the kernels assume them).
 const Accel::Impl& Checked(const std::unique_ptr<Accel::Impl>& impl, const char* what) {
-  if (!impl) throw Error(std::string("Accel::") + what + ": this Accel was moved from");
+  if (!impl) throw Error(std::string(what) + ": the Accel was moved from");
+  if (!impl->built) throw Error(std::string(what) + ": the Accel's last Rebuild failed");
   return *impl;
 }
+
+}  // namespace
+
+const Accel::Impl& AccelImpl(const Accel& accel) { return Checked(accel.impl_, "Accel"); }
+
+namespace {
 
 void CheckRays(const RayStreamView& rays, const char* what) {
   if (rays.size == 0) return;
@@ -222,7 +258,7 @@ RayStreamView Head(const RayStreamView& rays, size_t n) {
 
 void Accel::Intersect(const RayStreamView& rays, const HitStreamView& hits,
                       TraceStats* stats) const {
-  const Impl& m = Checked(impl_, "Intersect");
+  const Impl& m = Checked(impl_, "Accel::Intersect");
   if (hits.size != rays.size) {
     throw Error("Accel::Intersect: hits.size " + std::to_string(hits.size) +
                 " differs from rays.size " + std::to_string(rays.size));
@@ -248,7 +284,7 @@ void Accel::Intersect(const RayStreamView& rays, const HitStreamView& hits,
 }
 
 void Accel::Occluded(const RayStreamView& rays, int32_t* occluded, TraceStats* stats) const {
-  const Impl& m = Checked(impl_, "Occluded");
+  const Impl& m = Checked(impl_, "Accel::Occluded");
   CheckRays(rays, "Occluded");
   if (rays.size > 0 && occluded == nullptr) {
     throw Error("Accel::Occluded: occluded is null for " + std::to_string(rays.size) + " rays");
@@ -308,7 +344,7 @@ void AccelOccluded(const Accel::Impl& m, const RayStreamView& rays, int32_t* occ
 }  // namespace ref
 
 AccelInfo Accel::Info() const {
-  const Impl& m = Checked(impl_, "Info");
+  const Impl& m = Checked(impl_, "Accel::Info");
   AccelInfo info;
   info.triangles = m.triangles.size;
   info.degenerate_triangles = m.triangles.num_degenerate;

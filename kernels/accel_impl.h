@@ -10,10 +10,14 @@
 #include "kernels/irregular_simd.h"
 #include "kernels/triangle.h"
 #include "kernels/two_level.h"
+#include "streams/block_memory.h"
 
 namespace rs {
 
 struct Accel::Impl {
+  BlockCache cache;        // first: every array below is allocated through it during a build
+                           // (Accel::Rebuild takes their blocks back) and freed before it
+  bool built = false;      // false after a Rebuild that threw
   TriangleSoA triangles;   // indexed by the mesh's triangle ids (degenerate ones flagged)
   Grid grid;               // empty (num_cells = 0) when no triangle can be hit; always a
                            // complete flat grid (also when two_level refines some cells)
@@ -30,7 +34,8 @@ struct Accel::Impl {
   double build_seconds = 0.0;
 };
 
-// The state of a built Accel (HWY_ASSERT: not a moved-from one).
+// The state of a built Accel; throws rs::Error for a moved-from one or one whose last Rebuild
+// failed.
 const Accel::Impl& AccelImpl(const Accel& accel);
 
 namespace ref {

@@ -9,6 +9,8 @@
 #include <thread>
 #include <vector>
 
+#include "streams/block_memory.h"  // BlockCacheScope
+
 namespace rs {
 
 // The thread count a build uses for `threads` (BuildOptions::build_threads): at least 1, at
@@ -17,6 +19,7 @@ inline int BuildThreadCount(int threads) { return threads < 1 ? 1 : (threads > 6
 
 // Calls body(t) for t in [0, parts): part 0 on the calling thread, the others on new threads.
 // The first exception thrown by a part (in part order) is rethrown after all have finished.
+// The parts allocate through the calling thread's BlockCache (block_memory.h).
 template <class Body>
 void RunParts(int parts, Body&& body) {
   if (parts <= 1) {
@@ -26,7 +29,9 @@ void RunParts(int parts, Body&& body) {
   std::vector<std::exception_ptr> errors(static_cast<size_t>(parts));
   std::vector<std::thread> threads;
   threads.reserve(size_t(parts - 1));
+  BlockCache* const cache = CurrentBlockCache();
   auto run = [&](int t) {
+    const BlockCacheScope scope(cache);
     try {
       body(t);
     } catch (...) {

@@ -16,7 +16,7 @@
 #include <vector>
 
 #include "kernels/grid.h"
-#include "streams/ray_stream.h"  // AdviseHugePages
+#include "streams/block_memory.h"  // AllocateBlockArray
 
 namespace rs {
 
@@ -33,20 +33,13 @@ template <typename T>
 hwy::AlignedFreeUniquePtr<T[]> AllocateBuildArray(size_t n, const char* what) {
   const size_t count = n == 0 ? 1 : n;
   hwy::AlignedFreeUniquePtr<T[]> p;
-  if (count <= (size_t{1} << 62) / sizeof(T)) {
-    try {
-      p = hwy::AllocateAligned<T>(count);
-    } catch (const std::bad_alloc&) {
-      p.reset();
-    }
-  }
+  if (count <= (size_t{1} << 62) / sizeof(T)) p = AllocateBlockArray<T>(count);
   if (!p) {
     throw Error(std::string("grid build: out of memory: cannot allocate ") + what + " (" +
                 std::to_string(count) + " x " + std::to_string(sizeof(T)) + " = " +
                 BytesText(double(count) * double(sizeof(T))) +
                 "); lower BuildOptions::lambda or max_resolution");
   }
-  AdviseHugePages(p.get(), count * sizeof(T));
   return p;
 }
 

@@ -12,7 +12,7 @@
 #include <cmath>
 #include <limits>
 
-#include "streams/ray_stream.h"  // SubView
+#include "streams/ray_stream.h"  // SubView, AllocateAlignedOrThrow
 
 #undef HWY_TARGET_INCLUDE
 #define HWY_TARGET_INCLUDE "kernels/irregular_stream.cc"
@@ -363,8 +363,7 @@ void BuildIrregularDda(const IrregularGrid& grid, const TriangleSoA& tris, Irreg
     return;
   }
   BuildTriBundles(grid.lists, tris, &out->bundles, threads);
-  out->cells = hwy::AllocateAligned<int32_t>(4 * (grid.num_cells + 1));
-  HWY_ASSERT(out->cells);
+  out->cells = AllocateAlignedOrThrow<int32_t>(4 * (grid.num_cells + 1), "irregular cells");
   for (size_t k = 0; k <= grid.num_cells; ++k) {
     int32_t* c = out->cells.get() + 4 * k;
     for (int a = 0; a < 3; ++a) {

@@ -457,7 +457,11 @@ void TraceScene::Commit() {
     mesh.indices = g.indices.data();
     mesh.num_triangles = g.num_triangles();
     try {
-      g.accel.emplace(mesh, m.options);
+      if (g.accel) {
+        g.accel->Rebuild(mesh, m.options);  // an updated geometry: its last build's memory
+      } else {
+        g.accel.emplace(mesh, m.options);
+      }
     } catch (const Error& e) {
       g.accel.reset();
       throw Error("TraceScene::Commit: geometry " + Str(id) + ": " + e.what());

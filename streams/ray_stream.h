@@ -12,6 +12,7 @@
 #include <utility>
 
 #include "include/raystream/raystream.h"
+#include "streams/block_memory.h"
 
 namespace rs {
 
@@ -27,12 +28,12 @@ namespace rs {
 inline constexpr size_t kHugePageMinBytes = size_t{4} << 20;
 void AdviseHugePages(void* p, size_t bytes);
 
-// hwy::AllocateAligned<T>(n), or ThrowOutOfMemory naming `what`; large arrays get huge pages.
+// AllocateBlockArray<T>(n) (huge pages for large arrays, the current BlockCache's blocks), or
+// ThrowOutOfMemory naming `what`.
 template <typename T>
 hwy::AlignedFreeUniquePtr<T[]> AllocateAlignedOrThrow(size_t n, const char* what) {
-  auto p = hwy::AllocateAligned<T>(n);
+  auto p = AllocateBlockArray<T>(n);
   if (!p) ThrowOutOfMemory(n * sizeof(T), what);
-  AdviseHugePages(p.get(), n * sizeof(T));
   return p;
 }
 

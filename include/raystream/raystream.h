@@ -184,6 +184,14 @@ class RS_API Accel {
   Accel(Accel&&) noexcept;
   Accel& operator=(Accel&&) noexcept;
 
+  // Rebuilds for `mesh` (the same mesh moved, or another one) with `options`, reusing this
+  // Accel's memory: the arrays of the last build and its temporaries (kept between rebuilds) are
+  // taken back where they fit, so a rebuild of the same size maps no fresh page. Throws as the
+  // constructor; on a throw this Accel must be rebuilt before it is used again (its calls throw
+  // "the last Rebuild failed"). A moved-from Accel may be rebuilt. Not thread-safe with calls
+  // on this Accel; LightBuffers of it must be rebuilt after.
+  void Rebuild(const MeshView& mesh, const BuildOptions& options = {});
+
   // Closest hit with t in (tmin, tmax] for rays[0, size). Throws rs::Error if hits.size !=
   // rays.size, a ray or hit array is null while size > 0, or this Accel was moved from.
   // Rays with NaN/Inf components or zero direction never hit. Results are exact in the sense of

@@ -2,7 +2,8 @@
 // elements at any alignment (each one ending at a guard page, so any read or write past its end
 // faults) give the padded, aligned stream's results for every size 0..100 on every target;
 // misuse (sizes that differ, null arrays, a moved-from Accel, a bad lambda) is an rs::Error, never
-// a crash; lambda is used as given under the default grid kind.
+// a crash; lambda is used as given under the default grid kind; Rebuild gives a fresh build's
+// Accel from the old one's memory.
 #include <doctest/doctest.h>
 #include <sys/mman.h>
 #include <unistd.h>
@@ -15,6 +16,7 @@
 #include <vector>
 
 #include "include/raystream/raystream.h"
+#include "streams/block_memory.h"  // SystemBlockCount
 #include "streams/ray_stream.h"
 #include "tests/test_util.h"
 
@@ -199,6 +201,128 @@ TEST_CASE("misuse is an rs::Error naming the problem, never a crash") {
   CHECK(what([&] { Accel x(scene.View(), bad); }).find("lambda") != std::string::npos);
   bad.lambda = NAN;
   CHECK(what([&] { Accel x(scene.View(), bad); }).find("lambda") != std::string::npos);
+}
+
+// An n x n height field of quads over [-4, 4]^2 near y = -2 (2 n^2 triangles), `phase` moving
+// its waves: a mesh large enough for huge-page blocks and refined cells.
+Scene Field(int n, float phase) {
+  Scene s;
+  for (int z = 0; z <= n; ++z) {
+    for (int x = 0; x <= n; ++x) {
+      const float fx = -4.f + 8.f * float(x) / float(n), fz = -4.f + 8.f * float(z) / float(n);
+      s.p.insert(s.p.end(), {fx, -2.f + 0.7f * std::sin(3.f * fx + phase) * std::cos(2.f * fz), fz});
+    }
+  }
+  const auto at = [n](int x, int z) { return static_cast<uint32_t>(z * (n + 1) + x); };
+  for (int z = 0; z < n; ++z) {
+    for (int x = 0; x < n; ++x) {
+      s.idx.insert(s.idx.end(), {at(x, z), at(x + 1, z), at(x + 1, z + 1), at(x, z),
+                                 at(x + 1, z + 1), at(x, z + 1)});
+    }
+  }
+  return s;
+}
+
+// Everything Info reports but the build time is equal, and the hits of a ray set are bit equal.
+void CheckSameAccel(const Accel& got, const Accel& want) {
+  const AccelInfo g = got.Info(), w = want.Info();
+  CHECK(g.triangles == w.triangles);
+  CHECK(g.degenerate_triangles == w.degenerate_triangles);
+  for (int a = 0; a < 3; ++a) {
+    CHECK(g.bounds_lo[a] == w.bounds_lo[a]);
+    CHECK(g.bounds_hi[a] == w.bounds_hi[a]);
+    CHECK(g.resolution[a] == w.resolution[a]);
+  }
+  CHECK(g.cells == w.cells);
+  CHECK(g.occupied_cells == w.occupied_cells);
+  CHECK(g.references == w.references);
+  CHECK(g.max_per_cell == w.max_per_cell);
+  CHECK(g.bytes == w.bytes);
+  CHECK(std::string(g.kind) == w.kind);
+  CHECK(g.irregular_cells == w.irregular_cells);
+  CHECK(g.irregular_references == w.irregular_references);
+  CHECK(g.lambda == w.lambda);
+  CHECK(g.subgrids == w.subgrids);
+  CHECK(g.sub_references == w.sub_references);
+  CHECK(g.empty_skip == w.empty_skip);
+  const size_t n = 2000;
+  Rays r(n);
+  RayStreamView rays;
+  float** fields[8] = {&rays.ox, &rays.oy, &rays.oz, &rays.dx, &rays.dy, &rays.dz, &rays.tmin,
+                       &rays.tmax};
+  for (int a = 0; a < 8; ++a) *fields[a] = r.f[a].data();
+  rays.size = n;
+  std::vector<float> t[2], u[2], v[2];
+  std::vector<int32_t> prim[2], occ[2];
+  const Accel* accels[2] = {&got, &want};
+  for (int k = 0; k < 2; ++k) {
+    t[k].resize(n), u[k].resize(n), v[k].resize(n), prim[k].resize(n), occ[k].resize(n);
+    accels[k]->Intersect(rays, HitStreamView{t[k].data(), u[k].data(), v[k].data(),
+                                             prim[k].data(), n});
+    accels[k]->Occluded(rays, occ[k].data());
+  }
+  CHECK(prim[0] == prim[1]);
+  CHECK(occ[0] == occ[1]);
+  CHECK(std::memcmp(t[0].data(), t[1].data(), n * sizeof(float)) == 0);
+  CHECK(std::memcmp(u[0].data(), u[1].data(), n * sizeof(float)) == 0);
+  CHECK(std::memcmp(v[0].data(), v[1].data(), n * sizeof(float)) == 0);
+}
+
+TEST_CASE("Rebuild: the same Accel as a fresh build, for meshes larger, moved and smaller") {
+  const Scene box = Box(), field = Field(120, 0.0f), moved = Field(120, 0.9f),
+              small = Field(15, 0.3f);
+  for (const GridKind kind :
+       {GridKind::kAuto, GridKind::kUniform, GridKind::kTwoLevel, GridKind::kIrregular}) {
+    for (const int threads : {1, 2}) {
+      CAPTURE(int(kind));
+      CAPTURE(threads);
+      BuildOptions o;
+      o.grid = kind;
+      o.build_threads = threads;
+      Accel accel(box.View(), o);
+      for (const Scene* s : {&field, &moved, &small, &field, &box}) {
+        accel.Rebuild(s->View(), o);
+        CheckSameAccel(accel, Accel(s->View(), o));
+      }
+    }
+  }
+}
+
+TEST_CASE("Rebuild of the same mesh takes every block back from the last one") {
+  const Scene field = Field(200, 0.0f);  // 80,000 triangles
+  BuildOptions o;
+  o.build_threads = 1;  // (threads may take each other's blocks in any order)
+  Accel accel(field.View(), o);
+  accel.Rebuild(field.View(), o);  // the constructor keeps no temporaries: this one maps them
+  const size_t blocks = SystemBlockCount();
+  accel.Rebuild(field.View(), o);
+  accel.Rebuild(field.View(), o);
+  CHECK(SystemBlockCount() == blocks);
+  CheckSameAccel(accel, Accel(field.View(), o));
+}
+
+TEST_CASE("a Rebuild that throws leaves an Accel that says so until it is rebuilt") {
+  const Scene box = Box();
+  Scene bad = Field(10, 0.0f);
+  bad.p[7] = NAN;
+  Accel accel(box.View());
+  CHECK_THROWS_WITH_AS(accel.Rebuild(bad.View()), doctest::Contains("non-finite"), Error);
+  alignas(64) float a[16] = {}, b[16] = {}, c[16] = {}, d[16] = {};
+  alignas(64) int32_t p[16] = {};
+  RayStreamView rays{a, a, a, b, b, b, c, d};
+  rays.size = 4;
+  CHECK_THROWS_WITH_AS(accel.Intersect(rays, HitStreamView{a, b, c, p, 4}),
+                       doctest::Contains("last Rebuild failed"), Error);
+  CHECK_THROWS_WITH_AS(accel.Occluded(rays, p), doctest::Contains("last Rebuild failed"), Error);
+  CHECK_THROWS_WITH_AS((void)accel.Info(), doctest::Contains("last Rebuild failed"), Error);
+  const float light[3] = {0, 5, 0};
+  CHECK_THROWS_WITH_AS(LightBuffer(accel, light), doctest::Contains("last Rebuild failed"), Error);
+  accel.Rebuild(box.View());
+  CheckSameAccel(accel, Accel(box.View()));
+  // A moved-from Accel can be rebuilt.
+  const Accel moved = std::move(accel);
+  accel.Rebuild(box.View());
+  CheckSameAccel(accel, moved);
 }
 
 TEST_CASE("lambda: 0 lets the cost model choose; a positive lambda is used under every kind") {
