@@ -134,6 +134,8 @@ struct SceneData {
   RayStream frame_light;
   AlignedArray<int32_t> frame_occluded;
   std::unique_ptr<EmbreePeer> rebuild_peer;  // rebuilt every iteration (build and frame)
+  std::unique_ptr<Accel> rebuilt;             // rebuilt in place (rebuild/ and frame/)
+  std::unique_ptr<LightBuffer> rebuilt_light;  // over `rebuilt`, rebuilt in place (frame/)
   glm::vec3 light{0.0f};
 };
 
@@ -361,7 +363,15 @@ double ThreadMinorFaults() {
 // one build of the `raystream` command does: the command's `grid build` line reports this
 // build (same options: the defaults, one thread). faults/build counts the minor page faults
 // (each costs a kernel entry and a page zeroed: a large share of a cold build).
-void BM_Build(benchmark::State& state, const std::string& scene, bool embree, bool cold) {
+// "rebuild/<scene>/...": the structure of a moving mesh rebuilt in place, as a renderer of a
+// dynamic scene does every frame: Accel::Rebuild (its memory and its temporaries' taken back)
+// against Embree's rtcUpdateGeometryBuffer + rtcCommitScene on the same scene (EmbreePeer::
+// Update; Embree reuses its BVH memory).
+enum class BuildMode { kWarm, kCold, kInPlace };
+constexpr const char* kBuildGroups[] = {"build/", "build-cold/", "rebuild/"};
+
+void BM_Build(benchmark::State& state, const std::string& scene, bool embree, BuildMode mode) {
+  const bool cold = mode == BuildMode::kCold;
   SceneData& d = GetScene(scene);
   if (!d.load_error.empty()) {
     state.SkipWithError(d.load_error.c_str());
@@ -379,8 +389,14 @@ void BM_Build(benchmark::State& state, const std::string& scene, bool embree, bo
       state.ResumeTiming();
     }
     const double faults0 = ThreadMinorFaults();
-    if (embree) {
+    if (embree && mode == BuildMode::kInPlace) {
+      d.rebuild_peer->Update(d.mesh);
+    } else if (embree) {
       d.rebuild_peer->Build(d.mesh);
+    } else if (mode == BuildMode::kInPlace) {
+      if (!d.rebuilt) d.rebuilt = std::make_unique<Accel>(d.mesh, BenchBuildOptions());
+      d.rebuilt->Rebuild(d.mesh, BenchBuildOptions());
+      benchmark::DoNotOptimize(d.rebuilt.get());
     } else {
       Accel accel(d.mesh, BenchBuildOptions());
       benchmark::DoNotOptimize(&accel);
@@ -417,7 +433,8 @@ void BM_BuildLight(benchmark::State& state, const std::string& scene) {
 }
 
 // "frame/<scene>/<tracer>": time to image for one frame_size^2 frame of a dynamic scene:
-// build, primary closest hits, shadow ray generation from those hits, occlusion. Primary
+// the rebuild in place (as rebuild/), primary closest hits, shadow ray generation from those
+// hits, occlusion (raystream-light: the light buffer's rebuild in place and its rays). Primary
 // rays are generated once, outside the timing. Items are frames (items_per_second = fps).
 void BM_Frame(benchmark::State& state, const std::string& scene, int tracer) {
   SceneData& d = GetScene(scene);
@@ -431,27 +448,31 @@ void BM_Frame(benchmark::State& state, const std::string& scene, int tracer) {
     d.frame_occluded.Reserve(d.frame_primary.size());
   }
   if (tracer >= 0 && !d.rebuild_peer) d.rebuild_peer = std::make_unique<EmbreePeer>(d.mesh);
+  if (tracer < 0 && !d.rebuilt) d.rebuilt = std::make_unique<Accel>(d.mesh, BenchBuildOptions());
   const RayStreamView primary = d.frame_primary.view();
   const HitStreamView hits = d.frame_hits.view();
   size_t shadow_rays = 0;
   size_t occluded = 0;
   for (auto _ : state) {
     if (tracer == -3) {  // raystream-light: the shadow rays from the light, a LightBuffer
-      Accel accel(d.mesh, BenchBuildOptions());
+      Accel& accel = *d.rebuilt;
+      accel.Rebuild(d.mesh, BenchBuildOptions());
       accel.Intersect(primary, hits);
       MakeShadowRays(d.scene, primary, hits, d.light, d.frame_shadow);
       MakeLightRays(d.frame_shadow.view(), d.light, d.frame_light);
       const float light[3] = {d.light.x, d.light.y, d.light.z};
-      const LightBuffer lb(accel, light);
-      lb.Occluded(d.frame_light.view(), d.frame_occluded.data());
+      if (!d.rebuilt_light) d.rebuilt_light = std::make_unique<LightBuffer>(accel, light);
+      d.rebuilt_light->Rebuild(accel, light);
+      d.rebuilt_light->Occluded(d.frame_light.view(), d.frame_occluded.data());
     } else if (tracer < 0) {
-      Accel accel(d.mesh, BenchBuildOptions());
+      Accel& accel = *d.rebuilt;
+      accel.Rebuild(d.mesh, BenchBuildOptions());
       accel.Intersect(primary, hits);
       MakeShadowRays(d.scene, primary, hits, d.light, d.frame_shadow);
       accel.Occluded(d.frame_shadow.view(), d.frame_occluded.data());
     } else {
       const auto mode = static_cast<EmbreeMode>(tracer);
-      d.rebuild_peer->Build(d.mesh);
+      d.rebuild_peer->Update(d.mesh);
       d.rebuild_peer->Intersect(mode, primary, hits, Coherence::kCoherent);
       MakeShadowRays(d.scene, primary, hits, d.light, d.frame_shadow);
       d.rebuild_peer->Occluded(mode, d.frame_shadow.view(), d.frame_occluded.data(),
@@ -516,7 +537,8 @@ class RatioReporter : public Base {
       const auto& tracers = rates_.at(key);
       if (!agg.empty() && agg != "median") continue;
       const bool frame = group.rfind("frame/", 0) == 0;
-      const bool build = group.rfind("build", 0) == 0;  // build/, build-cold/, build-light/
+      const bool build = group.rfind("build", 0) == 0 ||  // build/, build-cold/, build-light/
+                         group.rfind("rebuild/", 0) == 0;
       const auto ours = tracers.find("raystream");
       std::fprintf(out, "%-24s", group.c_str());
       for (const auto& [tracer, rate] : tracers) {
@@ -566,11 +588,11 @@ void Add(const std::string& name, F&& fn) {
 }
 
 void Register(const std::string& scene) {
-  for (const bool cold : {false, true}) {
-    const std::string group = std::string(cold ? "build-cold/" : "build/") + scene;
-    Add(group + "/embree", [scene, cold](benchmark::State& s) { BM_Build(s, scene, true, cold); });
+  for (const BuildMode mode : {BuildMode::kWarm, BuildMode::kCold, BuildMode::kInPlace}) {
+    const std::string group = kBuildGroups[int(mode)] + scene;
+    Add(group + "/embree", [scene, mode](benchmark::State& s) { BM_Build(s, scene, true, mode); });
     Add(group + "/raystream",
-        [scene, cold](benchmark::State& s) { BM_Build(s, scene, false, cold); });
+        [scene, mode](benchmark::State& s) { BM_Build(s, scene, false, mode); });
   }
   for (int si = 0; si < kNumRaySets; ++si) {
     const auto set = static_cast<RaySet>(si);

@@ -148,7 +148,7 @@ EmbreePeer::~EmbreePeer() { Release(); }
 void EmbreePeer::Release() {
   if (scene_ != nullptr) rtcReleaseScene(scene_);
   scene_ = nullptr;
-  num_triangles_ = 0;
+  num_triangles_ = num_vertices_ = 0;
 }
 
 void EmbreePeer::Build(const MeshView& mesh) {
@@ -185,6 +185,29 @@ void EmbreePeer::Build(const MeshView& mesh) {
   ThrowIfError("building the scene");
   build_seconds_ = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   num_triangles_ = mesh.num_triangles;
+  num_vertices_ = mesh.num_vertices;
+}
+
+void EmbreePeer::Update(const MeshView& mesh) {
+  if (scene_ == nullptr || mesh.num_triangles != num_triangles_ ||
+      mesh.num_vertices != num_vertices_ || num_triangles_ == 0 || num_vertices_ == 0) {
+    return Build(mesh);
+  }
+  const auto start = std::chrono::steady_clock::now();
+  RTCGeometry geom = rtcGetGeometry(scene_, 0);
+  auto* vertices = static_cast<float*>(rtcGetGeometryBufferData(geom, RTC_BUFFER_TYPE_VERTEX, 0));
+  ThrowIfError("rtcGetGeometryBufferData");
+  for (size_t i = 0; i < mesh.num_vertices; ++i) {
+    const float* p = mesh.positions + i * mesh.stride;
+    vertices[3 * i + 0] = p[0];
+    vertices[3 * i + 1] = p[1];
+    vertices[3 * i + 2] = p[2];
+  }
+  rtcUpdateGeometryBuffer(geom, RTC_BUFFER_TYPE_VERTEX, 0);
+  rtcCommitGeometry(geom);
+  rtcCommitScene(scene_);
+  ThrowIfError("rebuilding the scene");
+  build_seconds_ = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
 }
 
 void EmbreePeer::Intersect(EmbreeMode mode, const RayStreamView& rays, const HitStreamView& hits,

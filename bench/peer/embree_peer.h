@@ -45,6 +45,11 @@ class EmbreePeer {
   // buffers and commits. Indices must be < num_vertices (not checked: validate the mesh
   // first, e.g. with rs::Accel or rs::ValidateScene). The mesh may be freed afterwards.
   void Build(const MeshView& mesh);
+  // Rebuilds the same scene in place, as an Embree user animating a mesh would: the new
+  // positions are copied into the geometry's vertex buffer (rtcUpdateGeometryBuffer,
+  // rtcCommitGeometry) and the scene is committed again (Embree reuses its BVH memory). `mesh`
+  // must have the last Build's vertex and triangle counts and indices (else this is Build).
+  void Update(const MeshView& mesh);
   // Wall time of the last Build: geometry creation and copies plus rtcCommitScene.
   double build_seconds() const { return build_seconds_; }
   size_t num_triangles() const { return num_triangles_; }
@@ -67,6 +72,7 @@ class EmbreePeer {
   void Release();
   RTCScene scene_ = nullptr;
   size_t num_triangles_ = 0;
+  size_t num_vertices_ = 0;
   double build_seconds_ = 0;
 };
 

@@ -5,8 +5,9 @@
 // same camera (BenchCamera: ANCHORS.md's views), the
 // scene's lights and shading, and the same default RenderOptions (batch, ray_budget). Rows:
 //   render/<scene>/<tracer>  one frame, the structure built once before timing;
-//   image/<scene>/<tracer>   time to image of a dynamic scene: rebuild (rs::Accel and the
-//                            light buffers, or EmbreePeer::Build) + frame, every iteration.
+//   image/<scene>/<tracer>   time to image of a dynamic scene: the structure rebuilt in place
+//                            (Accel::Rebuild and LightBuffer::Rebuild, or EmbreePeer::Update:
+//                            rtcUpdateGeometryBuffer + rtcCommitScene) + frame, every iteration.
 // Before timing, both images are rendered once and compared; a scene whose images differ
 // (beyond kPixelTolerance) in more than 0.1 % of pixels fails its rows (diff_pixels and
 // max_abs_diff are on every row). Counters: frame_s (the renderer's wall time; build_s on image
@@ -67,6 +68,7 @@ struct SceneData {
   std::unique_ptr<Accel> accel;
   std::vector<LightBuffer> light_buffers;  // over accel: raystream's shadow rays
   std::unique_ptr<EmbreePeer> peer;
+  std::unique_ptr<Accel> rebuilt;  // image rows: rebuilt in place every iteration
   Camera camera;
   RenderOptions options;
   SerialRenderer renderer;  // keeps its arenas between frames, as a walk-through would
@@ -183,18 +185,16 @@ void BM_Render(benchmark::State& state, const std::string& scene, bool embree, b
     state.ResumeTiming();
     const double cpu0 = ThreadCpuSeconds();
     const auto t0 = std::chrono::steady_clock::now();
-    std::unique_ptr<Accel> rebuilt;
-    if (rebuild && embree) d.peer->Build(d.mesh);
+    if (rebuild && embree) d.peer->Update(d.mesh);
     if (rebuild && !embree) {  // the grid's and the light buffers' build
-      rebuilt = std::make_unique<Accel>(d.mesh);
-      RebuildLightBuffers(d.scene, *rebuilt, &rebuilt_lights);
+      if (!d.rebuilt) d.rebuilt = std::make_unique<Accel>(d.mesh);
+      d.rebuilt->Rebuild(d.mesh);
+      RebuildLightBuffers(d.scene, *d.rebuilt, &rebuilt_lights);
     }
     build_seconds += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
     last = embree ? RenderOnce(d, *d.accel, {}, &tracer)
-           : rebuilt ? RenderOnce(d, *rebuilt, rebuilt_lights, nullptr)
+           : rebuild ? RenderOnce(d, *d.rebuilt, rebuilt_lights, nullptr)
                      : RenderOnce(d, *d.accel, d.light_buffers, nullptr);
-    rebuilt.reset();  // a dynamic scene frees last frame's grid (the light buffers are rebuilt
-                      // in place next frame, as a renderer of a moving scene would)
     cpu_seconds += ThreadCpuSeconds() - cpu0;
     sum.trace_seconds += last.trace_seconds;
     sum.shade_seconds += last.shade_seconds;
