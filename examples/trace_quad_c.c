@@ -126,6 +126,20 @@ int main(void) {
   options.lambda = -1.0f;
   if (rsNewAccel(&mesh, &options) != NULL) ++failures;
   if (g_callbacks != 5) ++failures;
+
+  /* A moving mesh: the quad moved to z = -1 and rebuilt in place; a bad rebuild is an error and
+   * the accel is not traced until it is rebuilt. */
+  float moved[12];
+  for (int k = 0; k < 12; ++k) moved[k] = k % 3 == 2 ? -1.0f : positions[k];
+  RSMesh moved_mesh = {moved, 4, 3, indices, 2};
+  if (rsRebuildAccel(accel, &moved_mesh, NULL) != RS_ERROR_NONE) ++failures;
+  if (rsIntersect(accel, &rays, &hits) != RS_ERROR_NONE || fabsf(t[0] - 3.0f) > 1e-6f) ++failures;
+  if (rsRebuildAccel(accel, &bad, NULL) != RS_ERROR_INVALID_ARGUMENT) ++failures;
+  if (rsIntersect(accel, &rays, &hits) == RS_ERROR_NONE) ++failures;
+  if (strstr(rsGetErrorMessage(), "Rebuild failed") == NULL) ++failures;
+  if (rsRebuildAccel(accel, &mesh, NULL) != RS_ERROR_NONE) ++failures;
+  if (rsIntersect(accel, &rays, &hits) != RS_ERROR_NONE || fabsf(t[0] - 2.0f) > 1e-6f) ++failures;
+  if (g_callbacks != 7) ++failures;
   failures += RunScene();
   rsReleaseAccel(accel);
   rsReleaseAccel(NULL);

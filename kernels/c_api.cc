@@ -144,20 +144,33 @@ void rsInitBuildOptions(RSBuildOptions* options) {
   options->packets = d.packets ? 1 : 0;
 }
 
+namespace {
+rs::MeshView MeshOf(const RSMesh& mesh) {
+  rs::MeshView m;
+  m.positions = mesh.positions;
+  m.num_vertices = mesh.num_vertices;
+  m.stride = mesh.stride;
+  m.indices = mesh.indices;
+  m.num_triangles = mesh.num_triangles;
+  return m;
+}
+}  // namespace
+
 RSAccel rsNewAccel(const RSMesh* mesh, const RSBuildOptions* options) {
   RSAccel out = nullptr;
   Guard([&] {
     if (mesh == nullptr) throw rs::Error("rsNewAccel: mesh is NULL");
     const rs::BuildOptions o = Options(options, "rsNewAccel");
-    rs::MeshView m;
-    m.positions = mesh->positions;
-    m.num_vertices = mesh->num_vertices;
-    m.stride = mesh->stride;
-    m.indices = mesh->indices;
-    m.num_triangles = mesh->num_triangles;
-    out = new RSAccelTy{rs::Accel(m, o)};
+    out = new RSAccelTy{rs::Accel(MeshOf(*mesh), o)};
   });
   return out;
+}
+
+RSError rsRebuildAccel(RSAccel accel, const RSMesh* mesh, const RSBuildOptions* options) {
+  return Guard([&] {
+    if (accel == nullptr || mesh == nullptr) throw rs::Error("rsRebuildAccel: accel or mesh is NULL");
+    accel->accel.Rebuild(MeshOf(*mesh), Options(options, "rsRebuildAccel"));
+  });
 }
 
 void rsReleaseAccel(RSAccel accel) { delete accel; }

@@ -106,6 +106,10 @@ typedef struct RSAccelInfo {
 typedef struct RSAccelTy* RSAccel;
 RS_C_API RSAccel rsNewAccel(const RSMesh* mesh, const RSBuildOptions* options);
 RS_C_API void rsReleaseAccel(RSAccel accel);
+/* Rebuilds `accel` for `mesh` in its own memory (rs::Accel::Rebuild: a moving mesh rebuilt every
+ * frame maps no fresh page). On an error the accel must be rebuilt before it is traced again
+ * (tracing returns the error until then). Not thread-safe with tracing of the same accel. */
+RS_C_API RSError rsRebuildAccel(RSAccel accel, const RSMesh* mesh, const RSBuildOptions* options);
 
 /* Closest hits / any hits (occluded[i] = 1 or 0). Return RS_ERROR_NONE, or the error (nothing is
  * written then): a null accel, stream or array, hits->size != rays->size. */
