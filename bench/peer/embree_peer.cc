@@ -151,6 +151,18 @@ void EmbreePeer::Release() {
   num_triangles_ = num_vertices_ = 0;
 }
 
+namespace {
+// The mesh's positions (any stride) into an Embree FLOAT3 vertex buffer.
+void CopyPositions(const MeshView& mesh, float* vertices) {
+  for (size_t i = 0; i < mesh.num_vertices; ++i) {
+    const float* p = mesh.positions + i * mesh.stride;
+    vertices[3 * i + 0] = p[0];
+    vertices[3 * i + 1] = p[1];
+    vertices[3 * i + 2] = p[2];
+  }
+}
+}  // namespace
+
 void EmbreePeer::Build(const MeshView& mesh) {
   RTCDevice device = Device();
   Release();
@@ -170,12 +182,7 @@ void EmbreePeer::Build(const MeshView& mesh) {
         rtcSetNewGeometryBuffer(geom, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3,
                                 3 * sizeof(uint32_t), mesh.num_triangles));
     ThrowIfError("rtcSetNewGeometryBuffer");
-    for (size_t i = 0; i < mesh.num_vertices; ++i) {
-      const float* p = mesh.positions + i * mesh.stride;
-      vertices[3 * i + 0] = p[0];
-      vertices[3 * i + 1] = p[1];
-      vertices[3 * i + 2] = p[2];
-    }
+    CopyPositions(mesh, vertices);
     std::copy(mesh.indices, mesh.indices + 3 * mesh.num_triangles, indices);
     rtcCommitGeometry(geom);
     rtcAttachGeometryByID(scene_, geom, 0);
@@ -197,12 +204,7 @@ void EmbreePeer::Update(const MeshView& mesh) {
   RTCGeometry geom = rtcGetGeometry(scene_, 0);
   auto* vertices = static_cast<float*>(rtcGetGeometryBufferData(geom, RTC_BUFFER_TYPE_VERTEX, 0));
   ThrowIfError("rtcGetGeometryBufferData");
-  for (size_t i = 0; i < mesh.num_vertices; ++i) {
-    const float* p = mesh.positions + i * mesh.stride;
-    vertices[3 * i + 0] = p[0];
-    vertices[3 * i + 1] = p[1];
-    vertices[3 * i + 2] = p[2];
-  }
+  CopyPositions(mesh, vertices);
   rtcUpdateGeometryBuffer(geom, RTC_BUFFER_TYPE_VERTEX, 0);
   rtcCommitGeometry(geom);
   rtcCommitScene(scene_);
