@@ -15,6 +15,7 @@ namespace {
 // Every block starts with this header (one cache line: the block's payload stays 64-B aligned).
 struct alignas(64) BlockHeader {
   size_t capacity;  // payload bytes
+  size_t requested;  // bytes asked for (the waste rule of BlockCache::Take)
   size_t mapped;    // bytes mapped (mmap), 0 for malloc
 };
 constexpr size_t kHeader = sizeof(BlockHeader);
@@ -32,16 +33,18 @@ BlockHeader* HeaderOf(void* block) {
   return reinterpret_cast<BlockHeader*>(static_cast<char*>(block) - kHeader);
 }
 
-void* SystemAllocate(size_t bytes) {
-  if (bytes > (size_t{1} << 62)) return nullptr;
-  bytes += kSlack;
+void* SystemAllocate(size_t requested) {
+  if (requested > (size_t{1} << 62)) return nullptr;
+  const size_t bytes = requested + kSlack;
   // (AddressSanitizer checks heap blocks only: under it every block comes from malloc)
 #if defined(__linux__) && defined(MADV_HUGEPAGE) && !defined(__SANITIZE_ADDRESS__)
-  if (bytes + kHeader >= kHugeBlockBytes) {
+  if (bytes + kHeader >= kHugeBlockBytes / 2) {
     // Mapped from a 2 MiB boundary (one extra huge page mapped, the slack unmapped again), to
     // its size rounded to 4 KiB: the whole 2 MiB pages inside get huge pages, the tail small
-    // ones, so nothing is wasted.
-    const size_t size = RoundUp(bytes + kHeader, kPage);
+    // ones; a tail of 1 MiB or more is rounded up to a huge page too (less than 1 MiB more, and
+    // one fault instead of 256 or more).
+    size_t size = RoundUp(bytes + kHeader, kPage);
+    if (size % kHugeBlockBytes >= kHugeBlockBytes / 2) size = RoundUp(size, kHugeBlockBytes);
     const size_t span = size + kHugeBlockBytes;
     void* m = mmap(nullptr, span, PROT_READ | PROT_WRITE, MAP_PRIVATE | MAP_ANONYMOUS, -1, 0);
     if (m == MAP_FAILED) return nullptr;
@@ -52,6 +55,7 @@ void* SystemAllocate(size_t bytes) {
     madvise(reinterpret_cast<void*>(at), size, MADV_HUGEPAGE);  // advice: errors ignored
     auto* h = reinterpret_cast<BlockHeader*>(at);
     h->capacity = size - kHeader;
+    h->requested = requested;
     h->mapped = size;
     return reinterpret_cast<char*>(at) + kHeader;
   }
@@ -60,6 +64,7 @@ void* SystemAllocate(size_t bytes) {
   if (m == nullptr) return nullptr;
   auto* h = static_cast<BlockHeader*>(m);
   h->capacity = bytes;
+  h->requested = requested;
   h->mapped = 0;
   return static_cast<char*>(m) + kHeader;
 }
@@ -98,8 +103,10 @@ void* BlockCache::Take(size_t bytes) {
   const std::lock_guard<std::mutex> lock(mutex_);
   size_t best = free_.size();
   for (size_t i = 0; i < free_.size(); ++i) {  // the smallest that fits (few blocks: a scan)
-    const size_t c = free_[i].capacity;
-    if (c >= bytes && c - bytes <= bytes / 4 + 4 * kPage &&
+    // fits, and the block's first request was not much larger (a block's capacity may hold
+    // up to 1 MiB of huge-page rounding the waste rule should not count)
+    const size_t c = free_[i].capacity, r = free_[i].requested;
+    if (c >= bytes && (r <= bytes || r - bytes <= bytes / 4 + 4 * kPage) &&
         (best == free_.size() || c < free_[best].capacity)) {
       best = i;
     }
@@ -114,7 +121,7 @@ void* BlockCache::Take(size_t bytes) {
 void BlockCache::Keep(void* block) {
   const std::lock_guard<std::mutex> lock(mutex_);
   try {
-    free_.push_back({block, HeaderOf(block)->capacity, generation_});
+    free_.push_back({block, HeaderOf(block)->capacity, HeaderOf(block)->requested, generation_});
   } catch (const std::bad_alloc&) {
     SystemFree(block);
   }

@@ -1,8 +1,8 @@
 // The memory of the library's large aligned arrays (AllocateAlignedOrThrow, the builds'
-// AllocateBuildArray): hwy::AllocateAligned's alloc / free hooks. Blocks of kHugeBlockBytes and
-// more are mapped from a 2 MiB boundary with transparent huge pages advised (a fresh 4 KiB page
-// costs a fault each, measured about 11 us in this project's VMs; a huge page one per 2 MiB),
-// smaller ones come from malloc. A BlockCache keeps the blocks of a structure that is rebuilt
+// AllocateBuildArray): hwy::AllocateAligned's alloc / free hooks. Blocks of 1 MiB and more are
+// mapped from a 2 MiB boundary with transparent huge pages advised (a fresh 4 KiB page costs a
+// fault each, measured 11-15 us in this project's VMs; a huge page one per 2 MiB), a tail of
+// 1 MiB or more rounded up to a whole huge page; smaller ones come from malloc. A BlockCache keeps the blocks of a structure that is rebuilt
 // (Accel::Rebuild): a rebuild of the same size takes its arrays' blocks back instead of fresh
 // pages.
 #pragma once
@@ -52,6 +52,7 @@ class BlockCache {
   struct Kept {
     void* block;
     size_t capacity;
+    size_t requested;
     uint64_t generation;
   };
   void* Take(size_t bytes);
