@@ -16,7 +16,7 @@
 
 #include "kernels/accel_impl.h"
 #include "kernels/grid_binning.h"  // AllocateBuildArray
-#include "streams/ray_stream.h"  // AdviseHugePages
+#include "streams/block_memory.h"  // AdviseHugePages
 
 namespace rs {
 namespace {

@@ -158,6 +158,18 @@ BlockCache::~BlockCache() {
 
 size_t SystemBlockCount() { return g_system_blocks.load(std::memory_order_relaxed); }
 
+void AdviseHugePages(void* p, size_t bytes) {
+#if defined(__linux__) && defined(MADV_HUGEPAGE)
+  if (p == nullptr || bytes < kHugePageMinBytes) return;
+  const uintptr_t lo = RoundUp(reinterpret_cast<uintptr_t>(p), kHugeBlockBytes);
+  const uintptr_t hi = (reinterpret_cast<uintptr_t>(p) + bytes) / kHugeBlockBytes * kHugeBlockBytes;
+  if (hi > lo) madvise(reinterpret_cast<void*>(lo), hi - lo, MADV_HUGEPAGE);  // advice: errors ignored
+#else
+  (void)p;
+  (void)bytes;
+#endif
+}
+
 BlockCache* CurrentBlockCache() { return t_cache; }
 
 BlockCacheScope::BlockCacheScope(BlockCache* cache) : previous_(t_cache) { t_cache = cache; }

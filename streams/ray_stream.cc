@@ -9,10 +9,6 @@
 #include <string>
 #include <utility>
 
-#if defined(__linux__)
-#include <sys/mman.h>
-#endif
-
 namespace rs {
 
 const char* RayKindName(RayKind kind) {
@@ -26,19 +22,6 @@ const char* RayKindName(RayKind kind) {
 }
 
 const char* Version() { return RS_VERSION; }
-
-void AdviseHugePages(void* p, size_t bytes) {
-#if defined(__linux__) && defined(MADV_HUGEPAGE)
-  if (p == nullptr || bytes < kHugePageMinBytes) return;
-  constexpr uintptr_t kHuge = uintptr_t{2} << 20;
-  const uintptr_t lo = (reinterpret_cast<uintptr_t>(p) + kHuge - 1) & ~(kHuge - 1);
-  const uintptr_t hi = (reinterpret_cast<uintptr_t>(p) + bytes) & ~(kHuge - 1);
-  if (hi > lo) madvise(reinterpret_cast<void*>(lo), hi - lo, MADV_HUGEPAGE);  // advice: ignore errors
-#else
-  (void)p;
-  (void)bytes;
-#endif
-}
 
 void ThrowOutOfMemory(size_t bytes, const char* what) {
   char size[32];

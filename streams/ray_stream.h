@@ -20,14 +20,6 @@ namespace rs {
 // and how much; an exhausted memory is never an assert abort).
 [[noreturn]] void ThrowOutOfMemory(size_t bytes, const char* what);
 
-// Asks the kernel for transparent huge pages (madvise MADV_HUGEPAGE) on the whole 2 MiB pages
-// inside [p, p + bytes), for an array of at least kHugePageMinBytes about to be written for the
-// first time. A fresh 4 KiB page costs a fault each (measured about 11 us in this project's
-// VMs: a cold grid or light buffer build paid 4-7x the warm one in faults); a huge page one per
-// 2 MiB. Advice only: without THP (or on other systems) nothing changes.
-inline constexpr size_t kHugePageMinBytes = size_t{4} << 20;
-void AdviseHugePages(void* p, size_t bytes);
-
 // AllocateBlockArray<T>(n) (huge pages for large arrays, the current BlockCache's blocks), or
 // ThrowOutOfMemory naming `what`.
 template <typename T>

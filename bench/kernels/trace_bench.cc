@@ -454,9 +454,9 @@ void BM_Frame(benchmark::State& state, const std::string& scene, int tracer) {
   size_t shadow_rays = 0;
   size_t occluded = 0;
   for (auto _ : state) {
+    if (tracer < 0) d.rebuilt->Rebuild(d.mesh, BenchBuildOptions());
     if (tracer == -3) {  // raystream-light: the shadow rays from the light, a LightBuffer
-      Accel& accel = *d.rebuilt;
-      accel.Rebuild(d.mesh, BenchBuildOptions());
+      const Accel& accel = *d.rebuilt;
       accel.Intersect(primary, hits);
       MakeShadowRays(d.scene, primary, hits, d.light, d.frame_shadow);
       MakeLightRays(d.frame_shadow.view(), d.light, d.frame_light);
@@ -465,8 +465,7 @@ void BM_Frame(benchmark::State& state, const std::string& scene, int tracer) {
       d.rebuilt_light->Rebuild(accel, light);
       d.rebuilt_light->Occluded(d.frame_light.view(), d.frame_occluded.data());
     } else if (tracer < 0) {
-      Accel& accel = *d.rebuilt;
-      accel.Rebuild(d.mesh, BenchBuildOptions());
+      const Accel& accel = *d.rebuilt;
       accel.Intersect(primary, hits);
       MakeShadowRays(d.scene, primary, hits, d.light, d.frame_shadow);
       accel.Occluded(d.frame_shadow.view(), d.frame_occluded.data());
