@@ -243,12 +243,14 @@ void SortByReach(std::vector<uint64_t>* keys, std::vector<uint64_t>* tmp) {
 
 }  // namespace
 
-// A reference's floats as the output arrays hold them (BuildLightBuffer writes them list by list).
-struct LightRecord {
+// A reference as the output arrays hold it (BuildLightBuffer writes them list by list): one
+// cache line.
+struct alignas(64) LightRecord {
   float reach, u0, u1, v0, v1;
-  float verts[9];
+  uint32_t tri;
   float planes[kLightPlaneFloats];
 };
+static_assert(sizeof(LightRecord) == 64);
 
 // The build's temporaries, kept between builds (no fresh pages for a build no larger than an
 // earlier one: rs::LightBuffer keeps one per thread, shared by all its light buffers).
@@ -262,8 +264,8 @@ struct LightBuildScratch {
   std::vector<uint32_t> order;       // per reference: its record
 };
 
-void BuildLightBuffer(const TriangleSoA& tris, const float light[3], double cells_per_triangle,
-                      LightBufferData* out, LightBuildScratch* reuse) {
+void BuildLightBuffer(const TriangleSoA& tris, const float* verts, const float light[3],
+                      double cells_per_triangle, LightBufferData* out, LightBuildScratch* reuse) {
   LightBuildScratch local;
   LightBuildScratch& sc = reuse != nullptr ? *reuse : local;
   LightBufferData& lb = *out;
@@ -271,6 +273,7 @@ void BuildLightBuffer(const TriangleSoA& tris, const float light[3], double cell
   lb.faces = LightFaces{};
   lb.num_cells = lb.num_refs = lb.num_always = 0;
   for (int a = 0; a < 3; ++a) lb.light[a] = light[a];
+  lb.verts = verts;
   const Vec3 l = {double(light[0]), double(light[1]), double(light[2])};
   std::vector<float>& reach = sc.reach;
   reach.assign(tris.size, 0.0f);
@@ -280,11 +283,6 @@ void BuildLightBuffer(const TriangleSoA& tris, const float light[3], double cell
   std::vector<LightRecord>& records = sc.records;  // rects[r]'s reference floats
   records.clear();
   Reserve(&records, rects.capacity());
-  const auto vertices = [&](uint32_t tri, float rec[9]) {
-    for (int c = 0; c < 3; ++c) {
-      for (int a = 0; a < 3; ++a) rec[3 * c + a] = tris.p[c][a][tri];
-    }
-  };
   // the records of the rectangles [first, rects.size()) of triangle i, in triangle order
   // (sequential reads of the triangles; the lists are written from them below)
   // (planes: the SIMD pass's, or null: computed here in double)
@@ -294,12 +292,12 @@ void BuildLightBuffer(const TriangleSoA& tris, const float light[3], double cell
       LightRecord rec;  // (every field written below; emplace_back() would zero it first)
       rec.reach = reach[i];
       rec.u0 = f.u0, rec.u1 = f.u1, rec.v0 = f.v0, rec.v1 = f.v1;
-      vertices(uint32_t(i), rec.verts);
+      rec.tri = uint32_t(i);
       if (planes != nullptr) {
         const size_t at = i % kLightProjectBlock;
         for (int c = 0; c < kLightPlaneFloats; ++c) rec.planes[c] = planes->planes[c][at];
       } else {
-        LightPlanes(rec.verts, light, f.face, f.whole, rec.planes);
+        LightPlanes(verts + 9 * i, light, f.face, f.whole, rec.planes);
       }
       records.push_back(rec);
     }
@@ -416,19 +414,20 @@ void BuildLightBuffer(const TriangleSoA& tris, const float light[3], double cell
   for (size_t c = 0; c <= lb.num_cells; ++c) begin[c + 1] += begin[c];
   // the output arrays (reused by Rebuild when large enough)
   const size_t pad = 16;  // one vector of the widest target
-  if (lb.num_refs + pad > lb.ref_capacity || !lb.verts) {
-    for (auto* a : {&lb.reach, &lb.u0, &lb.u1, &lb.v0, &lb.v1, &lb.verts, &lb.planes}) a->reset();
+  if (lb.num_refs + pad > lb.ref_capacity || !lb.tri) {
+    for (auto* a : {&lb.reach, &lb.u0, &lb.u1, &lb.v0, &lb.v1, &lb.planes}) a->reset();
+    lb.tri.reset();
     for (auto* a : {&lb.reach, &lb.u0, &lb.u1, &lb.v0, &lb.v1}) {
       *a = AllocateBuildArray<float>(lb.num_refs + pad, "light buffer references");
     }
-    lb.verts = AllocateBuildArray<float>(9 * (lb.num_refs + pad), "light buffer triangles");
+    lb.tri = AllocateBuildArray<uint32_t>(lb.num_refs + pad, "light buffer triangle ids");
     lb.planes = AllocateBuildArray<float>(kLightPlaneFloats * (lb.num_refs + pad),
                                           "light buffer edge planes");
     lb.ref_capacity = lb.num_refs + pad;
   }
   // the rectangles by ascending reach (ties in rectangle order = triangle order), scattered in
   // that order: every cell's list comes out sorted; each reference gets its reach, its
-  // rectangle (the whole face for the list every ray reads) and its triangle's vertices
+  // rectangle (the whole face for the list every ray reads) and its triangle's id
   std::vector<uint64_t>& keys = sc.keys;
   Reserve(&keys, rects.size());
   Reserve(&sc.keys_tmp, rects.size());
@@ -443,21 +442,18 @@ void BuildLightBuffer(const TriangleSoA& tris, const float light[3], double cell
   float* const out_u1 = lb.u1.get();
   float* const out_v0 = lb.v0.get();
   float* const out_v1 = lb.v1.get();
-  float* const out_verts = lb.verts.get();
+  uint32_t* const out_tri = lb.tri.get();
   float* out_planes[kLightPlaneFloats];
   for (int c = 0; c < kLightPlaneFloats; ++c) out_planes[c] = lb.planes.get() + c * lb.ref_capacity;
   const auto put = [&](size_t j, const LightRecord& r) {
     out_reach[j] = r.reach;
     out_u0[j] = r.u0, out_u1[j] = r.u1, out_v0[j] = r.v0, out_v1[j] = r.v1;
-    float* const v = out_verts + 9 * j;  // (fixed-size copies: std::copy called memmove)
-    std::memcpy(v, r.verts, 16);
-    std::memcpy(v + 4, r.verts + 4, 16);
-    v[8] = r.verts[8];
+    out_tri[j] = r.tri;
     for (int c = 0; c < kLightPlaneFloats; ++c) out_planes[c][j] = r.planes[c];
   };
   // The rectangles in reach order append their index to each of their cells' lists (one 4-B
   // stream per cell); then the references are written list by list from the rectangles'
-  // records: the output arrays in order, instead of every reference's 24 floats scattered
+  // records: the output arrays in order, instead of every reference's 16 words scattered
   // over 16 arrays per cell.
   std::vector<uint32_t>& order = sc.order;
   Reserve(&order, refs);
@@ -470,27 +466,23 @@ void BuildLightBuffer(const TriangleSoA& tris, const float light[3], double cell
     const uint32_t r = uint32_t(keys[i]);
     for_cells(rects[r], [&](size_t c) { order[cur[c]++] = r; });
   }
-  constexpr size_t kAhead = 16;  // records in flight (2 cache lines each)
+  constexpr size_t kAhead = 16;  // records in flight
   for (size_t j = 0; j < refs; ++j) {
-    if (j + kAhead < refs) {
-      const char* next = reinterpret_cast<const char*>(&records[order[j + kAhead]]);
-      __builtin_prefetch(next);
-      __builtin_prefetch(next + sizeof(LightRecord) - 1);
-    }
+    if (j + kAhead < refs) __builtin_prefetch(&records[order[j + kAhead]]);
     put(j, records[order[j]]);
   }
   std::sort(always.begin(), always.end(), [&](uint32_t a, uint32_t b) {  // (reach, triangle)
     return reach[a] < reach[b] || (reach[a] == reach[b] && a < b);
   });
   for (size_t a = 0; a < always.size(); ++a) {
-    LightRecord r{reach[always[a]], -FLT_MAX, FLT_MAX, -FLT_MAX, FLT_MAX, {}, {}};
-    vertices(always[a], r.verts);
+    const LightRecord r{reach[always[a]], -FLT_MAX, FLT_MAX, -FLT_MAX, FLT_MAX, always[a], {}};
     put(refs + a, r);  // planes 0: never culled
   }
   for (size_t p = lb.num_refs; p < lb.num_refs + pad; ++p) {
     lb.reach[p] = FLT_MAX;
     lb.u0[p] = lb.v0[p] = FLT_MAX;
     lb.u1[p] = lb.v1[p] = -FLT_MAX;
+    lb.tri[p] = 0;
     for (int c = 0; c < kLightPlaneFloats; ++c) out_planes[c][p] = 0.0f;
   }
 }
@@ -522,7 +514,8 @@ void LightBuffer::Rebuild(const Accel& accel, const float light[3]) {
   // one scratch per thread for every light buffer it builds: a scene's lights pay the fresh
   // pages of the temporaries once, not once each (and hold them once)
   static thread_local LightBuildScratch scratch;
-  BuildLightBuffer(m.triangles, light, kLightCellsPerTriangle, &impl_->data, &scratch);
+  BuildLightBuffer(m.triangles, m.vertex_table.Get(m.triangles), light, kLightCellsPerTriangle,
+                   &impl_->data, &scratch);
   impl_->built = true;
   impl_->build_seconds =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();

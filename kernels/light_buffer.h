@@ -96,11 +96,13 @@ struct LightBufferData {
   // per reference, in list order: its reach (ascending in each cell) and the triangle's
   // rectangle on the cell's face (u0 u1 v0 v1, as binned, rounded outwards: a ray whose face
   // coordinates fall outside cannot hit it), SoA so that a vector of references is culled at
-  // once, each padded by one vector (reach FLT_MAX); and its vertices x0 y0 z0 x1 ... z2 (9
-  // floats: a list is read front to back, so its triangles stream through the caches instead of
-  // 9 scattered loads from the triangle SoA each).
+  // once, each padded by one vector (reach FLT_MAX); and its triangle's id, whose vertices
+  // x0 y0 z0 x1 ... z2 are verts[9 id ...] (the Accel's TriangleVertexTable, borrowed: one
+  // table for all the lights instead of 36 B more per reference, which the build and the
+  // query's streams paid for every light).
   hwy::AlignedFreeUniquePtr<float[]> reach, u0, u1, v0, v1;
-  hwy::AlignedFreeUniquePtr<float[]> verts;
+  hwy::AlignedFreeUniquePtr<uint32_t[]> tri;
+  const float* verts = nullptr;
   // per reference, the triangle's three edge planes through the light on the cell's face
   // (LightPlanes below): component c of reference j at planes[c * ref_capacity + j]
   hwy::AlignedFreeUniquePtr<float[]> planes;
@@ -108,17 +110,20 @@ struct LightBufferData {
 
   bool empty() const { return res == 0; }
   const float* Plane(int c) const { return planes.get() + size_t(c) * ref_capacity; }
-  size_t Bytes() const { return (num_cells + 2) * 4 + num_refs * (14 + kLightPlaneFloats) * 4; }
+  const float* Vertices(size_t ref) const { return verts + 9 * size_t(tri[ref]); }
+  size_t Bytes() const { return (num_cells + 2) * 4 + num_refs * (6 + kLightPlaneFloats) * 4; }
 };
 
 // Builds the light buffer of `tris` (non-degenerate triangles only) for a light at `light`
 // (finite; the caller checks) into *out, reusing its arrays (and the temporaries in *reuse,
-// if given) where they are large enough. cells_per_triangle: about that many cells per
+// if given) where they are large enough. verts: the triangles' vertex table
+// (TriangleVertexTable::Get), borrowed by *out. cells_per_triangle: about that many cells per
 // triangle, lowered while the references would pass kLightRefsPerTriangle per triangle. Throws
 // rs::Error if an allocation fails.
 struct LightBuildScratch;
-void BuildLightBuffer(const TriangleSoA& tris, const float light[3], double cells_per_triangle,
-                      LightBufferData* out, LightBuildScratch* reuse = nullptr);
+void BuildLightBuffer(const TriangleSoA& tris, const float* verts, const float light[3],
+                      double cells_per_triangle, LightBufferData* out,
+                      LightBuildScratch* reuse = nullptr);
 
 // The build's common case a vector of triangles at a time, in float (kernels/light_buffer_trace.cc):
 // for triangles [first, first + count <= kLightProjectBlock) whose three vertices lie at least

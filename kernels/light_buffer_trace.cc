@@ -94,7 +94,7 @@ HWY_INLINE M WalkList(D d, const LightBufferData& lb, const StreamRays<D>& r, co
           hn::And(live, hn::And(hn::Ge(u, hn::Set(d, lb.u0[j])), hn::Le(u, hn::Set(d, lb.u1[j])))),
           hn::And(hn::Ge(v, hn::Set(d, lb.v0[j])), hn::Le(v, hn::Set(d, lb.v1[j]))));
       if (hn::AllFalse(d, in)) continue;
-      const float* tri = lb.verts.get() + 9 * j;
+      const float* tri = lb.Vertices(j);
       const auto load = [&r, tri, perm](V* p) {
         const D dd;
         if constexpr (kUniform) {
@@ -216,7 +216,7 @@ void OccludedLightBufferT(const LightBufferData& lb, const RayStreamView& rays, 
       if (c < 0 || c == last) continue;
       last = c;
       hwy::Prefetch(lb.reach.get() + begin[c]);
-      hwy::Prefetch(lb.verts.get() + 9 * size_t(begin[c]));
+      hwy::Prefetch(lb.tri.get() + begin[c]);
     }
   }
   for (size_t i = 0; i < rays.size; i += n) {

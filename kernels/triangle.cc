@@ -56,6 +56,26 @@ void BuildTriangleSoA(const MeshView& mesh, TriangleSoA* out, int threads) {
   }
 }
 
+const float* TriangleVertexTable::Get(const TriangleSoA& tris) const {
+  if (valid_.load(std::memory_order_acquire)) return data_.get();
+  const std::lock_guard<std::mutex> lock(mutex_);
+  if (valid_.load(std::memory_order_relaxed)) return data_.get();
+  if (!data_ || tris.size > capacity_) {
+    data_.reset();  // first: the old and the new table are never held at once
+    data_ = AllocateBuildArray<float>(9 * tris.size, "the triangles' vertex table");
+    capacity_ = tris.size;
+  }
+  float* const out = data_.get();
+  for (size_t t = 0; t < tris.size; ++t) {
+    for (int c = 0; c < 3; ++c) {
+      for (int a = 0; a < 3; ++a) out[9 * t + size_t(3 * c + a)] = tris.p[c][a][t];
+    }
+  }
+  size_ = tris.size;
+  valid_.store(true, std::memory_order_release);
+  return out;
+}
+
 bool WatertightAheadInDouble(float a0, float a1, float a2, float b0, float b1, float b2, float c0,
                              float c1, float c2, float o0, float o1, float o2, float sx, float sy,
                              float sz) {

@@ -471,6 +471,43 @@ TEST_CASE("light buffer: built on several threads at once (one build scratch per
   }
 }
 
+TEST_CASE("light buffer: the Accel's vertex table, built by concurrent first buffers and after Rebuild") {
+  // the references hold triangle ids into one vertex table per Accel build, built by the first
+  // LightBuffer: four first buffers at once build it once (TSan runs this); Accel::Rebuild of
+  // a moved mesh makes the rebuilt buffers test the moved triangles
+  const Scene scene = LoadScene("cornell");
+  const MeshView mesh = scene.mesh();
+  std::vector<float> p = Positions(scene);
+  MeshView view = mesh;
+  view.positions = p.data();
+  view.stride = 3;
+  Accel accel(view);
+  const size_t bare = accel.Info().bytes;
+  std::vector<std::array<float, 3>> lights;
+  for (int l = 0; l < 4; ++l) {
+    lights.push_back({F(0.5 * (p[0] + p[3]) + 0.01 * l), F(0.5 * (p[1] + p[4]) + 0.01),
+                      F(p[2] + 0.01 + 0.02 * l)});
+  }
+  std::vector<std::optional<LightBuffer>> buffers(lights.size());
+  std::vector<std::thread> threads;
+  for (size_t t = 0; t < lights.size(); ++t) {
+    threads.emplace_back([&, t] { buffers[t].emplace(accel, lights[t].data()); });
+  }
+  for (std::thread& th : threads) th.join();
+  CHECK(accel.Info().bytes == bare + 36 * mesh.num_triangles);  // one table, counted once
+  Rng rng(29);
+  for (size_t l = 0; l < lights.size(); ++l) {
+    CheckSame(accel, *buffers[l], LightRays(view, lights[l].data(), rng, 300), "concurrent first");
+  }
+  for (size_t i = 0; i < p.size(); i += 3) p[i] += 0.125f;  // the mesh moves along x
+  accel.Rebuild(view);
+  CHECK(accel.Info().bytes == bare);  // the table is rebuilt on demand
+  for (size_t l = 0; l < lights.size(); ++l) {
+    buffers[l]->Rebuild(accel, lights[l].data());
+    CheckSame(accel, *buffers[l], LightRays(view, lights[l].data(), rng, 300), "moved mesh");
+  }
+}
+
 TEST_CASE("light buffer: invalid rays, tmin < 0, rays not from the light, empty mesh") {
   const Scene scene = LoadScene("cornell");
   const Accel accel(scene.mesh());
