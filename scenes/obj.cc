@@ -22,6 +22,7 @@
 #include <map>
 #include <optional>
 #include <sstream>
+#include <streambuf>
 #include <unordered_map>
 
 #include "scenes/image_io.h"
@@ -32,6 +33,16 @@ namespace rs::detail {
 namespace {
 
 bool IsBlank(char c) { return c == ' ' || c == '\t'; }
+
+// A read-only stream over text in memory, for tinyobjloader's stream API without copying the
+// text (a mesh's text is its largest input: a copy cost as much as the read, fresh pages and all).
+class TextStreamBuf : public std::streambuf {
+ public:
+  explicit TextStreamBuf(std::string_view text) {
+    char* const p = const_cast<char*>(text.data());  // a get area only: never written
+    setg(p, p, p + text.size());
+  }
+};
 
 // Splits `line` into whitespace-separated tokens.
 void Tokenize(std::string_view line, std::vector<std::string_view>& tokens) {
@@ -509,7 +520,8 @@ void ReadMtlText(std::string_view text, const std::string& path,
                  std::vector<MtlValues>& values, std::string& warn) {
   std::vector<MtlValues> scanned = MtlScanner(text, path).Run();
   const size_t first = materials.size();
-  std::istringstream in{std::string(text)};
+  TextStreamBuf buffer(text);
+  std::istream in(&buffer);
   std::string mtl_warn, mtl_err;
   tinyobj::LoadMtl(&mat_map, &materials, &in, &mtl_warn, &mtl_err);
   warn += mtl_warn;
@@ -554,7 +566,8 @@ void ParseObj(std::string_view text, const std::string& origin, const std::strin
   std::string warn, err;
   MtlReader reader(file_dir, origin, part.warnings);
   {
-    std::istringstream in{std::string(text)};
+    TextStreamBuf buffer(text);
+    std::istream in(&buffer);
     const bool ok = tinyobj::LoadObj(&attrib, &shapes, &tmaterials, &warn, &err, &in, &reader,
                                      /*triangulate=*/true, /*default_vcols_fallback=*/false);
     if (!ok) Fail("{}: {}", origin, err.empty() ? std::string("tinyobjloader failed") : err);
