@@ -5,9 +5,11 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <optional>
 #include <string>
 #include <utility>
 
+#include "kernels/build_threads.h"  // RunParts
 #include "sched/engine.h"
 
 namespace rs {
@@ -105,24 +107,33 @@ FrameContext MakeFrameContext(const Scene& scene, const Accel& accel, const Came
   return ctx;
 }
 
-std::vector<LightBuffer> BuildLightBuffers(const Scene& scene, const Accel& accel) {
+std::vector<LightBuffer> BuildLightBuffers(const Scene& scene, const Accel& accel, int threads) {
   std::vector<LightBuffer> buffers;
-  RebuildLightBuffers(scene, accel, &buffers);
+  RebuildLightBuffers(scene, accel, &buffers, threads);
   return buffers;
 }
 
-void RebuildLightBuffers(const Scene& scene, const Accel& accel, std::vector<LightBuffer>* buffers) {
-  while (buffers->size() > scene.lights.size()) buffers->pop_back();
-  buffers->reserve(scene.lights.size());
-  for (size_t l = 0; l < scene.lights.size(); ++l) {
+void RebuildLightBuffers(const Scene& scene, const Accel& accel, std::vector<LightBuffer>* buffers,
+                         int threads) {
+  const size_t n = scene.lights.size();
+  while (buffers->size() > n) buffers->pop_back();
+  const size_t kept = buffers->size();
+  std::vector<std::optional<LightBuffer>> added(n - kept);  // (no allocation when none is new)
+  const auto build = [&](size_t l) {
     const glm::vec3& q = scene.lights[l].position;
     const float p[3] = {q.x, q.y, q.z};
-    if (l < buffers->size()) {
+    if (l < kept) {
       (*buffers)[l].Rebuild(accel, p);
     } else {
-      buffers->emplace_back(accel, p);
+      added[l - kept].emplace(accel, p);
     }
-  }
+  };
+  const int parts = static_cast<int>(std::min<size_t>(size_t(BuildThreadCount(threads)), n));
+  RunParts(parts, [&](int part) {
+    for (size_t l = size_t(part); l < n; l += size_t(std::max(parts, 1))) build(l);
+  });
+  buffers->reserve(n);
+  for (std::optional<LightBuffer>& b : added) buffers->push_back(std::move(*b));
 }
 
 void SetNextCamera(FrameContext& ctx, const Camera& next) {

@@ -515,6 +515,7 @@ int RunRender(RenderArgs args) {
       load_seconds = Seconds(std::chrono::steady_clock::now() - t_load);
       BuildOptions build;
       SetBuild(args.lambda, args.grid, &build);
+      build.build_threads = args.threads;  // the same structure on any count, built sooner
       accel.emplace(backend->Build(*scene, build, args.width, &note));
     });
   } catch (...) {
@@ -533,9 +534,11 @@ int RunRender(RenderArgs args) {
                scene->source, info.triangles);
   }
 
-  // shadow rays from each light through its light buffer (the same image, faster); built once:
-  // the scene and its lights do not move
-  const std::vector<LightBuffer> light_buffers = BuildLightBuffers(*scene, *accel);
+  // shadow rays from each light through its light buffer (the same image, faster); built once
+  // (the scene and its lights do not move), on the render's threads
+  const auto t_lights = std::chrono::steady_clock::now();
+  const std::vector<LightBuffer> light_buffers = BuildLightBuffers(*scene, *accel, args.threads);
+  const double light_seconds = Seconds(std::chrono::steady_clock::now() - t_lights);
 
   std::vector<FrameReport> reports;
   reports.reserve(owner ? static_cast<size_t>(args.frames) : 0);
@@ -611,13 +614,12 @@ int RunRender(RenderArgs args) {
   fmt::print("scene      {}: {} triangles, {} lights, grid {} {}x{}x{}\n", scene->name,
              info.triangles, scene->lights.size(), info.kind, info.resolution[0],
              info.resolution[1], info.resolution[2]);
-  double light_seconds = 0;
-  for (const LightBuffer& b : light_buffers) light_seconds += b.Info().build_seconds;
   fmt::print("load       {:.1f} ms, grid build {:.1f} ms ({:.1f} Mtris/s), {} light buffer{} "
-             "{:.1f} ms\n",
+             "{:.1f} ms ({} thread{})\n",
              1e3 * load_seconds, 1e3 * info.build_seconds,
              info.build_seconds > 0 ? info.triangles / info.build_seconds * 1e-6 : 0.0,
-             light_buffers.size(), light_buffers.size() == 1 ? "" : "s", 1e3 * light_seconds);
+             light_buffers.size(), light_buffers.size() == 1 ? "" : "s", 1e3 * light_seconds,
+             args.threads, args.threads == 1 ? "" : "s");
   fmt::print("image      {}x{}, depth {}, {} frame(s), backend {}\n", args.width, args.height,
              args.depth, args.frames, backend->Describe());
   std::string by_kind;

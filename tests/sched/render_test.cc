@@ -556,6 +556,23 @@ TEST_CASE("light buffers: the same image as the grid, the shadow rays traced thr
     CHECK(std::memcmp(grid.sums(), lights.sums(), sizeof(int64_t) * 3 * grid.num_pixels()) == 0);
     // the light buffers' work replaces the grid's: no cell walk for the shadow rays
     CHECK(b.trace.cell_steps < a.trace.cell_steps);
+    // built on several threads (lights spread over them, as the command does): the same image
+    for (const int threads : {2, 3, 8}) {
+      std::vector<LightBuffer> spread = BuildLightBuffers(s, accel, threads);
+      REQUIRE(spread.size() == s.lights.size());
+      for (size_t l = 0; l < spread.size(); ++l) {
+        CHECK(spread[l].Info().references == buffers[l].Info().references);
+      }
+      ctx.light_buffers = spread;
+      Framebuffer again(opt.width, opt.height);
+      RenderSerial(ctx, again);
+      CHECK(std::memcmp(grid.sums(), again.sums(), sizeof(int64_t) * 3 * grid.num_pixels()) == 0);
+      RebuildLightBuffers(s, accel, &spread, threads);  // in place, on the threads
+      ctx.light_buffers = spread;
+      Framebuffer rebuilt(opt.width, opt.height);
+      RenderSerial(ctx, rebuilt);
+      CHECK(std::memcmp(grid.sums(), rebuilt.sums(), sizeof(int64_t) * 3 * grid.num_pixels()) == 0);
+    }
   }
 }
 
