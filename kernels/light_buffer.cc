@@ -8,7 +8,6 @@
 #include <bit>
 #include <cfloat>
 #include <chrono>
-#include <cstring>
 #include <cmath>
 #include <numeric>
 #include <string>
