@@ -361,17 +361,23 @@ double ThreadMinorFaults() {
 // "build-cold/<scene>/...": the C library's free memory is handed back to the system before
 // each build (malloc_trim(0), not timed), so every build first-touches all its memory, as the
 // one build of the `raystream` command does: the command's `grid build` line reports this
-// build (same options: the defaults, one thread). faults/build counts the minor page faults
-// (each costs a kernel entry and a page zeroed: a large share of a cold build).
+// build (same options: the defaults; `--threads 1`, else on the render's threads). faults/build
+// counts the minor page faults (each costs a kernel entry and a page zeroed: a large share of a
+// cold build).
 // "rebuild/<scene>/...": the structure of a moving mesh rebuilt in place, as a renderer of a
 // dynamic scene does every frame: Accel::Rebuild (its memory and its temporaries' taken back)
 // against Embree's rtcUpdateGeometryBuffer + rtcCommitScene on the same scene (EmbreePeer::
-// Update; Embree reuses its BVH memory).
+// Update; Embree reuses its BVH memory). "rebuild-2t/<scene>/raystream": the same with
+// build_threads = 2, timed by the wall clock (the build's parallel speed-up over rebuild/ on
+// an idle 2-core machine; the same structure as one thread builds).
 enum class BuildMode { kWarm, kCold, kInPlace };
 constexpr const char* kBuildGroups[] = {"build/", "build-cold/", "rebuild/"};
 
-void BM_Build(benchmark::State& state, const std::string& scene, bool embree, BuildMode mode) {
+void BM_Build(benchmark::State& state, const std::string& scene, bool embree, BuildMode mode,
+              int threads = 1) {
   const bool cold = mode == BuildMode::kCold;
+  BuildOptions options = BenchBuildOptions();
+  options.build_threads = threads;
   SceneData& d = GetScene(scene);
   if (!d.load_error.empty()) {
     state.SkipWithError(d.load_error.c_str());
@@ -394,11 +400,11 @@ void BM_Build(benchmark::State& state, const std::string& scene, bool embree, Bu
     } else if (embree) {
       d.rebuild_peer->Build(d.mesh);
     } else if (mode == BuildMode::kInPlace) {
-      if (!d.rebuilt) d.rebuilt = std::make_unique<Accel>(d.mesh, BenchBuildOptions());
-      d.rebuilt->Rebuild(d.mesh, BenchBuildOptions());
+      if (!d.rebuilt) d.rebuilt = std::make_unique<Accel>(d.mesh, options);
+      d.rebuilt->Rebuild(d.mesh, options);
       benchmark::DoNotOptimize(d.rebuilt.get());
     } else {
-      Accel accel(d.mesh, BenchBuildOptions());
+      Accel accel(d.mesh, options);
       benchmark::DoNotOptimize(&accel);
     }
     faults += ThreadMinorFaults() - faults0;
@@ -537,7 +543,7 @@ class RatioReporter : public Base {
       if (!agg.empty() && agg != "median") continue;
       const bool frame = group.rfind("frame/", 0) == 0;
       const bool build = group.rfind("build", 0) == 0 ||  // build/, build-cold/, build-light/
-                         group.rfind("rebuild/", 0) == 0;
+                         group.rfind("rebuild", 0) == 0;    // rebuild/, rebuild-2t/
       const auto ours = tracers.find("raystream");
       std::fprintf(out, "%-24s", group.c_str());
       for (const auto& [tracer, rate] : tracers) {
@@ -593,6 +599,12 @@ void Register(const std::string& scene) {
     Add(group + "/raystream",
         [scene, mode](benchmark::State& s) { BM_Build(s, scene, false, mode); });
   }
+  benchmark::RegisterBenchmark(("rebuild-2t/" + scene + "/raystream").c_str(),
+                               [scene](benchmark::State& s) {
+                                 BM_Build(s, scene, false, BuildMode::kInPlace, 2);
+                               })
+      ->Unit(benchmark::kMillisecond)
+      ->UseRealTime();
   for (int si = 0; si < kNumRaySets; ++si) {
     const auto set = static_cast<RaySet>(si);
     const std::string prefix = std::string(RaySetName(set)) + "/" + scene + "/";
