@@ -33,6 +33,17 @@ inline constexpr bool kSlowBuild = false;
 #ifndef RS_TEST_TSAN
 #define RS_TEST_TSAN 0
 #endif
+// 1 in an AddressSanitizer build, else 0.
+#if defined(__SANITIZE_ADDRESS__)
+#define RS_TEST_ASAN 1
+#elif defined(__has_feature)
+#if __has_feature(address_sanitizer)
+#define RS_TEST_ASAN 1
+#endif
+#endif
+#ifndef RS_TEST_ASAN
+#define RS_TEST_ASAN 0
+#endif
 
 namespace rs::test {
 
