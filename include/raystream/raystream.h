@@ -110,7 +110,9 @@ struct BuildOptions {
   // packet that walks the grid slice by slice (coherent grid traversal; results unchanged).
   // Pays for primary and shadow rays in scanline or tile order; others fall back per packet.
   bool packets = true;
-  // Threads of the build (std::thread; the lambda choice and the grid's binning and lists). The
+  // Threads of the build (the lambda choice and the grid's binning and lists): the calling
+  // thread and the library's build threads, started on first use and kept for the process
+  // (parked between builds; a build that finds them busy starts threads of its own). The
   // structure, and so every result, is the same for any count; 1 (the default) builds on the
   // calling thread only. Values below 1 count as 1, above 64 as 64.
   int build_threads = 1;
