@@ -1,7 +1,8 @@
 // Threads of the structure builds (BuildOptions::build_threads): run one body per part on a
-// pool of threads kept between builds, and split index ranges into contiguous parts. Build code only; the traversal
-// kernels never start threads. Every threaded pass writes disjoint outputs per part and merges
-// them in part order, so a build gives the same structure for any thread count.
+// pool of threads kept between builds, and split index ranges into contiguous parts. Build code
+// only; the traversal kernels never start threads. Every threaded pass writes disjoint outputs
+// per part and merges them in part order, so a build gives the same structure for any thread
+// count.
 #pragma once
 
 #include <cstddef>

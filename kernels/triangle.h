@@ -41,7 +41,9 @@ class TriangleVertexTable {
   const float* Get(const TriangleSoA& tris) const;
   // The triangles changed: the next Get rebuilds. Not thread-safe with Get.
   void Invalidate() { valid_.store(false, std::memory_order_relaxed); }
-  size_t Bytes() const { return valid_.load(std::memory_order_acquire) ? size_ * 36 : 0; }
+  size_t Bytes() const {
+    return valid_.load(std::memory_order_acquire) ? size_ * 9 * sizeof(float) : 0;
+  }
 
  private:
   mutable std::mutex mutex_;

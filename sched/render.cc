@@ -128,9 +128,9 @@ void RebuildLightBuffers(const Scene& scene, const Accel& accel, std::vector<Lig
       added[l - kept].emplace(accel, p);
     }
   };
-  const int parts = static_cast<int>(std::min<size_t>(size_t(BuildThreadCount(threads)), n));
-  RunParts(parts, [&](int part) {
-    for (size_t l = size_t(part); l < n; l += size_t(std::max(parts, 1))) build(l);
+  const size_t parts = std::max<size_t>(1, std::min<size_t>(size_t(BuildThreadCount(threads)), n));
+  RunParts(int(parts), [&](int part) {
+    for (size_t l = size_t(part); l < n; l += parts) build(l);
   });
   buffers->reserve(n);
   for (std::optional<LightBuffer>& b : added) buffers->push_back(std::move(*b));

@@ -177,16 +177,17 @@ void BM_Render(benchmark::State& state, const std::string& scene, bool embree, b
   }
   const EmbreeTracer tracer(*d.peer, kEmbreeMode);
   std::vector<LightBuffer> rebuilt_lights;  // rebuilt in place every iteration (image rows)
-  if (rebuild && !embree) {
-    // One untimed rebuild first, so every timed one is a moving scene's steady state, as on
-    // Embree's side (its scene, d.peer, exists before the first Update): a first iteration that
-    // created the light buffers first-touched their memory, and the rows of a large scene run
-    // once or twice (conference's image row, run once: 913 ms, 477 of them building, against
-    // about 475 ms for a warm image).
+  const auto rebuild_ours = [&] {  // the grid's and the light buffers' build
     if (!d.rebuilt) d.rebuilt = std::make_unique<Accel>(d.mesh);
     d.rebuilt->Rebuild(d.mesh);
     RebuildLightBuffers(d.scene, *d.rebuilt, &rebuilt_lights);
-  }
+  };
+  // One untimed rebuild first, so every timed one is a moving scene's steady state, as on
+  // Embree's side (its scene, d.peer, exists before the first Update): a first iteration that
+  // created the light buffers first-touched their memory, and the rows of a large scene run
+  // once or twice (conference's image row, run once: 913 ms, 477 of them building, against
+  // about 475 ms for a warm image).
+  if (rebuild && !embree) rebuild_ours();
   FrameStats last, sum;
   double build_seconds = 0, cpu_seconds = 0;
   for (auto _ : state) {
@@ -196,11 +197,7 @@ void BM_Render(benchmark::State& state, const std::string& scene, bool embree, b
     const double cpu0 = ThreadCpuSeconds();
     const auto t0 = std::chrono::steady_clock::now();
     if (rebuild && embree) d.peer->Update(d.mesh);
-    if (rebuild && !embree) {  // the grid's and the light buffers' build
-      if (!d.rebuilt) d.rebuilt = std::make_unique<Accel>(d.mesh);
-      d.rebuilt->Rebuild(d.mesh);
-      RebuildLightBuffers(d.scene, *d.rebuilt, &rebuilt_lights);
-    }
+    if (rebuild && !embree) rebuild_ours();
     build_seconds += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
     last = embree ? RenderOnce(d, *d.accel, {}, &tracer)
            : rebuild ? RenderOnce(d, *d.rebuilt, rebuilt_lights, nullptr)
