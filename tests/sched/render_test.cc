@@ -14,6 +14,7 @@
 #include <vector>
 
 #include "scenes/load.h"
+#include "sched/tracer.h"
 #include "tests/support/hand_scenes.h"
 
 namespace rs {
@@ -574,6 +575,78 @@ TEST_CASE("light buffers: the same image as the grid, the shadow rays traced thr
       CHECK(std::memcmp(grid.sums(), rebuilt.sums(), sizeof(int64_t) * 3 * grid.num_pixels()) == 0);
     }
   }
+}
+
+
+TEST_CASE("LightAccelTracer: runs of any length and origin give AccelTracer's results") {
+  // Shadow-ray runs from two lights (one at x = +0, reached by origins -0 too) of lengths that
+  // end inside and across the 32-ray chunks of the run scan, single rays, NaN origins in a row
+  // and origins at no light: every ray's result must be the Accel's.
+  const Scene s = LoadScene("erw6");
+  const Accel accel(s.mesh());
+  glm::vec3 lo, hi;
+  s.Bounds(lo, hi);
+  const glm::vec3 mid = 0.5f * (lo + hi);
+  std::vector<PointLight> lights(2);
+  lights[0].position = glm::vec3(0.0f, mid.y, mid.z);
+  lights[1].position = mid + 0.25f * (hi - mid);
+  std::vector<LightBuffer> buffers;
+  for (const PointLight& l : lights) {
+    const float p[3] = {l.position.x, l.position.y, l.position.z};
+    buffers.emplace_back(accel, p);
+  }
+  const float nan = std::numeric_limits<float>::quiet_NaN();
+  struct Run {
+    glm::vec3 origin;
+    int count;
+  };
+  const glm::vec3 l0 = lights[0].position, l1 = lights[1].position;
+  const std::vector<Run> runs = {
+      {l0, 1}, {l1, 70}, {l0, 33}, {glm::vec3(-0.0f, l0.y, l0.z), 40}, {mid, 1}, {l1, 31},
+      {glm::vec3(nan, 0.0f, 0.0f), 3}, {l0, 32}, {l1, 64}, {lo + 0.1f * (hi - lo), 2}, {l0, 5}};
+  size_t n = 0;
+  for (const Run& r : runs) n += static_cast<size_t>(r.count);
+  RayStream stream;
+  stream.Reserve(n);
+  stream.Resize(n);
+  const RayStreamView v = stream.view();
+  uint32_t seed = 12345;
+  const auto next = [&seed] {
+    seed = seed * 1664525u + 1013904223u;
+    return static_cast<float>(seed >> 8) / 16777216.0f;
+  };
+  size_t i = 0;
+  for (const Run& r : runs) {
+    for (int k = 0; k < r.count; ++k, ++i) {
+      // toward a random point of the scene's box, stopping there (a shadow ray's tmax) or, for
+      // every third ray, beyond it
+      const glm::vec3 target = lo + glm::vec3(next(), next(), next()) * (hi - lo);
+      const glm::vec3 d = target - (std::isnan(r.origin.x) ? mid : r.origin);
+      v.ox[i] = r.origin.x, v.oy[i] = r.origin.y, v.oz[i] = r.origin.z;
+      v.dx[i] = d.x, v.dy[i] = d.y, v.dz[i] = d.z;
+      v.tmin[i] = 0.0f;
+      v.tmax[i] = i % 3 == 0 ? 2.0f : 1.0f;
+    }
+  }
+  stream.SealTail();
+  std::vector<int32_t> want(n, -1), got(n, -1);
+  AccelTracer(accel).Occluded(v, want.data(), nullptr);
+  LightAccelTracer(accel, lights, buffers).Occluded(v, got.data(), nullptr);
+  size_t occluded = 0;
+  for (size_t j = 0; j < n; ++j) {
+    INFO("ray ", j);
+    CHECK(got[j] == want[j]);
+    occluded += want[j] != 0 ? 1 : 0;
+  }
+  CHECK(occluded > 0);
+  CHECK(occluded < n);
+  // the scan's runs: bit-equal origins, whole chunks or not
+  CHECK(LightAccelTracer::OriginRunEnd(v, 0) == 1);
+  CHECK(LightAccelTracer::OriginRunEnd(v, 1) == 71);
+  CHECK(LightAccelTracer::OriginRunEnd(v, 71) == 104);  // -0 starts a new run
+  CHECK(LightAccelTracer::OriginRunEnd(v, 104) == 144);
+  CHECK(LightAccelTracer::OriginRunEnd(v, 176) == 179);  // three bit-equal NaN origins
+  CHECK(LightAccelTracer::OriginRunEnd(v, n - 1) == n);
 }
 
 }  // namespace
