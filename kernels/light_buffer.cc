@@ -67,15 +67,23 @@ float FloatBelow(double x) {
 }
 float FloatAbove(double x) { return -FloatBelow(-x); }
 
-// A triangle's projection on one face: face coordinates, widened by kLightMargin, within
-// [-1, 1], rounded outwards to float; its cells [x0, x1] x [y0, y1] once the resolution is known.
+// A triangle's projection on one face (ProjectTriangle): face coordinates, widened by
+// kLightMargin, within [-1, 1], rounded outwards to float.
 struct FaceRect {
-  uint32_t tri;
   int32_t face;
   float u0, u1, v0, v1;
-  int32_t x0, x1, y0, y1;
   bool whole;  // the rectangle holds the projections of the three vertices (LightPlanes)
 };
+
+// A rectangle's face and, once the layout is known, its cells [x0, x1] x [y0, y1] (at most
+// kLightMaxRes per axis). Its coordinates are in its LightRecord: the passes that follow the
+// projection read these 10 bytes per rectangle, the scatter in reach order at random, instead
+// of a 44-byte record that repeated them.
+struct RectCells {
+  uint16_t x0, x1, y0, y1;
+  uint8_t face;
+};
+static_assert(kLightMaxRes <= 65536);
 
 // The face of direction q: the axis of the largest |q| (first on ties), as the query picks it.
 int FaceOf(const Vec3& q) {
@@ -85,16 +93,17 @@ int FaceOf(const Vec3& q) {
   return 2 * k + (q[k] < 0.0 ? 1 : 0);
 }
 
-// The projections of triangle q (vertices relative to the light) on the faces it reaches,
-// appended to *rects. False if the triangle reaches the light itself (some clipped point at the
-// pyramid's apex): it then goes to the list every ray reads.
-bool ProjectTriangle(uint32_t tri, const Vec3 q[3], std::vector<FaceRect>* rects) {
+// The projections of triangle q (vertices relative to the light) on the faces it reaches, in
+// rects[0, n) (at most one per face); returns n, or -1 if the triangle reaches the light itself
+// (some clipped point at the pyramid's apex): it then goes to the list every ray reads.
+int ProjectTriangle(const Vec3 q[3], FaceRect rects[6]) {
   const double widen = 1.0 + kLightMargin;
+  int n_rects = 0;
   const auto add = [&](int face, double u0, double u1, double v0, double v1, bool whole) {
-    rects->push_back({tri, face, FloatBelow(std::max(-1.0, u0 - kLightMargin)),
-                      FloatAbove(std::min(1.0, u1 + kLightMargin)),
-                      FloatBelow(std::max(-1.0, v0 - kLightMargin)),
-                      FloatAbove(std::min(1.0, v1 + kLightMargin)), 0, 0, 0, 0, whole});
+    rects[n_rects++] = {face, FloatBelow(std::max(-1.0, u0 - kLightMargin)),
+                        FloatAbove(std::min(1.0, u1 + kLightMargin)),
+                        FloatBelow(std::max(-1.0, v0 - kLightMargin)),
+                        FloatAbove(std::min(1.0, v1 + kLightMargin)), whole};
   };
   // fast path: the three vertices on one face, at least kLightMargin of face coordinate inside
   // its pyramid; the pyramid is convex, so the whole triangle is, and no ray that picks a
@@ -121,7 +130,7 @@ bool ProjectTriangle(uint32_t tri, const Vec3 q[3], std::vector<FaceRect>* rects
     }
     if (ok) {
       add(f0, u0, u1, v0, v1, true);
-      return true;
+      return n_rects;
     }
   }
   // general case: clip to each face's widened pyramid (|x_u|, |x_v| <= widen s x_k: four planes
@@ -150,14 +159,14 @@ bool ProjectTriangle(uint32_t tri, const Vec3 q[3], std::vector<FaceRect>* rects
     if (n == 0) continue;
     double u0 = DBL_MAX, u1 = -DBL_MAX, v0 = DBL_MAX, v1 = -DBL_MAX;
     for (int a = 0; a < n; ++a) {
-      if (!(poly[a][2] > 0.0)) return false;  // the apex: the triangle touches the light
+      if (!(poly[a][2] > 0.0)) return -1;  // the apex: the triangle touches the light
       const double pu = poly[a][0] / poly[a][2], pv = poly[a][1] / poly[a][2];
       u0 = std::min(u0, pu), u1 = std::max(u1, pu);
       v0 = std::min(v0, pv), v1 = std::max(v1, pv);
     }
     add(face, u0, u1, v0, v1, false);  // a clipped polygon's rectangle
   }
-  return true;
+  return n_rects;
 }
 
 // The edge planes of triangle `v` (9 floats, x0 y0 z0 x1 ...) on `face` for a light at `light`
@@ -254,12 +263,11 @@ static_assert(sizeof(LightRecord) == 64);
 // The build's temporaries, kept between builds (no fresh pages for a build no larger than an
 // earlier one: rs::LightBuffer keeps one per thread, shared by all its light buffers).
 struct LightBuildScratch {
-  std::vector<float> reach;
-  std::vector<FaceRect> rects;
-  std::vector<uint32_t> always;
+  std::vector<RectCells> cells;      // per rectangle, in triangle order
+  std::vector<LightRecord> records;  // per rectangle, in triangle order
+  std::vector<std::pair<float, uint32_t>> always;  // (reach, triangle)
   std::vector<uint64_t> keys, keys_tmp;  // reach bits << 32 | rectangle (SortByReach)
   std::vector<uint32_t> cursor;
-  std::vector<LightRecord> records;  // per rectangle in reach order
   std::vector<uint32_t> order;       // per reference: its record
 };
 
@@ -274,48 +282,33 @@ void BuildLightBuffer(const TriangleSoA& tris, const float* verts, const float l
   for (int a = 0; a < 3; ++a) lb.light[a] = light[a];
   lb.verts = verts;
   const Vec3 l = {double(light[0]), double(light[1]), double(light[2])};
-  std::vector<float>& reach = sc.reach;
-  reach.assign(tris.size, 0.0f);
-  std::vector<FaceRect>& rects = sc.rects;
-  rects.clear();
-  Reserve(&rects, tris.size + tris.size / 8);
-  std::vector<LightRecord>& records = sc.records;  // rects[r]'s reference floats
+  // per rectangle, in triangle order (sequential reads of the triangles; the lists are
+  // written from the records below): its face and cells, and its reference's floats
+  std::vector<RectCells>& rect_cells = sc.cells;
+  rect_cells.clear();
+  Reserve(&rect_cells, tris.size + tris.size / 8);
+  std::vector<LightRecord>& records = sc.records;
   records.clear();
-  Reserve(&records, rects.capacity());
-  // the records of the rectangles [first, rects.size()) of triangle i, in triangle order
-  // (sequential reads of the triangles; the lists are written from them below)
-  // (planes: the SIMD pass's, or null: computed here in double)
-  const auto add_records = [&](size_t i, size_t first, const LightProjection* planes) {
-    for (size_t r = first; r < rects.size(); ++r) {
-      const FaceRect& f = rects[r];
-      LightRecord rec;  // (every field written below; emplace_back() would zero it first)
-      rec.reach = reach[i];
-      rec.u0 = f.u0, rec.u1 = f.u1, rec.v0 = f.v0, rec.v1 = f.v1;
-      rec.tri = uint32_t(i);
-      if (planes != nullptr) {
-        const size_t at = i % kLightProjectBlock;
-        for (int c = 0; c < kLightPlaneFloats; ++c) rec.planes[c] = planes->planes[c][at];
-      } else {
-        LightPlanes(verts + 9 * i, light, f.face, f.whole, rec.planes);
-      }
-      records.push_back(rec);
-    }
-  };
-  std::vector<uint32_t>& always = sc.always;  // triangles touching the light
+  Reserve(&records, rect_cells.capacity());
+  std::vector<std::pair<float, uint32_t>>& always = sc.always;  // triangles touching the light
   always.clear();
   size_t listed = 0;             // and those with projections
   LightProjection block;
+  LightRecord rec;  // (every field written before each push_back)
   for (size_t i = 0; i < tris.size; ++i) {
     const size_t in_block = i % kLightProjectBlock;
     if (in_block == 0) {
       ProjectLightBlock(tris, light, i, std::min(kLightProjectBlock, tris.size - i), &block);
     }
     if (tris.degenerate[i]) continue;
+    rec.tri = uint32_t(i);
     if (block.face[in_block] >= 0) {  // the SIMD pass's common case
-      rects.push_back({uint32_t(i), block.face[in_block], block.u0[in_block], block.u1[in_block],
-                       block.v0[in_block], block.v1[in_block], 0, 0, 0, 0, true});
-      reach[i] = block.reach[in_block];
-      add_records(i, rects.size() - 1, &block);
+      rec.reach = block.reach[in_block];
+      rec.u0 = block.u0[in_block], rec.u1 = block.u1[in_block];
+      rec.v0 = block.v0[in_block], rec.v1 = block.v1[in_block];
+      for (int c = 0; c < kLightPlaneFloats; ++c) rec.planes[c] = block.planes[c][in_block];
+      records.push_back(rec);
+      rect_cells.push_back({0, 0, 0, 0, uint8_t(block.face[in_block])});
       ++listed;
       continue;
     }
@@ -326,26 +319,34 @@ void BuildLightBuffer(const TriangleSoA& tris, const float* verts, const float l
       farthest = std::max(farthest, std::sqrt(Dot(q[c], q[c])));
     }
     const double near = OriginDistance(q[0], q[1], q[2]);
-    reach[i] = FloatBelow(std::max(
+    rec.reach = FloatBelow(std::max(
         0.0, near * (1.0 - kLightReachSlack) - kLightReachSlack * farthest));
-    const size_t before = rects.size();
-    if (near <= 1e-6 * farthest || !ProjectTriangle(uint32_t(i), q, &rects)) {
-      rects.resize(before);
-      always.push_back(uint32_t(i));
-    } else {
-      add_records(i, before, nullptr);
-      ++listed;
+    FaceRect rects[6];
+    const int n_rects = near <= 1e-6 * farthest ? -1 : ProjectTriangle(q, rects);
+    if (n_rects < 0) {
+      always.emplace_back(rec.reach, uint32_t(i));
+      continue;
     }
+    for (int r = 0; r < n_rects; ++r) {  // (planes computed here in double)
+      const FaceRect& f = rects[r];
+      rec.u0 = f.u0, rec.u1 = f.u1, rec.v0 = f.v0, rec.v1 = f.v1;
+      LightPlanes(verts + 9 * i, light, f.face, f.whole, rec.planes);
+      records.push_back(rec);
+      rect_cells.push_back({0, 0, 0, 0, uint8_t(f.face)});
+    }
+    ++listed;
   }
   const size_t valid = listed + always.size();
   if (valid == 0) return;
+  const size_t num_rects = records.size();
   // each face's window: the union of its rectangles
   struct Window {
     double lo_u = DBL_MAX, hi_u = -DBL_MAX, lo_v = DBL_MAX, hi_v = -DBL_MAX;
     size_t rects = 0;
   } win[6];
-  for (const FaceRect& f : rects) {
-    Window& w = win[f.face];
+  for (size_t r = 0; r < num_rects; ++r) {
+    const LightRecord& f = records[r];
+    Window& w = win[rect_cells[r].face];
     w.lo_u = std::min(w.lo_u, double(f.u0)), w.hi_u = std::max(w.hi_u, double(f.u1));
     w.lo_v = std::min(w.lo_v, double(f.v0)), w.hi_v = std::max(w.hi_v, double(f.v1));
     ++w.rects;
@@ -362,7 +363,7 @@ void BuildLightBuffer(const TriangleSoA& tris, const float* verts, const float l
       float lo_u = 0.0f, lo_v = 0.0f, su = 0.0f, sv = 0.0f;
       if (w.rects > 0) {
         const double wu = w.hi_u - w.lo_u, wv = w.hi_v - w.lo_v;  // >= 2 kLightMargin
-        const double cf = std::max(1.0, cells * double(w.rects) / double(rects.size()));
+        const double cf = std::max(1.0, cells * double(w.rects) / double(num_rects));
         ru = std::clamp(int(std::lround(std::sqrt(cf * wu / wv))), 1, kLightMaxRes);
         rv = std::clamp(int(std::lround(cf / double(ru))), 1, kLightMaxRes);
         lo_u = float(w.lo_u), lo_v = float(w.lo_v);  // rectangle bounds: floats already
@@ -376,13 +377,16 @@ void BuildLightBuffer(const TriangleSoA& tris, const float* verts, const float l
     }
     lb.num_cells = size_t(base);
     size_t refs = 0;
-    for (FaceRect& f : rects) {
-      const int face = f.face;
-      f.x0 = CellOf(f.u0, fc.lo_u[face], fc.scale_u[face], fc.top_u[face]);
-      f.x1 = CellOf(f.u1, fc.lo_u[face], fc.scale_u[face], fc.top_u[face]);
-      f.y0 = CellOf(f.v0, fc.lo_v[face], fc.scale_v[face], fc.top_v[face]);
-      f.y1 = CellOf(f.v1, fc.lo_v[face], fc.scale_v[face], fc.top_v[face]);
-      refs += size_t(f.x1 - f.x0 + 1) * size_t(f.y1 - f.y0 + 1);
+    for (size_t r = 0; r < num_rects; ++r) {
+      const LightRecord& f = records[r];
+      RectCells& rc = rect_cells[r];
+      const int face = rc.face;
+      const int x0 = CellOf(f.u0, fc.lo_u[face], fc.scale_u[face], fc.top_u[face]);
+      const int x1 = CellOf(f.u1, fc.lo_u[face], fc.scale_u[face], fc.top_u[face]);
+      const int y0 = CellOf(f.v0, fc.lo_v[face], fc.scale_v[face], fc.top_v[face]);
+      const int y1 = CellOf(f.v1, fc.lo_v[face], fc.scale_v[face], fc.top_v[face]);
+      rc.x0 = uint16_t(x0), rc.x1 = uint16_t(x1), rc.y0 = uint16_t(y0), rc.y1 = uint16_t(y1);
+      refs += size_t(x1 - x0 + 1) * size_t(y1 - y0 + 1);
     }
     return refs;
   };
@@ -398,7 +402,7 @@ void BuildLightBuffer(const TriangleSoA& tris, const float* verts, const float l
   lb.num_refs = refs + always.size();
   // a counting sort of the references by cell (each cell's list in (reach, triangle) order, see
   // below); calls fn(cell) for each cell of rectangle f
-  const auto for_cells = [&](const FaceRect& f, auto&& fn) {
+  const auto for_cells = [&](const RectCells& f, auto&& fn) {
     const size_t base = size_t(fc.base[f.face]), row_len = size_t(fc.res_u[f.face]);
     for (int y = f.y0; y <= f.y1; ++y) {
       const size_t row = base + size_t(y) * row_len;
@@ -408,7 +412,7 @@ void BuildLightBuffer(const TriangleSoA& tris, const float* verts, const float l
   Ensure(&lb.cell_begin, lb.num_cells + 2, &lb.cell_capacity, "light buffer cell offsets");
   uint32_t* begin = lb.cell_begin.get();
   std::fill(begin, begin + lb.num_cells + 2, 0u);
-  for (const FaceRect& f : rects) for_cells(f, [&](size_t c) { ++begin[1 + c]; });
+  for (const RectCells& f : rect_cells) for_cells(f, [&](size_t c) { ++begin[1 + c]; });
   begin[lb.num_cells + 1] = uint32_t(always.size());
   for (size_t c = 0; c <= lb.num_cells; ++c) begin[c + 1] += begin[c];
   // the output arrays (reused by Rebuild when large enough)
@@ -428,11 +432,11 @@ void BuildLightBuffer(const TriangleSoA& tris, const float* verts, const float l
   // that order: every cell's list comes out sorted; each reference gets its reach, its
   // rectangle (the whole face for the list every ray reads) and its triangle's id
   std::vector<uint64_t>& keys = sc.keys;
-  Reserve(&keys, rects.size());
-  Reserve(&sc.keys_tmp, rects.size());
-  keys.resize(rects.size());
-  for (size_t r = 0; r < rects.size(); ++r) {
-    keys[r] = uint64_t(std::bit_cast<uint32_t>(reach[rects[r].tri])) << 32 | r;
+  Reserve(&keys, num_rects);
+  Reserve(&sc.keys_tmp, num_rects);
+  keys.resize(num_rects);
+  for (size_t r = 0; r < num_rects; ++r) {
+    keys[r] = uint64_t(std::bit_cast<uint32_t>(records[r].reach)) << 32 | r;
   }
   SortByReach(&keys, &sc.keys_tmp);
   // (local pointers: the stores below cannot alias them)
@@ -461,20 +465,19 @@ void BuildLightBuffer(const TriangleSoA& tris, const float* verts, const float l
   cursor.assign(begin, begin + lb.num_cells + 1);
   uint32_t* const cur = cursor.data();
   for (size_t i = 0; i < keys.size(); ++i) {
-    if (i + 8 < keys.size()) __builtin_prefetch(&rects[uint32_t(keys[i + 8])]);
+    if (i + 8 < keys.size()) __builtin_prefetch(&rect_cells[uint32_t(keys[i + 8])]);
     const uint32_t r = uint32_t(keys[i]);
-    for_cells(rects[r], [&](size_t c) { order[cur[c]++] = r; });
+    for_cells(rect_cells[r], [&](size_t c) { order[cur[c]++] = r; });
   }
   constexpr size_t kAhead = 16;  // records in flight
   for (size_t j = 0; j < refs; ++j) {
     if (j + kAhead < refs) __builtin_prefetch(&records[order[j + kAhead]]);
     put(j, records[order[j]]);
   }
-  std::sort(always.begin(), always.end(), [&](uint32_t a, uint32_t b) {  // (reach, triangle)
-    return reach[a] < reach[b] || (reach[a] == reach[b] && a < b);
-  });
+  std::sort(always.begin(), always.end());  // (reach, triangle)
   for (size_t a = 0; a < always.size(); ++a) {
-    const LightRecord r{reach[always[a]], -FLT_MAX, FLT_MAX, -FLT_MAX, FLT_MAX, always[a], {}};
+    const LightRecord r{always[a].first, -FLT_MAX, FLT_MAX, -FLT_MAX, FLT_MAX, always[a].second,
+                        {}};
     put(refs + a, r);  // planes 0: never culled
   }
   for (size_t p = lb.num_refs; p < lb.num_refs + pad; ++p) {
