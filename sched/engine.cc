@@ -258,6 +258,7 @@ void RayEngine::Occlude(const FrameContext& ctx, const RayStreamView& rays, Fram
   stats.tasks += TasksOf(n, ctx.options.task_size);
   stats.occluded += blocked;
   stats.trace_seconds += Seconds(t0, t1);
+  stats.trace_kind_seconds[kShadowKind] += Seconds(t0, t1);
 }
 
 void RayEngine::TraceAndShade(const FrameContext& ctx, const RayStreamView& rays,
@@ -296,12 +297,14 @@ void RayEngine::TraceAndShade(const FrameContext& ctx, const RayStreamView& rays
     const int32_t kind = rays.kind[i];
     if (kind >= 0 && kind < kNumRayKinds) ++kinds[kind];
   }
+  const double traced = Seconds(t0, t1);
   for (int k = 0; k < kNumRayKinds; ++k) {
     stats.rays[k] += kinds[k];
     stats.trace_calls[k] += kinds[k] != 0 ? 1 : 0;
+    stats.trace_kind_seconds[k] += traced * static_cast<double>(kinds[k]) / static_cast<double>(n);
   }
   stats.tasks += TasksOf(n, ctx.options.task_size);
-  stats.trace_seconds += Seconds(t0, t1);
+  stats.trace_seconds += traced;
 
   // Shade splits its output: bounce rays straight to `bounce`, light 0's shadow rays straight
   // to their destination (unless it is `bounce` too), the other lights' to scratch streams

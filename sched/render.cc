@@ -88,6 +88,7 @@ void FrameStats::Merge(const FrameStats& o) {
   AddTrace(trace, o.trace);
   generate_seconds += o.generate_seconds;
   trace_seconds += o.trace_seconds;
+  for (int k = 0; k < kNumRayKinds; ++k) trace_kind_seconds[k] += o.trace_kind_seconds[k];
   shade_seconds += o.shade_seconds;
   schedule_seconds += o.schedule_seconds;
   total_seconds = std::max(total_seconds, o.total_seconds);

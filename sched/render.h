@@ -64,6 +64,10 @@ struct FrameStats {
   TraceStats trace;                  // cell steps, triangle tests (accumulated by Accel)
   double generate_seconds = 0;       // primary rays (queue backends: and cutting them into tasks)
   double trace_seconds = 0;          // Accel::Intersect + Accel::Occluded
+  // trace_seconds by the kind of the rays traced: a call's time shared by its rays' kinds in
+  // proportion to their counts (a bounce call may mix reflection and refraction rays). Kept by
+  // the host frame engine (RayEngine); the MPI backend does not carry it between ranks.
+  double trace_kind_seconds[kNumRayKinds] = {};
   double shade_seconds = 0;          // the Shade kernel (shadow-ray adds and partitions: neither)
   // Queue backends: a batch's tasks gathered into streams, its secondary rays cut into tasks,
   // pushed (their queue operations also in ThreadStats::queue_seconds) and the tasks returned

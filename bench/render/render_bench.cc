@@ -12,7 +12,8 @@
 // (beyond kPixelTolerance) in more than 0.1 % of pixels fails its rows (diff_pixels and
 // max_abs_diff are on every row). Counters: frame_s (the renderer's wall time; build_s on image
 // rows), Mrays/s over the row's time, trace / shade / kernel (= trace + shade) / outside shares
-// of frame_s, rays/call_<kind> (rays per kernel call), rays_<kind> per frame, packet_share
+// of frame_s, rays/call_<kind> (rays per kernel call), rays_<kind> per frame, ns/ray_<kind>
+// (the tracer's time per ray of that kind: where the two sides differ), packet_share
 // (raystream: rays traced in 64-ray packets), and on the raystream rows time_vs_embree16 =
 // raystream CPU time / the Embree row's median CPU time (run just before it, same process).
 // A summary of the medians and ratios is printed at the end.
@@ -21,6 +22,7 @@
 #include <benchmark/benchmark.h>
 
 #include <algorithm>
+#include <array>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
@@ -156,6 +158,12 @@ std::map<std::string, std::vector<double>>& Runs() {
   return runs;
 }
 
+// The tracer's ns per ray of each kind of every row (its last run), by row name: the summary.
+std::map<std::string, std::array<double, kNumRayKinds>>& KindNs() {
+  static std::map<std::string, std::array<double, kNumRayKinds>> ns;
+  return ns;
+}
+
 double Median(std::vector<double> v) {
   if (v.empty()) return 0;
   std::sort(v.begin(), v.end());
@@ -204,6 +212,7 @@ void BM_Render(benchmark::State& state, const std::string& scene, bool embree, b
                      : RenderOnce(d, *d.accel, d.light_buffers, nullptr);
     cpu_seconds += ThreadCpuSeconds() - cpu0;
     sum.trace_seconds += last.trace_seconds;
+    for (int k = 0; k < kNumRayKinds; ++k) sum.trace_kind_seconds[k] += last.trace_kind_seconds[k];
     sum.shade_seconds += last.shade_seconds;
     sum.total_seconds += last.total_seconds;
   }
@@ -231,8 +240,16 @@ void BM_Render(benchmark::State& state, const std::string& scene, bool embree, b
             : 0.0;
   }
   for (int k = 0; k < kNumRayKinds; ++k) {
-    c[std::string("rays_") + RayKindName(static_cast<RayKind>(k))] =
-        static_cast<double>(last.rays[k]);
+    const std::string kind = RayKindName(static_cast<RayKind>(k));
+    c["rays_" + kind] = static_cast<double>(last.rays[k]);
+    // the tracer's time per ray of each kind (raystream: the Accel or the light buffers;
+    // Embree: rtcIntersect16 / rtcOccluded16), the same rays on both rows
+    const double ns =
+        last.rays[k] > 0
+            ? sum.trace_kind_seconds[k] / n / static_cast<double>(last.rays[k]) * 1e9
+            : 0.0;
+    if (last.rays[k] > 0) c["ns/ray_" + kind] = ns;
+    KindNs()[RowName(rebuild, scene, embree)][static_cast<size_t>(k)] = ns;
   }
   if (!embree && last.trace.rays > 0) {
     c["packet_share"] =
@@ -266,6 +283,24 @@ void PrintSummary(std::FILE* out) {
       line += part;
     }
     if (!line.empty()) std::fprintf(out, "%-12s%s\n", scene.c_str(), line.c_str());
+    // the frame rows' tracer time per ray of each kind: which rays make the difference
+    const auto theirs = KindNs().find(RowName(false, scene, true));
+    const auto ours = KindNs().find(RowName(false, scene, false));
+    if (theirs == KindNs().end() || ours == KindNs().end()) continue;
+    std::string kinds;
+    for (int k = 0; k < kNumRayKinds; ++k) {
+      const double a = theirs->second[static_cast<size_t>(k)];
+      const double b = ours->second[static_cast<size_t>(k)];
+      if (a <= 0 || b <= 0) continue;
+      char part[120];
+      std::snprintf(part, sizeof(part), "  %s %.1f / %.1f (%.2f)",
+                    RayKindName(static_cast<RayKind>(k)), a, b, b / a);
+      kinds += part;
+    }
+    if (!kinds.empty()) {
+      std::fprintf(out, "%-12s  tracer ns per ray, embree / raystream (ratio):%s\n", "",
+                   kinds.c_str());
+    }
   }
 }
 

@@ -649,5 +649,32 @@ TEST_CASE("LightAccelTracer: runs of any length and origin give AccelTracer's re
   CHECK(LightAccelTracer::OriginRunEnd(v, n - 1) == n);
 }
 
+
+TEST_CASE("FrameStats: the trace time by ray kind adds up to the trace time") {
+  const Scene s = LoadScene("erw6");
+  const Accel accel(s.mesh());
+  RenderOptions opt;
+  opt.width = 64;
+  opt.height = 48;
+  opt.max_depth = 3;
+  const FrameContext ctx = MakeFrameContext(s, accel, s.camera, opt);
+  Framebuffer fb(opt.width, opt.height);
+  FrameStats st = RenderSerial(ctx, fb);
+  FrameStats twice = st;
+  twice.Merge(st);
+  for (const FrameStats* f : {&st, &twice}) {
+    double sum = 0.0;
+    for (int k = 0; k < kNumRayKinds; ++k) {
+      INFO("kind ", k);
+      CHECK(f->trace_kind_seconds[k] >= 0.0);
+      if (f->rays[k] == 0) CHECK(f->trace_kind_seconds[k] == 0.0);
+      sum += f->trace_kind_seconds[k];
+    }
+    CHECK(sum == doctest::Approx(f->trace_seconds).epsilon(1e-9));
+  }
+  CHECK(st.rays[static_cast<int>(RayKind::kShadow)] > 0);
+  CHECK(st.rays[static_cast<int>(RayKind::kReflection)] > 0);
+}
+
 }  // namespace
 }  // namespace rs
