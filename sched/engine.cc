@@ -257,8 +257,9 @@ void RayEngine::Occlude(const FrameContext& ctx, const RayStreamView& rays, Fram
   ++stats.trace_calls[kShadowKind];
   stats.tasks += TasksOf(n, ctx.options.task_size);
   stats.occluded += blocked;
-  stats.trace_seconds += Seconds(t0, t1);
-  stats.trace_kind_seconds[kShadowKind] += Seconds(t0, t1);
+  const double traced = Seconds(t0, t1);
+  stats.trace_seconds += traced;
+  stats.trace_kind_seconds[kShadowKind] += traced;
 }
 
 void RayEngine::TraceAndShade(const FrameContext& ctx, const RayStreamView& rays,

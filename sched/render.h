@@ -109,14 +109,14 @@ FrameContext MakeFrameContext(const Scene& scene, const Accel& accel, const Came
                               const RenderOptions& options);
 
 // One rs::LightBuffer per light of `scene` over `accel` (built from scene.mesh()), for
-// FrameContext::light_buffers; none for a scene without lights. threads > 1: that many lights
-// are built at once, the calling thread and threads started for the call (whose build scratch
-// is fresh each call: for a one-off build). Throws rs::Error if memory runs out.
+// FrameContext::light_buffers; none for a scene without lights. threads > 1: up to that many
+// lights are built at once, on the calling thread and the build threads (RunParts,
+// kernels/build_threads.h). Throws rs::Error if memory runs out.
 std::vector<LightBuffer> BuildLightBuffers(const Scene& scene, const Accel& accel,
                                            int threads = 1);
 // The same into *buffers, rebuilding the ones it holds in place (LightBuffer::Rebuild: no fresh
-// memory for a rebuild of the same size, on one thread), for a scene whose Accel is rebuilt
-// every frame.
+// memory for a rebuild of the same size on the same threads), for a scene whose Accel is
+// rebuilt every frame.
 void RebuildLightBuffers(const Scene& scene, const Accel& accel, std::vector<LightBuffer>* buffers,
                          int threads = 1);
 

@@ -244,11 +244,9 @@ void BM_Render(benchmark::State& state, const std::string& scene, bool embree, b
     c["rays_" + kind] = static_cast<double>(last.rays[k]);
     // the tracer's time per ray of each kind (raystream: the Accel or the light buffers;
     // Embree: rtcIntersect16 / rtcOccluded16), the same rays on both rows
-    const double ns =
-        last.rays[k] > 0
-            ? sum.trace_kind_seconds[k] / n / static_cast<double>(last.rays[k]) * 1e9
-            : 0.0;
-    if (last.rays[k] > 0) c["ns/ray_" + kind] = ns;
+    if (last.rays[k] == 0) continue;
+    const double ns = sum.trace_kind_seconds[k] / n / static_cast<double>(last.rays[k]) * 1e9;
+    c["ns/ray_" + kind] = ns;
     KindNs()[RowName(rebuild, scene, embree)][static_cast<size_t>(k)] = ns;
   }
   if (!embree && last.trace.rays > 0) {

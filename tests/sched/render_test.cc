@@ -649,7 +649,6 @@ TEST_CASE("LightAccelTracer: runs of any length and origin give AccelTracer's re
   CHECK(LightAccelTracer::OriginRunEnd(v, n - 1) == n);
 }
 
-
 TEST_CASE("FrameStats: the trace time by ray kind adds up to the trace time") {
   const Scene s = LoadScene("erw6");
   const Accel accel(s.mesh());
@@ -657,9 +656,7 @@ TEST_CASE("FrameStats: the trace time by ray kind adds up to the trace time") {
   opt.width = 64;
   opt.height = 48;
   opt.max_depth = 3;
-  const FrameContext ctx = MakeFrameContext(s, accel, s.camera, opt);
-  Framebuffer fb(opt.width, opt.height);
-  FrameStats st = RenderSerial(ctx, fb);
+  FrameStats st = RenderImage(s, accel, s.camera, opt).stats;
   FrameStats twice = st;
   twice.Merge(st);
   for (const FrameStats* f : {&st, &twice}) {
