@@ -9,6 +9,7 @@
 #include <cstddef>
 #include <cstdint>
 #include <memory>
+#include <span>
 #include <string_view>
 #include <thread>
 #include <type_traits>
@@ -81,12 +82,15 @@ concept QueueTask =
 //   q.Push(worker, std::move(task))   addRays: enqueue a task (a secondary task from worker).
 //   q.PushPrimary(std::move(task))    the application thread's Generate_PrimRays (listing 3).
 //   q.TryPop(worker, task) -> bool    getRays: false means EMPTY (for LOCAL: this worker's queue).
+//   q.PushMany(worker, tasks)         Push of tasks[0], tasks[1], ... in order, as one operation
+//                                     (one lock / one link for the lot where the design allows).
+//   q.TryPopMany(worker, out) -> n    up to out.size() oldest tasks, in order; 0 means EMPTY.
 // worker is in [0, num_workers()) and identifies the calling thread: at most one thread uses a
 // given id at a time (it selects LOCAL's queue, LFREE's node cache and the statistics slot);
 // PushPrimary has an id of its own, so one application thread calls it at a time. On EMPTY,
-// TryPop leaves `task` untouched. Push may throw std::bad_alloc (the queue is unchanged then);
-// nothing else throws. All queues are FIFO: tasks pushed by one thread are popped in push order
-// (for LOCAL, per worker queue).
+// TryPop leaves `task` untouched (TryPopMany: out past the count). Push and PushMany may throw
+// std::bad_alloc (the queue is unchanged then); nothing else throws. All queues are FIFO: tasks
+// pushed by one thread are popped in push order (for LOCAL, per worker queue).
 template <class Q>
 concept WorkQueue = QueueTask<typename Q::value_type> &&
     requires(Q& q, const Q& cq, typename Q::value_type&& task, typename Q::value_type& out,
@@ -96,6 +100,8 @@ concept WorkQueue = QueueTask<typename Q::value_type> &&
   { q.Push(worker, std::move(task)) } -> std::same_as<void>;
   { q.PushPrimary(std::move(task)) } -> std::same_as<void>;
   { q.TryPop(worker, out) } -> std::same_as<bool>;
+  { q.PushMany(worker, std::span<typename Q::value_type>()) } -> std::same_as<void>;
+  { q.TryPopMany(worker, std::span<typename Q::value_type>()) } -> std::same_as<size_t>;
   { cq.num_workers() } -> std::same_as<int>;
   { cq.stats() } -> std::same_as<const typename Q::stats_type&>;
 };
@@ -193,7 +199,8 @@ class NoQueueStats {
 };
 
 // Statistics policy "on": per-thread aggregate time spent inside queue operations (including
-// waiting for locks and failed EMPTY polls) and the number of operations, one cache-line-padded
+// waiting for locks and failed EMPTY polls) and the number of operations (calls: a PushMany or
+// TryPopMany is one, whatever its count of tasks), one cache-line-padded
 // slot per worker plus one slot (index num_workers) for the application thread's PushPrimary.
 // Each slot is written only by its own thread (relaxed load + store, no read-modify-write);
 // read the totals after the frame's closing barrier, which orders them (happens-before) after

@@ -7,6 +7,7 @@
 #include <cstdint>
 #include <memory>
 #include <new>
+#include <span>
 #include <utility>
 
 #include "sched/queue.h"
@@ -158,6 +159,14 @@ class LocalQueues {
     [[maybe_unused]] auto scope = stats_.Measure(worker);
     lanes_[worker].fifo.Push(task);
   }
+  // Push of tasks[0], tasks[1], ... in that order (moved from), with room made first: throws
+  // std::bad_alloc with the queue unchanged and the tasks untouched.
+  void PushMany(int worker, std::span<T> tasks) {
+    [[maybe_unused]] auto scope = stats_.Measure(worker);
+    queue_detail::BlockFifo<T>& fifo = lanes_[worker].fifo;
+    fifo.Reserve(tasks.size());
+    for (T& task : tasks) fifo.Push(std::move(task));
+  }
   // Fill phase only: deals the task to the next worker in round-robin order (task i of the
   // frame to worker (start + i) % num_workers; RewindPrimary() resets start to 0).
   void PushPrimary(T&& task) {
@@ -176,6 +185,15 @@ class LocalQueues {
   bool TryPop(int worker, T& out) noexcept {
     [[maybe_unused]] auto scope = stats_.Measure(worker);
     return lanes_[worker].fifo.Pop(out);
+  }
+
+  // TryPop for up to out.size() tasks; returns how many (0: EMPTY; out untouched past it).
+  size_t TryPopMany(int worker, std::span<T> out) noexcept {
+    [[maybe_unused]] auto scope = stats_.Measure(worker);
+    queue_detail::BlockFifo<T>& fifo = lanes_[worker].fifo;
+    size_t n = 0;
+    while (n < out.size() && fifo.Pop(out[n])) ++n;
+    return n;
   }
 
   // Tasks waiting in worker's queue. Same threading rules as TryPop(worker).

@@ -8,6 +8,7 @@
 #include <memory>
 #include <mutex>
 #include <new>
+#include <span>
 #include <type_traits>
 #include <utility>
 
@@ -69,21 +70,28 @@ class LockQueue {
   // std::bad_alloc (queue unchanged) if no consumed node can be reused and `new` fails.
   void Push(int worker, T&& task) {
     [[maybe_unused]] auto scope = stats_.Measure(worker);
-    Enqueue(std::move(task));
+    Enqueue(1, [&](size_t, T* slot) { std::construct_at(slot, std::move(task)); });
   }
   void Push(int worker, const T& task) requires std::copy_constructible<T> {
     [[maybe_unused]] auto scope = stats_.Measure(worker);
     if constexpr (std::is_nothrow_copy_constructible_v<T>) {
-      Enqueue(task);  // copied straight into the node
+      Enqueue(1, [&](size_t, T* slot) { std::construct_at(slot, task); });  // straight in
     } else {
       T copy(task);  // a throwing copy happens outside the lock, before any node is taken
-      Enqueue(std::move(copy));
+      Enqueue(1, [&](size_t, T* slot) { std::construct_at(slot, std::move(copy)); });
     }
+  }
+  // Appends tasks[0], tasks[1], ... in that order (moved from) under one acquisition of the
+  // tail lock. Throws std::bad_alloc (queue unchanged, tasks untouched).
+  void PushMany(int worker, std::span<T> tasks) {
+    if (tasks.empty()) return;
+    [[maybe_unused]] auto scope = stats_.Measure(worker);
+    Enqueue(tasks.size(), [&](size_t i, T* slot) { std::construct_at(slot, std::move(tasks[i])); });
   }
   // The application thread's push of a primary task (timed in the application slot).
   void PushPrimary(T&& task) {
     [[maybe_unused]] auto scope = stats_.Measure(num_workers_);
-    Enqueue(std::move(task));
+    Enqueue(1, [&](size_t, T* slot) { std::construct_at(slot, std::move(task)); });
   }
 
   // getRays: moves the oldest task into `out` and returns true, or returns false (EMPTY; `out`
@@ -91,18 +99,17 @@ class LockQueue {
   bool TryPop(int worker, T& out) noexcept {
     [[maybe_unused]] auto scope = stats_.Measure(worker);
     std::lock_guard<Mutex> lock(head_mutex_);
-    Node* const head = head_.load(std::memory_order_relaxed);  // only consumers write head_
-    // acquire pairs with the producer's release store of `next`: the task is fully built.
-    Node* const next = head->next.load(std::memory_order_acquire);
-    if (next == nullptr) return false;
-    // The task is moved out under the lock: once head_ moves past `next`, a later pop could
-    // make `next` reusable by producers.
-    T* task = next->Ptr();
-    out = std::move(*task);
-    std::destroy_at(task);
-    // release: producers that see the new head may reuse the old dummy and everything before.
-    head_.store(next, std::memory_order_release);
-    return true;
+    return PopLocked(out);
+  }
+  // getRays for up to out.size() tasks under one acquisition of the head lock: the oldest
+  // ones into out[0], out[1], ...; returns how many (0: EMPTY; out untouched past the count).
+  size_t TryPopMany(int worker, std::span<T> out) noexcept {
+    if (out.empty()) return 0;
+    [[maybe_unused]] auto scope = stats_.Measure(worker);
+    std::lock_guard<Mutex> lock(head_mutex_);
+    size_t n = 0;
+    while (n < out.size() && PopLocked(out[n])) ++n;
+    return n;
   }
 
   int num_workers() const { return num_workers_; }
@@ -129,22 +136,65 @@ class LockQueue {
     T* Ptr() { return std::launder(reinterpret_cast<T*>(storage)); }
   };
 
-  // U is T (moved) or const T& (copied; only when that copy cannot throw).
-  template <class U>
-  void Enqueue(U&& task) {
+  // Under head_mutex_: moves the task after the dummy out and makes its node the dummy.
+  bool PopLocked(T& out) noexcept {
+    Node* const head = head_.load(std::memory_order_relaxed);  // only consumers write head_
+    // acquire pairs with the producer's release store of `next`: the task is fully built.
+    Node* const next = head->next.load(std::memory_order_acquire);
+    if (next == nullptr) return false;
+    // The task is moved out under the lock: once head_ moves past `next`, a later pop could
+    // make `next` reusable by producers.
+    T* task = next->Ptr();
+    out = std::move(*task);
+    std::destroy_at(task);
+    // release: producers that see the new head may reuse the old dummy and everything before.
+    head_.store(next, std::memory_order_release);
+    return true;
+  }
+
+  // Appends n >= 1 tasks under the tail lock; fill(i, slot) constructs task i at `slot` and
+  // must not throw. The nodes (the oldest consumed ones, then new ones) are all taken before
+  // anything changes, so a bad_alloc leaves the queue as it was.
+  template <class Fill>
+  void Enqueue(size_t n, Fill&& fill) {
     std::lock_guard<Mutex> lock(tail_mutex_);
-    Node* node = first_;
-    if (node != head_.load(std::memory_order_acquire)) {
-      // Reuse the oldest consumed node. Its `next` was written by a producer under this lock.
-      first_ = node->next.load(std::memory_order_relaxed);
-      node->next.store(nullptr, std::memory_order_relaxed);
-    } else {
-      node = new Node;  // may throw; nothing changed yet
+    // Consumed nodes are [first_, head): their `next` links were written under this lock.
+    Node* const head = head_.load(std::memory_order_acquire);
+    Node* reuse_end = first_;
+    size_t reused = 0;
+    for (; reused < n && reuse_end != head; ++reused) {
+      reuse_end = reuse_end->next.load(std::memory_order_relaxed);
     }
-    std::construct_at(node->Ptr(), std::forward<U>(task));
-    // release: a consumer that loads this pointer with acquire sees the constructed task.
-    tail_->next.store(node, std::memory_order_release);
-    tail_ = node;
+    Node* fresh = nullptr;  // n - reused new nodes, linked by `next`
+    try {
+      for (size_t i = reused; i < n; ++i) {
+        Node* node = new Node;
+        node->next.store(fresh, std::memory_order_relaxed);
+        fresh = node;
+      }
+    } catch (...) {
+      while (fresh != nullptr) delete std::exchange(fresh, fresh->next.load());
+      throw;
+    }
+    Node* reuse = std::exchange(first_, reuse_end);
+    Node* chain = nullptr;
+    Node* last = nullptr;
+    for (size_t i = 0; i < n; ++i) {
+      Node*& from = i < reused ? reuse : fresh;
+      Node* node = std::exchange(from, from->next.load(std::memory_order_relaxed));
+      node->next.store(nullptr, std::memory_order_relaxed);
+      fill(i, node->Ptr());
+      if (last != nullptr) {
+        last->next.store(node, std::memory_order_relaxed);
+      } else {
+        chain = node;
+      }
+      last = node;
+    }
+    // release: a consumer that loads this pointer with acquire sees the constructed tasks and
+    // the chain's links.
+    tail_->next.store(chain, std::memory_order_release);
+    tail_ = last;
   }
 
   // Consumer side.

@@ -10,6 +10,7 @@
 #include <cstring>
 #include <memory>
 #include <new>
+#include <span>
 #include <type_traits>
 #include <utility>
 
@@ -30,6 +31,8 @@ namespace rs {
 // stack over the same nodes. The cache is what makes LFREE cheap in the renderer's pattern (pop
 // a task, push its secondary tasks): the node a worker frees is reused by its next push, so a
 // push+pop pair costs 3 CASes on the queue instead of 5 with 2 on a shared free-list top.
+// PushMany and TryPopMany (inline tasks) move whole chains of nodes with the same CASes, and
+// an empty cache refills with up to half its size from the free list in one CAS.
 //
 // Why this is safe (the argument the tests probe under TSan and ASan):
 //  1. No use-after-free: node memory is type-stable: a node removed from the queue goes to a
@@ -64,9 +67,10 @@ namespace rs {
 //     every index a thread dereferences was obtained through an acquire that is ordered after
 //     the installation of its chunk and the initialization of the node.
 //
-// Costs per operation: Push = link CAS + tail CAS (+ a free-list pop CAS when the worker's cache
-// is empty); TryPop = head CAS (+ one fetch_sub for non-inline tasks; + one free-list push CAS
-// per node_cache/2 pops when the cache overflows). Destroying the queue destroys remaining tasks;
+// Costs per operation: Push and PushMany = link CAS + tail CAS (+ a free-list pop CAS when the
+// worker's cache is empty); TryPop = head CAS (+ one fetch_sub for non-inline tasks; + one
+// free-list push CAS per node_cache/2 pops when the cache overflows); TryPopMany = one head CAS
+// per kMaxPopChain inline tasks. Destroying the queue destroys remaining tasks;
 // destruction, like construction, must not be concurrent with other operations.
 //
 // Worker ids identify threads: at any time at most one thread may use a given worker id (and
@@ -86,7 +90,7 @@ class LockFreeQueue {
   static_assert(std::atomic<uint32_t>::is_always_lock_free, "LFREE needs 32-bit atomics");
 
   static constexpr uint32_t kDefaultNodeCache = 32;
-  static constexpr uint32_t kMaxNodeCache = 64;
+  static constexpr uint32_t kMaxNodeCache = 1024;
 
   // num_workers >= 1 threads will pass worker ids in [0, num_workers). reserve_nodes > 0
   // preallocates at least that many nodes (one is the dummy), so that many tasks can be queued
@@ -141,22 +145,34 @@ class LockFreeQueue {
   // must grow and cannot.
   void Push(int worker, T&& task) {
     [[maybe_unused]] auto scope = stats_.Measure(worker);
-    Enqueue(worker, std::move(task));
+    Enqueue(worker, 1, [&](size_t, T* slot) { std::construct_at(slot, std::move(task)); });
   }
   void Push(int worker, const T& task) requires std::copy_constructible<T> {
     [[maybe_unused]] auto scope = stats_.Measure(worker);
     if constexpr (std::is_nothrow_copy_constructible_v<T>) {
-      Enqueue(worker, task);  // copied straight into the node
+      Enqueue(worker, 1, [&](size_t, T* slot) { std::construct_at(slot, task); });  // no copy
     } else {
       T copy(task);  // a throwing copy happens before any node is taken
-      Enqueue(worker, std::move(copy));
+      Enqueue(worker, 1, [&](size_t, T* slot) { std::construct_at(slot, std::move(copy)); });
     }
+  }
+  // Appends tasks[0], tasks[1], ... in that order (moved from), as consecutive Push calls of
+  // this worker would, but as one operation: the nodes are linked to each other first and then
+  // to the queue by one link CAS and one Tail CAS, so a batch of n tasks costs the shared
+  // cache lines 2 CASes instead of 2n. Consumers may see the chain before Tail has moved over
+  // it; they help Tail along node by node, as M&S's dequeuers already do for one node. Throws
+  // std::bad_alloc (queue unchanged, tasks untouched) if the pool must grow and cannot.
+  void PushMany(int worker, std::span<T> tasks) {
+    if (tasks.empty()) return;
+    [[maybe_unused]] auto scope = stats_.Measure(worker);
+    Enqueue(worker, tasks.size(),
+            [&](size_t i, T* slot) { std::construct_at(slot, std::move(tasks[i])); });
   }
   // The application thread's push of a primary task; timed in the application slot, so call it
   // from one thread at a time when Stats is enabled.
   void PushPrimary(T&& task) {
     [[maybe_unused]] auto scope = stats_.Measure(num_workers_);
-    Enqueue(num_workers_, std::move(task));
+    Enqueue(num_workers_, 1, [&](size_t, T* slot) { std::construct_at(slot, std::move(task)); });
   }
 
   // getRays: moves the oldest task into `out` and returns true, or returns false (EMPTY) if the
@@ -164,49 +180,37 @@ class LockFreeQueue {
   // thread holding worker id `worker`. Never throws.
   bool TryPop(int worker, T& out) noexcept {
     [[maybe_unused]] auto scope = stats_.Measure(worker);
-    for (;;) {
-      uint64_t head = head_.load(std::memory_order_acquire);                       // D2
-      uint64_t tail = tail_.load(std::memory_order_acquire);                       // D3
-      const uint64_t next = At(Index(head)).next.load(std::memory_order_acquire);  // D4
-      if (head != head_.load(std::memory_order_acquire)) continue;  // D5: consistent?
-      if (Index(head) == Index(tail)) {                             // D6
-        if (Index(next) == kNull) return false;                     // D7-D8: empty
-        // D10: Tail lags behind a linked node; help it along before Head may pass it.
-        tail_.compare_exchange_strong(tail, Pack(Tag(tail) + 1, Index(next)),
-                                      std::memory_order_acq_rel, std::memory_order_relaxed);
-        continue;
+    return Dequeue(worker, out);
+  }
+
+  // getRays for up to out.size() tasks: moves the oldest ones into out[0], out[1], ... in FIFO
+  // order and returns how many (0: EMPTY at the call's linearization; out untouched past the
+  // count). For inline tasks up to kMaxPopChain of them leave with one Head CAS: the dequeuer
+  // walks `next` from Head (not past the Tail it read, so Head never overtakes Tail), reads
+  // the tasks, and moves Head to the last of them, which becomes the dummy. If the CAS
+  // succeeds Head did not move meanwhile, so no node of the walk was recycled and every value
+  // read is current (the argument of D12 for one node). Out-of-line tasks pop one at a time.
+  // Never throws.
+  size_t TryPopMany(int worker, std::span<T> out) noexcept {
+    if (out.empty()) return 0;
+    [[maybe_unused]] auto scope = stats_.Measure(worker);
+    if constexpr (!kInlineTask) {
+      size_t n = 0;
+      while (n < out.size() && Dequeue(worker, out[n])) ++n;
+      return n;
+    } else {
+      size_t n = 0;
+      while (n < out.size()) {
+        const size_t got = DequeueChain(worker, out.subspan(n));
+        n += got;
+        if (got < kMaxPopChain) break;  // the queue ran out (or out is full)
       }
-      if (Index(next) == kNull) continue;  // cannot happen when Head was stable; re-read
-      Node& second = At(Index(next));
-      if constexpr (kInlineTask) {
-        // D12: read before the CAS; after it `second` may become the dummy and be recycled.
-        const uint64_t bits = second.payload.bits.load(std::memory_order_relaxed);
-        RS_QUEUE_CHAOS_POINT("dequeue");
-        if (head_.compare_exchange_strong(head, Pack(Tag(head) + 1, Index(next)),
-                                          std::memory_order_acq_rel,
-                                          std::memory_order_relaxed)) {  // D13
-          out = FromBits(bits);
-          FreeNode(worker, Index(head));  // D19, safe: see point 1 in the class comment
-          return true;
-        }
-      } else {
-        RS_QUEUE_CHAOS_POINT("dequeue");
-        if (head_.compare_exchange_strong(head, Pack(Tag(head) + 1, Index(next)),
-                                          std::memory_order_acq_rel,
-                                          std::memory_order_relaxed)) {  // D13
-          // We own second's task: nobody else reads it, and `second` keeps its task reference
-          // until the Release below, so it cannot be recycled while we move from it.
-          RS_QUEUE_CHAOS_POINT("dequeue_owned");
-          T* task = second.payload.Ptr();
-          out = std::move(*task);
-          std::destroy_at(task);
-          Release(worker, Index(next));  // the task reference
-          Release(worker, Index(head));  // the link reference of the old dummy
-          return true;
-        }
-      }
+      return n;
     }
   }
+
+  // Tasks a TryPopMany takes with one Head CAS (inline tasks).
+  static constexpr size_t kMaxPopChain = 64;
 
   // Fill phase only (no concurrent Push / TryPop): grows the node pool to at least n nodes,
   // so that many tasks can be queued without allocating. Throws std::bad_alloc.
@@ -290,22 +294,146 @@ class LockFreeQueue {
     return chunks_[k].load(std::memory_order_acquire)[index - ChunkFirst(k)];
   }
 
-  // U is T (moved) or const T& (copied; only when that copy cannot throw).
-  template <class U>
-  void Enqueue(int slot, U&& task) {
-    const uint32_t index = AllocNode(slot);  // E1; may throw, nothing is published yet
-    Node& node = At(index);
-    if constexpr (kInlineTask) {
-      node.payload.bits.store(ToBits(task), std::memory_order_relaxed);  // E2
-    } else {
-      std::construct_at(node.payload.Ptr(), std::forward<U>(task));  // E2
-      node.refs.store(2, std::memory_order_relaxed);
+  // M&S dequeue of one task (D1-D19), untimed.
+  bool Dequeue(int worker, T& out) noexcept {
+    for (;;) {
+      uint64_t head = head_.load(std::memory_order_acquire);                       // D2
+      uint64_t tail = tail_.load(std::memory_order_acquire);                       // D3
+      const uint64_t next = At(Index(head)).next.load(std::memory_order_acquire);  // D4
+      if (head != head_.load(std::memory_order_acquire)) continue;  // D5: consistent?
+      if (Index(head) == Index(tail)) {                             // D6
+        if (Index(next) == kNull) return false;                     // D7-D8: empty
+        // D10: Tail lags behind a linked node; help it along before Head may pass it.
+        tail_.compare_exchange_strong(tail, Pack(Tag(tail) + 1, Index(next)),
+                                      std::memory_order_acq_rel, std::memory_order_relaxed);
+        continue;
+      }
+      if (Index(next) == kNull) continue;  // cannot happen when Head was stable; re-read
+      Node& second = At(Index(next));
+      if constexpr (kInlineTask) {
+        // D12: read before the CAS; after it `second` may become the dummy and be recycled.
+        const uint64_t bits = second.payload.bits.load(std::memory_order_relaxed);
+        RS_QUEUE_CHAOS_POINT("dequeue");
+        if (head_.compare_exchange_strong(head, Pack(Tag(head) + 1, Index(next)),
+                                          std::memory_order_acq_rel,
+                                          std::memory_order_relaxed)) {  // D13
+          out = FromBits(bits);
+          FreeNode(worker, Index(head));  // D19, safe: see point 1 in the class comment
+          return true;
+        }
+      } else {
+        RS_QUEUE_CHAOS_POINT("dequeue");
+        if (head_.compare_exchange_strong(head, Pack(Tag(head) + 1, Index(next)),
+                                          std::memory_order_acq_rel,
+                                          std::memory_order_relaxed)) {  // D13
+          // We own second's task: nobody else reads it, and `second` keeps its task reference
+          // until the Release below, so it cannot be recycled while we move from it.
+          RS_QUEUE_CHAOS_POINT("dequeue_owned");
+          T* task = second.payload.Ptr();
+          out = std::move(*task);
+          std::destroy_at(task);
+          Release(worker, Index(next));  // the task reference
+          Release(worker, Index(head));  // the link reference of the old dummy
+          return true;
+        }
+      }
     }
-    // E3: reset the link with a new tag. Nobody else writes `next` of a free node: enqueuers
-    // only CAS a null `next`, and a free node's `next` is non-null (it was unlinked as a dummy
-    // with a successor) or, for a never-used node, has a tag no stale thread has read.
-    node.next.store(Pack(Tag(node.next.load(std::memory_order_relaxed)) + 1, kNull),
-                    std::memory_order_relaxed);
+  }
+
+  // The walk of TryPopMany: up to min(out.size(), kMaxPopChain) tasks with one Head CAS.
+  // Returns how many; 0 only when the queue was empty. Inline tasks only.
+  size_t DequeueChain(int worker, std::span<T> out) noexcept {
+    const size_t want = out.size() < kMaxPopChain ? out.size() : kMaxPopChain;
+    uint64_t bits[kMaxPopChain];
+    for (;;) {
+      uint64_t head = head_.load(std::memory_order_acquire);
+      uint64_t tail = tail_.load(std::memory_order_acquire);
+      const uint64_t next = At(Index(head)).next.load(std::memory_order_acquire);
+      if (head != head_.load(std::memory_order_acquire)) continue;
+      if (Index(head) == Index(tail)) {
+        if (Index(next) == kNull) return 0;
+        tail_.compare_exchange_strong(tail, Pack(Tag(tail) + 1, Index(next)),
+                                      std::memory_order_acq_rel, std::memory_order_relaxed);
+        continue;
+      }
+      if (Index(next) == kNull) continue;
+      // Stale reads in the walk (Head moved meanwhile) read live nodes (point 1) and are
+      // discarded when the CAS fails; the walk is bounded by `want`, so it ends regardless.
+      uint32_t last = Index(next);
+      size_t n = 0;
+      for (;;) {
+        bits[n++] = At(last).payload.bits.load(std::memory_order_relaxed);
+        if (n == want || last == Index(tail)) break;
+        const uint32_t after = Index(At(last).next.load(std::memory_order_acquire));
+        if (after == kNull) break;
+        last = after;
+      }
+      RS_QUEUE_CHAOS_POINT("dequeue");
+      if (head_.compare_exchange_strong(head, Pack(Tag(head) + 1, last), std::memory_order_acq_rel,
+                                        std::memory_order_relaxed)) {
+        // The old dummy and every node taken but the last (the new dummy) are free. Each
+        // `next` is read before its node goes to the cache, whose overflow may hand it on.
+        uint32_t node = Index(head);
+        for (size_t i = 0; i < n; ++i) {
+          out[i] = FromBits(bits[i]);
+          const uint32_t following = Index(At(node).next.load(std::memory_order_relaxed));
+          FreeNode(worker, node);
+          node = following;
+        }
+        return n;
+      }
+    }
+  }
+
+  // M&S enqueue (E1-E17) of a chain of n >= 1 new nodes; fill(i, slot) constructs task i at
+  // `slot` and must not throw. All nodes are taken before any task is built, so a bad_alloc
+  // leaves the queue and the tasks as they were.
+  template <class Fill>
+  void Enqueue(int slot, size_t n, Fill&& fill) {
+    // E1: the nodes, linked first -> ... -> last. E3 for all but the last: each link is
+    // written with a new tag (see below), which makes a stale enqueuer's CAS on it fail.
+    const uint32_t first = AllocNode(slot);  // may throw, nothing is published yet
+    uint32_t last = first;
+    try {
+      for (size_t i = 1; i < n; ++i) {
+        const uint32_t index = AllocNode(slot);
+        Node& prev = At(last);
+        prev.next.store(Pack(Tag(prev.next.load(std::memory_order_relaxed)) + 1, index),
+                        std::memory_order_relaxed);
+        last = index;
+      }
+    } catch (...) {
+      for (uint32_t node = first;;) {  // every `next` of the chain is non-null: free is safe
+        const uint32_t following = Index(At(node).next.load(std::memory_order_relaxed));
+        const bool end = node == last;
+        FreeNode(slot, node);
+        if (end) break;
+        node = following;
+      }
+      throw;
+    }
+    uint32_t node = first;
+    for (size_t i = 0; i < n; ++i) {  // E2
+      Node& dst = At(node);
+      if constexpr (kInlineTask) {
+        alignas(T) std::byte raw[sizeof(T)];
+        fill(i, reinterpret_cast<T*>(raw));
+        dst.payload.bits.store(ToBits(*std::launder(reinterpret_cast<T*>(raw))),
+                               std::memory_order_relaxed);
+      } else {
+        fill(i, dst.payload.Ptr());
+        dst.refs.store(2, std::memory_order_relaxed);
+      }
+      node = Index(dst.next.load(std::memory_order_relaxed));
+    }
+    // E3: reset the last link with a new tag. Nobody else writes `next` of a free node:
+    // enqueuers only CAS a null `next`, and a free node's `next` is non-null (it was unlinked
+    // as a dummy with a successor, or was an inner link of a chain) or, for a never-used node,
+    // has a tag no stale thread has read.
+    Node& end = At(last);
+    end.next.store(Pack(Tag(end.next.load(std::memory_order_relaxed)) + 1, kNull),
+                   std::memory_order_relaxed);
+    const uint32_t index = first;
     uint64_t tail;
     for (;;) {                                                               // E4
       tail = tail_.load(std::memory_order_acquire);                          // E5
@@ -313,7 +441,7 @@ class LockFreeQueue {
       if (tail != tail_.load(std::memory_order_acquire)) continue;           // E7
       if (Index(next) == kNull) {                                            // E8
         RS_QUEUE_CHAOS_POINT("enqueue");
-        // E9: link; release publishes the task and the reset link.
+        // E9: link; release publishes the tasks and the chain's links.
         if (At(Index(tail))
                 .next.compare_exchange_weak(next, Pack(Tag(next) + 1, index),
                                             std::memory_order_release, std::memory_order_relaxed)) {
@@ -325,8 +453,9 @@ class LockFreeQueue {
                                       std::memory_order_acq_rel, std::memory_order_relaxed);
       }
     }
-    // E17: swing Tail to our node; failure means another thread already helped.
-    tail_.compare_exchange_strong(tail, Pack(Tag(tail) + 1, index), std::memory_order_acq_rel,
+    // E17: swing Tail to our last node; failure means another thread already helped (Tail then
+    // lags inside the chain until helpers move it on, node by node: E13, D10).
+    tail_.compare_exchange_strong(tail, Pack(Tag(tail) + 1, last), std::memory_order_acq_rel,
                                   std::memory_order_relaxed);
   }
 
@@ -348,10 +477,41 @@ class LockFreeQueue {
     uint32_t nodes[kMaxNodeCache];
   };
 
+  // From the worker's cache; an empty cache takes up to half its size from the shared free
+  // list at once (one CAS), so a PushMany of many tasks does not pay a CAS per node.
   uint32_t AllocNode(int slot) {
     NodeCache& cache = caches_[slot];
     if (cache.count > 0) return cache.nodes[--cache.count];
+    if (node_cache_ > 1) {
+      cache.count = PopFreeChain(cache.nodes, node_cache_ / 2);
+      if (cache.count > 0) return cache.nodes[--cache.count];
+    }
     return AllocShared();
+  }
+
+  // Treiber pop of up to max >= 1 nodes with one CAS: walks free_next from the top and moves
+  // the top past the last node taken. As in AllocShared, the walk may read stale links when
+  // the list changes meanwhile; then the top's tag changed and the CAS fails. Returns how many
+  // (0: the list is empty).
+  uint32_t PopFreeChain(uint32_t* out, uint32_t max) noexcept {
+    uint64_t top = free_.load(std::memory_order_acquire);
+    for (;;) {
+      if (Index(top) == kNull) return 0;
+      uint32_t n = 0;
+      uint32_t node = Index(top);
+      uint32_t rest = kNull;
+      for (;;) {
+        out[n++] = node;
+        rest = At(node).free_next.load(std::memory_order_relaxed);
+        if (n == max || rest == kNull) break;
+        node = rest;
+      }
+      RS_QUEUE_CHAOS_POINT("alloc");
+      if (free_.compare_exchange_weak(top, Pack(Tag(top) + 1, rest), std::memory_order_acquire,
+                                      std::memory_order_acquire)) {
+        return n;
+      }
+    }
   }
 
   // Keeps the node in the worker's cache; when the cache is full, its older half goes to the

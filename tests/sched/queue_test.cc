@@ -3,6 +3,7 @@
 // the fill-then-release pattern, and the queue-time counters. Also run under TSan and ASan+UBSan.
 #include <doctest/doctest.h>
 
+#include <algorithm>
 #include <atomic>
 #include <barrier>
 #include <chrono>
@@ -11,6 +12,7 @@
 #include <memory>
 #include <mutex>
 #include <semaphore>
+#include <span>
 #include <string_view>
 #include <thread>
 #include <type_traits>
@@ -235,10 +237,24 @@ struct Consumer {
   }
 };
 
+// Sizes of the PushMany / TryPopMany calls of the chain modes: 1..max, from a per-thread
+// xorshift, so chains of every length up to max (and LFREE's kMaxPopChain) meet each other.
+struct ChainSizes {
+  uint64_t state;
+  uint32_t max;
+  uint32_t Next() {
+    state ^= state << 13;
+    state ^= state >> 7;
+    state ^= state << 17;
+    return 1 + static_cast<uint32_t>(state % max);
+  }
+};
+
 // `producers` threads push per_producer tasks each while `consumers` threads pop until all
 // producers are done and the queue is empty. Workers 0..P-1 produce, P..P+C-1 consume.
+// chain > 0: PushMany and TryPopMany of 1..chain tasks instead of Push and TryPop.
 template <class Q>
-StressResult RunMpmc(int producers, int consumers, uint32_t per_producer) {
+StressResult RunMpmc(int producers, int consumers, uint32_t per_producer, uint32_t chain = 0) {
   using T = typename Q::value_type;
   Q queue(producers + consumers);
   std::vector<std::unique_ptr<Consumer<T>>> state;
@@ -252,8 +268,22 @@ StressResult RunMpmc(int producers, int consumers, uint32_t per_producer) {
   for (int p = 0; p < producers; ++p) {
     threads.emplace_back([&, p] {
       start.arrive_and_wait();
-      for (uint32_t s = 0; s < per_producer; ++s) {
-        queue.Push(p, Codec<T>::Make(static_cast<uint32_t>(p), s));
+      if (chain == 0) {
+        for (uint32_t s = 0; s < per_producer; ++s) {
+          queue.Push(p, Codec<T>::Make(static_cast<uint32_t>(p), s));
+        }
+      } else {
+        ChainSizes sizes{0x9E3779B97F4A7C15ull * (p + 1), chain};
+        std::vector<T> batch;
+        for (uint32_t s = 0; s < per_producer;) {
+          const uint32_t n = std::min(sizes.Next(), per_producer - s);
+          batch.clear();
+          for (uint32_t i = 0; i < n; ++i) {
+            batch.push_back(Codec<T>::Make(static_cast<uint32_t>(p), s + i));
+          }
+          queue.PushMany(p, std::span<T>(batch));
+          s += n;
+        }
       }
       producers_done.fetch_add(1, std::memory_order_release);
     });
@@ -263,18 +293,24 @@ StressResult RunMpmc(int producers, int consumers, uint32_t per_producer) {
       Consumer<T>& me = *state[c];
       const int worker = producers + c;
       start.arrive_and_wait();
-      T task{};
-      for (;;) {
-        if (queue.TryPop(worker, task)) {
-          me.Take(task);
-          continue;
+      ChainSizes sizes{0xD1B54A32D192ED03ull * (c + 1), chain == 0 ? 1 : chain};
+      std::vector<T> got(sizes.max);
+      // One TryPop, or one TryPopMany: true if it took anything.
+      auto pop = [&] {
+        if (chain == 0) {
+          if (!queue.TryPop(worker, got[0])) return false;
+          me.Take(got[0]);
+          return true;
         }
+        const size_t n = queue.TryPopMany(worker, std::span<T>(got.data(), sizes.Next()));
+        for (size_t i = 0; i < n; ++i) me.Take(got[i]);
+        return n > 0;
+      };
+      for (;;) {
+        if (pop()) continue;
         // acquire: every push happens-before this point, so EMPTY now means drained.
         if (producers_done.load(std::memory_order_acquire) == producers) {
-          if (queue.TryPop(worker, task)) {
-            me.Take(task);
-            continue;
-          }
+          if (pop()) continue;
           break;
         }
         std::this_thread::yield();  // threads outnumber the 2 cores: let producers run
@@ -300,8 +336,9 @@ StressResult RunMpmc(int producers, int consumers, uint32_t per_producer) {
 // Every thread alternates Push(own task) and TryPop on a nearly empty queue: nodes are recycled
 // immediately, the pattern most likely to expose ABA or use-after-free. A linearizable queue
 // can never answer EMPTY to a pop that follows the thread's own push.
+// chain > 0: each round is a PushMany of 1..chain own tasks and a TryPopMany of as many.
 template <class Q>
-StressResult RunPairs(int threads_n, uint32_t per_thread) {
+StressResult RunPairs(int threads_n, uint32_t per_thread, uint32_t chain = 0) {
   using T = typename Q::value_type;
   Q queue(threads_n);
   std::vector<std::unique_ptr<Consumer<T>>> state;
@@ -310,6 +347,7 @@ StressResult RunPairs(int threads_n, uint32_t per_thread) {
     state.push_back(std::make_unique<Consumer<T>>(threads_n, per_thread, per_thread + 1024));
   }
   std::barrier start(threads_n);
+  std::barrier finish(threads_n);
   std::vector<std::thread> threads;
   for (int w = 0; w < threads_n; ++w) {
     threads.emplace_back([&, w] {
@@ -317,12 +355,38 @@ StressResult RunPairs(int threads_n, uint32_t per_thread) {
       uint64_t empty = 0;
       start.arrive_and_wait();
       T task{};
-      for (uint32_t s = 0; s < per_thread; ++s) {
-        queue.Push(w, Codec<T>::Make(static_cast<uint32_t>(w), s));
-        if (queue.TryPop(w, task)) {
-          me.Take(task);
-        } else {
-          ++empty;
+      if (chain == 0) {
+        for (uint32_t s = 0; s < per_thread; ++s) {
+          queue.Push(w, Codec<T>::Make(static_cast<uint32_t>(w), s));
+          if (queue.TryPop(w, task)) {
+            me.Take(task);
+          } else {
+            ++empty;
+          }
+        }
+      } else {
+        ChainSizes sizes{0x94D049BB133111EBull * (w + 1), chain};
+        std::vector<T> batch;
+        std::vector<T> got(chain);
+        for (uint32_t s = 0; s < per_thread;) {
+          const uint32_t n = std::min(sizes.Next(), per_thread - s);
+          batch.clear();
+          for (uint32_t i = 0; i < n; ++i) {
+            batch.push_back(Codec<T>::Make(static_cast<uint32_t>(w), s + i));
+          }
+          queue.PushMany(w, std::span<T>(batch));
+          s += n;
+          const size_t k = queue.TryPopMany(w, std::span<T>(got.data(), n));
+          for (size_t i = 0; i < k; ++i) me.Take(got[i]);
+          if (k == 0) ++empty;
+        }
+        // What the pops left behind (a pop may take fewer than its push), once every thread
+        // is done: an earlier drain would take tasks another thread's next pop is owed.
+        finish.arrive_and_wait();
+        for (;;) {
+          const size_t k = queue.TryPopMany(w, std::span<T>(got));
+          if (k == 0) break;
+          for (size_t i = 0; i < k; ++i) me.Take(got[i]);
         }
       }
       spurious[w] = empty;
@@ -392,6 +456,32 @@ TEST_CASE("move-only tasks (unique_ptr) under MPMC stress") {
     CheckClean(RunPairs<LockFreeQueue<std::unique_ptr<WideTask>>>(4, 50'000));
   }
 }
+// PushMany / TryPopMany: chains of 1..100 tasks (longer than LFREE's 64-task pop chain), the
+// same exactly-once and per-producer FIFO checks, mixed with each other and with lone ops.
+TEST_CASE("PushMany / TryPopMany MPMC stress") {
+  constexpr uint32_t kChain = 100;
+  SUBCASE("LOCK 4x4") { CheckClean(RunMpmc<LockQueue<WideTask>>(4, 4, 250'000, kChain)); }
+  SUBCASE("LOCK pairs") { CheckClean(RunPairs<LockQueue<uint64_t>>(4, 250'000, kChain)); }
+  SUBCASE("LFREE inline 1x1") {
+    CheckClean(RunMpmc<LockFreeQueue<uint64_t>>(1, 1, 500'000, kChain));
+  }
+  SUBCASE("LFREE inline 4x4") {
+    CheckClean(RunMpmc<LockFreeQueue<uint64_t>>(4, 4, 250'000, kChain));
+  }
+  SUBCASE("LFREE inline pairs") {
+    CheckClean(RunPairs<LockFreeQueue<uint64_t>>(8, 125'000, kChain));
+  }
+  SUBCASE("LFREE out-of-line 4x4") {
+    CheckClean(RunMpmc<LockFreeQueue<WideTask>>(4, 4, 100'000, kChain));
+  }
+  SUBCASE("LFREE no node cache, inline pairs") {
+    CheckClean(RunPairs<LfreeNoCache<uint64_t>>(4, 100'000, kChain));
+  }
+  SUBCASE("LFREE move-only pairs") {
+    CheckClean(RunPairs<LockFreeQueue<std::unique_ptr<WideTask>>>(4, 50'000, kChain));
+  }
+}
+
 // Sets the chaos rate for the scope of one test.
 struct Chaos {
   explicit Chaos(uint32_t one_in) {
@@ -413,6 +503,12 @@ TEST_CASE("LFREE with injected preemption between loads and CASes (ABA, reclamat
   }
   SUBCASE("no node cache, out-of-line, 3x3") {
     CheckClean(RunMpmc<LfreeNoCache<WideTask>>(3, 3, 50'000));
+  }
+  // The chain walk reads nodes that others may recycle before its Head CAS.
+  SUBCASE("chains, inline, pairs") { CheckClean(RunPairs<LockFreeQueue<uint64_t>>(4, 50'000, 70)); }
+  SUBCASE("chains, inline, 3x3") { CheckClean(RunMpmc<LockFreeQueue<uint64_t>>(3, 3, 50'000, 70)); }
+  SUBCASE("chains, no node cache, inline, 3x3") {
+    CheckClean(RunMpmc<LfreeNoCache<uint64_t>>(3, 3, 50'000, 70));
   }
 }
 
@@ -730,6 +826,30 @@ void SingleThreadFifo() {
   queue.Push(0, copy);  // const T& overload
   REQUIRE(queue.TryPop(0, out));
   CHECK(out == 42);
+  // PushMany / TryPopMany keep the order, with each other and with lone operations; a
+  // TryPopMany takes what there is, leaves `out` alone past its count, and says 0 on EMPTY.
+  std::vector<uint64_t> in(200);
+  std::vector<uint64_t> got(300, 7);
+  for (uint64_t i = 0; i < 200; ++i) in[i] = 1000 + i;
+  queue.PushMany(0, std::span<uint64_t>(in.data(), 150));
+  queue.Push(0, uint64_t{1150});
+  queue.PushMany(0, std::span<uint64_t>(in.data() + 151, 49));
+  queue.PushMany(0, std::span<uint64_t>());  // nothing
+  REQUIRE(queue.TryPop(0, out));
+  CHECK(out == 1000);
+  CHECK(queue.TryPopMany(0, std::span<uint64_t>(got.data(), 3)) == 3);
+  CHECK(got[0] == 1001);
+  CHECK(got[2] == 1003);
+  CHECK(got[3] == 7);
+  const size_t rest = queue.TryPopMany(0, std::span<uint64_t>(got));
+  CHECK(rest == 196);
+  bool in_order = true;
+  for (size_t i = 0; i < rest; ++i) in_order = in_order && got[i] == 1004 + i;
+  CHECK(in_order);
+  CHECK(got[rest] == 7);
+  CHECK(queue.TryPopMany(0, std::span<uint64_t>(got)) == 0);
+  CHECK(queue.TryPopMany(0, std::span<uint64_t>()) == 0);
+  CHECK_FALSE(queue.TryPop(0, out));
 }
 
 TEST_CASE("FIFO order and EMPTY, single thread") {
