@@ -13,8 +13,9 @@
 #include <chrono>
 #include <deque>
 #include <exception>
-#include <mutex>
 #include <fstream>
+#include <mutex>
+#include <span>
 #include <sstream>
 #include <thread>
 #include <type_traits>
@@ -700,6 +701,9 @@ class QueueImpl final : public HostRenderer::Impl {
     RayStream bounce_out;  // (grouped by light) and the others
     std::vector<RayStream*> popped;
     std::vector<RayStream*> children;
+    // Shared queues: children of the last batch this thread keeps for its next batch (never
+    // in the queue; counted as pushed), so their rays are traced where they were written.
+    std::vector<RayStream*> kept;
     FrameStats stats;
     uint64_t empty_polls = 0;
     uint64_t primary = 0;
@@ -725,9 +729,14 @@ class QueueImpl final : public HostRenderer::Impl {
     size_t count;
   };
 
+  // Tasks one TryPopMany asks for (LFREE takes up to its kMaxPopChain with one Head CAS).
+  static constexpr size_t kPopChunk = 64;
+
   static Q MakeQueue(int n) {
     if constexpr (Q::kKind == QueueKind::kLockFree) {
-      return Q(n, /*reserve_nodes=*/4096);
+      // Node caches as large as they go: a thread's frees then feed its own pushes (its
+      // batches pop about as many tasks as they push), not the shared free list.
+      return Q(n, /*reserve_nodes=*/4096, /*node_cache=*/Q::kMaxNodeCache);
     } else {
       return Q(n);
     }
@@ -809,6 +818,7 @@ class QueueImpl final : public HostRenderer::Impl {
       w->shadow_out.Reserve(batch_rays * std::max<size_t>(lights, 1) + kStreamPad);
       w->bounce_out.Reserve(2 * batch_rays + kStreamPad);
       w->popped.reserve(BatchTasks() + ShadowBatchTasks());
+      w->kept.reserve(BatchTasks() + ShadowBatchTasks());
       const size_t out = w->shadow_out.capacity() + w->bounce_out.capacity();
       w->children.reserve(std::max(tile_pixels, out) / TaskSize() + 2);
     }
@@ -869,8 +879,9 @@ class QueueImpl final : public HostRenderer::Impl {
     return into.view();
   }
 
-  // Pushes the children of one batch (counted first for termination) or of a tile.
-  void PushChildren(Worker& me, int w, int64_t retired) {
+  // Pushes the children of one batch (counted first for termination) or of a tile; the first
+  // `keep` of them go to me.kept instead of the queue.
+  void PushChildren(Worker& me, int w, int64_t retired, size_t keep = 0) {
     if constexpr (kShared) {
       outstanding_.Retire(static_cast<int64_t>(me.children.size()) - retired + 1);
     }
@@ -880,7 +891,8 @@ class QueueImpl final : public HostRenderer::Impl {
     int64_t rays = 0;
     for (const RayStream* child : me.children) rays += static_cast<int64_t>(child->size());
     in_flight_.fetch_add(rays, std::memory_order_relaxed);
-    for (RayStream* child : me.children) queue_.Push(w, std::move(child));
+    me.kept.assign(me.children.begin(), me.children.begin() + static_cast<ptrdiff_t>(keep));
+    queue_.PushMany(w, std::span<RayStream*>(me.children).subspan(keep));  // one operation
     me.children.clear();
   }
 
@@ -1035,7 +1047,17 @@ class QueueImpl final : public HostRenderer::Impl {
     } else {
       me.stats.budget_dropped += me.bounce_out.size();  // the cap: only exponential trees
     }
-    PushChildren(me, w, static_cast<int64_t>(me.popped.size()));
+    // Shared queues: the children the next batch would take are kept (the batch rule of Poll,
+    // in order); the others go to the queue for any thread. LOCAL's queue is the thread's own.
+    size_t keep = 0;
+    if constexpr (kShared) {
+      size_t shadow = 0;
+      for (; keep < me.children.size(); ++keep) {
+        if (keep - shadow >= BatchTasks() || shadow >= ShadowBatchTasks()) break;
+        shadow += IsShadowTask(*me.children[keep]) ? 1 : 0;
+      }
+    }
+    PushChildren(me, w, static_cast<int64_t>(me.popped.size()), keep);
     arena_.Put(w, me.popped.data(), me.popped.size());
     me.popped.clear();
     me.stats.schedule_seconds += Seconds(t0, t1) + Seconds(t2, Clock::now());
@@ -1054,13 +1076,33 @@ class QueueImpl final : public HostRenderer::Impl {
     const size_t shadow_tasks = ShadowBatchTasks();
     const bool pbt = frame_ != nullptr;
     int spins = 0;
+    RayStream* got[kPopChunk];
     for (;;) {
-      RayStream* task = nullptr;
+      // Tasks until a batch of one class is full or the queue is empty, popped several at a
+      // time (TryPopMany: one CAS or one lock for each chunk), never more than either class
+      // could still take, so the batch is what one-by-one pops would have made it.
+      if (!me.kept.empty() && abort_.load(std::memory_order_relaxed)) {
+        arena_.Put(w, me.kept.data(), me.kept.size());  // the frame is abandoned
+        me.kept.clear();
+        return;
+      }
       size_t shadow = 0;  // of the popped tasks
-      while (me.popped.size() - shadow < batch_tasks && shadow < shadow_tasks &&
-             queue_.TryPop(w, task)) {
+      for (RayStream* task : me.kept) {
         me.popped.push_back(task);
         shadow += IsShadowTask(*task) ? 1 : 0;
+      }
+      me.kept.clear();
+      for (;;) {
+        const size_t others = me.popped.size() - shadow;
+        if (others >= batch_tasks || shadow >= shadow_tasks) break;
+        const size_t want =
+            std::min({batch_tasks - others, shadow_tasks - shadow, size_t{kPopChunk}});
+        const size_t n = queue_.TryPopMany(w, std::span<RayStream*>(got, want));
+        for (size_t i = 0; i < n; ++i) {
+          me.popped.push_back(got[i]);
+          shadow += IsShadowTask(*got[i]) ? 1 : 0;
+        }
+        if (n < want) break;
       }
       if (!me.popped.empty()) {
         spins = 0;
@@ -1069,6 +1111,7 @@ class QueueImpl final : public HostRenderer::Impl {
         } catch (...) {
           // Other threads stop polling; the frame is abandoned (End drains the queues).
           abort_.store(true, std::memory_order_relaxed);
+          me.kept.clear();  // if set, a prefix of children
           arena_.Put(w, me.children.data(), me.children.size());
           me.children.clear();
           arena_.Put(w, me.popped.data(), me.popped.size());

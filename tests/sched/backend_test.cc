@@ -227,8 +227,8 @@ void CheckDemandOrder(const HostFrameStats& s, const BackendOptions& o) {
 }
 
 // Rays, tasks and per-thread bookkeeping must add up to the serial frame's counts.
-void CheckStats(const HostFrameStats& s, const BackendOptions& o, const FrameStats& want,
-                size_t expected_tiles) {
+void CheckStats(const HostFrameStats& s, const BackendOptions& o, const RenderOptions& ro,
+                const FrameStats& want, size_t expected_tiles) {
   INFO("backend ", std::string(BackendName(o.kind)), " threads ", o.threads);
   for (int k = 0; k < kNumRayKinds; ++k) CHECK(s.total.rays[k] == want.rays[k]);
   // Tasks (at most task_size = 20 rays of one class each) cover every ray once: the engine
@@ -268,6 +268,17 @@ void CheckStats(const HostFrameStats& s, const BackendOptions& o, const FrameSta
         primary_rays += t.work.rays[0];
       }
       CHECK(primary_rays == want.rays[0]);
+      if (ro.batch >= 4 * ro.task_size && s.total.tasks >= 1000) {
+        // A batch of tasks leaves the queue, and its children enter it, in one operation each
+        // (PushMany / TryPopMany), besides the polls that found the queue empty. (Frames of a
+        // few dozen tasks are all partial batches and tile chunks: no bound there.)
+        uint64_t ops = 0, empty = 0;
+        for (const ThreadStats& t : s.threads) {
+          ops += t.queue_ops;
+          empty += t.empty_polls;
+        }
+        CHECK(ops - std::min(ops, empty) <= s.total.tasks / 2);
+      }
       CHECK(s.primary_tasks * 20 >= want.rays[0]);  // tiles cut into tasks of <= 20 rays
       CHECK(s.primary_tasks <= want.rays[0]);
       CHECK(s.total.budget_dropped == 0);
@@ -397,7 +408,7 @@ void CheckBackend(const Loaded& l, const RenderOptions& ro, References& refs,
                 static_cast<size_t>((ro.height + th - 1) / th);
       }
     }
-    CheckStats(s, o, ref.stats, tiles);
+    CheckStats(s, o, ro, ref.stats, tiles);
     if (more) more(s);
   }
   CHECK(renderer.frames() == static_cast<uint64_t>(frames));
