@@ -301,7 +301,20 @@ class SerialImpl final : public HostRenderer::Impl {
 // once on the way out (the engine splits Shade's output by class, shadow rays grouped by light,
 // and those streams are cut into tasks array by array); the secondary rays are pushed back
 // (LOCAL: to the thread's own queue). That scheduling work is timed as
-// FrameStats::schedule_seconds, apart from the kernels.
+// FrameStats::schedule_seconds, apart from the kernels. Pushes and pops move a batch of tasks
+// in one queue operation (PushMany, TryPopMany).
+//
+// With batches of >= 64 rays (Private()) the queues carry only the surplus of the threads' work
+// instead of every ray: a thread traces the primaries of the tiles it feeds and what its own
+// batches spawn itself, as private generations (Worker::Generation: the current one traced a
+// batch slice at a time, in place; the next one appended to by the engine), and cuts into
+// tasks and pushes only what exceeds kPrivateSlices slices per class, or all of its next
+// generation when a thread of a shared queue found nothing to do (hungry_). Popped tasks are
+// traced as above, their children joining the private rays. So a ray is copied only if it goes
+// through a queue, a tile's rays mostly stay on one core, and a shared queue carries the
+// surplus that balances the threads (LOCAL's surplus waits in the thread's own queue).
+// With smaller batches (the paper's `--task-size 20 --batch 20`) every ray goes through the
+// queue, task by task, as in the paper.
 //
 // Tiles feed the queues: a thread that finds its queue empty takes the next tile (an atomic
 // counter) and pushes its primary tasks, so the tasks in flight are those of about one tile per
@@ -310,8 +323,9 @@ class SerialImpl final : public HostRenderer::Impl {
 // ray trees reach it.
 //
 // Termination with shared queues (LOCK, LFREE): TaskCount (frame_loop.h) counts tasks pushed and
-// not yet processed; a tile's primary tasks are counted before they are pushed, a batch's
-// children before its tasks are retired. A thread leaves when the queue is EMPTY, no tile is
+// not yet processed, plus one for each thread holding private rays; a tile's primary tasks are
+// counted before they are pushed, a batch's children (and a change of hold) before its tasks
+// are retired. A thread leaves when it holds no private rays, the queue is EMPTY, no tile is
 // left and the count is 0. LOCAL needs no counter: nobody else pushes into a thread's queue.
 //
 // PBT (pbt_tiles_per_worker > 0): the tiles and their order come from a TilePlan, as for the
@@ -701,9 +715,26 @@ class QueueImpl final : public HostRenderer::Impl {
     RayStream bounce_out;  // (grouped by light) and the others
     std::vector<RayStream*> popped;
     std::vector<RayStream*> children;
-    // Shared queues: children of the last batch this thread keeps for its next batch (never
-    // in the queue; counted as pushed), so their rays are traced where they were written.
-    std::vector<RayStream*> kept;
+    // Batches of >= 64 rays (Private()): the rays this thread traces
+    // itself, never cut into tasks. `cur` is traced a batch slice at a time; what its slices
+    // and popped tasks spawn is appended to `next`; when cur is done the two swap. Beyond
+    // kPrivateSlices slices per class (or all of next, when a thread is hungry) next's tail
+    // is cut into tasks for the queue.
+    struct Generation {
+      RayStream shadow;
+      RayStream rays;
+      size_t shadow_pos = 0;  // cur: the rays before these are traced
+      size_t rays_pos = 0;
+      size_t Left() const { return shadow.size() - shadow_pos + rays.size() - rays_pos; }
+      void Clear() {
+        shadow.Clear();
+        rays.Clear();
+        shadow_pos = rays_pos = 0;
+      }
+    };
+    Generation cur;
+    Generation next;
+    bool holding = false;  // private rays are counted in outstanding_ as one task
     FrameStats stats;
     uint64_t empty_polls = 0;
     uint64_t primary = 0;
@@ -753,6 +784,16 @@ class QueueImpl final : public HostRenderer::Impl {
     const size_t rays = EngineShadowBatch(ctx_.options, ctx_.scene->lights.size());
     return std::max(BatchTasks(), rays / TaskSize());
   }
+
+  // Threads trace their own rays privately when a batch slice of them keeps the arrays aligned
+  // (slices start at multiples of 64 rays).
+  bool Private() const { return ctx_.options.batch >= 64; }
+  size_t SliceRays() const { return static_cast<size_t>(ctx_.options.batch) / 64 * 64; }
+  size_t ShadowSliceRays() const {
+    return std::max<size_t>(64, ShadowBatchTasks() * TaskSize() / 64 * 64);
+  }
+  // Rays of each class a thread keeps in `next` beyond what one batch spawns.
+  static constexpr size_t kPrivateSlices = 4;
 
   int PbtWorkers() const { return rs::PbtWorkers(options_); }
   TilePlanOptions PlanOptions() const { return TilePlanOptionsFor(options_); }
@@ -818,13 +859,25 @@ class QueueImpl final : public HostRenderer::Impl {
       w->shadow_out.Reserve(batch_rays * std::max<size_t>(lights, 1) + kStreamPad);
       w->bounce_out.Reserve(2 * batch_rays + kStreamPad);
       w->popped.reserve(BatchTasks() + ShadowBatchTasks());
-      w->kept.reserve(BatchTasks() + ShadowBatchTasks());
+
       const size_t out = w->shadow_out.capacity() + w->bounce_out.capacity();
       w->children.reserve(std::max(tile_pixels, out) / TaskSize() + 2);
+      if (Private()) {
+        const size_t shadow = kPrivateSlices * ShadowSliceRays() + w->shadow_out.capacity();
+        const size_t rays =
+            kPrivateSlices * SliceRays() + w->bounce_out.capacity() + tile_pixels;
+        for (auto* g : {&w->cur, &w->next}) {
+          g->Clear();
+          g->shadow.Reserve(shadow);
+          g->rays.Reserve(rays);
+        }
+      }
+      w->holding = false;
     }
     // Published to the threads by the opening barrier (Release), hence relaxed.
     next_tile_.store(0, std::memory_order_relaxed);
     in_flight_.store(0, std::memory_order_relaxed);
+    hungry_.store(false, std::memory_order_relaxed);
     outstanding_.Reset(0);
   }
 
@@ -879,9 +932,8 @@ class QueueImpl final : public HostRenderer::Impl {
     return into.view();
   }
 
-  // Pushes the children of one batch (counted first for termination) or of a tile; the first
-  // `keep` of them go to me.kept instead of the queue.
-  void PushChildren(Worker& me, int w, int64_t retired, size_t keep = 0) {
+  // Pushes the children of one batch (counted first for termination) or of a tile.
+  void PushChildren(Worker& me, int w, int64_t retired) {
     if constexpr (kShared) {
       outstanding_.Retire(static_cast<int64_t>(me.children.size()) - retired + 1);
     }
@@ -891,16 +943,28 @@ class QueueImpl final : public HostRenderer::Impl {
     int64_t rays = 0;
     for (const RayStream* child : me.children) rays += static_cast<int64_t>(child->size());
     in_flight_.fetch_add(rays, std::memory_order_relaxed);
-    me.kept.assign(me.children.begin(), me.children.begin() + static_cast<ptrdiff_t>(keep));
-    queue_.PushMany(w, std::span<RayStream*>(me.children).subspan(keep));  // one operation
+    queue_.PushMany(w, std::span<RayStream*>(me.children));  // one operation for the lot
     me.children.clear();
   }
 
   // Primary rays [first, first + count) of tile i as tasks into the queue (LOCAL: this
-  // thread's own). Tasks start at multiples of task_size within the tile.
+  // thread's own), or (Private()) into the thread's private rays. Tasks start at multiples of
+  // task_size within the tile.
   void PushPrimaries(Worker& me, int w, size_t i, size_t first, size_t count) {
     const auto t0 = Clock::now();
     const Tile& tile = tiles_[i];
+    if (Private()) {
+      // Into the thread's next private generation (KeepChildren shares what exceeds it).
+      RayStream& g = me.next.rays;
+      const size_t at = g.size();
+      g.Resize(at + count);
+      GeneratePrimaryRays(ctx_.camera, tile, ctx_.options.order, first, count, g.view(), at);
+      me.primary += (count + TaskSize() - 1) / TaskSize();
+      me.stats.generate_seconds += Seconds(t0, Clock::now());
+      in_flight_.fetch_add(static_cast<int64_t>(count), std::memory_order_relaxed);
+      KeepChildren(me, w);
+      return;
+    }
     const size_t end = first + count;
     size_t c = me.children.size();
     const size_t tasks = (count + TaskSize() - 1) / TaskSize();
@@ -1018,49 +1082,95 @@ class QueueImpl final : public HostRenderer::Impl {
     }
   }
 
-  // Up to ceil(batch / task_size) tasks through the engine, one stream per class; children
-  // pushed. Everything but the engine's call is scheduling (FrameStats::schedule_seconds).
+  // Up to ceil(batch / task_size) popped tasks, or (me.popped empty) the next slice of the
+  // thread's private generation, through the engine, one stream per class; children pushed
+  // (Private(): appended to the next private generation, its surplus cut into tasks and
+  // pushed). Everything but the engine's call is scheduling (FrameStats::schedule_seconds).
   void ProcessBatch(Worker& me, int w) {
     const auto t0 = Clock::now();
-    int64_t rays = 0;
-    for (RayStream* task : me.popped) rays += static_cast<int64_t>(task->size());
-    const RayStreamView shadow = Gather(me, /*shadow=*/true, me.shadow_in);
-    const RayStreamView others = Gather(me, /*shadow=*/false, me.rays_in);
+    const bool own = me.popped.empty();  // a private slice
+    RayStreamView shadow;
+    RayStreamView others;
+    if (own) {
+      auto& g = me.cur;
+      const size_t ns = std::min(ShadowSliceRays(), g.shadow.size() - g.shadow_pos);
+      const size_t nr = std::min(SliceRays(), g.rays.size() - g.rays_pos);
+      shadow = SubView(g.shadow.view(), g.shadow_pos, ns);
+      others = SubView(g.rays.view(), g.rays_pos, nr);
+      g.shadow_pos += ns;
+      g.rays_pos += nr;
+    } else {
+      shadow = Gather(me, /*shadow=*/true, me.shadow_in);
+      others = Gather(me, /*shadow=*/false, me.rays_in);
+    }
+    const int64_t rays = static_cast<int64_t>(shadow.size + others.size);
     if (frame_ != nullptr) {
       // PBT's work cost: every ray traced is charged to the tile of its pixel.
       for (size_t i = 0; i < shadow.size; ++i) ++me.tile_rays[lookup_.TileOf(shadow.pixel[i])];
       for (size_t i = 0; i < others.size; ++i) ++me.tile_rays[lookup_.TileOf(others.pixel[i])];
     }
-    me.shadow_out.Clear();
-    me.bounce_out.Clear();
+    const bool keep = Private();
+    RayStream& shadow_out = keep ? me.next.shadow : me.shadow_out;
+    RayStream& bounce_out = keep ? me.next.rays : me.bounce_out;
+    if (!keep) {
+      shadow_out.Clear();
+      bounce_out.Clear();
+    }
+    const size_t shadow0 = shadow_out.size();
+    const size_t bounce0 = bounce_out.size();
     const auto t1 = Clock::now();
     const uint64_t tasks0 = me.stats.tasks;
-    me.engine.TraceGeneration(ctx_, shadow, others, *fb_, me.shadow_out, me.bounce_out,
-                              me.stats);
-    me.stats.tasks = tasks0 + me.popped.size();
+    me.engine.TraceGeneration(ctx_, shadow, others, *fb_, shadow_out, bounce_out, me.stats);
+    const size_t ts = TaskSize();
+    me.stats.tasks = tasks0 + (own ? (shadow.size + ts - 1) / ts + (others.size + ts - 1) / ts
+                                   : me.popped.size());
     const auto t2 = Clock::now();
     const int64_t now = in_flight_.fetch_sub(rays, std::memory_order_relaxed) - rays;
-    const size_t spawned = me.shadow_out.size() + me.bounce_out.size();
-    Cut(me, w, me.shadow_out.view());
-    if (now + static_cast<int64_t>(spawned) <= cap_) {
-      Cut(me, w, me.bounce_out.view());
+    size_t spawned = shadow_out.size() - shadow0 + bounce_out.size() - bounce0;
+    if (now + static_cast<int64_t>(spawned) > cap_) {  // the cap: only exponential trees
+      me.stats.budget_dropped += bounce_out.size() - bounce0;
+      spawned -= bounce_out.size() - bounce0;
+      bounce_out.Resize(bounce0);
+    }
+    if (keep) {
+      in_flight_.fetch_add(static_cast<int64_t>(spawned), std::memory_order_relaxed);
+      KeepChildren(me, w);
     } else {
-      me.stats.budget_dropped += me.bounce_out.size();  // the cap: only exponential trees
+      Cut(me, w, shadow_out.view());
+      Cut(me, w, bounce_out.view());
+      PushChildren(me, w, static_cast<int64_t>(me.popped.size()));
     }
-    // Shared queues: the children the next batch would take are kept (the batch rule of Poll,
-    // in order); the others go to the queue for any thread. LOCAL's queue is the thread's own.
-    size_t keep = 0;
-    if constexpr (kShared) {
-      size_t shadow = 0;
-      for (; keep < me.children.size(); ++keep) {
-        if (keep - shadow >= BatchTasks() || shadow >= ShadowBatchTasks()) break;
-        shadow += IsShadowTask(*me.children[keep]) ? 1 : 0;
-      }
-    }
-    PushChildren(me, w, static_cast<int64_t>(me.popped.size()), keep);
     arena_.Put(w, me.popped.data(), me.popped.size());
     me.popped.clear();
     me.stats.schedule_seconds += Seconds(t0, t1) + Seconds(t2, Clock::now());
+  }
+
+  // Private(), after a batch: cuts next's tail beyond kPrivateSlices slices per class (all
+  // of it when another thread is hungry) into tasks and pushes them, with the termination
+  // count adjusted for them, for the retired popped tasks and for the hold on private rays.
+  void KeepChildren(Worker& me, int w) {
+    const bool share = kShared && hungry_.load(std::memory_order_relaxed);
+    if (share) hungry_.store(false, std::memory_order_relaxed);
+    auto& g = me.next;
+    const size_t keep_shadow = share ? 0 : kPrivateSlices * ShadowSliceRays();
+    const size_t keep_rays = share ? 0 : kPrivateSlices * SliceRays();
+    if (g.shadow.size() > keep_shadow) {
+      Cut(me, w, SubView(g.shadow.view(), keep_shadow, g.shadow.size() - keep_shadow));
+      g.shadow.Resize(keep_shadow);
+    }
+    if (g.rays.size() > keep_rays) {
+      Cut(me, w, SubView(g.rays.view(), keep_rays, g.rays.size() - keep_rays));
+      g.rays.Resize(keep_rays);
+    }
+    g.shadow.SealTail();
+    g.rays.SealTail();
+    const bool holding = me.cur.Left() + me.next.Left() > 0;
+    const int64_t net = static_cast<int64_t>(me.children.size()) + (holding ? 1 : 0) -
+                        (me.holding ? 1 : 0) - static_cast<int64_t>(me.popped.size());
+    me.holding = holding;
+    if constexpr (kShared) outstanding_.Retire(net + 1);  // before the children are visible
+    queue_.PushMany(w, std::span<RayStream*>(me.children));
+    me.children.clear();
   }
 
   // Listing 2 on thread w (Poll), then the thread's combined contributions into the image.
@@ -1068,6 +1178,24 @@ class QueueImpl final : public HostRenderer::Impl {
     Worker& me = *workers_[static_cast<size_t>(w)];
     Poll(me, w);
     if constexpr (kShared) me.engine.FlushContributions(*fb_);
+  }
+
+  // ProcessBatch; an exception abandons the frame: other threads stop polling, End drains the
+  // queues, this thread's tasks go back to the arena and its private rays are dropped.
+  void RunBatch(Worker& me, int w) {
+    try {
+      ProcessBatch(me, w);
+    } catch (...) {
+      abort_.store(true, std::memory_order_relaxed);
+      arena_.Put(w, me.children.data(), me.children.size());
+      me.children.clear();
+      arena_.Put(w, me.popped.data(), me.popped.size());
+      me.popped.clear();
+      me.cur.Clear();
+      me.next.Clear();
+      me.holding = false;
+      throw;
+    }
   }
 
   // Listing 2, lines 4-10, on thread w, with batches and tiles feeding the queue.
@@ -1081,17 +1209,26 @@ class QueueImpl final : public HostRenderer::Impl {
       // Tasks until a batch of one class is full or the queue is empty, popped several at a
       // time (TryPopMany: one CAS or one lock for each chunk), never more than either class
       // could still take, so the batch is what one-by-one pops would have made it.
-      if (!me.kept.empty() && abort_.load(std::memory_order_relaxed)) {
-        arena_.Put(w, me.kept.data(), me.kept.size());  // the frame is abandoned
-        me.kept.clear();
-        return;
+      if (me.holding) {
+        // The thread's own rays first: the next slice of the current generation, or the
+        // next generation once the current one is traced.
+        if (abort_.load(std::memory_order_relaxed)) {
+          me.cur.Clear();  // the frame is abandoned
+          me.next.Clear();
+          me.holding = false;
+          return;
+        }
+        if (me.cur.Left() == 0) {
+          std::swap(me.cur, me.next);
+          me.next.Clear();
+        }
+        if (me.cur.Left() > 0) {
+          spins = 0;
+          RunBatch(me, w);
+          continue;
+        }
       }
       size_t shadow = 0;  // of the popped tasks
-      for (RayStream* task : me.kept) {
-        me.popped.push_back(task);
-        shadow += IsShadowTask(*task) ? 1 : 0;
-      }
-      me.kept.clear();
       for (;;) {
         const size_t others = me.popped.size() - shadow;
         if (others >= batch_tasks || shadow >= shadow_tasks) break;
@@ -1106,18 +1243,7 @@ class QueueImpl final : public HostRenderer::Impl {
       }
       if (!me.popped.empty()) {
         spins = 0;
-        try {
-          ProcessBatch(me, w);
-        } catch (...) {
-          // Other threads stop polling; the frame is abandoned (End drains the queues).
-          abort_.store(true, std::memory_order_relaxed);
-          me.kept.clear();  // if set, a prefix of children
-          arena_.Put(w, me.children.data(), me.children.size());
-          me.children.clear();
-          arena_.Put(w, me.popped.data(), me.popped.size());
-          me.popped.clear();
-          throw;
-        }
+        RunBatch(me, w);
         continue;
       }
       ++me.empty_polls;
@@ -1125,6 +1251,8 @@ class QueueImpl final : public HostRenderer::Impl {
       if (pbt ? FeedPbt(me, w) : FeedTile(me, w)) continue;
       if constexpr (!kShared) return;  // LOCAL: nobody else feeds this queue
       if (outstanding_.Done()) return;
+      // Ask the threads with private rays to share them (at their next batch's end).
+      if (!hungry_.load(std::memory_order_relaxed)) hungry_.store(true, std::memory_order_relaxed);
       // Others are still processing tasks that may spawn children. Pause, and give the core
       // away now and then: with more threads than cores the producer may be descheduled.
       if (++spins < 64) {
@@ -1197,6 +1325,7 @@ class QueueImpl final : public HostRenderer::Impl {
   alignas(kQueueFalseSharing) std::atomic<size_t> next_tile_{0};   // tiles_, or PBT's order
   alignas(kQueueFalseSharing) std::atomic<int64_t> in_flight_{0};  // rays in queued tasks
   alignas(kQueueFalseSharing) std::atomic<bool> abort_{false};
+  alignas(kQueueFalseSharing) std::atomic<bool> hungry_{false};  // a thread found no work
   std::unique_ptr<FrameLoop> loop_;  // last: its threads use everything above
 };
 

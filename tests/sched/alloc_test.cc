@@ -115,7 +115,7 @@ TEST_CASE("no heap allocation while a later frame renders, on every host backend
   o.height = 80;
   o.max_depth = 4;
   for (const char* name : {"serial", "lock", "lfree", "local", "tiles"}) {
-    for (const int batch : {20, 1024}) {
+    for (const int batch : {20, 64, 1024}) {
       for (const bool with_lights : {false, true}) {  // shadow rays through light buffers
         INFO("backend ", std::string(name), " batch ", batch, " light buffers ", with_lights);
         BackendOptions b;

@@ -514,6 +514,33 @@ TEST_CASE("procedural scenes: every backend gives the serial framebuffer bit for
   }
 }
 
+// LOCK and LFREE with batches of >= 64 rays trace their own tiles' rays as private
+// generations and push only the surplus (or everything waiting, to a hungry thread). Small
+// batches make the surplus path run on small images; 20-ray batches route every ray through
+// the queue. Each gives the serial framebuffer.
+TEST_CASE("shared queues: private generations, their surplus and hungry threads, bit for bit") {
+  const Loaded l = Load("erw6");
+  const int size = Quick() ? 32 : 64;
+  for (const int batch : {20, 64, 100, 1024}) {
+    RenderOptions ro = Options(size, size, 4);
+    ro.batch = batch;
+    ro.tile_size = 16;
+    References refs(l, ro);
+    for (const BackendKind kind : {BackendKind::kLock, BackendKind::kLockFree}) {
+      for (const int n : {2, 3}) {
+        INFO("batch ", batch, " threads ", n);
+        uint64_t pushed_or_popped = 0;
+        CheckBackend(l, ro, refs, Backend(kind, n), 2, 1.0f, [&](const HostFrameStats& s) {
+          for (const ThreadStats& t : s.threads) pushed_or_popped += t.queue_ops - t.empty_polls;
+        });
+        // 64-ray slices keep 256 rays of each class: a 16x16 tile's primaries alone exceed
+        // that, so tasks went through the queue.
+        if (batch <= 64) CHECK(pushed_or_popped > 0);
+      }
+    }
+  }
+}
+
 TEST_CASE("shared scenes: every backend bit-identical at 1, 2 and 4 threads") {
   struct Shared {
     const char* name;
