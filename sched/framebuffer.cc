@@ -86,10 +86,13 @@ void PixelSumTable::Add(Framebuffer& fb, std::mutex& lock, const uint32_t* pixel
                         const float* g, const float* b, const int32_t* skip, size_t n) {
   Reserve();
   constexpr uint32_t kMask = kSlots - 1;
+  static_assert(kSlots == 4096, "the slot of a pixel below takes 9 + 3 bits");
   ForFixedContributions(r, g, b, skip, n, &nan_, &clamped_, [&](size_t i, const int64_t f[3]) {
     if ((f[0] | f[1] | f[2]) == 0) return;  // skipped, dropped or black
     const uint32_t p = pixel[i];
-    uint32_t slot = (p * 0x9E3779B1u) >> 20;  // 12 bits: kSlots
+    // Runs of 8 neighbouring pixels share a bucket of 8 slots (one line of keys), buckets
+    // spread by a Fibonacci hash of p / 8: a shade chunk's pixels come in runs.
+    uint32_t slot = (((p >> 3) * 0x9E3779B1u) >> 23) << 3 | (p & 7);  // 9 + 3 bits: kSlots
     while (keys_[slot] != p && keys_[slot] != kEmpty) slot = (slot + 1) & kMask;
     int64_t* sum = sums_.data() + 3 * size_t(slot);
     if (keys_[slot] != kEmpty) {

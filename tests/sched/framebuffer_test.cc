@@ -369,6 +369,38 @@ TEST_CASE("PixelSumTable: the sums and counters of Framebuffer::Add, across flus
   }
 }
 
+TEST_CASE("PixelSumTable: runs of neighbouring pixels, as a renderer's tiles send them") {
+  // Slots are buckets of 8 neighbouring pixels: 32x32 tiles of a 1024-wide image, each tile's
+  // pixels five times over (a light after another), rows 1024 apart and tiles 32 apart.
+  const int w = 1024, h = 128;
+  std::vector<uint32_t> pixel;
+  for (int ty = 0; ty < h; ty += 32) {
+    for (int tx = 0; tx < w; tx += 32) {
+      for (int light = 0; light < 5; ++light) {
+        for (int y = ty; y < ty + 32; ++y) {
+          for (int x = tx; x < tx + 32; ++x) pixel.push_back(uint32_t(y * w + x));
+        }
+      }
+    }
+  }
+  std::vector<float> r(pixel.size()), g(pixel.size()), b(pixel.size());
+  for (size_t i = 0; i < pixel.size(); ++i) {
+    r[i] = 0.001f * float(i % 977);
+    g[i] = 0.5f;
+    b[i] = float(i % 3);
+  }
+  Framebuffer direct(w, h), combined(w, h);
+  direct.Add(pixel.data(), r.data(), g.data(), b.data(), nullptr, pixel.size());
+  std::mutex lock;
+  PixelSumTable table;
+  for (size_t i = 0; i < pixel.size(); i += 1000) {
+    const size_t n = std::min<size_t>(1000, pixel.size() - i);
+    table.Add(combined, lock, &pixel[i], &r[i], &g[i], &b[i], nullptr, n);
+  }
+  table.Flush(combined, lock);
+  CHECK(std::memcmp(direct.sums(), combined.sums(), size_t(w * h) * 3 * sizeof(int64_t)) == 0);
+}
+
 TEST_CASE("PixelSumTable: a busy lock delays the flush to 7/8 full, same sums") {
   const int w = 100, h = 100;
   const ContributionArrays c = HostileContributions(20000, uint32_t(w * h), 9);
