@@ -715,11 +715,11 @@ class QueueImpl final : public HostRenderer::Impl {
     RayStream bounce_out;  // (grouped by light) and the others
     std::vector<RayStream*> popped;
     std::vector<RayStream*> children;
-    // Batches of >= 64 rays (Private()): the rays this thread traces
-    // itself, never cut into tasks. `cur` is traced a batch slice at a time; what its slices
-    // and popped tasks spawn is appended to `next`; when cur is done the two swap. Beyond
-    // kPrivateSlices slices per class (or all of next, when a thread is hungry) next's tail
-    // is cut into tasks for the queue.
+    // Batches of >= 64 rays (Private()): the rays this thread traces itself, never cut into
+    // tasks. `cur` is traced a batch slice at a time; what its slices and popped tasks spawn
+    // is appended to `next`; when cur is done the two swap. Beyond kPrivateSlices slices per
+    // class (or all of next, when a thread is hungry) next's tail is cut into tasks for the
+    // queue.
     struct Generation {
       RayStream shadow;
       RayStream rays;
@@ -735,6 +735,11 @@ class QueueImpl final : public HostRenderer::Impl {
     Generation cur;
     Generation next;
     bool holding = false;  // private rays are counted in outstanding_ as one task
+    void DropPrivate() {  // an abandoned frame's
+      cur.Clear();
+      next.Clear();
+      holding = false;
+    }
     FrameStats stats;
     uint64_t empty_polls = 0;
     uint64_t primary = 0;
@@ -1191,9 +1196,7 @@ class QueueImpl final : public HostRenderer::Impl {
       me.children.clear();
       arena_.Put(w, me.popped.data(), me.popped.size());
       me.popped.clear();
-      me.cur.Clear();
-      me.next.Clear();
-      me.holding = false;
+      me.DropPrivate();
       throw;
     }
   }
@@ -1206,16 +1209,11 @@ class QueueImpl final : public HostRenderer::Impl {
     int spins = 0;
     RayStream* got[kPopChunk];
     for (;;) {
-      // Tasks until a batch of one class is full or the queue is empty, popped several at a
-      // time (TryPopMany: one CAS or one lock for each chunk), never more than either class
-      // could still take, so the batch is what one-by-one pops would have made it.
       if (me.holding) {
         // The thread's own rays first: the next slice of the current generation, or the
         // next generation once the current one is traced.
         if (abort_.load(std::memory_order_relaxed)) {
-          me.cur.Clear();  // the frame is abandoned
-          me.next.Clear();
-          me.holding = false;
+          me.DropPrivate();  // the frame is abandoned
           return;
         }
         if (me.cur.Left() == 0) {
@@ -1228,6 +1226,9 @@ class QueueImpl final : public HostRenderer::Impl {
           continue;
         }
       }
+      // Tasks until a batch of one class is full or the queue is empty, popped several at a
+      // time (TryPopMany: one CAS or one lock for each chunk), never more than either class
+      // could still take, so the batch is what one-by-one pops would have made it.
       size_t shadow = 0;  // of the popped tasks
       for (;;) {
         const size_t others = me.popped.size() - shadow;

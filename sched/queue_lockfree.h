@@ -296,32 +296,24 @@ class LockFreeQueue {
 
   // M&S dequeue of one task (D1-D19), untimed.
   bool Dequeue(int worker, T& out) noexcept {
-    for (;;) {
-      uint64_t head = head_.load(std::memory_order_acquire);                       // D2
-      uint64_t tail = tail_.load(std::memory_order_acquire);                       // D3
-      const uint64_t next = At(Index(head)).next.load(std::memory_order_acquire);  // D4
-      if (head != head_.load(std::memory_order_acquire)) continue;  // D5: consistent?
-      if (Index(head) == Index(tail)) {                             // D6
-        if (Index(next) == kNull) return false;                     // D7-D8: empty
-        // D10: Tail lags behind a linked node; help it along before Head may pass it.
-        tail_.compare_exchange_strong(tail, Pack(Tag(tail) + 1, Index(next)),
-                                      std::memory_order_acq_rel, std::memory_order_relaxed);
-        continue;
-      }
-      if (Index(next) == kNull) continue;  // cannot happen when Head was stable; re-read
-      Node& second = At(Index(next));
-      if constexpr (kInlineTask) {
-        // D12: read before the CAS; after it `second` may become the dummy and be recycled.
-        const uint64_t bits = second.payload.bits.load(std::memory_order_relaxed);
-        RS_QUEUE_CHAOS_POINT("dequeue");
-        if (head_.compare_exchange_strong(head, Pack(Tag(head) + 1, Index(next)),
-                                          std::memory_order_acq_rel,
-                                          std::memory_order_relaxed)) {  // D13
-          out = FromBits(bits);
-          FreeNode(worker, Index(head));  // D19, safe: see point 1 in the class comment
-          return true;
+    if constexpr (kInlineTask) {
+      // The walk of one node (D12: the task is read before the CAS).
+      return DequeueChain(worker, std::span<T>(&out, 1)) == 1;
+    } else {
+      for (;;) {
+        uint64_t head = head_.load(std::memory_order_acquire);                       // D2
+        uint64_t tail = tail_.load(std::memory_order_acquire);                       // D3
+        const uint64_t next = At(Index(head)).next.load(std::memory_order_acquire);  // D4
+        if (head != head_.load(std::memory_order_acquire)) continue;  // D5: consistent?
+        if (Index(head) == Index(tail)) {                             // D6
+          if (Index(next) == kNull) return false;                     // D7-D8: empty
+          // D10: Tail lags behind a linked node; help it along before Head may pass it.
+          tail_.compare_exchange_strong(tail, Pack(Tag(tail) + 1, Index(next)),
+                                        std::memory_order_acq_rel, std::memory_order_relaxed);
+          continue;
         }
-      } else {
+        if (Index(next) == kNull) continue;  // cannot happen when Head was stable; re-read
+        Node& second = At(Index(next));
         RS_QUEUE_CHAOS_POINT("dequeue");
         if (head_.compare_exchange_strong(head, Pack(Tag(head) + 1, Index(next)),
                                           std::memory_order_acq_rel,
@@ -340,23 +332,24 @@ class LockFreeQueue {
     }
   }
 
-  // The walk of TryPopMany: up to min(out.size(), kMaxPopChain) tasks with one Head CAS.
-  // Returns how many; 0 only when the queue was empty. Inline tasks only.
+  // M&S dequeue of up to min(out.size(), kMaxPopChain) inline tasks with one Head CAS
+  // (TryPopMany's walk; TryPop's with one). Returns how many; 0 only when the queue was empty.
   size_t DequeueChain(int worker, std::span<T> out) noexcept {
     const size_t want = out.size() < kMaxPopChain ? out.size() : kMaxPopChain;
     uint64_t bits[kMaxPopChain];
     for (;;) {
-      uint64_t head = head_.load(std::memory_order_acquire);
-      uint64_t tail = tail_.load(std::memory_order_acquire);
-      const uint64_t next = At(Index(head)).next.load(std::memory_order_acquire);
-      if (head != head_.load(std::memory_order_acquire)) continue;
-      if (Index(head) == Index(tail)) {
-        if (Index(next) == kNull) return 0;
+      uint64_t head = head_.load(std::memory_order_acquire);                       // D2
+      uint64_t tail = tail_.load(std::memory_order_acquire);                       // D3
+      const uint64_t next = At(Index(head)).next.load(std::memory_order_acquire);  // D4
+      if (head != head_.load(std::memory_order_acquire)) continue;  // D5: consistent?
+      if (Index(head) == Index(tail)) {                             // D6
+        if (Index(next) == kNull) return 0;                         // D7-D8: empty
+        // D10: Tail lags behind a linked node; help it along before Head may pass it.
         tail_.compare_exchange_strong(tail, Pack(Tag(tail) + 1, Index(next)),
                                       std::memory_order_acq_rel, std::memory_order_relaxed);
         continue;
       }
-      if (Index(next) == kNull) continue;
+      if (Index(next) == kNull) continue;  // cannot happen when Head was stable; re-read
       // Stale reads in the walk (Head moved meanwhile) read live nodes (point 1) and are
       // discarded when the CAS fails; the walk is bounded by `want`, so it ends regardless.
       uint32_t last = Index(next);
@@ -370,8 +363,8 @@ class LockFreeQueue {
       }
       RS_QUEUE_CHAOS_POINT("dequeue");
       if (head_.compare_exchange_strong(head, Pack(Tag(head) + 1, last), std::memory_order_acq_rel,
-                                        std::memory_order_relaxed)) {
-        // The old dummy and every node taken but the last (the new dummy) are free. Each
+                                        std::memory_order_relaxed)) {  // D13
+        // D19: the old dummy and every node taken but the last (the new dummy) are free. Each
         // `next` is read before its node goes to the cache, whose overflow may hand it on.
         uint32_t node = Index(head);
         for (size_t i = 0; i < n; ++i) {

@@ -250,6 +250,16 @@ struct ChainSizes {
   }
 };
 
+// PushMany of producer's tasks first .. first + n - 1, built in `batch`.
+template <class Q, class T = typename Q::value_type>
+void PushChain(Q& queue, int producer, uint32_t first, uint32_t n, std::vector<T>& batch) {
+  batch.clear();
+  for (uint32_t i = 0; i < n; ++i) {
+    batch.push_back(Codec<T>::Make(static_cast<uint32_t>(producer), first + i));
+  }
+  queue.PushMany(producer, std::span<T>(batch));
+}
+
 // `producers` threads push per_producer tasks each while `consumers` threads pop until all
 // producers are done and the queue is empty. Workers 0..P-1 produce, P..P+C-1 consume.
 // chain > 0: PushMany and TryPopMany of 1..chain tasks instead of Push and TryPop.
@@ -277,11 +287,7 @@ StressResult RunMpmc(int producers, int consumers, uint32_t per_producer, uint32
         std::vector<T> batch;
         for (uint32_t s = 0; s < per_producer;) {
           const uint32_t n = std::min(sizes.Next(), per_producer - s);
-          batch.clear();
-          for (uint32_t i = 0; i < n; ++i) {
-            batch.push_back(Codec<T>::Make(static_cast<uint32_t>(p), s + i));
-          }
-          queue.PushMany(p, std::span<T>(batch));
+          PushChain(queue, p, s, n, batch);
           s += n;
         }
       }
@@ -370,11 +376,7 @@ StressResult RunPairs(int threads_n, uint32_t per_thread, uint32_t chain = 0) {
         std::vector<T> got(chain);
         for (uint32_t s = 0; s < per_thread;) {
           const uint32_t n = std::min(sizes.Next(), per_thread - s);
-          batch.clear();
-          for (uint32_t i = 0; i < n; ++i) {
-            batch.push_back(Codec<T>::Make(static_cast<uint32_t>(w), s + i));
-          }
-          queue.PushMany(w, std::span<T>(batch));
+          PushChain(queue, w, s, n, batch);
           s += n;
           const size_t k = queue.TryPopMany(w, std::span<T>(got.data(), n));
           for (size_t i = 0; i < k; ++i) me.Take(got[i]);
