@@ -623,11 +623,11 @@ class QueueImpl final : public HostRenderer::Impl {
       : Impl(options), queue_(MakeQueue(options.threads)) {
     for (int w = 0; w < options.threads; ++w) {
       workers_.push_back(std::make_unique<Worker>());
-      // LOCAL: nobody else pushes into a thread's queue, so a tile's rays (and its pixels' adds)
-      // stay on the thread that took the tile.
-      workers_.back()->engine.SetSharedPixels(kShared);
-      // LOCK, LFREE: every thread adds to every tile's pixels; each sums its contributions per
-      // pixel and adds them a table at a time under pixel_lock_ (Work flushes the rest).
+      // Plain framebuffer adds (Load): LOCAL, because nobody else pushes into a thread's queue,
+      // so a tile's rays (and its pixels' adds) stay on the thread that took the tile; LOCK and
+      // LFREE until a thread pushes or pops a task (Share). From then on it sums its
+      // contributions per pixel and adds them a table at a time under pixel_lock_ (Work
+      // flushes the rest).
       workers_.back()->engine.SetCombinePixels(kShared ? &pixel_lock_ : nullptr);
     }
     feeds_ = std::make_unique<Feed[]>(static_cast<size_t>(options.threads));
@@ -685,6 +685,7 @@ class QueueImpl final : public HostRenderer::Impl {
       t.idle_seconds = loop_->times()[static_cast<size_t>(w)].idle_seconds;
       t.cpu_seconds = loop_->times()[static_cast<size_t>(w)].cpu_seconds;
       t.empty_polls = me.empty_polls;
+      t.table_adds = me.engine.table_adds();
       t.tiles = me.tiles;
       t.steals = me.steals;
       if constexpr (kTimed) {
@@ -735,6 +736,9 @@ class QueueImpl final : public HostRenderer::Impl {
     Generation cur;
     Generation next;
     bool holding = false;  // private rays are counted in outstanding_ as one task
+    // Shared queues: no task pushed or popped yet this frame, so no other thread adds to the
+    // pixels this one adds to (Share)
+    bool exclusive = false;
     void DropPrivate() {  // an abandoned frame's
       cur.Clear();
       next.Clear();
@@ -818,6 +822,9 @@ class QueueImpl final : public HostRenderer::Impl {
       me.no_tiles = false;
       me.engine.Reserve(ctx_);
       me.engine.DiscardContributions();  // an abandoned frame's, if any
+      me.exclusive = kShared;
+      me.engine.ResetTableAdds();
+      me.engine.SetSharedPixels(false);  // until Share
     }
     // PBT's cost map: each thread's engine charges its rays to its own record (the pixels'
     // global indices; each primary traced once, by whoever popped it).
@@ -948,6 +955,7 @@ class QueueImpl final : public HostRenderer::Impl {
     int64_t rays = 0;
     for (const RayStream* child : me.children) rays += static_cast<int64_t>(child->size());
     in_flight_.fetch_add(rays, std::memory_order_relaxed);
+    if (!me.children.empty()) Share(me);
     queue_.PushMany(w, std::span<RayStream*>(me.children));  // one operation for the lot
     me.children.clear();
   }
@@ -1174,8 +1182,21 @@ class QueueImpl final : public HostRenderer::Impl {
                         (me.holding ? 1 : 0) - static_cast<int64_t>(me.popped.size());
     me.holding = holding;
     if constexpr (kShared) outstanding_.Retire(net + 1);  // before the children are visible
+    if (!me.children.empty()) Share(me);
     queue_.PushMany(w, std::span<RayStream*>(me.children));
     me.children.clear();
+  }
+
+  // Shared queues: a thread adds its contributions to the framebuffer directly (plain adds, as
+  // LOCAL) while no other thread can add to the same pixels: its tiles and PBT chunks are its
+  // own, and their rays reach another thread only through the queue. From its first push or
+  // pop of the frame on, its adds go through its PixelSumTable. Its earlier plain adds
+  // happen before the push (release) and hence before any popper's flush (acquire, then
+  // pixel_lock_); after it, every add to a pixel another thread may reach is under the lock.
+  void Share(Worker& me) {
+    if (!me.exclusive) return;
+    me.exclusive = false;
+    me.engine.SetSharedPixels(true);
   }
 
   // Listing 2 on thread w (Poll), then the thread's combined contributions into the image.
@@ -1236,6 +1257,7 @@ class QueueImpl final : public HostRenderer::Impl {
         const size_t want =
             std::min({batch_tasks - others, shadow_tasks - shadow, size_t{kPopChunk}});
         const size_t n = queue_.TryPopMany(w, std::span<RayStream*>(got, want));
+        if (n > 0) Share(me);
         for (size_t i = 0; i < n; ++i) {
           me.popped.push_back(got[i]);
           shadow += IsShadowTask(*got[i]) ? 1 : 0;
@@ -1821,6 +1843,7 @@ Json FrameJson(const HostFrameStats& f, const StatsFields& frame_extra,
                {"queue_seconds", t.queue_seconds},
                {"queue_ops", t.queue_ops},
                {"empty_polls", t.empty_polls},
+               {"table_adds", t.table_adds},
                {"tasks", t.work.tasks},
                {"tiles", t.tiles},
                {"steals", t.steals},

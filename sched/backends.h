@@ -110,6 +110,9 @@ struct ThreadStats {
   double queue_seconds = 0;  // inside queue operations / tile-counter accesses (Fig. 7)
   uint64_t queue_ops = 0;
   uint64_t empty_polls = 0;  // TryPop calls that found EMPTY
+  // LOCK, LFREE: contributions added through the thread's pixel-sum table (after its first
+  // push or pop of the frame); the others were plain adds
+  uint64_t table_adds = 0;
   uint64_t tiles = 0;        // tiles rendered (tiles backend) / taken to feed (queues + PBT)
   uint64_t steals = 0;       // PBT with pbt_steal: tiles taken from another worker's list;
                              // pbt_demand: tiles the master gave from another thread's lists

@@ -224,6 +224,9 @@ void RayEngine::AddContributions(Framebuffer& fb, const uint32_t* pixel, const f
                                  &local_clamped_);
   } else if (shared_pixels_ && combine_lock_ != nullptr) {
     combined_.Add(fb, *combine_lock_, pixel, r, g, b, skip, n);
+    size_t added = n;
+    if (skip != nullptr) added = static_cast<size_t>(std::count(skip, skip + n, 0));
+    table_adds_ += added;
   } else if (shared_pixels_) {
     fb.Add(pixel, r, g, b, skip, n);
   } else {

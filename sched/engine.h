@@ -80,9 +80,10 @@ class RayEngine {
   void SetBlockWork(BlockWork* sink) { block_work_ = sink; }
 
   // TraceGeneration's framebuffer adds: true (the default) atomic, as rays of one pixel may be
-  // traced by several threads; false plain, for a caller whose pixels no other thread adds to
-  // during the frame (LOCAL: a tile's whole ray tree stays on the thread that took it). The
-  // sums are the same either way.
+  // traced by several threads; false plain, while no other thread adds to the caller's pixels
+  // (LOCAL: a tile's whole ray tree stays on the thread that took it; LOCK and LFREE until the
+  // thread pushes or pops a task). May change between calls. The sums are the same either
+  // way.
   void SetSharedPixels(bool shared) { shared_pixels_ = shared; }
 
   // Shared pixels, non-null `lock`: TraceGeneration sums its contributions per pixel in the
@@ -100,6 +101,9 @@ class RayEngine {
     if (combine_lock_ != nullptr) combined_.Flush(fb, *combine_lock_);
   }
   void DiscardContributions() { combined_.Clear(); }
+  // Contributions (not skipped) added through the PixelSumTable since the last reset.
+  uint64_t table_adds() const { return table_adds_; }
+  void ResetTableAdds() { table_adds_ = 0; }
 
  private:
   // Intersects rays (no shadow rays), shades them in sub-chunks; each sub-chunk's bounce rays
@@ -146,6 +150,7 @@ class RayEngine {
   bool shared_pixels_ = true;  // TraceGeneration: atomic framebuffer adds
   std::mutex* combine_lock_ = nullptr;  // ... combined per pixel in combined_ first
   PixelSumTable combined_;
+  uint64_t table_adds_ = 0;
   std::vector<int64_t> local_sums_;     // 3 per primary ray of the batch
   std::vector<uint32_t> batch_pixels_;  // the batch's pixels
   uint64_t local_nan_ = 0, local_clamped_ = 0;

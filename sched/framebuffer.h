@@ -252,8 +252,8 @@ class Framebuffer {
 // when 7/8 full, and in Flush. The same
 // sums and counters as Framebuffer::Add (integer addition is associative; NaN drops and clamps
 // are counted per contribution). 4096 slots (128 KiB), allocated by Reserve (or the first
-// Add); nothing after. Not thread-safe: one per thread; every thread adding to the framebuffer during the
-// frame must go through a table with the same mutex.
+// Add); nothing after. Not thread-safe: one per thread; every thread adding to pixels another
+// thread may also add to during the frame must go through a table with the same mutex.
 class PixelSumTable {
  public:
   static constexpr size_t kSlots = 4096;  // a power of two

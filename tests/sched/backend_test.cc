@@ -517,7 +517,8 @@ TEST_CASE("procedural scenes: every backend gives the serial framebuffer bit for
 // LOCK and LFREE with batches of >= 64 rays trace their own tiles' rays as private
 // generations and push only the surplus (or everything waiting, to a hungry thread). Small
 // batches make the surplus path run on small images; 20-ray batches route every ray through
-// the queue. Each gives the serial framebuffer.
+// the queue. Each gives the serial framebuffer. A thread adds to the framebuffer directly
+// until it pushes or pops a task, then through its pixel-sum table (table_adds).
 TEST_CASE("shared queues: private generations, their surplus and hungry threads, bit for bit") {
   const Loaded l = Load("erw6");
   const int size = Quick() ? 32 : 64;
@@ -527,15 +528,24 @@ TEST_CASE("shared queues: private generations, their surplus and hungry threads,
     ro.tile_size = 16;
     References refs(l, ro);
     for (const BackendKind kind : {BackendKind::kLock, BackendKind::kLockFree}) {
-      for (const int n : {2, 3}) {
+      for (const int n : {1, 2, 3}) {
         INFO("batch ", batch, " threads ", n);
-        uint64_t pushed_or_popped = 0;
+        uint64_t pushed_or_popped = 0, table_adds = 0, rays = 0;
         CheckBackend(l, ro, refs, Backend(kind, n), 2, 1.0f, [&](const HostFrameStats& s) {
-          for (const ThreadStats& t : s.threads) pushed_or_popped += t.queue_ops - t.empty_polls;
+          for (const ThreadStats& t : s.threads) {
+            pushed_or_popped += t.queue_ops - t.empty_polls;
+            table_adds += t.table_adds;
+            rays += t.work.TotalRays();
+          }
         });
         // 64-ray slices keep 256 rays of each class: a 16x16 tile's primaries alone exceed
         // that, so tasks went through the queue.
         if (batch <= 64) CHECK(pushed_or_popped > 0);
+        // 20-ray batches: every ray is pushed, so every contribution goes through a table. One
+        // thread with 1024-ray batches keeps a 16x16 tile's tree private: none does.
+        if (batch == 20) CHECK(table_adds > 0);
+        if (batch == 1024 && n == 1) CHECK(table_adds == 0);
+        CHECK(table_adds <= 2 * rays);  // at most one per ray traced (two frames)
       }
     }
   }
