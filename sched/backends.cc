@@ -955,8 +955,14 @@ class QueueImpl final : public HostRenderer::Impl {
     int64_t rays = 0;
     for (const RayStream* child : me.children) rays += static_cast<int64_t>(child->size());
     in_flight_.fetch_add(rays, std::memory_order_relaxed);
+    PushOut(me, w);
+  }
+
+  // me.children into the queue, one operation for the lot (Share first: once they are
+  // visible, other threads may add to their pixels).
+  void PushOut(Worker& me, int w) {
     if (!me.children.empty()) Share(me);
-    queue_.PushMany(w, std::span<RayStream*>(me.children));  // one operation for the lot
+    queue_.PushMany(w, std::span<RayStream*>(me.children));
     me.children.clear();
   }
 
@@ -1182,9 +1188,7 @@ class QueueImpl final : public HostRenderer::Impl {
                         (me.holding ? 1 : 0) - static_cast<int64_t>(me.popped.size());
     me.holding = holding;
     if constexpr (kShared) outstanding_.Retire(net + 1);  // before the children are visible
-    if (!me.children.empty()) Share(me);
-    queue_.PushMany(w, std::span<RayStream*>(me.children));
-    me.children.clear();
+    PushOut(me, w);
   }
 
   // Shared queues: a thread adds its contributions to the framebuffer directly (plain adds, as

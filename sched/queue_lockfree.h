@@ -294,6 +294,26 @@ class LockFreeQueue {
     return chunks_[k].load(std::memory_order_acquire)[index - ChunkFirst(k)];
   }
 
+  // D2-D10 of M&S dequeue: Head, Tail and Head's next read consistently, with Head != Tail and
+  // a non-null next (a lagging Tail is helped along first). False: the queue was empty.
+  bool Snapshot(uint64_t& head, uint64_t& tail, uint64_t& next) noexcept {
+    for (;;) {
+      head = head_.load(std::memory_order_acquire);                 // D2
+      tail = tail_.load(std::memory_order_acquire);                 // D3
+      next = At(Index(head)).next.load(std::memory_order_acquire);  // D4
+      if (head != head_.load(std::memory_order_acquire)) continue;  // D5: consistent?
+      if (Index(head) == Index(tail)) {                             // D6
+        if (Index(next) == kNull) return false;                     // D7-D8: empty
+        // D10: Tail lags behind a linked node; help it along before Head may pass it.
+        tail_.compare_exchange_strong(tail, Pack(Tag(tail) + 1, Index(next)),
+                                      std::memory_order_acq_rel, std::memory_order_relaxed);
+        continue;
+      }
+      if (Index(next) == kNull) continue;  // cannot happen when Head was stable; re-read
+      return true;
+    }
+  }
+
   // M&S dequeue of one task (D1-D19), untimed.
   bool Dequeue(int worker, T& out) noexcept {
     if constexpr (kInlineTask) {
@@ -301,18 +321,8 @@ class LockFreeQueue {
       return DequeueChain(worker, std::span<T>(&out, 1)) == 1;
     } else {
       for (;;) {
-        uint64_t head = head_.load(std::memory_order_acquire);                       // D2
-        uint64_t tail = tail_.load(std::memory_order_acquire);                       // D3
-        const uint64_t next = At(Index(head)).next.load(std::memory_order_acquire);  // D4
-        if (head != head_.load(std::memory_order_acquire)) continue;  // D5: consistent?
-        if (Index(head) == Index(tail)) {                             // D6
-          if (Index(next) == kNull) return false;                     // D7-D8: empty
-          // D10: Tail lags behind a linked node; help it along before Head may pass it.
-          tail_.compare_exchange_strong(tail, Pack(Tag(tail) + 1, Index(next)),
-                                        std::memory_order_acq_rel, std::memory_order_relaxed);
-          continue;
-        }
-        if (Index(next) == kNull) continue;  // cannot happen when Head was stable; re-read
+        uint64_t head, tail, next;
+        if (!Snapshot(head, tail, next)) return false;
         Node& second = At(Index(next));
         RS_QUEUE_CHAOS_POINT("dequeue");
         if (head_.compare_exchange_strong(head, Pack(Tag(head) + 1, Index(next)),
@@ -338,18 +348,8 @@ class LockFreeQueue {
     const size_t want = out.size() < kMaxPopChain ? out.size() : kMaxPopChain;
     uint64_t bits[kMaxPopChain];
     for (;;) {
-      uint64_t head = head_.load(std::memory_order_acquire);                       // D2
-      uint64_t tail = tail_.load(std::memory_order_acquire);                       // D3
-      const uint64_t next = At(Index(head)).next.load(std::memory_order_acquire);  // D4
-      if (head != head_.load(std::memory_order_acquire)) continue;  // D5: consistent?
-      if (Index(head) == Index(tail)) {                             // D6
-        if (Index(next) == kNull) return 0;                         // D7-D8: empty
-        // D10: Tail lags behind a linked node; help it along before Head may pass it.
-        tail_.compare_exchange_strong(tail, Pack(Tag(tail) + 1, Index(next)),
-                                      std::memory_order_acq_rel, std::memory_order_relaxed);
-        continue;
-      }
-      if (Index(next) == kNull) continue;  // cannot happen when Head was stable; re-read
+      uint64_t head, tail, next;
+      if (!Snapshot(head, tail, next)) return 0;
       // Stale reads in the walk (Head moved meanwhile) read live nodes (point 1) and are
       // discarded when the CAS fails; the walk is bounded by `want`, so it ends regardless.
       uint32_t last = Index(next);
