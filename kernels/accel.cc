@@ -171,7 +171,6 @@ void Accel::Rebuild(const MeshView& mesh, const BuildOptions& options) {
   m.built = false;
   // Free every structure into the cache (the blocks stay mapped), then build taking them back.
   m.triangles = TriangleSoA();
-  m.vertex_table.Invalidate();
   m.grid = Grid();
   m.two_level = TwoLevelGrid();
   m.irregular = IrregularGrid();
@@ -359,7 +358,7 @@ AccelInfo Accel::Info() const {
   info.references = m.grid.num_refs;
   info.max_per_cell = m.grid.max_per_cell;
   info.build_seconds = m.build_seconds;
-  info.bytes = m.triangles.Bytes() + m.vertex_table.Bytes() + m.grid.Bytes() +
+  info.bytes = m.triangles.Bytes() + m.grid.Bytes() +
                m.two_level.Bytes() + m.dda.Bytes() + m.irregular.Bytes() + m.irregular_dda.Bytes();
   info.irregular_cells = m.irregular.num_cells;
   info.irregular_references = m.irregular.lists.num_refs;

@@ -19,7 +19,6 @@ struct Accel::Impl {
                            // (Accel::Rebuild takes their blocks back) and freed before it
   bool built = false;      // false after a Rebuild that threw
   TriangleSoA triangles;   // indexed by the mesh's triangle ids (degenerate ones flagged)
-  TriangleVertexTable vertex_table;  // of `triangles`, built by the first LightBuffer
   Grid grid;               // empty (num_cells = 0) when no triangle can be hit; always a
                            // complete flat grid (also when two_level refines some cells)
   TwoLevelGrid two_level;  // empty for a flat grid

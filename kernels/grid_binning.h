@@ -86,12 +86,6 @@ void SimdDegenerateFlags(TriangleSoA* tris);
 void SimdDegenerateFlags(TriangleSoA* tris, size_t first, size_t last, size_t* degenerate,
                          size_t* nonfinite);
 
-// dst[k][a][i] = mesh.positions[mesh.indices[3 i + k] * mesh.stride + a] for i in [first, last)
-// (the triangle gather of BuildTriangleSoA), a vector of triangles at a time with gathers where
-// the offsets fit in 32 bits, else (and for the last part vector) one by one; the same floats.
-// Preconditions: every index read is < num_vertices; dst arrays hold `last` floats (padded).
-void SimdGatherTriangles(const MeshView& mesh, size_t first, size_t last, float* const dst[3][3]);
-
 // out[i] = min(out[i], max(d, in[i])) for i < n: one offset of the empty-space rings' windowed
 // min-max (BuildSkipRings, kernels/dda_grid.cc), a vector of bytes at a time (the compiler
 // vectorizes the scalar loop for SSE2 only). out and in do not overlap; unpadded: whole

@@ -30,41 +30,6 @@ HWY_INLINE hn::Mask<D> ValidLanes(D d, const TriangleSoA& tris, size_t i) {
   return hn::And(hn::FirstN(d, tris.size - i), hn::RebindMask(d, hn::Eq(flag, hn::Zero(di))));
 }
 
-void SimdGatherTriangles(const MeshView& mesh, size_t first, size_t last, float* const dst[3][3]) {
-  const hn::ScalableTag<float> d;
-  const hn::RebindToSigned<decltype(d)> di;
-  const size_t lanes = hn::Lanes(d);
-  const uint32_t* indices = mesh.indices;
-  const float* positions = mesh.positions;
-  const size_t stride = mesh.stride;
-  size_t i = first;
-  // int32 gather offsets: 3 i + 2 and index * stride + 2 (index < num_vertices)
-  constexpr size_t kMaxOffset = size_t{0x7fffffff} - 2;
-  if (last <= kMaxOffset / 3 && mesh.num_vertices <= kMaxOffset / (stride == 0 ? 1 : stride)) {
-    // the index array is read as int32 (the same bits; every value is < 2^31 here)
-    const int32_t* idx = reinterpret_cast<const int32_t*>(indices);
-    const auto three = hn::Set(di, 3), stride_i = hn::Set(di, int32_t(stride));
-    for (; i + lanes <= last; i += lanes) {
-      const auto at = hn::Mul(hn::Iota(di, int32_t(i)), three);  // 3 i per lane
-      for (int k = 0; k < 3; ++k) {
-        const auto vertex = hn::GatherIndex(di, idx, hn::Add(at, hn::Set(di, k)));
-        const auto offset = hn::Mul(vertex, stride_i);
-        for (int a = 0; a < 3; ++a) {
-          hn::StoreU(hn::GatherIndex(d, positions + a, offset), d, dst[k][a] + i);
-        }
-      }
-    }
-  }
-  for (; i < last; ++i) {  // unpadded caller arrays: the rest one by one
-    for (int k = 0; k < 3; ++k) {
-      const float* src = positions + size_t{indices[3 * i + k]} * stride;
-      dst[k][0][i] = src[0];
-      dst[k][1][i] = src[1];
-      dst[k][2][i] = src[2];
-    }
-  }
-}
-
 void SimdMinMaxOffset(uint8_t* HWY_RESTRICT out, const uint8_t* HWY_RESTRICT in, size_t n,
                       uint8_t d) {
   const hn::ScalableTag<uint8_t> du8;
@@ -473,11 +438,6 @@ HWY_EXPORT(SimdMinMaxOffset);
 
 void SimdMinMaxOffset(uint8_t* out, const uint8_t* in, size_t n, uint8_t d) {
   HWY_DYNAMIC_DISPATCH(SimdMinMaxOffset)(out, in, n, d);
-}
-HWY_EXPORT(SimdGatherTriangles);
-
-void SimdGatherTriangles(const MeshView& mesh, size_t first, size_t last, float* const dst[3][3]) {
-  HWY_DYNAMIC_DISPATCH(SimdGatherTriangles)(mesh, first, last, dst);
 }
 
 uint32_t SimdMaxIndex(const uint32_t* p, size_t n) { return HWY_DYNAMIC_DISPATCH(SimdMaxIndex)(p, n); }

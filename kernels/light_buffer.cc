@@ -271,7 +271,7 @@ struct LightBuildScratch {
   std::vector<uint32_t> order;       // per reference: its record
 };
 
-void BuildLightBuffer(const TriangleSoA& tris, const float* verts, const float light[3],
+void BuildLightBuffer(const TriangleSoA& tris, const float light[3],
                       double cells_per_triangle, LightBufferData* out, LightBuildScratch* reuse) {
   LightBuildScratch local;
   LightBuildScratch& sc = reuse != nullptr ? *reuse : local;
@@ -280,7 +280,7 @@ void BuildLightBuffer(const TriangleSoA& tris, const float* verts, const float l
   lb.faces = LightFaces{};
   lb.num_cells = lb.num_refs = lb.num_always = 0;
   for (int a = 0; a < 3; ++a) lb.light[a] = light[a];
-  lb.verts = verts;
+  lb.verts = tris.verts.data();
   const Vec3 l = {double(light[0]), double(light[1]), double(light[2])};
   // per rectangle, in triangle order (sequential reads of the triangles; the lists are
   // written from the records below): its face and cells, and its reference's floats
@@ -330,7 +330,7 @@ void BuildLightBuffer(const TriangleSoA& tris, const float* verts, const float l
     for (int r = 0; r < n_rects; ++r) {  // (planes computed here in double)
       const FaceRect& f = rects[r];
       rec.u0 = f.u0, rec.u1 = f.u1, rec.v0 = f.v0, rec.v1 = f.v1;
-      LightPlanes(verts + 9 * i, light, f.face, f.whole, rec.planes);
+      LightPlanes(tris.Vertices(i), light, f.face, f.whole, rec.planes);
       records.push_back(rec);
       rect_cells.push_back({0, 0, 0, 0, uint8_t(f.face)});
     }
@@ -516,7 +516,7 @@ void LightBuffer::Rebuild(const Accel& accel, const float light[3]) {
   // one scratch per thread for every light buffer it builds: a scene's lights pay the fresh
   // pages of the temporaries once, not once each (and hold them once)
   static thread_local LightBuildScratch scratch;
-  BuildLightBuffer(m.triangles, m.vertex_table.Get(m.triangles), light, kLightCellsPerTriangle,
+  BuildLightBuffer(m.triangles, light, kLightCellsPerTriangle,
                    &impl_->data, &scratch);
   impl_->built = true;
   impl_->build_seconds =

@@ -97,7 +97,7 @@ struct LightBufferData {
   // rectangle on the cell's face (u0 u1 v0 v1, as binned, rounded outwards: a ray whose face
   // coordinates fall outside cannot hit it), SoA so that a vector of references is culled at
   // once, each padded by one vector (reach FLT_MAX); and its triangle's id, whose vertices
-  // x0 y0 z0 x1 ... z2 are verts[9 id ...] (the Accel's TriangleVertexTable, borrowed: one
+  // x0 y0 z0 x1 ... z2 are verts[9 id ...] (TriangleSoA::verts of the Accel, borrowed: one
   // table for all the lights instead of 36 B more per reference, which the build and the
   // query's streams paid for every light).
   hwy::AlignedFreeUniquePtr<float[]> reach, u0, u1, v0, v1;
@@ -116,12 +116,11 @@ struct LightBufferData {
 
 // Builds the light buffer of `tris` (non-degenerate triangles only) for a light at `light`
 // (finite; the caller checks) into *out, reusing its arrays (and the temporaries in *reuse,
-// if given) where they are large enough. verts: the triangles' vertex table
-// (TriangleVertexTable::Get), borrowed by *out. cells_per_triangle: about that many cells per
+// if given) where they are large enough. *out borrows tris.verts. cells_per_triangle: about that many cells per
 // triangle, lowered while the references would pass kLightRefsPerTriangle per triangle. Throws
 // rs::Error if an allocation fails.
 struct LightBuildScratch;
-void BuildLightBuffer(const TriangleSoA& tris, const float* verts, const float light[3],
+void BuildLightBuffer(const TriangleSoA& tris, const float light[3],
                       double cells_per_triangle, LightBufferData* out,
                       LightBuildScratch* reuse = nullptr);
 

@@ -1,7 +1,7 @@
 // Builds the per-cell 4-wide triangle bundles (see tri_bundles.h): bundle offsets from the CSR
-// offsets, then one pass over the CSR lists gathering 9 floats per reference, a vector of
-// references at a time (hardware gathers where the target has them). Per-target code;
-// foreach_target re-includes this file.
+// offsets, then one pass over the CSR lists copying each reference's 9 floats out of the
+// triangles' interleaved records (TriangleSoA::verts: one 36-B record per reference, where
+// gathering from the nine SoA arrays touched nine cache lines).
 #include "kernels/tri_bundles.h"
 
 #include <algorithm>
@@ -11,34 +11,24 @@
 #include "kernels/build_threads.h"
 #include "streams/ray_stream.h"  // AllocateAlignedOrThrow
 
-#undef HWY_TARGET_INCLUDE
-#define HWY_TARGET_INCLUDE "kernels/tri_bundles.cc"
-#include <hwy/foreach_target.h>  // IWYU pragma: keep
-#include <hwy/highway.h>         // must follow foreach_target.h
-
-HWY_BEFORE_NAMESPACE();
 namespace rs {
-namespace HWY_NAMESPACE {
-namespace hn = hwy::HWY_NAMESPACE;
+namespace {
 
 // Writes the blocks of `cells` lists (list c = tri_ids[list_begin[c] .. list_begin[c + 1])) one
 // after the other from bundle 0, and bundle_begin[c + 1] (bundle_begin[0] is the caller's). Each
-// block holds the list's n triangles as ceil(n / 4) bundles, component by component: per
-// component, a vector of references at a time, the floats gathered from one SoA array of `tris`
-// and stored contiguously, NaN in the padding lanes (n .. 4 ceil(n / 4)), which get id -1. No
-// store reaches past a block (stores are masked to it). `degenerate` is null when the mesh has
-// no degenerate triangle (the usual case); otherwise listed degenerate triangles get NaN (it is
-// read as aligned 32-bit words: the array must extend to a multiple of 4 bytes, as
-// TriangleSoA::degenerate, an AlignedArray padded to 16 elements, does).
-void FillBundleCells(const float* const* src, const uint8_t* degenerate, const uint32_t* tri_ids,
+// block holds the list's n triangles as ceil(n / 4) bundles, component by component, NaN in the
+// padding lanes (n .. 4 ceil(n / 4)), which get id -1. `degenerate` is null when the mesh has
+// no degenerate triangle (the usual case); otherwise listed degenerate triangles get NaN.
+void FillBundleCells(const float* verts, const uint8_t* degenerate, const uint32_t* tri_ids,
                      const uint32_t* list_begin, size_t cells, float* data, int32_t* ids,
                      uint32_t* bundle_begin) {
-  const hn::ScalableTag<float> df;
-  const hn::RebindToSigned<decltype(df)> di;
-  const size_t lanes = hn::Lanes(df);
-  const auto nan = hn::Set(df, std::numeric_limits<float>::quiet_NaN());
-  const auto minus1 = hn::Set(di, -1);
-  HWY_ALIGN int32_t tail[HWY_MAX_BYTES / sizeof(int32_t)];
+  constexpr float kNaN = std::numeric_limits<float>::quiet_NaN();
+  static constexpr float kNaNRecord[kBundleComponents] = {kNaN, kNaN, kNaN, kNaN, kNaN,
+                                                          kNaN, kNaN, kNaN, kNaN};
+  // the records are read in list order, about one cache miss each: fetched kAhead references
+  // ahead (the lists are contiguous in tri_ids, across cells)
+  constexpr size_t kAhead = 16;
+  const size_t end = list_begin[cells];
   size_t first = 0;  // bundles written so far
   for (size_t c = 0; c < cells; ++c) {
     const size_t n = list_begin[c + 1] - list_begin[c];
@@ -48,61 +38,26 @@ void FillBundleCells(const float* const* src, const uint8_t* degenerate, const u
     }
     const uint32_t* list = tri_ids + list_begin[c];
     const size_t stride = (n + kBundleLanes - 1) / kBundleLanes * kBundleLanes;
-    float* block = data + kBundleFloats * first;
-    int32_t* block_ids = ids + kBundleLanes * first;
-    for (size_t j = 0; j < n; j += lanes) {
-      const size_t live = std::min(lanes, n - j);
-      // the ids of this vector of references; the last partial vector goes through a copy, so
-      // nothing past the list is read (padding lanes gather triangle 0, then become NaN)
-      const auto live_i = hn::FirstN(di, live);
-      const int32_t* at = reinterpret_cast<const int32_t*>(list + j);
-      hn::Vec<decltype(di)> index;
-      if (live == lanes) {
-        index = hn::LoadU(di, at);
-      } else {
-#if HWY_TARGET <= HWY_AVX2
-        index = hn::MaskedLoad(live_i, di, at);  // masked lanes are not read (no fault)
-#else
-        for (size_t l = 0; l < lanes; ++l) tail[l] = l < live ? at[l] : 0;
-        index = hn::Load(di, tail);
-#endif
+    float* const block = data + kBundleFloats * first;
+    int32_t* const block_ids = ids + kBundleLanes * first;
+    for (size_t j = 0; j < n; ++j) {
+      if (list_begin[c] + j + kAhead < end) {
+        __builtin_prefetch(verts + 9 * size_t{list[j + kAhead]});
       }
-      auto keep = hn::RebindMask(df, live_i);
-      if (degenerate != nullptr) {
-        // the flag bytes, gathered as the aligned 32-bit words that hold them
-        const auto words = hn::GatherIndex(di, reinterpret_cast<const int32_t*>(degenerate),
-                                           hn::ShiftRight<2>(index));
-        const auto shift = hn::ShiftLeft<3>(hn::And(index, hn::Set(di, 3)));
-        const auto flag = hn::And(hn::Shr(words, shift), hn::Set(di, 0xff));
-        keep = hn::AndNot(hn::RebindMask(df, hn::Ne(flag, hn::Zero(di))), keep);
-      }
-      const auto in_block = hn::FirstN(df, stride - j);  // live lanes and the padding after
-      for (size_t k = 0; k < kBundleComponents; ++k) {
-        const auto v = hn::GatherIndex(df, src[k], index);
-        hn::BlendedStore(hn::IfThenElse(keep, v, nan), in_block, df, block + k * stride + j);
-      }
-      hn::BlendedStore(hn::IfThenElse(live_i, index, minus1), hn::RebindMask(di, in_block), di,
-                       block_ids + j);
+      const uint32_t id = list[j];
+      const float* v = degenerate != nullptr && degenerate[id] != 0 ? kNaNRecord
+                                                                    : verts + 9 * size_t{id};
+      for (size_t k = 0; k < kBundleComponents; ++k) block[k * stride + j] = v[k];
+      block_ids[j] = int32_t(id);
     }
-    // padding lanes no vector reached (only with fewer than 4 lanes per vector)
-    for (size_t j = (n + lanes - 1) / lanes * lanes; j < stride; ++j) {
-      for (size_t k = 0; k < kBundleComponents; ++k) block[k * stride + j] = hn::GetLane(nan);
+    for (size_t j = n; j < stride; ++j) {
+      for (size_t k = 0; k < kBundleComponents; ++k) block[k * stride + j] = kNaN;
       block_ids[j] = -1;
     }
     first += stride / kBundleLanes;
     bundle_begin[c + 1] = uint32_t(first);
   }
 }
-
-}  // namespace HWY_NAMESPACE
-}  // namespace rs
-HWY_AFTER_NAMESPACE();
-
-#if HWY_ONCE
-namespace rs {
-namespace {
-
-HWY_EXPORT(FillBundleCells);
 
 template <typename T>
 void Grow(hwy::AlignedFreeUniquePtr<T[]>* p, size_t n) {
@@ -122,10 +77,6 @@ void Reserve(size_t bundles, size_t cells, TriBundles* out) {
   }
 }
 
-void Sources(const TriangleSoA& tris, const float* src[kBundleComponents]) {
-  for (size_t c = 0; c < kBundleComponents; ++c) src[c] = tris.p[c / 3][c % 3].data();
-}
-
 }  // namespace
 
 void BuildTriBundles(const Grid& grid, const TriangleSoA& tris, TriBundles* out, int threads) {
@@ -142,8 +93,6 @@ void BuildTriBundles(const Grid& grid, const TriangleSoA& tris, TriBundles* out,
   out->num_triangles = cells == 0 ? 0 : cell_begin[cells] - cell_begin[0];
   out->cell_begin[0] = 0;
   if (cells == 0) return;
-  const float* src[kBundleComponents];
-  Sources(tris, src);
   const uint8_t* degenerate = tris.num_degenerate != 0 ? tris.degenerate.data() : nullptr;
   // One pass over the lists, in cell order: the output is written sequentially. Threaded: each
   // part fills a contiguous range of cells from its first bundle (its offsets come out relative
@@ -163,9 +112,9 @@ void BuildTriBundles(const Grid& grid, const TriangleSoA& tris, TriBundles* out,
     const size_t c0 = PartBegin(cells, parts, k, 64), c1 = PartBegin(cells, parts, k + 1, 64);
     const size_t first = part_first[size_t(k)];
     uint32_t* bundle_begin = out->cell_begin.get() + c0;
-    HWY_DYNAMIC_DISPATCH(FillBundleCells)
-    (src, degenerate, grid.tri_ids.get(), cell_begin + c0, c1 - c0,
-     out->data.get() + kBundleFloats * first, out->ids.get() + kBundleLanes * first, bundle_begin);
+    FillBundleCells(tris.verts.data(), degenerate, grid.tri_ids.get(), cell_begin + c0, c1 - c0,
+                    out->data.get() + kBundleFloats * first, out->ids.get() + kBundleLanes * first,
+                    bundle_begin);
     for (size_t c = 1; c <= c1 - c0; ++c) bundle_begin[c] += uint32_t(first);
   });
 }
@@ -179,13 +128,10 @@ void BuildTriBundleList(const TriangleSoA& tris, const uint32_t* ids, size_t n, 
   out->cell_begin[0] = 0;
   out->cell_begin[1] = uint32_t(bundles);
   if (n == 0) return;
-  const float* src[kBundleComponents];
-  Sources(tris, src);
   const uint8_t* degenerate = tris.num_degenerate != 0 ? tris.degenerate.data() : nullptr;
   const uint32_t list_begin[2] = {0, uint32_t(n)};
-  HWY_DYNAMIC_DISPATCH(FillBundleCells)
-  (src, degenerate, ids, list_begin, 1, out->data.get(), out->ids.get(), out->cell_begin.get());
+  FillBundleCells(tris.verts.data(), degenerate, ids, list_begin, 1, out->data.get(),
+                  out->ids.get(), out->cell_begin.get());
 }
 
 }  // namespace rs
-#endif  // HWY_ONCE

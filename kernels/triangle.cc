@@ -34,10 +34,12 @@ void BuildTriangleSoA(const MeshView& mesh, TriangleSoA* out, int threads) {
   for (auto& vertex : out->p) {
     for (auto& axis : vertex) axis.ReserveForOverwrite(n);
   }
+  out->verts.ReserveForOverwrite(9 * n);
   out->degenerate.ReserveForOverwrite(n);
   out->size = n;
-  // gather, then the degenerate flags, each a vector of triangles at a time
-  // (kernels/grid_simd.cc); threaded: both per part of the triangles
+  // gather (one pass writing the SoA arrays and the interleaved records: on AVX2 hardware
+  // gathers, 12 per 8 triangles, cost more than these scalar loads), then the degenerate flags
+  // a vector of triangles at a time (kernels/grid_simd.cc); threaded: both per part
   float* dst[3][3];
   for (int k = 0; k < 3; ++k) {
     for (int a = 0; a < 3; ++a) dst[k][a] = out->p[k][a].data();
@@ -46,7 +48,16 @@ void BuildTriangleSoA(const MeshView& mesh, TriangleSoA* out, int threads) {
   std::vector<size_t> degenerate(size_t(parts), 0), nonfinite(size_t(parts), 0);
   RunParts(parts, [&](int t) {
     const size_t first = PartBegin(n, parts, t, 64), last = PartBegin(n, parts, t + 1, 64);
-    SimdGatherTriangles(mesh, first, last, dst);
+    float* const verts = out->verts.data();
+    for (size_t i = first; i < last; ++i) {
+      for (int k = 0; k < 3; ++k) {
+        const float* src = mesh.positions + size_t{mesh.indices[3 * i + k]} * mesh.stride;
+        for (int a = 0; a < 3; ++a) {
+          dst[k][a][i] = src[a];
+          verts[9 * i + size_t(3 * k + a)] = src[a];
+        }
+      }
+    }
     SimdDegenerateFlags(out, first, last, &degenerate[size_t(t)], &nonfinite[size_t(t)]);
   });
   out->num_degenerate = out->num_nonfinite = 0;
@@ -54,26 +65,6 @@ void BuildTriangleSoA(const MeshView& mesh, TriangleSoA* out, int threads) {
     out->num_degenerate += degenerate[size_t(t)];
     out->num_nonfinite += nonfinite[size_t(t)];
   }
-}
-
-const float* TriangleVertexTable::Get(const TriangleSoA& tris) const {
-  if (valid_.load(std::memory_order_acquire)) return data_.get();
-  const std::lock_guard<std::mutex> lock(mutex_);
-  if (valid_.load(std::memory_order_relaxed)) return data_.get();
-  if (!data_ || tris.size > capacity_) {
-    data_.reset();  // first: the old and the new table are never held at once
-    data_ = AllocateBuildArray<float>(9 * tris.size, "the triangles' vertex table");
-    capacity_ = tris.size;
-  }
-  float* const out = data_.get();
-  for (size_t t = 0; t < tris.size; ++t) {
-    for (int c = 0; c < 3; ++c) {
-      for (int a = 0; a < 3; ++a) out[9 * t + size_t(3 * c + a)] = tris.p[c][a][t];
-    }
-  }
-  size_ = tris.size;
-  valid_.store(true, std::memory_order_release);
-  return out;
 }
 
 bool WatertightAheadInDouble(float a0, float a1, float a2, float b0, float b1, float b2, float c0,

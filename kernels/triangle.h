@@ -4,12 +4,10 @@
 // are in kernels/tri_intersect.h.
 #pragma once
 
-#include <atomic>
 #include <cmath>
 #include <cstddef>
 #include <cstdint>
 #include <limits>
-#include <mutex>
 
 #include "include/raystream/raystream.h"
 #include "streams/ray_stream.h"
@@ -17,39 +15,22 @@
 namespace rs {
 
 // Per-triangle data gathered out of a MeshView, so a test reads no index buffer: the three
-// vertices as floats, one 64-B aligned padded array per vertex and axis (p[vertex][axis][id]).
+// vertices as floats, one 64-B aligned padded array per vertex and axis (p[vertex][axis][id]),
+// and the same floats interleaved, 9 per id (verts[9 id + 3 vertex + axis]: x0 y0 z0 x1 ... z2),
+// for readers that pick triangles at random (the bundle fill, the light buffers' references):
+// one 36-B record per triangle instead of nine loads from nine SoA arrays.
 // degenerate[id] = 1 for triangles with zero area (double cross product exactly 0) or a
 // non-finite vertex: they are kept (ids stay the mesh's ids) but never binned and never hit.
 struct TriangleSoA {
   AlignedArray<float> p[3][3];
+  AlignedArray<float> verts;
   AlignedArray<uint8_t> degenerate;
   size_t size = 0;
   size_t num_degenerate = 0;
   size_t num_nonfinite = 0;  // degenerate triangles with a non-finite coordinate
 
-  size_t Bytes() const { return size * (9 * sizeof(float) + 1); }
-};
-
-// The triangles' vertices interleaved, 9 floats per id (x0 y0 z0 x1 ... z2): one 36-B record per
-// triangle where a reader picks triangles at random (the light buffers' references, which hold
-// ids), instead of nine loads from nine SoA arrays. Built on the first Get after Invalidate,
-// shared by every reader of that build; the memory is kept for the next build.
-class TriangleVertexTable {
- public:
-  // The table of `tris`, built now if the last Invalidate came after the last build.
-  // Thread-safe (concurrent Gets build it once). Throws rs::Error if it cannot be allocated.
-  const float* Get(const TriangleSoA& tris) const;
-  // The triangles changed: the next Get rebuilds. Not thread-safe with Get.
-  void Invalidate() { valid_.store(false, std::memory_order_relaxed); }
-  size_t Bytes() const {
-    return valid_.load(std::memory_order_acquire) ? size_ * 9 * sizeof(float) : 0;
-  }
-
- private:
-  mutable std::mutex mutex_;
-  mutable std::atomic<bool> valid_{false};
-  mutable hwy::AlignedFreeUniquePtr<float[]> data_;
-  mutable size_t capacity_ = 0, size_ = 0;  // triangles
+  const float* Vertices(size_t id) const { return verts.data() + 9 * id; }
+  size_t Bytes() const { return size * (18 * sizeof(float) + 1); }
 };
 
 // True if the triangle can never be hit: a non-finite coordinate, or (p1-p0) x (p2-p0)

@@ -130,7 +130,7 @@ struct AccelInfo {
   size_t references = 0;  // sum over cells of triangles per cell
   size_t max_per_cell = 0;
   double build_seconds = 0;
-  size_t bytes = 0;  // with the vertex table its LightBuffers share (36 B per triangle), once built
+  size_t bytes = 0;  // its triangles (SoA and interleaved: 73 B each), grids and bundles
   const char* kind = "uniform";  // "uniform", "two-level" (the grid of the packets)
   size_t irregular_cells = 0;     // cells of the irregular grid (GridKind::kIrregular), or 0
   size_t irregular_references = 0;
