@@ -92,11 +92,6 @@ void SimdDegenerateFlags(TriangleSoA* tris, size_t first, size_t last, size_t* d
 // vectors, the last one overlapping the one before (the update is idempotent).
 void SimdMinMaxOffset(uint8_t* out, const uint8_t* in, size_t n, uint8_t d);
 
-// out->p[k][a][t] = tris.p[k][a][ids[t]] for t < n (a grid cell's triangles, gathered for its
-// sub-grid), a vector of ids at a time; ids unpadded (whole vectors, then the rest one by one).
-// out's arrays hold n floats; ids[t] < tris.size < 2^31.
-void SimdGatherListed(const TriangleSoA& tris, const uint32_t* ids, size_t n, TriangleSoA* out);
-
 // The largest of p[0, n) (0 if n = 0), a vector at a time: unpadded caller memory (whole
 // vectors while they fit, then the rest one by one). The mesh's index check (rs::Accel).
 uint32_t SimdMaxIndex(const uint32_t* p, size_t n);
@@ -390,8 +385,10 @@ inline void BinTriangle(const BinGeometry& g, const float v[3][3], BinScratch* s
   if (spans >= 0) BinTriangleCells(g, v, c0, c1, span, spans, scratch, emit);
 }
 
-// out's triangles [0, n) = the listed triangles ids[0, n) of src (SimdGatherListed; out's arrays
-// grown as needed, their degenerate flags 0: lists hold no degenerate triangle), for BinListed.
+// out's triangles [0, n) = the listed triangles ids[0, n) of src, in out's SoA arrays only (out's
+// arrays grown as needed, their degenerate flags 0: lists hold no degenerate triangle), for
+// BinListed. Each id's floats come from its interleaved record (src.verts: one cache line or
+// two, where the nine SoA arrays cost nine).
 inline void GatherListed(const TriangleSoA& src, const uint32_t* ids, size_t n, TriangleSoA* out) {
   // (the gather overwrites [0, n): a grown array need not keep earlier triangles)
   for (auto& vertex : out->p) {
@@ -402,7 +399,12 @@ inline void GatherListed(const TriangleSoA& src, const uint32_t* ids, size_t n, 
     std::fill(out->degenerate.data(), out->degenerate.data() + n, uint8_t{0});
   }
   out->size = n;
-  SimdGatherListed(src, ids, n, out);  // one pass: each id read once
+  float* dst[9];
+  for (int c = 0; c < 9; ++c) dst[c] = out->p[c / 3][c % 3].data();
+  for (size_t t = 0; t < n; ++t) {
+    const float* v = src.Vertices(ids[t]);
+    for (int c = 0; c < 9; ++c) dst[c][t] = v[c];
+  }
 }
 
 // Scratch of BinListed, reused across calls.

@@ -47,27 +47,6 @@ void SimdMinMaxOffset(uint8_t* HWY_RESTRICT out, const uint8_t* HWY_RESTRICT in,
   update(n - lanes);  // the last vector, overlapping: min(min(o, m), m) = min(o, m)
 }
 
-void SimdGatherListed(const TriangleSoA& tris, const uint32_t* ids, size_t n, TriangleSoA* out) {
-  const hn::ScalableTag<float> d;
-  const hn::RebindToSigned<decltype(d)> di;
-  const size_t lanes = hn::Lanes(d);
-  size_t t = 0;
-  for (; t + lanes <= n; t += lanes) {
-    // ids < 2^31: the same bits as int32 offsets
-    const auto id = hn::LoadU(di, reinterpret_cast<const int32_t*>(ids + t));
-    for (int k = 0; k < 3; ++k) {
-      for (int a = 0; a < 3; ++a) {
-        hn::StoreU(hn::GatherIndex(d, tris.p[k][a].data(), id), d, out->p[k][a].data() + t);
-      }
-    }
-  }
-  for (; t < n; ++t) {
-    for (int k = 0; k < 3; ++k) {
-      for (int a = 0; a < 3; ++a) out->p[k][a][t] = tris.p[k][a][ids[t]];
-    }
-  }
-}
-
 uint32_t SimdMaxIndex(const uint32_t* p, size_t n) {
   const hn::ScalableTag<uint32_t> du;
   const size_t lanes = hn::Lanes(du);
@@ -429,11 +408,6 @@ namespace rs {
 
 HWY_EXPORT(SimdTriangleBounds);
 HWY_EXPORT(SimdMaxIndex);
-HWY_EXPORT(SimdGatherListed);
-
-void SimdGatherListed(const TriangleSoA& tris, const uint32_t* ids, size_t n, TriangleSoA* out) {
-  HWY_DYNAMIC_DISPATCH(SimdGatherListed)(tris, ids, n, out);
-}
 HWY_EXPORT(SimdMinMaxOffset);
 
 void SimdMinMaxOffset(uint8_t* out, const uint8_t* in, size_t n, uint8_t d) {

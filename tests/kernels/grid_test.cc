@@ -5,6 +5,7 @@
 #include <doctest/doctest.h>
 
 #include <algorithm>
+#include <bit>
 #include <cmath>
 #include <cstring>
 #include <limits>
@@ -523,31 +524,39 @@ TEST_CASE("SimdMinMaxOffset equals the scalar min-max update: every size, every 
   });
 }
 
-TEST_CASE("SimdGatherListed gathers the listed triangles: every size, every target") {
+TEST_CASE("BuildTriangleSoA's interleaved records match its SoA arrays; GatherListed: every size") {
   Rng rng(73);
   const Soup soup = test::RandomSoup(rng, 300, -1.0, 1.0, 0.3);
+  for (const int threads : {1, 2}) {
+    TriangleSoA tris;
+    BuildTriangleSoA(soup.view(), &tris, threads);
+    REQUIRE(tris.size == soup.view().num_triangles);
+    for (size_t t = 0; t < tris.size; ++t) {
+      for (int c = 0; c < 9; ++c) {
+        INFO("threads ", threads, " t ", t, " c ", c);
+        CHECK(std::bit_cast<uint32_t>(tris.Vertices(t)[c]) ==
+              std::bit_cast<uint32_t>(tris.p[c / 3][c % 3][t]));
+      }
+    }
+  }
   TriangleSoA tris;
   BuildTriangleSoA(soup.view(), &tris);
-  test::ForEachTarget([&](const char* target) {
-    INFO("target: ", target);
-    for (size_t n = 0; n <= 60; ++n) {
-      std::vector<uint32_t> ids(n);  // exactly n ids (ASan: nothing read past them)
-      for (uint32_t& id : ids) id = uint32_t(rng.Below(uint32_t(tris.size)));
-      TriangleSoA out;
-      for (auto& vertex : out.p) {
-        for (auto& axis : vertex) axis.ReserveForOverwrite(n);
-      }
-      SimdGatherListed(tris, ids.data(), n, &out);
-      for (size_t t = 0; t < n; ++t) {
-        for (int k = 0; k < 3; ++k) {
-          for (int a = 0; a < 3; ++a) {
-            INFO("n ", n, " t ", t);
-            CHECK(out.p[k][a][t] == tris.p[k][a][ids[t]]);
-          }
+  TriangleSoA out;  // reused: grown and overwritten
+  for (size_t n = 0; n <= 60; ++n) {
+    std::vector<uint32_t> ids(n);  // exactly n ids (ASan: nothing read past them)
+    for (uint32_t& id : ids) id = uint32_t(rng.Below(uint32_t(tris.size)));
+    GatherListed(tris, ids.data(), n, &out);
+    REQUIRE(out.size == n);
+    for (size_t t = 0; t < n; ++t) {
+      CHECK(out.degenerate[t] == 0);
+      for (int k = 0; k < 3; ++k) {
+        for (int a = 0; a < 3; ++a) {
+          INFO("n ", n, " t ", t);
+          CHECK(out.p[k][a][t] == tris.p[k][a][ids[t]]);
         }
       }
     }
-  });
+  }
 }
 
 TEST_CASE("SimdMaxIndex: the largest index of unpadded arrays, every size and position") {
