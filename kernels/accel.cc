@@ -358,8 +358,8 @@ AccelInfo Accel::Info() const {
   info.references = m.grid.num_refs;
   info.max_per_cell = m.grid.max_per_cell;
   info.build_seconds = m.build_seconds;
-  info.bytes = m.triangles.Bytes() + m.grid.Bytes() +
-               m.two_level.Bytes() + m.dda.Bytes() + m.irregular.Bytes() + m.irregular_dda.Bytes();
+  info.bytes = m.triangles.Bytes() + m.grid.Bytes() + m.two_level.Bytes() + m.dda.Bytes() +
+               m.irregular.Bytes() + m.irregular_dda.Bytes();
   info.irregular_cells = m.irregular.num_cells;
   info.irregular_references = m.irregular.lists.num_refs;
   info.kind = m.two_level.empty() ? "uniform" : "two-level";

@@ -271,8 +271,8 @@ struct LightBuildScratch {
   std::vector<uint32_t> order;       // per reference: its record
 };
 
-void BuildLightBuffer(const TriangleSoA& tris, const float light[3],
-                      double cells_per_triangle, LightBufferData* out, LightBuildScratch* reuse) {
+void BuildLightBuffer(const TriangleSoA& tris, const float light[3], double cells_per_triangle,
+                      LightBufferData* out, LightBuildScratch* reuse) {
   LightBuildScratch local;
   LightBuildScratch& sc = reuse != nullptr ? *reuse : local;
   LightBufferData& lb = *out;
@@ -516,8 +516,7 @@ void LightBuffer::Rebuild(const Accel& accel, const float light[3]) {
   // one scratch per thread for every light buffer it builds: a scene's lights pay the fresh
   // pages of the temporaries once, not once each (and hold them once)
   static thread_local LightBuildScratch scratch;
-  BuildLightBuffer(m.triangles, light, kLightCellsPerTriangle,
-                   &impl_->data, &scratch);
+  BuildLightBuffer(m.triangles, light, kLightCellsPerTriangle, &impl_->data, &scratch);
   impl_->built = true;
   impl_->build_seconds =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();

@@ -116,13 +116,12 @@ struct LightBufferData {
 
 // Builds the light buffer of `tris` (non-degenerate triangles only) for a light at `light`
 // (finite; the caller checks) into *out, reusing its arrays (and the temporaries in *reuse,
-// if given) where they are large enough. *out borrows tris.verts. cells_per_triangle: about that many cells per
-// triangle, lowered while the references would pass kLightRefsPerTriangle per triangle. Throws
-// rs::Error if an allocation fails.
+// if given) where they are large enough. *out borrows tris.verts. cells_per_triangle: about
+// that many cells per triangle, lowered while the references would pass kLightRefsPerTriangle
+// per triangle. Throws rs::Error if an allocation fails.
 struct LightBuildScratch;
-void BuildLightBuffer(const TriangleSoA& tris, const float light[3],
-                      double cells_per_triangle, LightBufferData* out,
-                      LightBuildScratch* reuse = nullptr);
+void BuildLightBuffer(const TriangleSoA& tris, const float light[3], double cells_per_triangle,
+                      LightBufferData* out, LightBuildScratch* reuse = nullptr);
 
 // The build's common case a vector of triangles at a time, in float (kernels/light_buffer_trace.cc):
 // for triangles [first, first + count <= kLightProjectBlock) whose three vertices lie at least

@@ -17,11 +17,11 @@ namespace {
 // Writes the blocks of `cells` lists (list c = tri_ids[list_begin[c] .. list_begin[c + 1])) one
 // after the other from bundle 0, and bundle_begin[c + 1] (bundle_begin[0] is the caller's). Each
 // block holds the list's n triangles as ceil(n / 4) bundles, component by component, NaN in the
-// padding lanes (n .. 4 ceil(n / 4)), which get id -1. `degenerate` is null when the mesh has
-// no degenerate triangle (the usual case); otherwise listed degenerate triangles get NaN.
-void FillBundleCells(const float* verts, const uint8_t* degenerate, const uint32_t* tri_ids,
-                     const uint32_t* list_begin, size_t cells, float* data, int32_t* ids,
-                     uint32_t* bundle_begin) {
+// padding lanes (n .. 4 ceil(n / 4)), which get id -1. Listed degenerate triangles get NaN.
+void FillBundleCells(const TriangleSoA& tris, const uint32_t* tri_ids, const uint32_t* list_begin,
+                     size_t cells, float* data, int32_t* ids, uint32_t* bundle_begin) {
+  // null when the mesh has no degenerate triangle (the usual case)
+  const uint8_t* degenerate = tris.num_degenerate != 0 ? tris.degenerate.data() : nullptr;
   constexpr float kNaN = std::numeric_limits<float>::quiet_NaN();
   static constexpr float kNaNRecord[kBundleComponents] = {kNaN, kNaN, kNaN, kNaN, kNaN,
                                                           kNaN, kNaN, kNaN, kNaN};
@@ -42,11 +42,11 @@ void FillBundleCells(const float* verts, const uint8_t* degenerate, const uint32
     int32_t* const block_ids = ids + kBundleLanes * first;
     for (size_t j = 0; j < n; ++j) {
       if (list_begin[c] + j + kAhead < end) {
-        __builtin_prefetch(verts + 9 * size_t{list[j + kAhead]});
+        __builtin_prefetch(tris.Vertices(list[j + kAhead]));
       }
       const uint32_t id = list[j];
-      const float* v = degenerate != nullptr && degenerate[id] != 0 ? kNaNRecord
-                                                                    : verts + 9 * size_t{id};
+      const float* v =
+          degenerate != nullptr && degenerate[id] != 0 ? kNaNRecord : tris.Vertices(id);
       for (size_t k = 0; k < kBundleComponents; ++k) block[k * stride + j] = v[k];
       block_ids[j] = int32_t(id);
     }
@@ -93,7 +93,6 @@ void BuildTriBundles(const Grid& grid, const TriangleSoA& tris, TriBundles* out,
   out->num_triangles = cells == 0 ? 0 : cell_begin[cells] - cell_begin[0];
   out->cell_begin[0] = 0;
   if (cells == 0) return;
-  const uint8_t* degenerate = tris.num_degenerate != 0 ? tris.degenerate.data() : nullptr;
   // One pass over the lists, in cell order: the output is written sequentially. Threaded: each
   // part fills a contiguous range of cells from its first bundle (its offsets come out relative
   // to it and are shifted after; FillBundleCells writes only offsets c0 + 1 .. c1), the same
@@ -112,7 +111,7 @@ void BuildTriBundles(const Grid& grid, const TriangleSoA& tris, TriBundles* out,
     const size_t c0 = PartBegin(cells, parts, k, 64), c1 = PartBegin(cells, parts, k + 1, 64);
     const size_t first = part_first[size_t(k)];
     uint32_t* bundle_begin = out->cell_begin.get() + c0;
-    FillBundleCells(tris.verts.data(), degenerate, grid.tri_ids.get(), cell_begin + c0, c1 - c0,
+    FillBundleCells(tris, grid.tri_ids.get(), cell_begin + c0, c1 - c0,
                     out->data.get() + kBundleFloats * first, out->ids.get() + kBundleLanes * first,
                     bundle_begin);
     for (size_t c = 1; c <= c1 - c0; ++c) bundle_begin[c] += uint32_t(first);
@@ -128,10 +127,9 @@ void BuildTriBundleList(const TriangleSoA& tris, const uint32_t* ids, size_t n, 
   out->cell_begin[0] = 0;
   out->cell_begin[1] = uint32_t(bundles);
   if (n == 0) return;
-  const uint8_t* degenerate = tris.num_degenerate != 0 ? tris.degenerate.data() : nullptr;
   const uint32_t list_begin[2] = {0, uint32_t(n)};
-  FillBundleCells(tris.verts.data(), degenerate, ids, list_begin, 1, out->data.get(),
-                  out->ids.get(), out->cell_begin.get());
+  FillBundleCells(tris, ids, list_begin, 1, out->data.get(), out->ids.get(),
+                  out->cell_begin.get());
 }
 
 }  // namespace rs
