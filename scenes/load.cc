@@ -352,7 +352,7 @@ std::string FindSceneFile(std::string_view file) { return detail::FindIn(file, {
 
 std::vector<std::string> ProceduralSceneNames() {
   // "amphitheater" is amphitheater:1; "amphitheater:N" gives N copies.
-  return {"erw6", "spherebox", "amphitheater", "cornell"};
+  return {"erw6", "spherebox", "amphitheater", "cornell", "farsphere", "nearsphere"};
 }
 
 std::vector<std::string> BuiltinSceneFileNames() {

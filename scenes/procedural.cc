@@ -1,7 +1,9 @@
 // Procedural scenes that need no file: "erw6" (the PBT paper's small room, the default scene),
 // "spherebox" (the Cell paper's incoherent-ray test), "amphitheater:N" (the PBT paper's
-// spatial-coherence series) and "cornell" (a tiny room for fast tests). Deterministic: only
-// fixed arithmetic and the integer hash in mesh_builder.h, never std:: random distributions.
+// spatial-coherence series), "cornell" (a tiny room for fast tests) and "farsphere" /
+// "nearsphere" (issue 13's closed sphere of 81,920 triangles far from the origin, and the same
+// scene at the origin). Deterministic: only fixed arithmetic and the integer hash in
+// mesh_builder.h, never std:: random distributions.
 #include <fmt/format.h>
 
 #include <algorithm>
@@ -10,6 +12,7 @@
 #include <glm/gtc/matrix_transform.hpp>
 #include <numbers>
 
+#include "scenes/icosphere.h"
 #include "scenes/mesh_builder.h"
 #include "scenes/scene_internal.h"
 
@@ -371,6 +374,47 @@ void MakeCornell(Scene& scene) {
   scene.ambient = 0.1f;
 }
 
+// A closed icosphere of radius 1 (level 6: 81,920 triangles) centred at `c`, on a 12 x 12 floor
+// 1 below it, under a small lamp panel 5 above it (it lifts the bounds' top above the sphere, so
+// that a light "near the top of the bounds" is outside it), one point light. At c = (148376,
+// 1234, -223423) x and z are in [2^17, 2^18), where floats are multiples of 1/64: the
+// vertices' float rounding makes slivers of many triangles, the case of issue 13's exploding
+// grid. Positions are computed in double and rounded once.
+void MakeSphereScene(Scene& scene, const glm::dvec3& c) {
+  MeshBuilder b(scene, /*with_normals=*/true);
+  const uint32_t glaze = b.AddMaterial(Mat("glaze", {0.70f, 0.12f, 0.10f}, 0.0f, glm::vec3(0.8f), 100));
+  const uint32_t floor_a = b.AddMaterial(Mat("floor_a", {0.80f, 0.80f, 0.78f}));
+  const uint32_t floor_b = b.AddMaterial(Mat("floor_b", {0.15f, 0.15f, 0.18f}));
+  const uint32_t lamp = b.AddMaterial(Mat("lamp", {1.0f, 1.0f, 1.0f}));
+  const auto at = [&](double x, double y, double z) {
+    return glm::vec3(glm::dvec3(x, y, z) + c);  // rounded once
+  };
+  const Icosphere ico = MakeIcosphere(6, 1.0, {c.x, c.y, c.z}, 0.0);
+  const uint32_t first = static_cast<uint32_t>(scene.positions.size());
+  for (const std::array<float, 3>& v : ico.v) {
+    scene.positions.emplace_back(v[0], v[1], v[2]);
+    scene.normals.push_back(
+        glm::vec3(glm::normalize(glm::dvec3(v[0], v[1], v[2]) - c)));  // radial
+  }
+  for (const std::array<uint32_t, 3>& t : ico.tri) {
+    scene.triangles.emplace_back(first + t[0], first + t[1], first + t[2]);
+    scene.material_ids.push_back(glaze);
+  }
+  b.Quad(at(-6, -1, 6), at(6, -1, 6), at(6, -1, -6), at(-6, -1, -6), floor_a, 8, 8, floor_b);
+  b.Quad(at(-0.5, 5, -0.5), at(0.5, 5, -0.5), at(0.5, 5, 0.5), at(-0.5, 5, 0.5), lamp);
+  PointLight light;
+  light.position = at(2.0, 4.0, 2.5);
+  light.color = glm::vec3(1.0f);
+  scene.lights = {light};
+  scene.camera = Cam(at(0.0, 1.0, 4.0), at(0.0, 0.0, 0.0), 50.0f);
+  scene.path.frames = 30;
+  scene.path.keys = {Cam(at(0.0, 1.0, 4.0), at(0.0, 0.0, 0.0), 50.0f),
+                     Cam(at(3.0, 1.5, 2.5), at(0.0, 0.0, 0.0), 50.0f),
+                     Cam(at(-2.5, 0.5, 3.0), at(0.0, -0.2, 0.0), 50.0f)};
+  scene.background = glm::vec3(0.05f, 0.06f, 0.08f);
+  scene.ambient = 0.1f;
+}
+
 }  // namespace
 
 bool MakeProceduralScene(std::string_view name, Scene& scene) {
@@ -378,7 +422,8 @@ bool MakeProceduralScene(std::string_view name, Scene& scene) {
   const std::string_view base = name.substr(0, colon);
   const bool has_param = colon != std::string_view::npos;
   const std::string_view param = has_param ? name.substr(colon + 1) : std::string_view();
-  if (base != "erw6" && base != "spherebox" && base != "amphitheater" && base != "cornell") {
+  if (base != "erw6" && base != "spherebox" && base != "amphitheater" && base != "cornell" &&
+      base != "farsphere" && base != "nearsphere") {
     return false;
   }
   scene = Scene();
@@ -401,6 +446,10 @@ bool MakeProceduralScene(std::string_view name, Scene& scene) {
     MakeErw6(scene);
   } else if (base == "spherebox") {
     MakeSphereBox(scene);
+  } else if (base == "farsphere") {
+    MakeSphereScene(scene, {148376.0, 1234.0, -223423.0});
+  } else if (base == "nearsphere") {
+    MakeSphereScene(scene, {0.0, 0.0, 0.0});
   } else {
     MakeCornell(scene);
   }
