@@ -208,22 +208,28 @@ HWY_INLINE VF OffsetUnit3(const V3& p0, const V3& p1, const V3& p2) {
   e = hn::Min(hn::Max(e, hn::Set(di, 1)), hn::Set(di, 254));
   return hn::BitCast(df, hn::ShiftLeft<23>(e));
 }
-// OffsetRayOrigin (Waechter and Binder), one component: integer ulp step, or a small absolute
-// step (unit * 2^-16) within unit / 32 of 0.
-HWY_INLINE VF OffsetComponent(VF p, VF n, VF unit) {
+// OffsetRayOrigin (shade.h), lane by lane the same operations.
+HWY_INLINE V3 OffsetRayOrigin3(const V3& p, const V3& n, VF unit, VF light_unit) {
+  const DF df;
+  const VF step = hn::Add(hn::Mul(unit, hn::Set(df, 1.0f / 524288.0f)),
+                          hn::Mul(light_unit, hn::Set(df, 1.0f / 262144.0f)));
+  return {hn::Add(p.x, hn::Mul(step, n.x)), hn::Add(p.y, hn::Mul(step, n.y)),
+          hn::Add(p.z, hn::Mul(step, n.z))};
+}
+// LightOffsetUnit (shade.h), lane by lane.
+HWY_INLINE VF LightOffsetUnit3(const V3& p, std::span<const PointLight> lights) {
   const DF df;
   const DI di;
-  const VI of = hn::ConvertTo(di, hn::Mul(hn::Set(df, 256.0f), n));  // truncates, |n| <= 1
-  const VI bits = hn::BitCast(di, p);
-  const auto negative = hn::RebindMask(di, hn::Lt(p, hn::Zero(df)));
-  const VF pi = hn::BitCast(df, hn::Add(bits, hn::IfThenElse(negative, hn::Neg(of), of)));
-  const MF near_zero = hn::Lt(hn::Abs(p), hn::Mul(unit, hn::Set(df, 1.0f / 32.0f)));
-  const VF float_scale = hn::Mul(unit, hn::Set(df, 1.0f / 65536.0f));
-  return hn::IfThenElse(near_zero, hn::Add(p, hn::Mul(float_scale, n)), pi);
-}
-HWY_INLINE V3 OffsetRayOrigin3(const V3& p, const V3& n, VF unit) {
-  return {OffsetComponent(p.x, n.x, unit), OffsetComponent(p.y, n.y, unit),
-          OffsetComponent(p.z, n.z, unit)};
+  if (lights.empty()) return hn::Zero(df);
+  VF m = hn::Zero(df);
+  for (const PointLight& l : lights) {
+    m = hn::Max(m, hn::Abs(hn::Sub(hn::Set(df, l.position.x), p.x)));
+    m = hn::Max(m, hn::Abs(hn::Sub(hn::Set(df, l.position.y), p.y)));
+    m = hn::Max(m, hn::Abs(hn::Sub(hn::Set(df, l.position.z), p.z)));
+  }
+  VI e = hn::And(hn::ShiftRight<23>(hn::BitCast(di, m)), hn::Set(di, 0xFF));
+  e = hn::Min(hn::Max(e, hn::Set(di, 1)), hn::Set(di, 254));
+  return hn::BitCast(df, hn::ShiftLeft<23>(e));
 }
 
 // PhongPow, lane by lane the same operations as the scalar rs::PhongPow (HWY_ONCE below).
@@ -624,7 +630,9 @@ HWY_NOINLINE void ShadeBlocks(const detail::ShadeArgs& a) {
 
     // The origin on the incoming side, shared by shadow and reflection rays.
     const VF unit = OffsetUnit3(p0, p1, p2);
-    const V3 front = OffsetRayOrigin3(p, ng, unit);
+    VF light_unit = hn::Zero(df);  // shadow rays end at front: their lights' distance counts
+    if constexpr (kShadow) light_unit = LightOffsetUnit3(p, scene.lights);
+    const V3 front = OffsetRayOrigin3(p, ng, unit, light_unit);
     // local = clamp((1 - reflectivity) - transmission, 0, 1), std::clamp's NaN behaviour.
     VF local = hn::Sub(hn::Sub(one, refl), trans);
     local = hn::IfThenElse(hn::Lt(local, zero), zero, hn::IfThenElse(hn::Lt(one, local), one, local));
@@ -734,7 +742,7 @@ HWY_NOINLINE void ShadeBlocks(const detail::ShadeArgs& a) {
             const MF through = hn::Or(hn::And(redo, ok_ng), hn::AndNot(redo, ok_ns));
             const V3 t = Select3(redo, t_ng, t_ns);
             // Total internal reflection: a reflection ray from the front side.
-            const V3 origin = Select3(through, OffsetRayOrigin3(p, Neg3(ng), unit), front);
+            const V3 origin = Select3(through, OffsetRayOrigin3(p, Neg3(ng), unit, hn::Zero(df)), front);
             const V3 dir = Select3(through, t, mirror());
             const VI kind = hn::IfThenElse(
                 hn::RebindMask(di, through), hn::Set(di, static_cast<int32_t>(RayKind::kRefraction)),
@@ -974,7 +982,8 @@ void Shade(const ShadeScene& scene, const ShadeOptions& options, const RayStream
 
     // The origin on the incoming side, shared by shadow and reflection rays.
     const float unit = OffsetUnit(p0, p1, p2);
-    const glm::vec3 front = OffsetRayOrigin(p, ng, unit);
+    const glm::vec3 front =
+        OffsetRayOrigin(p, ng, unit, shadow_stage ? LightOffsetUnit(p, scene.lights) : 0.0f);
     const float local = std::clamp(1.0f - mat.reflectivity - mat.transmission, 0.0f, 1.0f);
     if (local > 0.0f) {
       const glm::vec3 wl = w * local;

@@ -208,27 +208,45 @@ inline float OffsetUnit(const glm::vec3& p0, const glm::vec3& p1, const glm::vec
   return std::bit_cast<float>(e << 23);
 }
 
-// Robust secondary-ray origin (Waechter and Binder, "A Fast and Robust Method for Avoiding
-// Self-Intersection", Ray Tracing Gems ch. 6), in units of `unit` (OffsetUnit of the triangle
-// hit): moves p by ~256 ulps per unit of the normal in integer space, so the offset scales with
-// |p|, and by unit * 2^-16 * n in absolute terms for components within unit / 32 of 0 (where
-// ulps become tiny compared with the error of p). With the triangle's unit the offset is
-// relative to the scene's scale: a scene scaled by 1e-12 or 1e12 gets the same shadows. unit = 1
-// is the paper's constants. n must be unit length and point to the side the new ray leaves
-// toward. p must be finite; unit a power of two.
-inline glm::vec3 OffsetRayOrigin(const glm::vec3& p, const glm::vec3& n, float unit = 1.0f) {
-  const float origin = unit * (1.0f / 32.0f);
-  const float float_scale = unit * (1.0f / 65536.0f);
-  constexpr float kIntScale = 256.0f;
+// Secondary-ray origin: p moved off its triangle along n by 16 ulps of `unit` plus 32 ulps of
+// `light_unit`, p + step n with step = 2^-19 unit + 2^-18 light_unit, one rounding per
+// component. unit = OffsetUnit of the triangle hit, light_unit = LightOffsetUnit of p (0 for
+// an origin no shadow ray ends at). The two terms cover the two errors that could put the
+// origin on the wrong side of the triangle's plane:
+// - p itself: b0 p0 + u p1 + v p2 in float is within about 4.5 ulps of unit of the plane per
+//   component (the roundings of b0 = 1 - u - v, of the products and of the sums), 7.8 along
+//   the unit normal; the step adds at most 0.9 more (its rounding per component). A ray that
+//   leaves from the origin away from the plane then never re-hits the triangle (the watertight
+//   test is conservative at the origin, kernels/triangle.h).
+// - the shadow ray traced from a light to the origin (t <= 1): the watertight test's t is
+//   exact up to a few ulps of the light's distance from the vertices, which light_unit bounds.
+// Measured (tests/kernels/shade_test.cc, "no self-shadowing"): 1.2 M shadow rays from lights
+// 2^-4 to 2^10 triangle sizes away, triangles at 0, 10 and 1e3 from the origin: 0 self-hits
+// apart from lights within the rounding of the plane; Waechter and Binder's integer offset
+// (Ray Tracing Gems ch. 6, 256 ulps of each component of p, the previous scheme) left 2 %
+// of them in their own shadow with distant lights, and at 1.5e5 from the origin moved points
+// by up to 4 units (farsphere's floor lost its sphere's shadow). A scene scaled by a power of
+// two gets exactly the scaled origins. n must be unit length and point to the side the new ray
+// leaves toward; p finite; unit and light_unit powers of two (or 0).
+inline glm::vec3 OffsetRayOrigin(const glm::vec3& p, const glm::vec3& n, float unit,
+                                 float light_unit = 0.0f) {
+  const float step = unit * (1.0f / 524288.0f) + light_unit * (1.0f / 262144.0f);
   glm::vec3 out;
-  for (int a = 0; a < 3; ++a) {
-    const int32_t of = static_cast<int32_t>(kIntScale * n[a]);
-    const int32_t bits = std::bit_cast<int32_t>(p[a]);
-    // In sign-magnitude float bits, adding moves away from 0: flip the step for p < 0.
-    const float pi = std::bit_cast<float>(bits + (p[a] < 0.0f ? -of : of));
-    out[a] = std::fabs(p[a]) < origin ? p[a] + float_scale * n[a] : pi;
-  }
+  for (int a = 0; a < 3; ++a) out[a] = p[a] + step * n[a];
   return out;
+}
+
+// The light term of OffsetRayOrigin at p: 2^floor(log2(m)) of m = the largest |light - p|
+// component over `lights` (exponent clamped as OffsetUnit's); 0 without lights.
+inline float LightOffsetUnit(const glm::vec3& p, std::span<const PointLight> lights) {
+  if (lights.empty()) return 0.0f;
+  float m = 0.0f;
+  for (const PointLight& l : lights) {
+    for (int a = 0; a < 3; ++a) m = std::fmax(m, std::fabs(l.position[a] - p[a]));
+  }
+  int32_t e = (std::bit_cast<int32_t>(m) >> 23) & 0xFF;
+  e = e < 1 ? 1 : (e > 254 ? 254 : e);
+  return std::bit_cast<float>(e << 23);
 }
 
 // Mirror direction of d about the unit normal n: d - 2 (d.n) n.

@@ -445,7 +445,8 @@ TEST_CASE("regression: conference floor, coherent shadow packets from 3.05e-5 ab
         } else {
           const glm::vec3 p(F(fr.o[0] + 0.37 * (k % 8 - 4)), test::kFloorA[1],
                             F(fr.o[2] + 0.29 * (k / 8 - 4)));
-          const glm::vec3 o = OffsetRayOrigin(p, glm::vec3(0.0f, 1.0f, 0.0f));
+          // 3.05e-5 = 2^-15 above the floor, as the literal rays (unit 16: 16 ulps of 16)
+          const glm::vec3 o = OffsetRayOrigin(p, glm::vec3(0.0f, 1.0f, 0.0f), 16.0f);
           for (int a = 0; a < 3; ++a) {
             r.o[a] = o[a];
             r.d[a] = F(light[a] - o[a]);

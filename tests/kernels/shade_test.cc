@@ -152,8 +152,9 @@ TEST_CASE("shadow ray: origin above the floor, aimed at the light, phong weight,
   CHECK(Org(v, 0) == light.position);  // from the light
   const glm::vec3 o = Org(v, 0) + Dir(v, 0);  // to the offset hit point, at t = 1
   CHECK(o.y > 0.0f);  // offset to the lit side
-  // the floor's OffsetUnit is 8 (|x| <= 10): 8 * 2^-16 (up to the rounding of front - light)
-  CHECK(o.y == doctest::Approx(8.0f / 65536.0f).epsilon(1e-2));
+  // the floor's OffsetUnit is 8 (|x| <= 10), the light's 4 (4 above the point): 16 ulps of 8
+  // plus 32 of 4, 2^-15, up to the rounding of front - light and back (ulp(4) = 2^-21)
+  CHECK(std::fabs(o.y - 0x1p-15f) <= 0x1p-20f);
   // Weight: (kd cos + ks rv^n) * colour * w, cos = 1, rv = dot((0,1,0), view) = 1/sqrt(2).
   const float rv = 1.0f / std::sqrt(2.0f);
   const glm::vec3 want = (glm::vec3(0.5f, 0.6f, 0.7f) * 1.0f +
@@ -399,19 +400,27 @@ TEST_CASE("texture fetched only when the scene has textures and UVs") {
   CheckVec({tex.rgb[3], tex.rgb[4], tex.rgb[5]}, glm::vec3(0.2f, 0, 0), 1e-5);
 }
 
-TEST_CASE("OffsetRayOrigin: moves along n, scales with |p|, small absolute step near 0") {
+TEST_CASE("OffsetRayOrigin: 16 ulps of the triangle's unit plus 32 of the light's, along n") {
   const glm::vec3 n(0, 1, 0);
   const glm::vec3 p(1000.0f, 1000.0f, -1000.0f);
-  const glm::vec3 o = OffsetRayOrigin(p, n);
+  const glm::vec3 o = OffsetRayOrigin(p, n, 512.0f);
   CHECK(o.x == p.x);
   CHECK(o.z == p.z);
-  CHECK(o.y > p.y);
-  CHECK(o.y - p.y == doctest::Approx(256 * 6.103515625e-05).epsilon(1e-6));  // 256 ulps
-  const glm::vec3 neg = OffsetRayOrigin(glm::vec3(0, -1000.0f, 0), n);
-  CHECK(neg.y > -1000.0f);  // negative coordinates move up too
-  const glm::vec3 z = OffsetRayOrigin(glm::vec3(0.0f), glm::vec3(0, -1, 0));
-  CHECK(z.y == -1.0f / 65536.0f);
+  CHECK(o.y - p.y == 512.0f / 524288.0f);  // 16 ulps of 512 (1 ulp of 1000: 2^-13 = 64 x 2^-19)
+  const glm::vec3 neg = OffsetRayOrigin(glm::vec3(0, -1000.0f, 0), n, 512.0f);
+  CHECK(neg.y == -1000.0f + 512.0f / 524288.0f);  // negative coordinates move along n too
+  const glm::vec3 z = OffsetRayOrigin(glm::vec3(0.0f), glm::vec3(0, -1, 0), 1.0f, 4.0f);
+  CHECK(z.y == -(1.0f / 524288.0f + 4.0f / 262144.0f));
   CHECK(z.x == 0.0f);
+  // far from the origin the step stays a few ulps of the coordinates: at 1.5e5 (ulp 1/64) a
+  // quarter unit, not Waechter and Binder's 256 ulps (4 units)
+  const glm::vec3 far = OffsetRayOrigin(glm::vec3(148376.0f, 1233.0f, -223423.0f), n, 131072.0f,
+                                        LightOffsetUnit({148376.0f, 1233.0f, -223423.0f}, {}));
+  CHECK(far.y - 1233.0f == 0.25f);
+  PointLight l;
+  l.position = glm::vec3(148378.0f, 1238.0f, -223420.5f);
+  CHECK(LightOffsetUnit({148376.0f, 1233.0f, -223423.0f}, std::span(&l, 1)) == 4.0f);
+  CHECK(LightOffsetUnit(glm::vec3(0.0f), std::span(&l, 1)) == 131072.0f);
 }
 
 TEST_CASE("OffsetUnit: the power of two of the triangle's largest coordinate; offsets scale with it") {
@@ -474,7 +483,8 @@ TEST_CASE("no self-hit: 1e6 secondary rays from random points of a sphere and a 
     if (!(glm::dot(d, n) > 0.0f)) continue;
     ++tested;
     float t;
-    if (test::IntersectWatertight(OffsetRayOrigin(p, n), d, p0, p1, p2, 0.0f, kInf, &t)) {
+    if (test::IntersectWatertight(OffsetRayOrigin(p, n, OffsetUnit(p0, p1, p2)), d, p0, p1, p2,
+                                  0.0f, kInf, &t)) {
       ++self_hits;
     }
     if (i % 10 == 0 && test::IntersectWatertight(p, d, p0, p1, p2, 0.0f, kInf, &t)) {
@@ -529,7 +539,7 @@ TEST_CASE("no self-hit through Accel: convex spheres near and far from the origi
         glm::vec3 d(gauss(rng), gauss(rng), gauss(rng));
         if (glm::dot(d, n) < 0.0f) d = -d;
         if (!(glm::dot(d, n) > 0.0f)) continue;
-        PushRay(rays, OffsetRayOrigin(p, n), d);
+        PushRay(rays, OffsetRayOrigin(p, n, OffsetUnit(p0, p1, p2)), d);
         own.push_back(static_cast<int32_t>(k));
       }
       rays.FillPadding();
@@ -575,6 +585,59 @@ TEST_CASE("stats: spawned rays by kind") {
   CHECK(r.stats.spawned[static_cast<int>(RayKind::kRefraction)] == 5);
   CHECK(r.stats.spawned[static_cast<int>(RayKind::kPrimary)] == 0);
   CHECK(r.secondary.size() == 20);
+}
+
+// Shadow rays from point lights 2^-4 to 2^10 triangle sizes away to the offset origins of
+// random points on random triangles (a third in axis planes, no slivers) at 0, 10, 1e3 and 1e5
+// from the origin, traced from the light as Shade emits them (t in [kShadowTmin, 1]): none
+// may stop at its own triangle. Lights within 64 ulps of the coordinates from the plane are
+// not counted: no offset can tell their side (the rounding of the light's position decides
+// it). Control: from the plain point p, most do.
+TEST_CASE("no self-shadowing: shadow rays from near and distant lights to offset origins") {
+  std::mt19937 rng(7);
+  std::uniform_real_distribution<float> unit(0.0f, 1.0f);
+  std::normal_distribution<float> gauss(0.0f, 1.0f);
+  for (const double off : {0.0, 10.0, 1e3, 1e5}) {
+    size_t self = 0, plain = 0, tested = 0, near_plane = 0;
+    for (int i = 0; i < 250000; ++i) {
+      const float s = std::exp2(unit(rng) * 8 - 4);
+      const glm::vec3 c = glm::vec3(gauss(rng), gauss(rng), gauss(rng)) * float(off);
+      glm::vec3 p0 = c + s * glm::vec3(gauss(rng), gauss(rng), gauss(rng));
+      glm::vec3 p1 = c + s * glm::vec3(gauss(rng), gauss(rng), gauss(rng));
+      glm::vec3 p2 = c + s * glm::vec3(gauss(rng), gauss(rng), gauss(rng));
+      if (i % 3 == 0) { const int ax = rng() % 3; p1[ax] = p0[ax]; p2[ax] = p0[ax]; }
+      const glm::vec3 nf = glm::cross(p1 - p0, p2 - p0);
+      if (!(glm::length(nf) > 1e-3f * s * s)) continue;
+      glm::vec3 n = FaceNormal(p0, p1, p2);
+      float u = unit(rng), v = unit(rng);
+      if (u + v > 1.0f) { u = 1.0f - u; v = 1.0f - v; }
+      const glm::vec3 p = (1.0f - u - v) * p0 + u * p1 + v * p2;
+      glm::vec3 dir(gauss(rng), gauss(rng), gauss(rng));
+      dir = glm::normalize(dir);
+      if (glm::dot(dir, n) < 0) n = -n;
+      if (glm::dot(dir, n) < 1e-3f) continue;
+      const float dist = s * std::exp2(unit(rng) * 14 - 4);
+      PointLight light;
+      light.position = p + dist * dir;
+      const glm::vec3 L = light.position;
+      const glm::vec3 to = L - p;
+      if (!(glm::dot(n, to / std::sqrt(glm::dot(to, to))) > 0.0f)) continue;  // as Shade
+      const glm::dvec3 nd = glm::normalize(glm::cross(glm::dvec3(p1) - glm::dvec3(p0), glm::dvec3(p2) - glm::dvec3(p0)));
+      const double lside = glm::dot(nd, glm::dvec3(L) - glm::dvec3(p0));
+      const float mag = std::max({std::fabs(L.x), std::fabs(L.y), std::fabs(L.z), OffsetUnit(p0, p1, p2)});
+      if (std::fabs(lside) < 64.0 * mag / 8388608.0) { ++near_plane; continue; }
+      ++tested;
+      const glm::vec3 front = OffsetRayOrigin(p, n, OffsetUnit(p0, p1, p2), LightOffsetUnit(p, std::span(&light, 1)));
+      float t;
+      if (test::IntersectWatertight(L, front - L, p0, p1, p2, kShadowTmin, 1.0f, &t)) ++self;
+      if (test::IntersectWatertight(L, p - L, p0, p1, p2, kShadowTmin, 1.0f, &t)) ++plain;
+    }
+    MESSAGE("triangles at ", off, ": ", self, " of ", tested, " shadow rays self-shadowed (from the plain point: ",
+            plain, "); lights near the plane, not counted: ", near_plane);
+    CHECK(self == 0);
+    CHECK(plain > tested / 2);
+    CHECK(tested > 150000);
+  }
 }
 
 }  // namespace

@@ -83,9 +83,17 @@ inline SpawnedRay SpawnRay(Rng& rng, const SpawnTriangle& t, double scale) {
     ng = -ng;
     side = -1.0;
   }
-  // unit 1 (the paper's constants): no larger than the shader's OffsetUnit step for triangles of
-  // magnitude >= 1, so the fixture stays the harder case where the t bound is needed
-  const glm::vec3 o = OffsetRayOrigin(p, ng);
+  // the shader's step for a ray leaving away from the plane (no light term), except in axis
+  // planes: 16 ulps of the plane's coordinate only (p's error along n is that coordinate's),
+  // far smaller than the shader's step on a large triangle, so that the origin is above the
+  // plane but within the watertight test's rounding of it: the case the t bound is for
+  float unit = OffsetUnit(p0, p1, p2);
+  for (int a = 0; a < 3; ++a) {
+    if (p0[a] == p1[a] && p0[a] == p2[a] && p0[a] != 0.0f) {
+      unit = OffsetUnit(glm::vec3(p0[a]), glm::vec3(p0[a]), glm::vec3(p0[a]));
+    }
+  }
+  const glm::vec3 o = OffsetRayOrigin(p, ng, unit);
   float d[3];
   do {
     rng.Direction(d);
