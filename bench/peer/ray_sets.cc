@@ -134,9 +134,13 @@ glm::vec3 BenchLight(const Scene& scene) {
 float SpawnOffset(const Scene& scene) {
   glm::vec3 lo, hi;
   scene.Bounds(lo, hi);
-  const glm::vec3 m = glm::max(glm::max(glm::abs(lo), glm::abs(hi)), hi - lo);
-  const float scale = std::max(std::max(m.x, m.y), m.z);
-  return 1e-5f * (scale > 0.0f ? scale : 1.0f);
+  const glm::vec3 c = glm::max(glm::abs(lo), glm::abs(hi)), e = hi - lo;
+  const float coord = std::max({c.x, c.y, c.z}), extent = std::max({e.x, e.y, e.z});
+  const float scale = std::max(coord, extent);
+  const float offset = 1e-5f * (scale > 0.0f ? scale : 1.0f);
+  // far from the origin: at most 16 ulps of the coordinates (or 1.6e-4 of the extent)
+  const float ulps16 = 16.0f * (std::nextafter(coord, INFINITY) - coord);
+  return std::min(offset, std::max(1.6e-4f * extent, ulps16));
 }
 
 void MakePrimaryRays(const Scene& scene, int width, int height, RayStream& out) {

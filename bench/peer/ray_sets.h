@@ -40,7 +40,9 @@ Camera BenchCamera(const Scene& scene);
 glm::vec3 BenchLight(const Scene& scene);
 
 // Distance by which spawned rays start off the surface, along the geometric normal on the
-// side of the incoming ray: 1e-5 of the scene's scale (largest |coordinate| or extent).
+// side of the incoming ray: 1e-5 of the scene's scale (largest |coordinate| or extent), at most
+// the larger of 16 ulps of the largest |coordinate| and 1.6e-4 of the extent (farsphere: 0.25,
+// not 2.2 units off its radius-1 sphere; the other scenes: 1e-5 of the scale).
 float SpawnOffset(const Scene& scene);
 
 // Clears `out` and writes width x height primary rays of BenchCamera in scanline order (ray i is
