@@ -742,7 +742,8 @@ HWY_NOINLINE void ShadeBlocks(const detail::ShadeArgs& a) {
             const MF through = hn::Or(hn::And(redo, ok_ng), hn::AndNot(redo, ok_ns));
             const V3 t = Select3(redo, t_ng, t_ns);
             // Total internal reflection: a reflection ray from the front side.
-            const V3 origin = Select3(through, OffsetRayOrigin3(p, Neg3(ng), unit, hn::Zero(df)), front);
+            const V3 origin =
+                Select3(through, OffsetRayOrigin3(p, Neg3(ng), unit, hn::Zero(df)), front);
             const V3 dir = Select3(through, t, mirror());
             const VI kind = hn::IfThenElse(
                 hn::RebindMask(di, through), hn::Set(di, static_cast<int32_t>(RayKind::kRefraction)),

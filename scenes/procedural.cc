@@ -382,7 +382,8 @@ void MakeCornell(Scene& scene) {
 // grid. Positions are computed in double and rounded once.
 void MakeSphereScene(Scene& scene, const glm::dvec3& c) {
   MeshBuilder b(scene, /*with_normals=*/true);
-  const uint32_t glaze = b.AddMaterial(Mat("glaze", {0.70f, 0.12f, 0.10f}, 0.0f, glm::vec3(0.8f), 100));
+  const uint32_t glaze =
+      b.AddMaterial(Mat("glaze", {0.70f, 0.12f, 0.10f}, 0.0f, glm::vec3(0.8f), 100));
   const uint32_t floor_a = b.AddMaterial(Mat("floor_a", {0.80f, 0.80f, 0.78f}));
   const uint32_t floor_b = b.AddMaterial(Mat("floor_b", {0.15f, 0.15f, 0.18f}));
   const uint32_t lamp = b.AddMaterial(Mat("lamp", {1.0f, 1.0f, 1.0f}));

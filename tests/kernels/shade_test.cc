@@ -605,13 +605,19 @@ TEST_CASE("no self-shadowing: shadow rays from near and distant lights to offset
       glm::vec3 p0 = c + s * glm::vec3(gauss(rng), gauss(rng), gauss(rng));
       glm::vec3 p1 = c + s * glm::vec3(gauss(rng), gauss(rng), gauss(rng));
       glm::vec3 p2 = c + s * glm::vec3(gauss(rng), gauss(rng), gauss(rng));
-      if (i % 3 == 0) { const int ax = rng() % 3; p1[ax] = p0[ax]; p2[ax] = p0[ax]; }
+      if (i % 3 == 0) {  // in an axis plane
+        const int ax = int(rng() % 3);
+        p1[ax] = p2[ax] = p0[ax];
+      }
       const glm::vec3 nf = glm::cross(p1 - p0, p2 - p0);
       if (!(glm::length(nf) > 1e-3f * s * s)) continue;
       glm::vec3 n = FaceNormal(p0, p1, p2);
       float u = unit(rng), v = unit(rng);
-      if (u + v > 1.0f) { u = 1.0f - u; v = 1.0f - v; }
-      const glm::vec3 p = (1.0f - u - v) * p0 + u * p1 + v * p2;
+      if (u + v > 1.0f) {
+        u = 1.0f - u;
+        v = 1.0f - v;
+      }
+      const glm::vec3 p = (1.0f - u - v) * p0 + u * p1 + v * p2;  // as Shade computes it
       glm::vec3 dir(gauss(rng), gauss(rng), gauss(rng));
       dir = glm::normalize(dir);
       if (glm::dot(dir, n) < 0) n = -n;
@@ -622,18 +628,25 @@ TEST_CASE("no self-shadowing: shadow rays from near and distant lights to offset
       const glm::vec3 L = light.position;
       const glm::vec3 to = L - p;
       if (!(glm::dot(n, to / std::sqrt(glm::dot(to, to))) > 0.0f)) continue;  // as Shade
-      const glm::dvec3 nd = glm::normalize(glm::cross(glm::dvec3(p1) - glm::dvec3(p0), glm::dvec3(p2) - glm::dvec3(p0)));
-      const double lside = glm::dot(nd, glm::dvec3(L) - glm::dvec3(p0));
-      const float mag = std::max({std::fabs(L.x), std::fabs(L.y), std::fabs(L.z), OffsetUnit(p0, p1, p2)});
-      if (std::fabs(lside) < 64.0 * mag / 8388608.0) { ++near_plane; continue; }
+      const glm::dvec3 q0(p0);
+      const glm::dvec3 nd = glm::normalize(glm::cross(glm::dvec3(p1) - q0, glm::dvec3(p2) - q0));
+      const double light_side = glm::dot(nd, glm::dvec3(L) - q0);
+      const float mag =
+          std::max({std::fabs(L.x), std::fabs(L.y), std::fabs(L.z), OffsetUnit(p0, p1, p2)});
+      if (std::fabs(light_side) < 64.0 * mag / 8388608.0) {
+        ++near_plane;
+        continue;
+      }
       ++tested;
-      const glm::vec3 front = OffsetRayOrigin(p, n, OffsetUnit(p0, p1, p2), LightOffsetUnit(p, std::span(&light, 1)));
+      const glm::vec3 front = OffsetRayOrigin(p, n, OffsetUnit(p0, p1, p2),
+                                              LightOffsetUnit(p, std::span(&light, 1)));
       float t;
       if (test::IntersectWatertight(L, front - L, p0, p1, p2, kShadowTmin, 1.0f, &t)) ++self;
       if (test::IntersectWatertight(L, p - L, p0, p1, p2, kShadowTmin, 1.0f, &t)) ++plain;
     }
-    MESSAGE("triangles at ", off, ": ", self, " of ", tested, " shadow rays self-shadowed (from the plain point: ",
-            plain, "); lights near the plane, not counted: ", near_plane);
+    MESSAGE("triangles at ", off, ": ", self, " of ", tested,
+            " shadow rays self-shadowed (from the plain point: ", plain,
+            "); lights near the plane, not counted: ", near_plane);
     CHECK(self == 0);
     CHECK(plain > tested / 2);
     CHECK(tested > 150000);

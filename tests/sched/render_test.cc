@@ -710,8 +710,8 @@ TEST_CASE("farsphere renders as nearsphere: the sphere's shadow on the floor, no
     differ += d > 0.1f ? 1 : 0;
   }
   const size_t pixels = rgb[0].size() / 3;
-  MESSAGE("occluded shadow rays: near ", shadowed[0], ", far ", shadowed[1], "; pixels differing by "
-          "more than 0.1: ", differ, " of ", pixels);
+  MESSAGE("occluded shadow rays: near ", shadowed[0], ", far ", shadowed[1],
+          "; pixels differing by more than 0.1: ", differ, " of ", pixels);
   CHECK(shadowed[0] > pixels / 40);  // the floor's shadow and the sphere's dark side
   CHECK(std::fabs(double(shadowed[1]) - double(shadowed[0])) < 0.05 * double(shadowed[0]));
   CHECK(differ < pixels / 25);
