@@ -77,8 +77,10 @@ void SpawnFrame(const Scene& scene, const RayStreamView& rays, const HitStreamVi
   origin = glm::vec3(p + static_cast<double>(offset) * n);
 }
 
-void FinishSpawn(const RayStreamView& from, size_t i, RayStream& out, size_t j, RayKind kind) {
-  RayStreamView o = out.view();
+// (o: a view of the output stream, sized once: a Resize and a view per ray were half of
+// trace_bench's frame rows)
+void FinishSpawn(const RayStreamView& from, size_t i, const RayStreamView& o, size_t j,
+                 RayKind kind) {
   o.pixel[j] = from.pixel ? from.pixel[i] : static_cast<uint32_t>(i);
   o.wr[j] = from.wr ? from.wr[i] : 1.0f;
   o.wg[j] = from.wg ? from.wg[i] : 1.0f;
@@ -154,7 +156,9 @@ void MakeShadowRays(const Scene& scene, const RayStreamView& rays, const HitStre
                     const glm::vec3& light, RayStream& out) {
   const float offset = SpawnOffset(scene);
   out.Clear();
-  out.Reserve(CountHits(hits, rays.size));
+  out.Resize(CountHits(hits, rays.size));
+  const RayStreamView o = out.view();
+  size_t j = 0;
   for (size_t i = 0; i < rays.size; ++i) {
     if (hits.prim[i] < 0) continue;
     glm::vec3 origin, normal;
@@ -162,9 +166,6 @@ void MakeShadowRays(const Scene& scene, const RayStreamView& rays, const HitStre
     const glm::vec3 to = light - origin;
     const float dist = glm::length(to);
     const glm::vec3 d = dist > 0.0f ? to / dist : normal;
-    const size_t j = out.size();
-    out.Resize(j + 1);
-    RayStreamView o = out.view();
     o.ox[j] = origin.x;
     o.oy[j] = origin.y;
     o.oz[j] = origin.z;
@@ -173,7 +174,7 @@ void MakeShadowRays(const Scene& scene, const RayStreamView& rays, const HitStre
     o.dz[j] = d.z;
     o.tmin[j] = 0.0f;
     o.tmax[j] = dist;
-    FinishSpawn(rays, i, out, j, RayKind::kShadow);
+    FinishSpawn(rays, i, o, j++, RayKind::kShadow);
   }
   out.FillPadding();
 }
@@ -201,7 +202,9 @@ void MakeDiffuseRays(const Scene& scene, const RayStreamView& rays, const HitStr
                      uint64_t seed, RayStream& out) {
   const float offset = SpawnOffset(scene);
   out.Clear();
-  out.Reserve(CountHits(hits, rays.size));
+  out.Resize(CountHits(hits, rays.size));
+  const RayStreamView o = out.view();
+  size_t j = 0;
   for (size_t i = 0; i < rays.size; ++i) {
     if (hits.prim[i] < 0) continue;
     glm::vec3 origin, n;
@@ -220,9 +223,6 @@ void MakeDiffuseRays(const Scene& scene, const RayStreamView& rays, const HitStr
     const float phi = 2.0f * std::numbers::pi_v<float> * u2;
     const float z = std::sqrt(std::max(0.0f, 1.0f - u1));
     const glm::vec3 d = glm::normalize(r * std::cos(phi) * t1 + r * std::sin(phi) * t2 + z * n);
-    const size_t j = out.size();
-    out.Resize(j + 1);
-    RayStreamView o = out.view();
     o.ox[j] = origin.x;
     o.oy[j] = origin.y;
     o.oz[j] = origin.z;
@@ -231,7 +231,7 @@ void MakeDiffuseRays(const Scene& scene, const RayStreamView& rays, const HitStr
     o.dz[j] = d.z;
     o.tmin[j] = 0.0f;
     o.tmax[j] = kInf;
-    FinishSpawn(rays, i, out, j, RayKind::kReflection);
+    FinishSpawn(rays, i, o, j++, RayKind::kReflection);
   }
   out.FillPadding();
 }
