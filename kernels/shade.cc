@@ -196,17 +196,20 @@ HWY_INLINE V3 FaceNormal3(const V3& p0, const V3& p1, const V3& p2) {
   const VF scale = hn::BitCast(df, hn::ShiftLeft<23>(hn::Sub(hn::Set(di, 254), e)));
   return Normalize3(Cross3(Scale3(e1, scale), Scale3(e2, scale)));
 }
-// OffsetUnit of the triangles (p0, p1, p2), lane by lane.
-HWY_INLINE VF OffsetUnit3(const V3& p0, const V3& p1, const V3& p2) {
+// PowerOfTwoFloor (shade.h), lane by lane.
+HWY_INLINE VF PowerOfTwoFloor3(VF m) {
   const DF df;
   const DI di;
-  const auto max3 = [](const V3& p) {
-    return hn::Max(hn::Abs(p.x), hn::Max(hn::Abs(p.y), hn::Abs(p.z)));
-  };
-  const VF m = hn::Max(max3(p0), hn::Max(max3(p1), max3(p2)));
   VI e = hn::And(hn::ShiftRight<23>(hn::BitCast(di, m)), hn::Set(di, 0xFF));
   e = hn::Min(hn::Max(e, hn::Set(di, 1)), hn::Set(di, 254));
   return hn::BitCast(df, hn::ShiftLeft<23>(e));
+}
+// OffsetUnit of the triangles (p0, p1, p2), lane by lane.
+HWY_INLINE VF OffsetUnit3(const V3& p0, const V3& p1, const V3& p2) {
+  const auto max3 = [](const V3& p) {
+    return hn::Max(hn::Abs(p.x), hn::Max(hn::Abs(p.y), hn::Abs(p.z)));
+  };
+  return PowerOfTwoFloor3(hn::Max(max3(p0), hn::Max(max3(p1), max3(p2))));
 }
 // OffsetRayOrigin (shade.h), lane by lane the same operations.
 HWY_INLINE V3 OffsetRayOrigin3(const V3& p, const V3& n, VF unit, VF light_unit) {
@@ -219,7 +222,6 @@ HWY_INLINE V3 OffsetRayOrigin3(const V3& p, const V3& n, VF unit, VF light_unit)
 // LightOffsetUnit (shade.h), lane by lane.
 HWY_INLINE VF LightOffsetUnit3(const V3& p, std::span<const PointLight> lights) {
   const DF df;
-  const DI di;
   if (lights.empty()) return hn::Zero(df);
   VF m = hn::Zero(df);
   for (const PointLight& l : lights) {
@@ -227,9 +229,7 @@ HWY_INLINE VF LightOffsetUnit3(const V3& p, std::span<const PointLight> lights) 
     m = hn::Max(m, hn::Abs(hn::Sub(hn::Set(df, l.position.y), p.y)));
     m = hn::Max(m, hn::Abs(hn::Sub(hn::Set(df, l.position.z), p.z)));
   }
-  VI e = hn::And(hn::ShiftRight<23>(hn::BitCast(di, m)), hn::Set(di, 0xFF));
-  e = hn::Min(hn::Max(e, hn::Set(di, 1)), hn::Set(di, 254));
-  return hn::BitCast(df, hn::ShiftLeft<23>(e));
+  return PowerOfTwoFloor3(m);
 }
 
 // PhongPow, lane by lane the same operations as the scalar rs::PhongPow (HWY_ONCE below).

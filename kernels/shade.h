@@ -198,14 +198,20 @@ inline glm::vec3 FaceNormal(const glm::vec3& p0, const glm::vec3& p1, const glm:
 // 2^floor(log2(m)) of m = the largest |component| of the three vertices, the magnitude that the
 // error of a point interpolated from them is relative to (exponent clamped to a normal float, as
 // EdgeScale). Scaling a scene by a power of two scales it exactly.
+// 2^floor(log2(m)) for finite m >= 0, the exponent clamped to a normal float (m = 0 gives the
+// smallest normal): OffsetUnit's and LightOffsetUnit's power of two.
+inline float PowerOfTwoFloor(float m) {
+  int32_t e = (std::bit_cast<int32_t>(m) >> 23) & 0xFF;
+  e = e < 1 ? 1 : (e > 254 ? 254 : e);
+  return std::bit_cast<float>(e << 23);
+}
+
 inline float OffsetUnit(const glm::vec3& p0, const glm::vec3& p1, const glm::vec3& p2) {
   float m = 0.0f;
   for (int a = 0; a < 3; ++a) {
     m = std::fmax(m, std::fmax(std::fabs(p0[a]), std::fmax(std::fabs(p1[a]), std::fabs(p2[a]))));
   }
-  int32_t e = (std::bit_cast<int32_t>(m) >> 23) & 0xFF;
-  e = e < 1 ? 1 : (e > 254 ? 254 : e);
-  return std::bit_cast<float>(e << 23);
+  return PowerOfTwoFloor(m);
 }
 
 // Secondary-ray origin: p moved off its triangle along n by 16 ulps of `unit` plus 32 ulps of
@@ -237,17 +243,15 @@ inline glm::vec3 OffsetRayOrigin(const glm::vec3& p, const glm::vec3& n, float u
   return out;
 }
 
-// The light term of OffsetRayOrigin at p: 2^floor(log2(m)) of m = the largest |light - p|
-// component over `lights` (exponent clamped as OffsetUnit's); 0 without lights.
+// The light term of OffsetRayOrigin at p: PowerOfTwoFloor of the largest |light - p| component
+// over `lights`; 0 without lights.
 inline float LightOffsetUnit(const glm::vec3& p, std::span<const PointLight> lights) {
   if (lights.empty()) return 0.0f;
   float m = 0.0f;
   for (const PointLight& l : lights) {
     for (int a = 0; a < 3; ++a) m = std::fmax(m, std::fabs(l.position[a] - p[a]));
   }
-  int32_t e = (std::bit_cast<int32_t>(m) >> 23) & 0xFF;
-  e = e < 1 ? 1 : (e > 254 ? 254 : e);
-  return std::bit_cast<float>(e << 23);
+  return PowerOfTwoFloor(m);
 }
 
 // Mirror direction of d about the unit normal n: d - 2 (d.n) n.

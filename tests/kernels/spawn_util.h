@@ -89,9 +89,7 @@ inline SpawnedRay SpawnRay(Rng& rng, const SpawnTriangle& t, double scale) {
   // plane but within the watertight test's rounding of it: the case the t bound is for
   float unit = OffsetUnit(p0, p1, p2);
   for (int a = 0; a < 3; ++a) {
-    if (p0[a] == p1[a] && p0[a] == p2[a] && p0[a] != 0.0f) {
-      unit = OffsetUnit(glm::vec3(p0[a]), glm::vec3(p0[a]), glm::vec3(p0[a]));
-    }
+    if (p0[a] == p1[a] && p0[a] == p2[a] && p0[a] != 0.0f) unit = PowerOfTwoFloor(std::fabs(p0[a]));
   }
   const glm::vec3 o = OffsetRayOrigin(p, ng, unit);
   float d[3];
