@@ -4,6 +4,7 @@
 #include <hwy/base.h>
 
 #include <algorithm>
+#include <cfloat>
 #include <chrono>
 #include <cmath>
 #include <limits>
@@ -114,7 +115,12 @@ void Build(const MeshView& mesh, const BuildOptions& options, Accel::Impl* impl)
   if (m.triangles.num_nonfinite != 0) ValidateTriangles(mesh);
   const GridCostModel model;
   m.lambda = options.lambda > 0.0f ? options.lambda : kDefaultLambda;
-  const GridBounds bounds = ComputeGridBounds(m.triangles);  // shared by the lambda choice
+  GridBounds bounds = ComputeGridBounds(m.triangles);  // shared by the lambda choice
+  ChooseFrameShift(bounds, m.shift);
+  if (m.Shifted()) {  // a scene far from the origin: build it near the origin
+    TranslateTriangleSoA(m.shift, &m.triangles);
+    bounds = ComputeGridBounds(m.triangles);
+  }
   const bool auto_grid = options.grid == GridKind::kAuto || options.grid == GridKind::kIrregular;
   if (auto_grid && options.lambda == 0.0f) {
     m.lambda = ChooseLambda(m.triangles, bounds, options.max_resolution, model, nullptr,
@@ -231,14 +237,18 @@ struct PaddedTail {
   RayStreamView rays;
   HitStreamView hits;
 
-  // rays[first, first + n), n < kStreamPad, copied; the padding never hits (zero direction).
-  PaddedTail(const RayStreamView& from, size_t first, size_t n) {
+  // rays[first, first + n), n < kStreamPad, copied (origins in the Accel's frame: o - shift);
+  // the padding never hits (zero direction).
+  PaddedTail(const RayStreamView& from, size_t first, size_t n, const float shift[3]) {
     float* const dst[8] = {f[0], f[1], f[2], f[3], f[4], f[5], f[6], f[7]};
     const float* const src[8] = {from.ox, from.oy, from.oz, from.dx, from.dy, from.dz, from.tmin,
                                  from.tmax};
     for (int a = 0; a < 8; ++a) {
       std::fill(dst[a], dst[a] + kStreamPad, 0.0f);
       std::copy(src[a] + first, src[a] + first + n, dst[a]);
+      if (a < 3) {
+        for (size_t i = 0; i < n; ++i) dst[a][i] -= shift[a];
+      }
     }
     rays.ox = f[0], rays.oy = f[1], rays.oz = f[2];
     rays.dx = f[3], rays.dy = f[4], rays.dz = f[5];
@@ -247,12 +257,6 @@ struct PaddedTail {
     hits = HitStreamView{t, u, v, prim, n};
   }
 };
-
-RayStreamView Head(const RayStreamView& rays, size_t n) {
-  RayStreamView head = rays;
-  head.size = n;
-  return head;
-}
 
 }  // namespace
 
@@ -273,9 +277,13 @@ void Accel::Intersect(const RayStreamView& rays, const HitStreamView& hits,
     IntersectStreamDda(m.dda, r, h, m.dda_options, stats);
   };
   const size_t body = rays.size / kStreamPad * kStreamPad, tail = rays.size - body;
-  if (body > 0) trace(Head(rays, body), HitStreamView{hits.t, hits.u, hits.v, hits.prim, body});
+  if (body > 0) {
+    ForEachFramePiece(m, rays, body, [&](const RayStreamView& piece, size_t first) {
+      trace(piece, SubView(hits, first, piece.size));
+    });
+  }
   if (tail == 0) return;
-  PaddedTail p(rays, body, tail);
+  PaddedTail p(rays, body, tail, m.shift);
   trace(p.rays, p.hits);
   std::copy(p.t, p.t + tail, hits.t + body);
   std::copy(p.u, p.u + tail, hits.u + body);
@@ -294,9 +302,13 @@ void Accel::Occluded(const RayStreamView& rays, int32_t* occluded, TraceStats* s
     OccludedStreamDda(m.dda, r, out, m.dda_options, stats);
   };
   const size_t body = rays.size / kStreamPad * kStreamPad, tail = rays.size - body;
-  if (body > 0) trace(Head(rays, body), occluded);
+  if (body > 0) {
+    ForEachFramePiece(m, rays, body, [&](const RayStreamView& piece, size_t first) {
+      trace(piece, occluded + first);
+    });
+  }
   if (tail == 0) return;
-  PaddedTail p(rays, body, tail);
+  PaddedTail p(rays, body, tail, m.shift);
   trace(p.rays, p.prim);
   std::copy(p.prim, p.prim + tail, occluded + body);
 }
@@ -309,9 +321,9 @@ void AccelIntersect(const Accel::Impl& m, const RayStreamView& rays, const HitSt
   TraceStats local;
   for (size_t i = 0; i < rays.size; ++i) {
     RayHit h;
-    TraceClosestTwoLevel(m.grid, m.two_level, m.triangles, rays.ox[i], rays.oy[i], rays.oz[i],
-                         rays.dx[i], rays.dy[i], rays.dz[i], rays.tmin[i], rays.tmax[i], &h,
-                         &local);
+    TraceClosestTwoLevel(m.grid, m.two_level, m.triangles, rays.ox[i] - m.shift[0],
+                         rays.oy[i] - m.shift[1], rays.oz[i] - m.shift[2], rays.dx[i], rays.dy[i],
+                         rays.dz[i], rays.tmin[i], rays.tmax[i], &h, &local);
     hits.t[i] = h.t;
     hits.u[i] = h.u;
     hits.v[i] = h.v;
@@ -328,9 +340,9 @@ void AccelOccluded(const Accel::Impl& m, const RayStreamView& rays, int32_t* occ
                    TraceStats* stats) {
   TraceStats local;
   for (size_t i = 0; i < rays.size; ++i) {
-    occluded[i] = TraceAnyTwoLevel(m.grid, m.two_level, m.triangles, rays.ox[i], rays.oy[i],
-                                   rays.oz[i], rays.dx[i], rays.dy[i], rays.dz[i], rays.tmin[i],
-                                   rays.tmax[i], &local)
+    occluded[i] = TraceAnyTwoLevel(m.grid, m.two_level, m.triangles, rays.ox[i] - m.shift[0],
+                                   rays.oy[i] - m.shift[1], rays.oz[i] - m.shift[2], rays.dx[i],
+                                   rays.dy[i], rays.dz[i], rays.tmin[i], rays.tmax[i], &local)
                       ? 1
                       : 0;
   }
@@ -348,9 +360,11 @@ AccelInfo Accel::Info() const {
   AccelInfo info;
   info.triangles = m.triangles.size;
   info.degenerate_triangles = m.triangles.num_degenerate;
-  for (int a = 0; a < 3; ++a) {
-    info.bounds_lo[a] = m.grid.lo[a];
-    info.bounds_hi[a] = m.grid.hi[a];
+  for (int a = 0; a < 3; ++a) {  // in world coordinates, rounded outwards
+    const double lo = double(m.grid.lo[a]) + m.shift[a], hi = double(m.grid.hi[a]) + m.shift[a];
+    const float flo = float(lo), fhi = float(hi);
+    info.bounds_lo[a] = double(flo) > lo ? std::nextafter(flo, -FLT_MAX) : flo;
+    info.bounds_hi[a] = double(fhi) < hi ? std::nextafter(fhi, FLT_MAX) : fhi;
     info.resolution[a] = m.grid.res[a];
   }
   info.cells = m.grid.num_cells;

@@ -3,6 +3,9 @@
 // (this header is internal: the installed header declares Impl only).
 #pragma once
 
+#include <algorithm>
+#include <cstddef>
+
 #include "include/raystream/raystream.h"
 #include "kernels/dda_simd.h"
 #include "kernels/grid.h"
@@ -11,6 +14,7 @@
 #include "kernels/triangle.h"
 #include "kernels/two_level.h"
 #include "streams/block_memory.h"
+#include "streams/ray_stream.h"
 
 namespace rs {
 
@@ -18,6 +22,9 @@ struct Accel::Impl {
   BlockCache cache;        // first: every array below is allocated through it during a build
                            // (Accel::Rebuild takes their blocks back) and freed before it
   bool built = false;      // false after a Rebuild that threw
+  // The Accel's frame (ChooseFrameShift, kernels/grid.h): the triangles and every structure
+  // below are at world - shift; rays are translated at the entry points (ForEachFramePiece).
+  float shift[3] = {0.0f, 0.0f, 0.0f};
   TriangleSoA triangles;   // indexed by the mesh's triangle ids (degenerate ones flagged)
   Grid grid;               // empty (num_cells = 0) when no triangle can be hit; always a
                            // complete flat grid (also when two_level refines some cells)
@@ -32,7 +39,34 @@ struct Accel::Impl {
   double cost_estimate = 0.0;
   double flat_cost_estimate = 0.0;
   double build_seconds = 0.0;
+
+  bool Shifted() const { return shift[0] != 0.0f || shift[1] != 0.0f || shift[2] != 0.0f; }
 };
+
+// Calls trace(piece, first) on consecutive pieces of rays [0, count) (arrays readable to
+// PaddedSize(count)) whose origins are in the Accel's frame: the caller's rays in one piece when
+// the frame is the world's, else kFramePiece rays at a time (whole 64-ray packets) with
+// fl(o - shift) in a stack copy and the other arrays the caller's. The kernels behind
+// Accel::Intersect and Occluded see only such pieces, and so must any caller of the kernels on
+// an Accel's structures (AccelImpl).
+inline constexpr size_t kFramePiece = 1024;
+template <class Trace>
+void ForEachFramePiece(const Accel::Impl& m, const RayStreamView& rays, size_t count,
+                       Trace&& trace) {
+  if (!m.Shifted()) return trace(SubView(rays, 0, count), size_t{0});
+  alignas(kStreamAlign) float o[3][kFramePiece];
+  const float* const from[3] = {rays.ox, rays.oy, rays.oz};
+  for (size_t first = 0; first < count; first += kFramePiece) {
+    const size_t n = std::min(kFramePiece, count - first);
+    for (int a = 0; a < 3; ++a) {
+      for (size_t i = 0; i < n; ++i) o[a][i] = from[a][first + i] - m.shift[a];
+      std::fill(o[a] + n, o[a] + PaddedSize(n), 0.0f);
+    }
+    RayStreamView piece = SubView(rays, first, n);
+    piece.ox = o[0], piece.oy = o[1], piece.oz = o[2];
+    trace(piece, first);
+  }
+}
 
 // The state of a built Accel; throws rs::Error for a moved-from one or one whose last Rebuild
 // failed.

@@ -296,6 +296,16 @@ GridBounds ComputeGridBounds(const TriangleSoA& tris) {
   return b;
 }
 
+void ChooseFrameShift(const GridBounds& bounds, float shift[3]) {
+  for (int a = 0; a < 3; ++a) {
+    shift[a] = 0.0f;
+    if (bounds.num_valid == 0) continue;
+    const double lo = bounds.lo[a], hi = bounds.hi[a];
+    const double nearest = lo > 0.0 ? lo : (hi < 0.0 ? -hi : 0.0);  // 0: the bounds hold 0
+    if (nearest > 0.0 && hi - lo <= nearest) shift[a] = RoundToFloat(0.5 * (lo + hi));
+  }
+}
+
 void SetGridGeometry(const GridBounds& bounds, float lambda, int max_resolution, Grid* grid) {
   SetGeometry(bounds, double(lambda), max_resolution, grid);
 }

@@ -271,15 +271,20 @@ struct LightBuildScratch {
   std::vector<uint32_t> order;       // per reference: its record
 };
 
-void BuildLightBuffer(const TriangleSoA& tris, const float light[3], double cells_per_triangle,
-                      LightBufferData* out, LightBuildScratch* reuse) {
+void BuildLightBuffer(const TriangleSoA& tris, const float world_light[3],
+                      double cells_per_triangle, LightBufferData* out, LightBuildScratch* reuse,
+                      const float* shift) {
   LightBuildScratch local;
   LightBuildScratch& sc = reuse != nullptr ? *reuse : local;
   LightBufferData& lb = *out;
   lb.res = 0;
   lb.faces = LightFaces{};
   lb.num_cells = lb.num_refs = lb.num_always = 0;
-  for (int a = 0; a < 3; ++a) lb.light[a] = light[a];
+  for (int a = 0; a < 3; ++a) {
+    lb.light[a] = world_light[a];
+    lb.frame_light[a] = shift != nullptr ? world_light[a] - shift[a] : world_light[a];
+  }
+  const float* const light = lb.frame_light;  // what the build and the tests translate by
   lb.verts = tris.verts.data();
   const Vec3 l = {double(light[0]), double(light[1]), double(light[2])};
   // per rectangle, in triangle order (sequential reads of the triangles; the lists are
@@ -516,7 +521,7 @@ void LightBuffer::Rebuild(const Accel& accel, const float light[3]) {
   // one scratch per thread for every light buffer it builds: a scene's lights pay the fresh
   // pages of the temporaries once, not once each (and hold them once)
   static thread_local LightBuildScratch scratch;
-  BuildLightBuffer(m.triangles, light, kLightCellsPerTriangle, &impl_->data, &scratch);
+  BuildLightBuffer(m.triangles, light, kLightCellsPerTriangle, &impl_->data, &scratch, m.shift);
   impl_->built = true;
   impl_->build_seconds =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();

@@ -84,7 +84,8 @@ struct LightFaces {
 };
 
 struct LightBufferData {
-  float light[3] = {0.0f, 0.0f, 0.0f};
+  float light[3] = {0.0f, 0.0f, 0.0f};        // the rays it answers start here (world)
+  float frame_light[3] = {0.0f, 0.0f, 0.0f};  // the same in the triangles' frame: light - shift
   int res = 0;              // the largest cells per axis of any face; 0: no triangle can be hit
   LightFaces faces;
   size_t num_cells = 0;     // sum of the faces' res_u res_v; cell num_cells is the list every ray reads
@@ -116,12 +117,15 @@ struct LightBufferData {
 
 // Builds the light buffer of `tris` (non-degenerate triangles only) for a light at `light`
 // (finite; the caller checks) into *out, reusing its arrays (and the temporaries in *reuse,
-// if given) where they are large enough. *out borrows tris.verts. cells_per_triangle: about
-// that many cells per triangle, lowered while the references would pass kLightRefsPerTriangle
-// per triangle. Throws rs::Error if an allocation fails.
+// if given) where they are large enough. *out borrows tris.verts. shift: the frame of `tris`
+// (rs::Accel's, kernels/accel_impl.h; null: the world's): the build and the queries use the
+// light at fl(light - shift), as Accel::Occluded translates the rays' origins.
+// cells_per_triangle: about that many cells per triangle, lowered while the references would
+// pass kLightRefsPerTriangle per triangle. Throws rs::Error if an allocation fails.
 struct LightBuildScratch;
 void BuildLightBuffer(const TriangleSoA& tris, const float light[3], double cells_per_triangle,
-                      LightBufferData* out, LightBuildScratch* reuse = nullptr);
+                      LightBufferData* out, LightBuildScratch* reuse = nullptr,
+                      const float* shift = nullptr);
 
 // The build's common case a vector of triangles at a time, in float (kernels/light_buffer_trace.cc):
 // for triangles [first, first + count <= kLightProjectBlock) whose three vertices lie at least

@@ -139,6 +139,8 @@ void OccludedLightBufferT(const LightBufferData& lb, const RayStreamView& rays, 
   size_t nfar = 0, at_light = 0, cells = 0;
   uint64_t tests = 0;
   const V lx = hn::Set(d, lb.light[0]), ly = hn::Set(d, lb.light[1]), lz = hn::Set(d, lb.light[2]);
+  const V fx = hn::Set(d, lb.frame_light[0]), fy = hn::Set(d, lb.frame_light[1]);
+  const V fz = hn::Set(d, lb.frame_light[2]);
   const V zero = hn::Zero(d), one = hn::Set(d, 1.0f), flt_max = hn::Set(d, FLT_MAX);
   const V slack = hn::Set(d, 1.0f + 1e-5f);
   const auto izero = hn::Zero(di);
@@ -226,14 +228,14 @@ void OccludedLightBufferT(const LightBufferData& lb, const RayStreamView& rays, 
       hn::StoreU(hn::Zero(di), di, occluded + i);
       continue;
     }
-    const V ox = hn::LoadU(d, rays.ox + i), oy = hn::LoadU(d, rays.oy + i);
-    const V oz = hn::LoadU(d, rays.oz + i), dx = hn::LoadU(d, rays.dx + i);
+    // the valid lanes start at the light: their origin in the triangles' frame is frame_light
+    const V dx = hn::LoadU(d, rays.dx + i);
     const V dy = hn::LoadU(d, rays.dy + i), dz = hn::LoadU(d, rays.dz + i);
     const V tmin = hn::LoadU(d, rays.tmin + i);
     const V tmax_f = hn::Min(hn::LoadU(d, rays.tmax + i), flt_max);  // valid: not NaN
     StreamRays<D> r;
     int k[3];
-    const bool uniform = SetupStreamRays(d, ox, oy, oz, dx, dy, dz, valid, &r, k);
+    const bool uniform = SetupStreamRays(d, fx, fy, fz, dx, dy, dz, valid, &r, k);
     int perm[9] = {};  // offsets of the components in (kx, ky, kz) order
     if (uniform) {
       for (int vtx = 0; vtx < 3; ++vtx) {

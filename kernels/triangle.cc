@@ -67,6 +67,17 @@ void BuildTriangleSoA(const MeshView& mesh, TriangleSoA* out, int threads) {
   }
 }
 
+void TranslateTriangleSoA(const float shift[3], TriangleSoA* tris) {
+  for (int k = 0; k < 3; ++k) {
+    for (int a = 0; a < 3; ++a) {
+      float* const p = tris->p[k][a].data();
+      for (size_t i = 0; i < tris->size; ++i) p[i] -= shift[a];
+    }
+  }
+  float* const verts = tris->verts.data();
+  for (size_t i = 0; i < 9 * tris->size; ++i) verts[i] -= shift[i % 3];
+}
+
 bool WatertightAheadInDouble(float a0, float a1, float a2, float b0, float b1, float b2, float c0,
                              float c1, float c2, float o0, float o1, float o2, float sx, float sy,
                              float sz) {

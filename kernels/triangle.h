@@ -43,6 +43,10 @@ bool IsDegenerateTriangle(const float p0[3], const float p1[3], const float p2[3
 // (BuildOptions::build_threads): parts of the triangles gathered on that many threads.
 void BuildTriangleSoA(const MeshView& mesh, TriangleSoA* out, int threads = 1);
 
+// Moves every triangle by -shift (p and verts: v - shift in float; exact inside the bounds
+// ChooseFrameShift took the shift from, kernels/grid.h). The degenerate flags are kept.
+void TranslateTriangleSoA(const float shift[3], TriangleSoA* tris);
+
 // Closest-hit record of the scalar tests: t along the ray (units of |d|), u, v barycentrics of
 // vertices 1 and 2.
 struct TriHit {

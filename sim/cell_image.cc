@@ -27,6 +27,7 @@ CellImage::CellImage(const Scene& scene, const Accel& accel) : scene_(&scene), a
     grid_.cell_size[a] = g.cell_size[a];
     grid_.inv_cell_size[a] = g.inv_cell_size[a];
     grid_.res[a] = g.res[a];
+    grid_.shift[a] = m.shift[a];
   }
   grid_.empty = g.empty() ? 1u : 0u;
   grid_.num_cells = g.num_cells;

@@ -106,6 +106,9 @@ struct GridHeader {
   uint64_t num_cells;
   uint32_t two_level;  // 1 if some cells are refined (sub-grid records exist)
   uint32_t pad;
+  // the Accel's frame (kernels/accel_impl.h): the grid, the records and the triangles are at
+  // world - shift; the rays stay in world coordinates and are translated where traversed
+  float shift[3];
 };
 
 // Everything an SPE reads once per frame, one DMA into local store (trivially copyable).

@@ -704,7 +704,7 @@ void Spe::Impl::Traverse() {
       const SubGridRecord& sg = LoadSubGrid(r, rec.sub_record);
       flight[r].sub_lsa = sub_lsa + uint32_t(r) * 128;
       uint32_t leaf = 0;
-      const SubResult res = SubAdvance(sg, rec, &steps, &leaf);
+      const SubResult res = SubAdvance(sg, rec, fc.grid.shift, &steps, &leaf);
       Compute(steps * costs.dda_step + costs.dda_exit);
       counters.cell_steps += steps;
       if (res == SubResult::kOccupied) {
@@ -808,10 +808,10 @@ void Spe::Impl::CompleteCellLoad(int q) {
   rec.sub_record = cr.first_bundle;
   const SubGridRecord& sg = LoadSubGrid(q, rec.sub_record);
   f.sub_lsa = sub_lsa + uint32_t(q) * 128;
-  SubInit(sg, rec);
+  SubInit(sg, rec, fc.grid.shift);
   uint64_t steps = 0;
   uint32_t leaf = 0;
-  const SubResult res = SubAdvance(sg, rec, &steps, &leaf);
+  const SubResult res = SubAdvance(sg, rec, fc.grid.shift, &steps, &leaf);
   Compute(steps * costs.dda_step + costs.dda_exit);
   counters.cell_steps += steps;
   if (res != SubResult::kOccupied) {
@@ -845,10 +845,10 @@ bool Spe::Impl::ResolveSharedRefined(int r) {
   const SubGridRecord& sg = *ls.As<const SubGridRecord>(flight[s].sub_lsa);
   rec.sub_record = FlightRecord(s).sub_record;
   f.sub_lsa = flight[s].sub_lsa;
-  SubInit(sg, rec);
+  SubInit(sg, rec, fc.grid.shift);
   uint64_t steps = 0;
   uint32_t leaf = 0;
-  const SubResult res = SubAdvance(sg, rec, &steps, &leaf);
+  const SubResult res = SubAdvance(sg, rec, fc.grid.shift, &steps, &leaf);
   Compute(steps * costs.dda_step + costs.dda_exit);
   counters.cell_steps += steps;
   if (res != SubResult::kOccupied) {
@@ -918,7 +918,8 @@ void Spe::Impl::Visit() {
   Compute(costs.visit_setup);
   ++counters.visits;
   const WatertightRay wr =
-      PrepareWatertightRay(rec.o[0], rec.o[1], rec.o[2], rec.d[0], rec.d[1], rec.d[2]);
+      PrepareWatertightRay(rec.o[0] - fc.grid.shift[0], rec.o[1] - fc.grid.shift[1],
+                           rec.o[2] - fc.grid.shift[2], rec.d[0], rec.d[1], rec.d[2]);
   const bool shadow = rec.kind == kShadowKind;
   const uint32_t bundles = (owner.count + 3) / 4;
   const uint32_t cap = config.triangle_buffer_bundles;
@@ -961,7 +962,7 @@ void Spe::Impl::AfterUnit(int r) {
   FlightInfo& f = flight[r];
   bool more;
   if (rec.in_sub != 0) {
-    const SubResult res = SubStep(*ls.As<const SubGridRecord>(f.sub_lsa), rec);
+    const SubResult res = SubStep(*ls.As<const SubGridRecord>(f.sub_lsa), rec, fc.grid.shift);
     more = res == SubResult::kOccupied ||
            (res == SubResult::kLeft && DdaStep(fc.grid, rec, rec.t_exit));
   } else {
@@ -1022,7 +1023,7 @@ AtOnce Spe::Impl::TraceAtOnce(RayRecord& rec, bool* tested) {
     uint64_t steps = 0;
     uint32_t leaf = 0;
     if (rec.in_sub != 0) {
-      const SubResult res = SubAdvance(*sg, rec, &steps, &leaf);
+      const SubResult res = SubAdvance(*sg, rec, fc.grid.shift, &steps, &leaf);
       Compute(steps * costs.dda_step + costs.dda_exit);
       counters.cell_steps += steps;
       if (res == SubResult::kDone) return finished;
@@ -1047,7 +1048,7 @@ AtOnce Spe::Impl::TraceAtOnce(RayRecord& rec, bool* tested) {
       if (const SubGridRecord* rec_sg = LoadedSubGrid(rec.idx, &index)) {
         sg = rec_sg;
         rec.sub_record = index;
-        SubInit(*sg, rec);
+        SubInit(*sg, rec, fc.grid.shift);
         continue;
       }
     }
@@ -1059,7 +1060,8 @@ AtOnce Spe::Impl::TraceAtOnce(RayRecord& rec, bool* tested) {
     // VisitVoxel on the buffer, then AfterUnit's stop test and step.
     const LoadedUnit& u = loaded[e];
     if (!*tested) {
-      wr = PrepareWatertightRay(rec.o[0], rec.o[1], rec.o[2], rec.d[0], rec.d[1], rec.d[2]);
+      wr = PrepareWatertightRay(rec.o[0] - fc.grid.shift[0], rec.o[1] - fc.grid.shift[1],
+                                rec.o[2] - fc.grid.shift[2], rec.d[0], rec.d[1], rec.d[2]);
       *tested = true;
     }
     const uint32_t bundles = (u.count + 3) / 4;
@@ -1076,7 +1078,7 @@ AtOnce Spe::Impl::TraceAtOnce(RayRecord& rec, bool* tested) {
       IntersectBundles<false>(wr, tp, bundles, rec, &counters.triangle_tests);
     }
     if (rec.in_sub != 0) {
-      const SubResult res = SubStep(*sg, rec);
+      const SubResult res = SubStep(*sg, rec, fc.grid.shift);
       if (res == SubResult::kDone) return finished;
       if (res == SubResult::kLeft && !DdaStep(fc.grid, rec, rec.t_exit)) return finished;
     } else if (!DdaStep(fc.grid, rec, rec.t_exit)) {

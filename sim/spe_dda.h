@@ -70,7 +70,7 @@ inline bool DdaBegin(const GridHeader& grid, RayRecord& r) {
   }
   const float tmax_f = r.tmax > FLT_MAX ? FLT_MAX : r.tmax;  // NaN stays NaN
   if (!(r.tmin < tmax_f)) return false;
-  const float* o = r.o;
+  const float o[3] = {r.o[0] - grid.shift[0], r.o[1] - grid.shift[1], r.o[2] - grid.shift[2]};
   const float* d = r.d;
   float t0 = r.tmin, t1 = tmax_f;
   float inv_d[3];
@@ -120,7 +120,8 @@ inline bool DdaStep(const GridHeader& grid, RayRecord& r, float t_exit) {
   r.idx = r.step[a] > 0 ? r.idx + stride : r.idx - stride;
   const int boundary = r.cell[a] + (r.step[a] > 0 ? 1 : 0);
   const float inv = 1.0f / r.d[a];  // the prologue's inv_d for a stepping axis
-  r.t_next[a] = (grid.lo[a] + float(boundary) * grid.cell_size[a] - r.o[a]) * inv;
+  const float o = r.o[a] - grid.shift[a];
+  r.t_next[a] = (grid.lo[a] + float(boundary) * grid.cell_size[a] - o) * inv;
   r.t_enter = t_exit;
   r.enter_axis = static_cast<int8_t>(a);
   return true;
@@ -134,21 +135,24 @@ enum class SubResult {
   kLeft,      // stepped out of the 8x8x8 block: continue in the top level
 };
 
+// The sub-grid steps take the Accel's frame `shift` (GridHeader::shift): the ray's origin is
+// translated by it as in DdaBegin.
 // t of the next sub-cell boundary along axis a (TraverseSubGrid's formula; +inf if parallel).
-inline float SubTNext(const SubGridRecord& rec, const RayRecord& r, int a) {
+inline float SubTNext(const SubGridRecord& rec, const RayRecord& r, const float shift[3], int a) {
   if (r.step[a] == 0) return std::numeric_limits<float>::infinity();
   const int boundary = int(r.sub_c[a]) + (r.step[a] > 0 ? 1 : 0);
-  return (rec.lo[a] + float(boundary) * rec.cell_size[a] - r.o[a]) * (1.0f / r.d[a]);
+  const float o = r.o[a] - shift[a];
+  return (rec.lo[a] + float(boundary) * rec.cell_size[a] - o) * (1.0f / r.d[a]);
 }
 
 // Entry into the sub-grid of the current top-level cell at r.t_enter across r.enter_axis.
-inline void SubInit(const SubGridRecord& rec, RayRecord& r) {
+inline void SubInit(const SubGridRecord& rec, RayRecord& r, const float shift[3]) {
   for (int a = 0; a < 3; ++a) {
     int c;
     if (a == r.enter_axis) {
       c = r.step[a] > 0 ? 0 : kSubRes - 1;
     } else {
-      const float p = r.o[a] + r.t_enter * r.d[a];
+      const float p = (r.o[a] - shift[a]) + r.t_enter * r.d[a];
       const float f = (p - rec.lo[a]) * rec.inv_cell_size[a];
       c = f >= 0.0f ? (f < float(kSubRes) ? int(f) : kSubRes - 1) : 0;  // NaN -> 0
       if (c >= kSubRes) c = kSubRes - 1;
@@ -158,15 +162,17 @@ inline void SubInit(const SubGridRecord& rec, RayRecord& r) {
   r.in_sub = 1;
 }
 
-inline float SubTExit(const SubGridRecord& rec, const RayRecord& r) {
-  const float t0 = SubTNext(rec, r, 0), t1 = SubTNext(rec, r, 1), t2 = SubTNext(rec, r, 2);
+inline float SubTExit(const SubGridRecord& rec, const RayRecord& r, const float shift[3]) {
+  const float t0 = SubTNext(rec, r, shift, 0), t1 = SubTNext(rec, r, shift, 1),
+              t2 = SubTNext(rec, r, shift, 2);
   return t0 < t1 ? (t0 < t2 ? t0 : t2) : (t1 < t2 ? t1 : t2);
 }
 
 // After the current sub-cell (visited or empty): stop, step to the next sub-cell (kOccupied
 // means "moved", the new sub-cell not yet examined) or leave the block.
-inline SubResult SubStep(const SubGridRecord& rec, RayRecord& r) {
-  const float t_next[3] = {SubTNext(rec, r, 0), SubTNext(rec, r, 1), SubTNext(rec, r, 2)};
+inline SubResult SubStep(const SubGridRecord& rec, RayRecord& r, const float shift[3]) {
+  const float t_next[3] = {SubTNext(rec, r, shift, 0), SubTNext(rec, r, shift, 1),
+                           SubTNext(rec, r, shift, 2)};
   const float t_exit = t_next[0] < t_next[1] ? (t_next[0] < t_next[2] ? t_next[0] : t_next[2])
                                              : (t_next[1] < t_next[2] ? t_next[1] : t_next[2]);
   if (r.best_t <= t_exit || r.t1 <= t_exit) return SubResult::kDone;
@@ -183,15 +189,15 @@ inline SubResult SubStep(const SubGridRecord& rec, RayRecord& r) {
 
 // From the current sub-cell (not yet examined) to the first occupied one (*leaf set), or
 // finished / left. Adds the sub-cells examined to *steps.
-inline SubResult SubAdvance(const SubGridRecord& rec, RayRecord& r, uint64_t* steps,
-                            uint32_t* leaf) {
+inline SubResult SubAdvance(const SubGridRecord& rec, RayRecord& r, const float shift[3],
+                            uint64_t* steps, uint32_t* leaf) {
   for (;;) {
     ++*steps;
     if (rec.Occupied(r.sub_c[0], r.sub_c[1], r.sub_c[2])) {
       *leaf = rec.Leaf(r.sub_c[0], r.sub_c[1], r.sub_c[2]);
       return SubResult::kOccupied;
     }
-    const SubResult s = SubStep(rec, r);
+    const SubResult s = SubStep(rec, r, shift);
     if (s != SubResult::kOccupied) return s;
   }
 }

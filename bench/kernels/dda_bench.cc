@@ -204,13 +204,16 @@ void BM_Dda(benchmark::State& state, Workload w, int64_t target, int kind) {
     if (kind == 1) {
       for (size_t i = 0; i < rays.size; ++i) {
         RayHit h;
-        IntersectSingleDda(m.dda, rays.ox[i], rays.oy[i], rays.oz[i], rays.dx[i], rays.dy[i],
-                           rays.dz[i], rays.tmin[i], rays.tmax[i], &h, st);
+        IntersectSingleDda(m.dda, rays.ox[i] - m.shift[0], rays.oy[i] - m.shift[1],
+                           rays.oz[i] - m.shift[2], rays.dx[i], rays.dy[i], rays.dz[i],
+                           rays.tmin[i], rays.tmax[i], &h, st);
         hits.t[i] = h.t;
         hits.prim[i] = h.prim;
       }
     } else {
-      IntersectStreamDda(m.dda, rays, hits, options, st);
+      ForEachFramePiece(m, rays, rays.size, [&](const RayStreamView& r, size_t first) {
+        IntersectStreamDda(m.dda, r, SubView(hits, first, r.size), options, st);
+      });
     }
   };
   TraceStats check;

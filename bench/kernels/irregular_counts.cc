@@ -48,6 +48,14 @@ int main(int argc, char** argv) {
     accel.Intersect(primary.view(), h.view());
     bench::MakeDiffuseRays(scene, primary.view(), h.view(), 7, diffuse);
     const Accel::Impl& m = AccelImpl(accel);
+    {  // into the Accel's frame (kernels/accel_impl.h): every trace below calls the kernels
+      const RayStreamView v = diffuse.view();
+      for (size_t i = 0; i < v.size; ++i) {
+        v.ox[i] -= m.shift[0];
+        v.oy[i] -= m.shift[1];
+        v.oz[i] -= m.shift[2];
+      }
+    }
     IrregularOptions opt;
     opt.top_lambda = float(Env("RS_IRR_TOP", opt.top_lambda));
     opt.sub_lambda = float(Env("RS_IRR_SUB", opt.sub_lambda));

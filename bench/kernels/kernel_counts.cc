@@ -124,15 +124,17 @@ int RunDda(const Args& a) {
     const RayStreamView r = rays.view();
     for (size_t i = 0; i < r.size; ++i) {
       RayHit h;
-      IntersectSingleDda(m.dda, r.ox[i], r.oy[i], r.oz[i], r.dx[i], r.dy[i], r.dz[i], r.tmin[i],
-                         r.tmax[i], &h, &st);
+      IntersectSingleDda(m.dda, r.ox[i] - m.shift[0], r.oy[i] - m.shift[1], r.oz[i] - m.shift[2],
+                         r.dx[i], r.dy[i], r.dz[i], r.tmin[i], r.tmax[i], &h, &st);
     }
   } else if (a.target == "ref") {
     ref::AccelIntersect(m, rays.view(), hits.view(), &st);
-  } else if (a.kernel == "packet") {
-    IntersectCoherent(m.dda, rays.view(), hits.view(), m.dda_options, &st);
   } else {
-    IntersectStreamDda(m.dda, rays.view(), hits.view(), m.dda_options, &st);
+    ForEachFramePiece(m, rays.view(), rays.size(), [&](const RayStreamView& r, size_t first) {
+      const HitStreamView h = SubView(hits.view(), first, r.size);
+      a.kernel == "packet" ? IntersectCoherent(m.dda, r, h, m.dda_options, &st)
+                           : IntersectStreamDda(m.dda, r, h, m.dda_options, &st);
+    });
   }
   const AccelInfo info = accel.Info();
   std::printf(

@@ -71,13 +71,17 @@ void Run(Data& d, bool shadow, bool packets, TraceStats* st, HitStreamView hits,
   const Accel::Impl& m = AccelImpl(*d.accel);
   const RayStreamView rays = shadow ? d.shadow.view() : d.primary.view();
   hits.size = rays.size;
-  if (shadow) {
-    packets ? OccludedCoherent(m.dda, rays, occluded, m.dda_options, st)
-            : OccludedStreamDda(m.dda, rays, occluded, m.dda_options, st);
-  } else {
-    packets ? IntersectCoherent(m.dda, rays, hits, m.dda_options, st)
-            : IntersectStreamDda(m.dda, rays, hits, m.dda_options, st);
-  }
+  ForEachFramePiece(m, rays, rays.size, [&](const RayStreamView& r, size_t first) {
+    const HitStreamView h = SubView(hits, first, r.size);
+    int32_t* const o = occluded + first;
+    if (shadow) {
+      packets ? OccludedCoherent(m.dda, r, o, m.dda_options, st)
+              : OccludedStreamDda(m.dda, r, o, m.dda_options, st);
+    } else {
+      packets ? IntersectCoherent(m.dda, r, h, m.dda_options, st)
+              : IntersectStreamDda(m.dda, r, h, m.dda_options, st);
+    }
+  });
 }
 
 std::string Validate(Data& d, bool shadow) {

@@ -36,9 +36,11 @@ int main(int argc, char** argv) {
     const Accel::Impl& m = AccelImpl(accel);
     const size_t n = shadow.size();
     std::vector<int32_t> a(n + 1), b(n + 1);
-    OccludedStreamDda(m.dda, shadow.view(), b.data(), m.dda_options, nullptr);
     TraceStats st;
-    OccludedCoherent(m.dda, shadow.view(), a.data(), m.dda_options, &st);
+    ForEachFramePiece(m, shadow.view(), n, [&](const RayStreamView& r, size_t first) {
+      OccludedStreamDda(m.dda, r, b.data() + first, m.dda_options, nullptr);
+      OccludedCoherent(m.dda, r, a.data() + first, m.dda_options, &st);
+    });
     size_t bad = 0, occluded = 0;
     for (size_t i = 0; i < n; ++i) {
       bad += a[i] != b[i];

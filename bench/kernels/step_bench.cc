@@ -147,12 +147,15 @@ void BM_DdaStep(benchmark::State& state, DdaForm form, int64_t target) {
     const RayStreamView rays = d.rays[k].view();
     TraceStats st;
     if (form == DdaForm::kStream) {
-      IntersectStreamDda(impl.dda, rays, hits, options, &st);
+      ForEachFramePiece(impl, rays, rays.size, [&](const RayStreamView& r, size_t first) {
+        IntersectStreamDda(impl.dda, r, SubView(hits, first, r.size), options, &st);
+      });
     } else if (form == DdaForm::kSingle) {
       for (size_t i = 0; i < rays.size; ++i) {
         RayHit h;
-        IntersectSingleDda(impl.dda, rays.ox[i], rays.oy[i], rays.oz[i], rays.dx[i], rays.dy[i],
-                           rays.dz[i], rays.tmin[i], rays.tmax[i], &h, &st);
+        IntersectSingleDda(impl.dda, rays.ox[i] - impl.shift[0], rays.oy[i] - impl.shift[1],
+                           rays.oz[i] - impl.shift[2], rays.dx[i], rays.dy[i], rays.dz[i],
+                           rays.tmin[i], rays.tmax[i], &h, &st);
         hits.prim[i] = h.prim;
       }
     } else {

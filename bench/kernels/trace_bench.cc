@@ -315,11 +315,14 @@ void BM_Trace(benchmark::State& state, const std::string& scene, RaySet set, int
       d.accel->Occluded(rays, d.occluded.data());
     } else if (tracer == -2) {  // the same structure without packets: the per-ray stream DDA
       const Accel::Impl& m = AccelImpl(*d.accel);
-      if (occlusion) {
-        OccludedStreamDda(m.dda, rays, d.occluded.data(), m.dda_options, nullptr);
-      } else {
-        IntersectStreamDda(m.dda, rays, hits, m.dda_options, nullptr);
-      }
+      ForEachFramePiece(m, rays, rays.size, [&](const RayStreamView& piece, size_t first) {
+        if (occlusion) {
+          OccludedStreamDda(m.dda, piece, d.occluded.data() + first, m.dda_options, nullptr);
+        } else {
+          IntersectStreamDda(m.dda, piece, SubView(hits, first, piece.size), m.dda_options,
+                             nullptr);
+        }
+      });
     } else {
       const auto mode = static_cast<EmbreeMode>(tracer);
       if (occlusion) {

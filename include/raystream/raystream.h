@@ -170,7 +170,9 @@ struct TraceStats {
 // optionally with 8x8x8 sub-grids in its densest cells (BuildOptions::grid), traced by SIMD
 // stream kernels (Highway dynamic dispatch; results identical on every CPU target).
 // Thread-safe for concurrent Intersect/Occluded calls once built; a call allocates nothing and
-// uses about 130 KB of the calling thread's stack (packet scratch).
+// uses about 130 KB of the calling thread's stack (packet scratch; 12 KB more for a far mesh).
+// A mesh farther from the origin than its own size is stored translated to its centre (exact)
+// and the rays' origins are translated as they enter, so its grid is as fine as at the origin.
 // Coordinate range: the watertight test multiplies three coordinates relative to the ray
 // origin, so vertices and ray origins must stay within magnitude 2^39 (about 5.5e11) to keep
 // its products finite, and triangles larger than about 2^-40 to keep them from underflowing.

@@ -351,6 +351,49 @@ TEST_CASE("huge coordinate offset (1e5) builds conservatively") {
   CheckGrid(soup, b);
 }
 
+TEST_CASE("ChooseFrameShift: far bounds move to their midpoint, exactly; others stay") {
+  auto bounds = [](float lo, float hi) {
+    GridBounds b;
+    for (int a = 0; a < 3; ++a) b.lo[a] = lo, b.hi[a] = hi;
+    b.num_valid = 1;
+    return b;
+  };
+  float shift[3];
+  ChooseFrameShift(bounds(-1.0f, 5.0f), shift);  // holds 0
+  CHECK(shift[0] == 0.0f);
+  ChooseFrameShift(bounds(1.0f, 3.5f), shift);  // closer to 0 than its extent
+  CHECK(shift[0] == 0.0f);
+  GridBounds empty = bounds(1e5f, 1e5f + 1.0f);
+  empty.num_valid = 0;
+  ChooseFrameShift(empty, shift);
+  CHECK(shift[0] == 0.0f);
+  ChooseFrameShift(bounds(148370.0f, 148382.0f), shift);
+  CHECK(shift[0] == 148376.0f);
+  ChooseFrameShift(bounds(-223429.0f, -223417.0f), shift);
+  CHECK(shift[0] == -223423.0f);
+  // every float inside far bounds (at their ends and random ones, extents up to the distance,
+  // normal and subnormal magnitudes) translates exactly
+  Rng rng(71);
+  size_t inexact = 0, shifted = 0;
+  for (int k = 0; k < 2000; ++k) {
+    const double m = std::ldexp(1.0 + rng.Uniform(0.0, 1.0), int(rng.Below(300)) - 150);
+    const float lo = float(m), hi = float(m + m * rng.Uniform(0.0, 1.0));
+    const float sign = k % 2 == 0 ? 1.0f : -1.0f;
+    const GridBounds b = sign > 0 ? bounds(lo, hi) : bounds(-hi, -lo);
+    ChooseFrameShift(b, shift);
+    if (!(lo > 0.0f) || !(double(hi) - double(lo) <= double(lo))) continue;
+    shifted += shift[0] != 0.0f;
+    for (int j = 0; j < 50; ++j) {
+      const double f = j == 0 ? 0.0 : j == 1 ? 1.0 : rng.Uniform(0.0, 1.0);
+      const float v = float(double(b.lo[0]) + f * (double(b.hi[0]) - double(b.lo[0])));
+      const float moved = v - shift[0];
+      inexact += double(moved) != double(v) - double(shift[0]) || moved + shift[0] != v;
+    }
+  }
+  CHECK(shifted > 1000);
+  CHECK(inexact == 0);
+}
+
 // Regression: GCC 12.2's SLP vectorizer dropped the float rounding of the cell size where the
 // build reads it back as double (-O3 only), so the margin and the bounding-box cell ranges came
 // from a slightly different cell size than the stored one (office-graz had 47 more references
