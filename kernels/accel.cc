@@ -366,6 +366,7 @@ AccelInfo Accel::Info() const {
     info.bounds_lo[a] = double(flo) > lo ? std::nextafter(flo, -FLT_MAX) : flo;
     info.bounds_hi[a] = double(fhi) < hi ? std::nextafter(fhi, FLT_MAX) : fhi;
     info.resolution[a] = m.grid.res[a];
+    info.frame_shift[a] = m.shift[a];
   }
   info.cells = m.grid.num_cells;
   info.occupied_cells = m.grid.occupied_cells;

@@ -69,6 +69,9 @@ Json InfoJson(const Scene& scene, const AccelInfo& a) {
                           a.bounds_hi[1] / scene.coordinate_scale,
                           a.bounds_hi[2] / scene.coordinate_scale}}}},
       {"coordinate_scale", scene.coordinate_scale},
+      {"frame_shift", {a.frame_shift[0] / scene.coordinate_scale,
+                       a.frame_shift[1] / scene.coordinate_scale,
+                       a.frame_shift[2] / scene.coordinate_scale}},
       {"grid",
        {{"kind", a.kind},
         {"resolution", {a.resolution[0], a.resolution[1], a.resolution[2]}},
@@ -112,6 +115,11 @@ void PrintInfo(const Json& j) {
   if (const float k = j["coordinate_scale"].get<float>(); k != 1.0f) {
     fmt::print("scale        rendered with coordinates x 2^{} (outside [2^-20, 2^20])\n",
                std::ilogb(k));
+  }
+  if (const auto& s = j["frame_shift"]; s[0] != 0.0 || s[1] != 0.0 || s[2] != 0.0) {
+    fmt::print("frame        built around ({:.7g}, {:.7g}, {:.7g}) (farther from the origin than "
+               "its size)\n",
+               s[0].get<float>(), s[1].get<float>(), s[2].get<float>());
   }
   fmt::print("grid         {} {}x{}x{} = {} cells, {} occupied ({:.1f} %)\n",
              g["kind"].get<std::string>(), g["resolution"][0].get<int>(),

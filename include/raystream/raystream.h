@@ -144,6 +144,9 @@ struct AccelInfo {
   // such blocks (BuildOptions::empty_skip, used when the share makes it pay: accel.cc).
   double empty_block_share = 0.0;
   bool empty_skip = false;
+  // The frame the structures are built in: the triangles are stored at world - frame_shift
+  // (all 0 unless the mesh lies farther from the origin than its size; see Accel).
+  float frame_shift[3] = {0, 0, 0};
 };
 
 struct TraceStats {

@@ -41,6 +41,10 @@ if "$rs" render --scene cornell --width 16 --height 16 --frames 3 --out "$tmp/f#
 if "$rs" info --scene erw6 --json >"$tmp/i.json" && python3 -c "import json,sys; d=json.load(open('$tmp/i.json')); sys.exit(0 if d['triangles']>0 and d['grid']['occupied_cells']>0 else 1)"; then
   ok "info --json"; else bad "info --json"; cat "$tmp/i.json"; fi
 if "$rs" info --scene erw6 | grep -q 'features'; then ok "info text"; else bad "info text"; fi
+# a scene 2.7e5 from the origin is built around itself (kernels/grid.h ChooseFrameShift)
+if "$rs" info --scene farsphere | grep -q '^frame  *built around (148376, 123[0-9], -223423)' &&
+   ! "$rs" info --scene nearsphere | grep -q '^frame'; then
+  ok "info frame"; else bad "info frame"; "$rs" info --scene farsphere; fi
 
 # Bad input.
 printf 'v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 9\n' >"$tmp/range.obj"
