@@ -7,6 +7,7 @@
 
 #include <algorithm>
 #include <array>
+#include <cfloat>
 #include <chrono>
 #include <cmath>
 #include <cstdint>
@@ -158,9 +159,9 @@ AccelInfo CheckBoundedAndExact(const std::string& what, const MeshView& mesh, Gr
   return info;
 }
 
-// An icosphere as a mesh with rays from inside (origins on the `lattice`, within 0.3 radii of the
-// centre) aimed exactly at `per_kind` vertices and `per_kind` edge midpoints: o + d = target in
-// real arithmetic, so each ray crosses the closed surface where triangles meet.
+// An icosphere as a mesh with rays from origins on the `lattice` within `spread` of the centre
+// per axis (0.3: inside, so each ray crosses the closed surface) aimed exactly at `per_kind`
+// vertices and `per_kind` edge midpoints: o + d = target in real arithmetic.
 struct SphereCase {
   Icosphere ico;
   std::vector<float> positions;
@@ -172,7 +173,7 @@ struct SphereCase {
 };
 
 void MakeSphereCase(const std::array<double, 3>& c, double snap, double lattice, size_t per_kind,
-                    SphereCase* s) {
+                    SphereCase* s, double spread = 0.3) {
   s->ico = MakeIcosphere(6, 1.0, c, snap);
   for (const auto& v : s->ico.v) s->positions.insert(s->positions.end(), {v[0], v[1], v[2]});
   for (const auto& t : s->ico.tri) s->indices.insert(s->indices.end(), {t[0], t[1], t[2]});
@@ -186,7 +187,9 @@ void MakeSphereCase(const std::array<double, 3>& c, double snap, double lattice,
   }
   Rng rng(13);
   auto origin = [&](float o[3]) {
-    for (int a = 0; a < 3; ++a) o[a] = F(std::round((c[a] + rng.Uniform(-0.3, 0.3)) * lattice) / lattice);
+    for (int a = 0; a < 3; ++a) {
+      o[a] = F(std::round((c[a] + rng.Uniform(-spread, spread)) * lattice) / lattice);
+    }
   };
   for (size_t k = 0; k < per_kind; ++k) {
     float o[3], d[3];
@@ -243,6 +246,52 @@ TEST_CASE("icosphere of 81920 triangles of radius 1 at (148376, 1234, -223423): 
     CHECK(info.bounds_lo[0] <= 148375.0f);  // reported in world coordinates
     CHECK(info.bounds_hi[2] >= -223422.0f);
   }
+}
+
+// Rays from outside, up to 64 units away (about 2,000 of the uniform grid's cells; the frame's
+// margin covers about 5,000, kernels/grid.h ChooseFrameShift): the grid finds exactly what the
+// float watertight test finds over all triangles, same triangle, same t. (They are no
+// must-hit rays: on a sphere rounded to 1/64 a ray aimed at a vertex from outside may only touch
+// it, and the float test then misses it in both.)
+TEST_CASE("sphere at 1.5e5, rays from up to 64 away: the hits of a float brute force") {
+  SphereCase s;
+  MakeSphereCase({148376.0, 1234.0, -223423.0}, 0.0, 64.0, test::kSlowBuild ? 50 : 500, &s, 64.0);
+  BuildOptions options;
+  options.grid = GridKind::kUniform;
+  const Accel accel(s.mesh(), options);
+  const Accel::Impl& m = AccelImpl(accel);
+  REQUIRE(m.Shifted());
+  s.r.rays.FillPadding();
+  const RayStreamView rv = s.r.rays.view();
+  HitStream want(rv.size), got(rv.size);
+  want.Resize(rv.size);
+  got.Resize(rv.size);
+  ref::AccelIntersect(m, rv, want.view());
+  accel.Intersect(rv, got.view());
+  size_t differ = 0, simd_differ = 0, hits = 0;
+  for (size_t i = 0; i < rv.size; ++i) {
+    const float o[3] = {rv.ox[i] - m.shift[0], rv.oy[i] - m.shift[1], rv.oz[i] - m.shift[2]};
+    const WatertightRay w = PrepareWatertightRay(o[0], o[1], o[2], rv.dx[i], rv.dy[i], rv.dz[i]);
+    float best = FLT_MAX;
+    int32_t prim = -1;
+    for (size_t t = 0; t < m.triangles.size; ++t) {  // ascending ids: the lower wins on equal t
+      TriHit h;
+      if (!m.triangles.degenerate[t] && IntersectWatertight(w, m.triangles, t, 0.0f, best, &h) &&
+          (prim < 0 || h.t < best)) {
+        best = h.t;
+        prim = int32_t(t);
+      }
+    }
+    hits += prim >= 0;
+    differ += prim != want.view().prim[i] || (prim >= 0 && !SameBits(best, want.view().t[i]));
+    simd_differ += got.view().prim[i] != want.view().prim[i] ||
+                   !SameBits(got.view().t[i], want.view().t[i]);
+  }
+  MESSAGE(rv.size, " rays from up to 64 away, ", hits, " hit; grid vs float brute force differ on ",
+          differ, ", SIMD vs scalar on ", simd_differ);
+  CHECK(hits > rv.size / 2);
+  CHECK(differ == 0);
+  CHECK(simd_differ == 0);
 }
 
 // `copies` copies of one triangle (same vertices, separate vertex entries), with rays through
