@@ -237,18 +237,16 @@ struct PaddedTail {
   RayStreamView rays;
   HitStreamView hits;
 
-  // rays[first, first + n), n < kStreamPad, copied (origins in the Accel's frame: o - shift);
-  // the padding never hits (zero direction).
-  PaddedTail(const RayStreamView& from, size_t first, size_t n, const float shift[3]) {
+  // rays[first, first + n), n < kStreamPad, copied (origins in the Accel's frame,
+  // FrameOrigins); the padding never hits (zero direction).
+  PaddedTail(const Accel::Impl& m, const RayStreamView& from, size_t first, size_t n) {
     float* const dst[8] = {f[0], f[1], f[2], f[3], f[4], f[5], f[6], f[7]};
     const float* const src[8] = {from.ox, from.oy, from.oz, from.dx, from.dy, from.dz, from.tmin,
                                  from.tmax};
-    for (int a = 0; a < 8; ++a) {
+    FrameOrigins(m, from, first, n, dst);
+    for (int a = 3; a < 8; ++a) {
       std::fill(dst[a], dst[a] + kStreamPad, 0.0f);
       std::copy(src[a] + first, src[a] + first + n, dst[a]);
-      if (a < 3) {
-        for (size_t i = 0; i < n; ++i) dst[a][i] -= shift[a];
-      }
     }
     rays.ox = f[0], rays.oy = f[1], rays.oz = f[2];
     rays.dx = f[3], rays.dy = f[4], rays.dz = f[5];
@@ -283,7 +281,7 @@ void Accel::Intersect(const RayStreamView& rays, const HitStreamView& hits,
     });
   }
   if (tail == 0) return;
-  PaddedTail p(rays, body, tail, m.shift);
+  PaddedTail p(m, rays, body, tail);
   trace(p.rays, p.hits);
   std::copy(p.t, p.t + tail, hits.t + body);
   std::copy(p.u, p.u + tail, hits.u + body);
@@ -308,7 +306,7 @@ void Accel::Occluded(const RayStreamView& rays, int32_t* occluded, TraceStats* s
     });
   }
   if (tail == 0) return;
-  PaddedTail p(rays, body, tail, m.shift);
+  PaddedTail p(m, rays, body, tail);
   trace(p.rays, p.prim);
   std::copy(p.prim, p.prim + tail, occluded + body);
 }

@@ -43,6 +43,17 @@ struct Accel::Impl {
   bool Shifted() const { return shift[0] != 0.0f || shift[1] != 0.0f || shift[2] != 0.0f; }
 };
 
+// The origins [first, first + n) of `rays` in the Accel's frame, fl(o - shift), into to[a][0, n),
+// and zeros after them to PaddedSize(n).
+inline void FrameOrigins(const Accel::Impl& m, const RayStreamView& rays, size_t first, size_t n,
+                         float* const to[3]) {
+  const float* const from[3] = {rays.ox, rays.oy, rays.oz};
+  for (int a = 0; a < 3; ++a) {
+    for (size_t i = 0; i < n; ++i) to[a][i] = from[a][first + i] - m.shift[a];
+    std::fill(to[a] + n, to[a] + PaddedSize(n), 0.0f);
+  }
+}
+
 // Calls trace(piece, first) on consecutive pieces of rays [0, count) (arrays readable to
 // PaddedSize(count)) whose origins are in the Accel's frame: the caller's rays in one piece when
 // the frame is the world's, else kFramePiece rays at a time (whole 64-ray packets) with
@@ -55,13 +66,10 @@ void ForEachFramePiece(const Accel::Impl& m, const RayStreamView& rays, size_t c
                        Trace&& trace) {
   if (!m.Shifted()) return trace(SubView(rays, 0, count), size_t{0});
   alignas(kStreamAlign) float o[3][kFramePiece];
-  const float* const from[3] = {rays.ox, rays.oy, rays.oz};
+  float* const to[3] = {o[0], o[1], o[2]};
   for (size_t first = 0; first < count; first += kFramePiece) {
     const size_t n = std::min(kFramePiece, count - first);
-    for (int a = 0; a < 3; ++a) {
-      for (size_t i = 0; i < n; ++i) o[a][i] = from[a][first + i] - m.shift[a];
-      std::fill(o[a] + n, o[a] + PaddedSize(n), 0.0f);
-    }
+    FrameOrigins(m, rays, first, n, to);
     RayStreamView piece = SubView(rays, first, n);
     piece.ox = o[0], piece.oy = o[1], piece.oz = o[2];
     trace(piece, first);

@@ -194,10 +194,6 @@ inline glm::vec3 FaceNormal(const glm::vec3& p0, const glm::vec3& p1, const glm:
   return glm::normalize(glm::cross(e1 * s, e2 * s));
 }
 
-// The unit of OffsetRayOrigin for a point on triangle (p0, p1, p2): the power of two
-// 2^floor(log2(m)) of m = the largest |component| of the three vertices, the magnitude that the
-// error of a point interpolated from them is relative to (exponent clamped to a normal float, as
-// EdgeScale). Scaling a scene by a power of two scales it exactly.
 // 2^floor(log2(m)) for finite m >= 0, the exponent clamped to a normal float (m = 0 gives the
 // smallest normal): OffsetUnit's and LightOffsetUnit's power of two.
 inline float PowerOfTwoFloor(float m) {
@@ -206,6 +202,10 @@ inline float PowerOfTwoFloor(float m) {
   return std::bit_cast<float>(e << 23);
 }
 
+// The unit of OffsetRayOrigin for a point on triangle (p0, p1, p2): the power of two
+// 2^floor(log2(m)) of m = the largest |component| of the three vertices, the magnitude that the
+// error of a point interpolated from them is relative to (exponent clamped to a normal float, as
+// EdgeScale). Scaling a scene by a power of two scales it exactly.
 inline float OffsetUnit(const glm::vec3& p0, const glm::vec3& p1, const glm::vec3& p2) {
   float m = 0.0f;
   for (int a = 0; a < 3; ++a) {
