@@ -6,7 +6,8 @@
 // Environment: RS_BENCH_FULL=1 runs the ANCHORS sweep (1024x1024 rays, min time 0.5 s, median
 // of 5); RS_BENCH_SIZE=WxH sets the ray-set image size; RS_BENCH_SCENES=a,b,c picks scenes
 // (default bunny,sponza,office-graz,conference,spherebox; missing shared scenes are skipped);
-// RS_BENCH_ISA=avx2 holds both raystream and Embree to AVX2 (bench/common/bench_main.h).
+// RS_BENCH_ISA=avx2 holds both raystream and Embree to AVX2 (bench/common/bench_main.h);
+// RS_BENCH_GRID and RS_BENCH_LAMBDA set rs::Accel's BuildOptions (BenchBuildOptions).
 // Ratios "vs_embree*" are raystream speed / Embree speed (> 1: raystream faster), from CPU time.
 #include <benchmark/benchmark.h>
 #include <sys/resource.h>
@@ -144,26 +145,6 @@ std::unique_ptr<SceneData>& Current() {
   return current;
 }
 
-// rs::Accel's options: RS_BENCH_GRID=auto (default), uniform, two-level or irregular
-// (BuildOptions::grid).
-BuildOptions BenchBuildOptions() {
-  BuildOptions o;
-  const char* g = std::getenv("RS_BENCH_GRID");
-  const std::string kind = g != nullptr ? g : "auto";
-  if (kind == "uniform") {
-    o.grid = GridKind::kUniform;
-  } else if (kind == "two-level") {
-    o.grid = GridKind::kTwoLevel;
-  } else if (kind == "irregular") {
-    o.grid = GridKind::kIrregular;
-  } else if (kind != "auto") {
-    std::fprintf(stderr, "trace_bench: RS_BENCH_GRID=%s: expected auto, uniform, two-level or "
-                 "irregular\n", kind.c_str());
-    std::exit(2);
-  }
-  return o;
-}
-
 SceneData& GetScene(const std::string& name) {
   auto& current = Current();
   if (current && current->name == name) return *current;
@@ -174,7 +155,7 @@ SceneData& GetScene(const std::string& name) {
     const auto t0 = std::chrono::steady_clock::now();
     data->scene = LoadScene(name);
     data->mesh = data->scene.mesh();
-    data->accel = std::make_unique<Accel>(data->mesh, BenchBuildOptions());
+    data->accel = std::make_unique<Accel>(data->mesh, BenchBuildOptions("trace_bench"));
     data->embree = std::make_unique<EmbreePeer>(data->mesh);
     data->sets = MakeRaySets(data->scene, *data->embree, Cfg().width, Cfg().height);
     data->light = data->sets.light;
@@ -379,7 +360,7 @@ constexpr const char* kBuildGroups[] = {"build/", "build-cold/", "rebuild/"};
 void BM_Build(benchmark::State& state, const std::string& scene, bool embree, BuildMode mode,
               int threads = 1) {
   const bool cold = mode == BuildMode::kCold;
-  BuildOptions options = BenchBuildOptions();
+  BuildOptions options = BenchBuildOptions("trace_bench");
   options.build_threads = threads;
   SceneData& d = GetScene(scene);
   if (!d.load_error.empty()) {
@@ -457,7 +438,7 @@ void BM_Frame(benchmark::State& state, const std::string& scene, int tracer) {
     d.frame_occluded.Reserve(d.frame_primary.size());
   }
   if (tracer >= 0 && !d.rebuild_peer) d.rebuild_peer = std::make_unique<EmbreePeer>(d.mesh);
-  if (tracer < 0 && !d.rebuilt) d.rebuilt = std::make_unique<Accel>(d.mesh, BenchBuildOptions());
+  if (tracer < 0 && !d.rebuilt) d.rebuilt = std::make_unique<Accel>(d.mesh, BenchBuildOptions("trace_bench"));
   const float light[3] = {d.light.x, d.light.y, d.light.z};
   // created untimed, as the Accel above: every timed frame rebuilds both in place (a first
   // frame that created the light buffer paid its construction and fresh pages too, and the
@@ -471,7 +452,7 @@ void BM_Frame(benchmark::State& state, const std::string& scene, int tracer) {
   size_t shadow_rays = 0;
   size_t occluded = 0;
   for (auto _ : state) {
-    if (tracer < 0) d.rebuilt->Rebuild(d.mesh, BenchBuildOptions());
+    if (tracer < 0) d.rebuilt->Rebuild(d.mesh, BenchBuildOptions("trace_bench"));
     if (tracer == -3) {  // raystream-light: the shadow rays from the light, a LightBuffer
       const Accel& accel = *d.rebuilt;
       accel.Intersect(primary, hits);

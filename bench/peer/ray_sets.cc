@@ -335,4 +335,31 @@ bool BenchSize(const char* who, int* width, int* height) {
   return false;
 }
 
+BuildOptions BenchBuildOptions(const char* who) {
+  BuildOptions o;
+  if (const char* g = std::getenv("RS_BENCH_GRID")) {
+    const std::string kind = g;
+    if (kind == "uniform") {
+      o.grid = GridKind::kUniform;
+    } else if (kind == "two-level") {
+      o.grid = GridKind::kTwoLevel;
+    } else if (kind == "irregular") {
+      o.grid = GridKind::kIrregular;
+    } else if (kind != "auto") {
+      std::fprintf(stderr, "[%s] RS_BENCH_GRID=%s: expected auto, uniform, two-level or "
+                   "irregular\n", who, g);
+      std::exit(2);
+    }
+  }
+  if (const char* l = std::getenv("RS_BENCH_LAMBDA")) {
+    char* end = nullptr;
+    o.lambda = std::strtof(l, &end);
+    if (end == l || *end != '\0' || !(o.lambda >= 0.0f) || !std::isfinite(o.lambda)) {
+      std::fprintf(stderr, "[%s] RS_BENCH_LAMBDA=%s: expected a number >= 0\n", who, l);
+      std::exit(2);
+    }
+  }
+  return o;
+}
+
 }  // namespace rs::bench

@@ -77,6 +77,10 @@ void MakeRandomRays(const Scene& scene, size_t n, uint64_t seed, RayStream& out)
 // (false, with a warning naming `who`, if it is set but malformed; false if unset).
 std::vector<std::string> BenchScenes(const std::vector<std::string>& fallback);
 bool BenchSize(const char* who, int* width, int* height);
+// rs::Accel's options of the raystream rows: BuildOptions' defaults (as the raystream command
+// builds), or RS_BENCH_GRID=auto|uniform|two-level|irregular (BuildOptions::grid) and
+// RS_BENCH_LAMBDA=x (BuildOptions::lambda). Exits with a message naming `who` for a bad value.
+BuildOptions BenchBuildOptions(const char* who);
 
 // The three sets for one scene and image size, with Embree's primary hits.
 struct RaySets {

@@ -18,7 +18,8 @@
 // raystream CPU time / the Embree row's median CPU time (run just before it, same process).
 // A summary of the medians and ratios is printed at the end.
 // Environment: RS_BENCH_SIZE=WxH (default 1024x1024), RS_BENCH_SCENES=a,b,c (default
-// erw6,bunny,sponza,office-graz,conference; missing shared scenes are skipped).
+// erw6,bunny,sponza,office-graz,conference; missing shared scenes are skipped),
+// RS_BENCH_GRID and RS_BENCH_LAMBDA (raystream's BuildOptions: BenchBuildOptions).
 #include <benchmark/benchmark.h>
 
 #include <algorithm>
@@ -133,7 +134,7 @@ SceneData& GetScene(const std::string& name) {
   try {
     d.scene = LoadScene(name);
     d.mesh = d.scene.mesh();
-    d.accel = std::make_unique<Accel>(d.mesh);
+    d.accel = std::make_unique<Accel>(d.mesh, BenchBuildOptions("render_bench"));
     d.light_buffers = BuildLightBuffers(d.scene, *d.accel);
     d.peer = std::make_unique<EmbreePeer>(d.mesh);
     d.camera = BenchCamera(d.scene);
@@ -186,7 +187,7 @@ void BM_Render(benchmark::State& state, const std::string& scene, bool embree, b
   const EmbreeTracer tracer(*d.peer, kEmbreeMode);
   std::vector<LightBuffer> rebuilt_lights;  // rebuilt in place every iteration (image rows)
   const auto rebuild_ours = [&] {  // the grid's and the light buffers' build
-    if (!d.rebuilt) d.rebuilt = std::make_unique<Accel>(d.mesh);
+    if (!d.rebuilt) d.rebuilt = std::make_unique<Accel>(d.mesh, BenchBuildOptions("render_bench"));
     d.rebuilt->Rebuild(d.mesh);
     RebuildLightBuffers(d.scene, *d.rebuilt, &rebuilt_lights);
   };
