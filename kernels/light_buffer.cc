@@ -76,12 +76,15 @@ struct FaceRect {
 };
 
 // A rectangle's face and, once the layout is known, its cells [x0, x1] x [y0, y1] (at most
-// kLightMaxRes per axis). Its coordinates are in its LightRecord: the passes that follow the
-// projection read these 10 bytes per rectangle, the scatter in reach order at random, instead
-// of a 44-byte record that repeated them.
+// kLightMaxRes per axis). The passes that follow the projection read these 10 bytes per
+// rectangle (the scatter in reach order at random) and the layout its coordinates (RectUv, in
+// rectangle order), instead of its 64-byte LightRecord.
 struct RectCells {
   uint16_t x0, x1, y0, y1;
   uint8_t face;
+};
+struct RectUv {
+  float u0, u1, v0, v1;
 };
 static_assert(kLightMaxRes <= 65536);
 
@@ -229,22 +232,35 @@ void Reserve(std::vector<T>* v, size_t n) {
   AdviseHugePages(v->data(), v->capacity() * sizeof(T));
 }
 
-// keys sorted by their high 32 bits, stable (ties keep their order): an LSD radix sort of
-// 11-bit digits, skipping a digit every key shares. Reaches are >= 0, so their float bits sort
-// as the values do.
+// The low bits of a reach that a list's order ignores: the reach is rounded down to 24
+// significant bits (8 of exponent, 16 of mantissa: 1.5e-5 relative, the size of
+// kLightReachSlack), which keeps it a lower bound of the distance, so that the sort takes three
+// 8-bit digits. 8-bit digits keep the 256 scatter streams of a pass in L1: 11-bit ones (2,048
+// streams) spent 13 ns per key and pass (bunny, AVX2 host).
+constexpr int kReachDropBits = 7;
+float TruncateReach(float reach) {
+  return std::bit_cast<float>(std::bit_cast<uint32_t>(reach) & ~((1u << kReachDropBits) - 1));
+}
+
+// keys sorted by their high 32 bits, stable (ties keep their order): an LSD radix sort of the
+// three 8-bit digits above kReachDropBits, skipping a digit every key shares. Reaches are
+// >= 0, so their float bits sort as the values do.
 void SortByReach(std::vector<uint64_t>* keys, std::vector<uint64_t>* tmp) {
+  constexpr int kDigits = 3, kFirst = 32 + kReachDropBits;
+  static_assert(kReachDropBits + 8 * kDigits == 31);  // the sign bit is 0
   const size_t n = keys->size();
   tmp->resize(n);
-  uint32_t count[3][2049] = {};  // the three digits' histograms, counted at once (no heap)
+  uint32_t count[kDigits][257] = {};  // the digits' histograms, counted at once (no heap)
   for (const uint64_t k : *keys) {
-    for (int p = 0; p < 3; ++p) ++count[p][1 + ((k >> (32 + 11 * p)) & 2047)];
+    for (int p = 0; p < kDigits; ++p) ++count[p][1 + ((k >> (kFirst + 8 * p)) & 255)];
   }
-  for (int p = 0; p < 3; ++p) {
+  for (int p = 0; p < kDigits; ++p) {
     uint32_t* c = count[p];
-    if (std::find(c + 1, c + 2049, n) != c + 2049) continue;  // one digit for all
-    for (int b = 0; b < 2048; ++b) c[b + 1] += c[b];
-    const int shift = 32 + 11 * p;
-    for (const uint64_t k : *keys) (*tmp)[c[(k >> shift) & 2047]++] = k;
+    if (std::find(c + 1, c + 257, n) != c + 257) continue;  // one digit for all
+    for (int b = 0; b < 256; ++b) c[b + 1] += c[b];
+    const int shift = kFirst + 8 * p;
+    uint64_t* const out = tmp->data();
+    for (const uint64_t k : *keys) out[c[(k >> shift) & 255]++] = k;
     keys->swap(*tmp);
   }
 }
@@ -264,6 +280,7 @@ static_assert(sizeof(LightRecord) == 64);
 // earlier one: rs::LightBuffer keeps one per thread, shared by all its light buffers).
 struct LightBuildScratch {
   std::vector<RectCells> cells;      // per rectangle, in triangle order
+  std::vector<RectUv> uv;            // per rectangle, in triangle order
   std::vector<LightRecord> records;  // per rectangle, in triangle order
   std::vector<std::pair<float, uint32_t>> always;  // (reach, triangle)
   std::vector<uint64_t> keys, keys_tmp;  // reach bits << 32 | rectangle (SortByReach)
@@ -295,11 +312,35 @@ void BuildLightBuffer(const TriangleSoA& tris, const float world_light[3],
   std::vector<LightRecord>& records = sc.records;
   records.clear();
   Reserve(&records, rect_cells.capacity());
+  std::vector<RectUv>& rect_uv = sc.uv;
+  rect_uv.clear();
+  Reserve(&rect_uv, rect_cells.capacity());
   std::vector<std::pair<float, uint32_t>>& always = sc.always;  // triangles touching the light
   always.clear();
+  // per rectangle, its sort key: reach bits << 32 | rectangle (SortByReach)
+  std::vector<uint64_t>& keys = sc.keys;
+  keys.clear();
+  Reserve(&keys, rect_cells.capacity());
+  // each face's window: the union of its rectangles
+  struct Window {
+    float lo_u = FLT_MAX, hi_u = -FLT_MAX, lo_v = FLT_MAX, hi_v = -FLT_MAX;
+    size_t rects = 0;
+  } win[6];
+  // one rectangle of `rec` on `face`, in rectangle order; its reach rounded down (SortByReach)
+  const auto append = [&](LightRecord& rec, int face) {
+    rec.reach = TruncateReach(rec.reach);
+    keys.push_back(uint64_t(std::bit_cast<uint32_t>(rec.reach)) << 32 | records.size());
+    records.push_back(rec);
+    rect_cells.push_back({0, 0, 0, 0, uint8_t(face)});
+    rect_uv.push_back({rec.u0, rec.u1, rec.v0, rec.v1});
+    Window& w = win[face];
+    w.lo_u = std::min(w.lo_u, rec.u0), w.hi_u = std::max(w.hi_u, rec.u1);
+    w.lo_v = std::min(w.lo_v, rec.v0), w.hi_v = std::max(w.hi_v, rec.v1);
+    ++w.rects;
+  };
   size_t listed = 0;             // and those with projections
   LightProjection block;
-  LightRecord rec;  // (every field written before each push_back)
+  LightRecord rec;  // (every field written before each append)
   for (size_t i = 0; i < tris.size; ++i) {
     const size_t in_block = i % kLightProjectBlock;
     if (in_block == 0) {
@@ -312,8 +353,7 @@ void BuildLightBuffer(const TriangleSoA& tris, const float world_light[3],
       rec.u0 = block.u0[in_block], rec.u1 = block.u1[in_block];
       rec.v0 = block.v0[in_block], rec.v1 = block.v1[in_block];
       for (int c = 0; c < kLightPlaneFloats; ++c) rec.planes[c] = block.planes[c][in_block];
-      records.push_back(rec);
-      rect_cells.push_back({0, 0, 0, 0, uint8_t(block.face[in_block])});
+      append(rec, block.face[in_block]);
       ++listed;
       continue;
     }
@@ -324,38 +364,26 @@ void BuildLightBuffer(const TriangleSoA& tris, const float world_light[3],
       farthest = std::max(farthest, std::sqrt(Dot(q[c], q[c])));
     }
     const double near = OriginDistance(q[0], q[1], q[2]);
-    rec.reach = FloatBelow(std::max(
+    const float reach = FloatBelow(std::max(
         0.0, near * (1.0 - kLightReachSlack) - kLightReachSlack * farthest));
     FaceRect rects[6];
     const int n_rects = near <= 1e-6 * farthest ? -1 : ProjectTriangle(q, rects);
     if (n_rects < 0) {
-      always.emplace_back(rec.reach, uint32_t(i));
+      always.emplace_back(reach, uint32_t(i));
       continue;
     }
     for (int r = 0; r < n_rects; ++r) {  // (planes computed here in double)
       const FaceRect& f = rects[r];
+      rec.reach = reach;
       rec.u0 = f.u0, rec.u1 = f.u1, rec.v0 = f.v0, rec.v1 = f.v1;
       LightPlanes(tris.Vertices(i), light, f.face, f.whole, rec.planes);
-      records.push_back(rec);
-      rect_cells.push_back({0, 0, 0, 0, uint8_t(f.face)});
+      append(rec, f.face);
     }
     ++listed;
   }
   const size_t valid = listed + always.size();
   if (valid == 0) return;
   const size_t num_rects = records.size();
-  // each face's window: the union of its rectangles
-  struct Window {
-    double lo_u = DBL_MAX, hi_u = -DBL_MAX, lo_v = DBL_MAX, hi_v = -DBL_MAX;
-    size_t rects = 0;
-  } win[6];
-  for (size_t r = 0; r < num_rects; ++r) {
-    const LightRecord& f = records[r];
-    Window& w = win[rect_cells[r].face];
-    w.lo_u = std::min(w.lo_u, double(f.u0)), w.hi_u = std::max(w.hi_u, double(f.u1));
-    w.lo_v = std::min(w.lo_v, double(f.v0)), w.hi_v = std::max(w.hi_v, double(f.v1));
-    ++w.rects;
-  }
   // about `cells` cells over the faces, shared by their rectangle counts, square-ish cells over
   // each window; returns the references (and sets each rectangle's cells)
   LightFaces& fc = lb.faces;
@@ -367,11 +395,12 @@ void BuildLightBuffer(const TriangleSoA& tris, const float world_light[3],
       int ru = 1, rv = 1;
       float lo_u = 0.0f, lo_v = 0.0f, su = 0.0f, sv = 0.0f;
       if (w.rects > 0) {
-        const double wu = w.hi_u - w.lo_u, wv = w.hi_v - w.lo_v;  // >= 2 kLightMargin
+        const double wu = double(w.hi_u) - double(w.lo_u);  // >= 2 kLightMargin
+        const double wv = double(w.hi_v) - double(w.lo_v);
         const double cf = std::max(1.0, cells * double(w.rects) / double(num_rects));
         ru = std::clamp(int(std::lround(std::sqrt(cf * wu / wv))), 1, kLightMaxRes);
         rv = std::clamp(int(std::lround(cf / double(ru))), 1, kLightMaxRes);
-        lo_u = float(w.lo_u), lo_v = float(w.lo_v);  // rectangle bounds: floats already
+        lo_u = w.lo_u, lo_v = w.lo_v;
         su = float(double(ru) / wu), sv = float(double(rv) / wv);
       }
       fc.lo_u[face] = lo_u, fc.lo_v[face] = lo_v, fc.scale_u[face] = su, fc.scale_v[face] = sv;
@@ -383,7 +412,7 @@ void BuildLightBuffer(const TriangleSoA& tris, const float world_light[3],
     lb.num_cells = size_t(base);
     size_t refs = 0;
     for (size_t r = 0; r < num_rects; ++r) {
-      const LightRecord& f = records[r];
+      const RectUv& f = rect_uv[r];
       RectCells& rc = rect_cells[r];
       const int face = rc.face;
       const int x0 = CellOf(f.u0, fc.lo_u[face], fc.scale_u[face], fc.top_u[face]);
@@ -436,13 +465,7 @@ void BuildLightBuffer(const TriangleSoA& tris, const float world_light[3],
   // the rectangles by ascending reach (ties in rectangle order = triangle order), scattered in
   // that order: every cell's list comes out sorted; each reference gets its reach, its
   // rectangle (the whole face for the list every ray reads) and its triangle's id
-  std::vector<uint64_t>& keys = sc.keys;
-  Reserve(&keys, num_rects);
   Reserve(&sc.keys_tmp, num_rects);
-  keys.resize(num_rects);
-  for (size_t r = 0; r < num_rects; ++r) {
-    keys[r] = uint64_t(std::bit_cast<uint32_t>(records[r].reach)) << 32 | r;
-  }
   SortByReach(&keys, &sc.keys_tmp);
   // (local pointers: the stores below cannot alias them)
   float* const out_reach = lb.reach.get();

@@ -16,8 +16,8 @@
 // Why the distance cut is exact: a triangle at distance `near` from the light is hit at t with
 // t |d| >= near up to the rounding of t (relative to the vertices' distances); each reference
 // stores reach = near (1 - kLightReachSlack) - kLightReachSlack x (farthest vertex distance),
-// rounded down, and a ray with tmax stops reading its cell at the first reach > tmax |d|
-// (rounded up).
+// rounded down (to a float, then to its 24 leading bits: the build's sort key), and a ray with
+// tmax stops reading its cell at the first reach > tmax |d| (rounded up).
 #pragma once
 
 #include <hwy/aligned_allocator.h>
