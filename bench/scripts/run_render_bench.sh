@@ -24,8 +24,22 @@ cat "$out/machine.txt"
 
 # ONLY=efficiency runs sections 3 and 4 alone (the 2-thread measurements).
 if [ "${ONLY:-}" != efficiency ]; then
-# 1. render_bench: 1024x1024, depth 4, one thread; JSON rows, summary on stderr.
-"$build/bench/render/render_bench" --benchmark_format=json >"$out/render.json" 2>"$out/render_summary.txt"
+# 1. render_bench: 1024x1024, depth 4, one thread; JSON rows, summary on stderr. One scene at a
+# time, its Embree and raystream rows repeated RENDER_REPS (default 5) times in random order,
+# so that the host's drift (+-30 % between minutes on a shared 2-vCPU guest) lands on both
+# sides of each ratio; the summary takes the medians.
+: >"$out/render_summary.txt"
+echo "[" >"$out/render.json"
+first=1
+for scene in erw6 bunny sponza office-graz conference; do
+  RS_BENCH_SCENES=$scene "$build/bench/render/render_bench" --benchmark_format=json \
+    --benchmark_repetitions="${RENDER_REPS:-5}" --benchmark_enable_random_interleaving=true \
+    >"$tmp/render_$scene.json" 2>>"$out/render_summary.txt"
+  [ $first = 1 ] || echo "," >>"$out/render.json"
+  first=0
+  cat "$tmp/render_$scene.json" >>"$out/render.json"
+done
+echo "]" >>"$out/render.json"
 cat "$out/render_summary.txt"
 
 # peak RSS (MiB) and wall seconds of one command.
