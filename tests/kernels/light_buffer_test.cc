@@ -7,6 +7,8 @@
 // directions, tmin < 0 and rays not from the light in the same stream; an empty mesh; reference
 // budgets for 10,000 identical triangles and a 30,000-triangle fan; a small sphere 10 and 1e3
 // away from the light, whose cells must go where it is (the longest list well below its size).
+// The built lists themselves: each in ascending reach, each reach at most its triangle's
+// distance from the light (the early stop's premise).
 #include <doctest/doctest.h>
 
 #include <algorithm>
@@ -19,6 +21,8 @@
 #include <vector>
 
 #include "include/raystream/raystream.h"
+#include "kernels/light_buffer.h"
+#include "kernels/triangle.h"
 #include "scenes/icosphere.h"
 #include "scenes/load.h"
 #include "streams/ray_stream.h"
@@ -603,6 +607,83 @@ TEST_CASE("light buffer: references within budget for identical triangles and a 
   const std::vector<std::array<float, 3>> lights = {{0.25f, 0.25f, 0.5f}, {0.1f, 0.2f, -3.0f}};
   CheckScene(same.view(), lights, "10,000 identical triangles", 50);
   CheckScene(fan.view(), lights, "30,000-triangle fan", test::kSlowBuild ? 100 : 3000);
+}
+
+// Distance from p to triangle (a, b, c), in double: the closest point by the regions of the
+// triangle's vertices, edges and face (Ericson, Real-Time Collision Detection, 5.1.5).
+double PointTriangleDistance(const double p[3], const double a[3], const double b[3],
+                             const double c[3]) {
+  const auto sub = [](const double* x, const double* y, double* out) {
+    for (int k = 0; k < 3; ++k) out[k] = x[k] - y[k];
+  };
+  const auto dot = [](const double* x, const double* y) {
+    return x[0] * y[0] + x[1] * y[1] + x[2] * y[2];
+  };
+  const auto at = [&](double s, double t) {  // distance to a + s (b - a) + t (c - a)
+    double q[3];
+    for (int k = 0; k < 3; ++k) q[k] = a[k] + s * (b[k] - a[k]) + t * (c[k] - a[k]) - p[k];
+    return std::sqrt(dot(q, q));
+  };
+  double ab[3], ac[3], ap[3], bp[3], cp[3];
+  sub(b, a, ab), sub(c, a, ac), sub(p, a, ap), sub(p, b, bp), sub(p, c, cp);
+  const double d1 = dot(ab, ap), d2 = dot(ac, ap);
+  if (d1 <= 0 && d2 <= 0) return at(0, 0);
+  const double d3 = dot(ab, bp), d4 = dot(ac, bp);
+  if (d3 >= 0 && d4 <= d3) return at(1, 0);
+  const double vc = d1 * d4 - d3 * d2;
+  if (vc <= 0 && d1 >= 0 && d3 <= 0) return at(d1 / (d1 - d3), 0);
+  const double d5 = dot(ab, cp), d6 = dot(ac, cp);
+  if (d6 >= 0 && d5 <= d6) return at(0, 1);
+  const double vb = d5 * d2 - d1 * d6;
+  if (vb <= 0 && d2 >= 0 && d6 <= 0) return at(0, d2 / (d2 - d6));
+  const double va = d3 * d6 - d5 * d4;
+  if (va <= 0 && d4 - d3 >= 0 && d5 - d6 >= 0) {
+    const double w = (d4 - d3) / ((d4 - d3) + (d5 - d6));
+    return at(1 - w, w);
+  }
+  const double denom = 1 / (va + vb + vc);
+  return at(vb * denom, vc * denom);
+}
+
+TEST_CASE("light buffer: every list ascends in reach, every reach is at most its distance") {
+  Rng rng(11);
+  const Soup soup = test::RandomSoup(rng, 3000, -1.0, 1.0, 0.2);
+  const Scene erw6 = LoadScene("erw6");
+  struct Case {
+    const char* name;
+    MeshView mesh;
+    std::vector<std::array<float, 3>> lights;
+  };
+  const Case cases[] = {
+      {"random soup", soup.view(), {{0.0f, 0.0f, 0.0f}, {0.3f, -2.0f, 0.7f}, {5.0f, 5.0f, 5.0f}}},
+      {"erw6", erw6.mesh(), {{F(erw6.lights[0].position.x), F(erw6.lights[0].position.y),
+                              F(erw6.lights[0].position.z)}}},
+  };
+  for (const Case& c : cases) {
+    TriangleSoA tris;
+    BuildTriangleSoA(c.mesh, &tris);
+    for (const auto& light : c.lights) {
+      LightBufferData lb;
+      BuildLightBuffer(tris, light.data(), kLightCellsPerTriangle, &lb);
+      REQUIRE(!lb.empty());
+      const double l[3] = {light[0], light[1], light[2]};
+      size_t unsorted = 0, beyond = 0;
+      for (size_t cell = 0; cell <= lb.num_cells; ++cell) {  // num_cells: the list every ray reads
+        for (uint32_t j = lb.cell_begin[cell]; j < lb.cell_begin[cell + 1]; ++j) {
+          if (j + 1 < lb.cell_begin[cell + 1] && lb.reach[j + 1] < lb.reach[j]) ++unsorted;
+          const float* v = lb.Vertices(j);
+          const double a[3] = {v[0], v[1], v[2]}, b[3] = {v[3], v[4], v[5]};
+          const double cc[3] = {v[6], v[7], v[8]};
+          if (double(lb.reach[j]) > PointTriangleDistance(l, a, b, cc)) ++beyond;
+        }
+      }
+      INFO(c.name, ", light (", light[0], ", ", light[1], ", ", light[2], "): ", lb.num_refs,
+           " references in ", lb.num_cells, " cells");
+      CHECK(lb.num_refs > 0);
+      CHECK(unsorted == 0);
+      CHECK(beyond == 0);
+    }
+  }
 }
 
 TEST_CASE("light buffer: shared scenes, the benchmark light") {
