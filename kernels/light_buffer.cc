@@ -9,8 +9,10 @@
 #include <cfloat>
 #include <chrono>
 #include <cmath>
+#include <memory>
 #include <numeric>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "kernels/accel_impl.h"
@@ -224,12 +226,35 @@ void Ensure(hwy::AlignedFreeUniquePtr<T[]>* a, size_t n, size_t* capacity, const
   *capacity = n;
 }
 
-// v->reserve(n), with huge pages for a new large array (AdviseHugePages: before any write).
+// std::allocator whose construct() without arguments default-initializes: resize() leaves the
+// build's trivial temporaries unwritten instead of zeroing what the build overwrites anyway.
 template <typename T>
-void Reserve(std::vector<T>* v, size_t n) {
+struct NoInitAllocator : std::allocator<T> {
+  NoInitAllocator() = default;
+  template <typename U>
+  NoInitAllocator(const NoInitAllocator<U>&) noexcept {}  // NOLINT: an allocator converts
+  template <typename U>
+  struct rebind {
+    using other = NoInitAllocator<U>;
+  };
+  template <typename U>
+  void construct(U* p) noexcept {
+    ::new (static_cast<void*>(p)) U;
+  }
+  template <typename U, typename... A>
+  void construct(U* p, A&&... a) {
+    ::new (static_cast<void*>(p)) U(std::forward<A>(a)...);
+  }
+};
+template <typename T>
+using ScratchVec = std::vector<T, NoInitAllocator<T>>;
+
+// v->reserve(n), with huge pages for a new large array (AdviseHugePages: before any write).
+template <typename V>
+void Reserve(V* v, size_t n) {
   if (n <= v->capacity()) return;
   v->reserve(n);
-  AdviseHugePages(v->data(), v->capacity() * sizeof(T));
+  AdviseHugePages(v->data(), v->capacity() * sizeof(typename V::value_type));
 }
 
 // The low bits of a reach that a list's order ignores: the reach is rounded down to 24
@@ -245,7 +270,7 @@ float TruncateReach(float reach) {
 // keys sorted by their high 32 bits, stable (ties keep their order): an LSD radix sort of the
 // three 8-bit digits above kReachDropBits, skipping a digit every key shares. Reaches are
 // >= 0, so their float bits sort as the values do.
-void SortByReach(std::vector<uint64_t>* keys, std::vector<uint64_t>* tmp) {
+void SortByReach(ScratchVec<uint64_t>* keys, ScratchVec<uint64_t>* tmp) {
   constexpr int kDigits = 3, kFirst = 32 + kReachDropBits;
   static_assert(kReachDropBits + 8 * kDigits == 31);  // the sign bit is 0
   const size_t n = keys->size();
@@ -279,13 +304,13 @@ static_assert(sizeof(LightRecord) == 64);
 // The build's temporaries, kept between builds (no fresh pages for a build no larger than an
 // earlier one: rs::LightBuffer keeps one per thread, shared by all its light buffers).
 struct LightBuildScratch {
-  std::vector<RectCells> cells;      // per rectangle, in triangle order
-  std::vector<RectUv> uv;            // per rectangle, in triangle order
-  std::vector<LightRecord> records;  // per rectangle, in triangle order
+  ScratchVec<RectCells> cells;      // per rectangle, in triangle order
+  ScratchVec<RectUv> uv;            // per rectangle, in triangle order
+  ScratchVec<LightRecord> records;  // per rectangle, in triangle order
   std::vector<std::pair<float, uint32_t>> always;  // (reach, triangle)
-  std::vector<uint64_t> keys, keys_tmp;  // reach bits << 32 | rectangle (SortByReach)
+  ScratchVec<uint64_t> keys, keys_tmp;  // reach bits << 32 | rectangle (SortByReach)
   std::vector<uint32_t> cursor;
-  std::vector<uint32_t> order;       // per reference: its record
+  ScratchVec<uint32_t> order;       // per reference: its record
 };
 
 void BuildLightBuffer(const TriangleSoA& tris, const float world_light[3],
@@ -305,22 +330,32 @@ void BuildLightBuffer(const TriangleSoA& tris, const float world_light[3],
   lb.verts = tris.verts.data();
   const Vec3 l = {double(light[0]), double(light[1]), double(light[2])};
   // per rectangle, in triangle order (sequential reads of the triangles; the lists are
-  // written from the records below): its face and cells, and its reference's floats
-  std::vector<RectCells>& rect_cells = sc.cells;
-  rect_cells.clear();
-  Reserve(&rect_cells, tris.size + tris.size / 8);
-  std::vector<LightRecord>& records = sc.records;
-  records.clear();
-  Reserve(&records, rect_cells.capacity());
-  std::vector<RectUv>& rect_uv = sc.uv;
-  rect_uv.clear();
-  Reserve(&rect_uv, rect_cells.capacity());
+  // written from the records below): its face and cells, its coordinates, its reference's
+  // floats and its sort key, reach bits << 32 | rectangle (SortByReach). Written through
+  // local pointers (a store of the face byte would otherwise make the compiler reload every
+  // vector's pointers), the arrays sized ahead for a whole projection block.
+  ScratchVec<RectCells>& rect_cells = sc.cells;
+  ScratchVec<RectUv>& rect_uv = sc.uv;
+  ScratchVec<LightRecord>& records = sc.records;
+  ScratchVec<uint64_t>& keys = sc.keys;
+  size_t num_rects = 0;
+  RectCells* out_cells = nullptr;
+  RectUv* out_uv = nullptr;
+  LightRecord* out_records = nullptr;
+  uint64_t* out_keys = nullptr;
+  const auto room = [&](size_t more) {  // at least num_rects + more of each, contents kept
+    if (num_rects + more > records.size()) {
+      // first the usual bound (one rectangle per triangle, some on two faces), then doubling
+      const size_t n = num_rects == 0 ? tris.size + tris.size / 8 + more
+                                      : std::max(num_rects + more, 2 * records.size());
+      Reserve(&rect_cells, n), Reserve(&rect_uv, n), Reserve(&records, n), Reserve(&keys, n);
+      rect_cells.resize(n), rect_uv.resize(n), records.resize(n), keys.resize(n);
+    }
+    out_cells = rect_cells.data(), out_uv = rect_uv.data();
+    out_records = records.data(), out_keys = keys.data();
+  };
   std::vector<std::pair<float, uint32_t>>& always = sc.always;  // triangles touching the light
   always.clear();
-  // per rectangle, its sort key: reach bits << 32 | rectangle (SortByReach)
-  std::vector<uint64_t>& keys = sc.keys;
-  keys.clear();
-  Reserve(&keys, rect_cells.capacity());
   // each face's window: the union of its rectangles
   struct Window {
     float lo_u = FLT_MAX, hi_u = -FLT_MAX, lo_v = FLT_MAX, hi_v = -FLT_MAX;
@@ -329,10 +364,11 @@ void BuildLightBuffer(const TriangleSoA& tris, const float world_light[3],
   // one rectangle of `rec` on `face`, in rectangle order; its reach rounded down (SortByReach)
   const auto append = [&](LightRecord& rec, int face) {
     rec.reach = TruncateReach(rec.reach);
-    keys.push_back(uint64_t(std::bit_cast<uint32_t>(rec.reach)) << 32 | records.size());
-    records.push_back(rec);
-    rect_cells.push_back({0, 0, 0, 0, uint8_t(face)});
-    rect_uv.push_back({rec.u0, rec.u1, rec.v0, rec.v1});
+    out_keys[num_rects] = uint64_t(std::bit_cast<uint32_t>(rec.reach)) << 32 | num_rects;
+    out_records[num_rects] = rec;
+    out_cells[num_rects] = {0, 0, 0, 0, uint8_t(face)};
+    out_uv[num_rects] = {rec.u0, rec.u1, rec.v0, rec.v1};
+    ++num_rects;
     Window& w = win[face];
     w.lo_u = std::min(w.lo_u, rec.u0), w.hi_u = std::max(w.hi_u, rec.u1);
     w.lo_v = std::min(w.lo_v, rec.v0), w.hi_v = std::max(w.hi_v, rec.v1);
@@ -345,6 +381,7 @@ void BuildLightBuffer(const TriangleSoA& tris, const float world_light[3],
     const size_t in_block = i % kLightProjectBlock;
     if (in_block == 0) {
       ProjectLightBlock(tris, light, i, std::min(kLightProjectBlock, tris.size - i), &block);
+      room(6 * kLightProjectBlock);  // a triangle has a rectangle on at most 6 faces
     }
     if (tris.degenerate[i]) continue;
     rec.tri = uint32_t(i);
@@ -381,9 +418,10 @@ void BuildLightBuffer(const TriangleSoA& tris, const float world_light[3],
     }
     ++listed;
   }
+  rect_cells.resize(num_rects), rect_uv.resize(num_rects), records.resize(num_rects);
+  keys.resize(num_rects);  // (shrinking: the capacity stays for the next build)
   const size_t valid = listed + always.size();
   if (valid == 0) return;
-  const size_t num_rects = records.size();
   // about `cells` cells over the faces, shared by their rectangle counts, square-ish cells over
   // each window; returns the references (and sets each rectangle's cells)
   LightFaces& fc = lb.faces;
@@ -486,7 +524,7 @@ void BuildLightBuffer(const TriangleSoA& tris, const float world_light[3],
   // stream per cell); then the references are written list by list from the rectangles'
   // records: the output arrays in order, instead of every reference's 16 words scattered
   // over 16 arrays per cell.
-  std::vector<uint32_t>& order = sc.order;
+  ScratchVec<uint32_t>& order = sc.order;
   Reserve(&order, refs);
   order.resize(refs);
   std::vector<uint32_t>& cursor = sc.cursor;
