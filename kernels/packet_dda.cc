@@ -530,7 +530,9 @@ struct PacketTracer {
       if (vecs[t] == 0) continue;
       const int32_t id = span.ids[j + t];
       const size_t slot = (uint32_t(id) * 2654435761u) >> 22;  // 10 bits: kMailbox entries
-      const bool mine = sc.mb_id[slot] == id && sc.mb_stamp[slot] == sc.serial;
+      // the stamp first: an entry of an earlier packet (or never written: InitScratch zeroes
+      // the stamps only, and serials start at 1) is not read further
+      const bool mine = sc.mb_stamp[slot] == sc.serial && sc.mb_id[slot] == id;
       const uint64_t done = mine ? sc.mb_tested[slot] : 0;
       const uint64_t todo = vecs[t] & ~done;
       if (todo == 0) continue;
