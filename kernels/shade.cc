@@ -825,27 +825,10 @@ glm::vec3 SampleTexture(const Texture& texture, glm::vec2 uv) {
   if (w <= 0 || h <= 0 || texture.rgb.size() < static_cast<size_t>(w) * h * 3) {
     return glm::vec3(1.0f);
   }
-  float u = std::isfinite(uv.x) ? uv.x - std::floor(uv.x) : 0.0f;  // wrap to [0, 1]
-  float v = std::isfinite(uv.y) ? uv.y - std::floor(uv.y) : 0.0f;
-  // Texel centres at (i + 0.5) / w; v = 0 is the bottom row (h - 1).
-  const float x = u * static_cast<float>(w) - 0.5f;
-  const float y = (1.0f - v) * static_cast<float>(h) - 0.5f;
-  const float fx0 = std::floor(x);
-  const float fy0 = std::floor(y);
-  const float fx = x - fx0;
-  const float fy = y - fy0;
-  auto wrap = [](int i, int n) { return ((i % n) + n) % n; };
-  const int x0 = wrap(static_cast<int>(fx0), w);
-  const int x1 = wrap(static_cast<int>(fx0) + 1, w);
-  const int y0 = wrap(static_cast<int>(fy0), h);
-  const int y1 = wrap(static_cast<int>(fy0) + 1, h);
-  auto texel = [&](int tx, int ty) {
+  return SampleBilinear(w, h, uv, [&](int tx, int ty) {
     const float* p = texture.rgb.data() + (static_cast<size_t>(ty) * w + tx) * 3;
     return glm::vec3(p[0], p[1], p[2]);
-  };
-  const glm::vec3 top = texel(x0, y0) * (1.0f - fx) + texel(x1, y0) * fx;
-  const glm::vec3 bottom = texel(x0, y1) * (1.0f - fx) + texel(x1, y1) * fx;
-  return top * (1.0f - fy) + bottom * fy;
+  });
 }
 
 float PhongPow(float x, float e) {

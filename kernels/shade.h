@@ -276,6 +276,30 @@ inline bool Refract(const glm::vec3& d, const glm::vec3& n, float eta, glm::vec3
 // An empty texture returns white.
 glm::vec3 SampleTexture(const Texture& texture, glm::vec2 uv);
 
+// SampleTexture's arithmetic for a w x h texture (w, h >= 1) whose texel at column x, row y
+// (row 0 at the top) texel(x, y) returns: shared with the Cell simulator, which reads the
+// texels through its software cache (sim/spe.cc), so that both round alike.
+template <class TexelAt>
+glm::vec3 SampleBilinear(int w, int h, glm::vec2 uv, const TexelAt& texel) {
+  const float u = std::isfinite(uv.x) ? uv.x - std::floor(uv.x) : 0.0f;  // wrap to [0, 1]
+  const float v = std::isfinite(uv.y) ? uv.y - std::floor(uv.y) : 0.0f;
+  // Texel centres at (i + 0.5) / w; v = 0 is the bottom row (h - 1).
+  const float x = u * static_cast<float>(w) - 0.5f;
+  const float y = (1.0f - v) * static_cast<float>(h) - 0.5f;
+  const float fx0 = std::floor(x);
+  const float fy0 = std::floor(y);
+  const float fx = x - fx0;
+  const float fy = y - fy0;
+  const auto wrap = [](int i, int n) { return ((i % n) + n) % n; };
+  const int x0 = wrap(static_cast<int>(fx0), w);
+  const int x1 = wrap(static_cast<int>(fx0) + 1, w);
+  const int y0 = wrap(static_cast<int>(fy0), h);
+  const int y1 = wrap(static_cast<int>(fy0) + 1, h);
+  const glm::vec3 top = texel(x0, y0) * (1.0f - fx) + texel(x1, y0) * fx;
+  const glm::vec3 bottom = texel(x0, y1) * (1.0f - fx) + texel(x1, y1) * fx;
+  return top * (1.0f - fy) + bottom * fy;
+}
+
 // x^e for the phong highlight, shared by rs::Shade (vectorized, the same operations lane by
 // lane) and ref::Shade, so both round identically. log2 by the atanh series on the mantissa in
 // [sqrt(1/2), sqrt(2)), exp2 by a degree-8 Taylor polynomial on [-1/2, 1/2] scaled by 2^n; only

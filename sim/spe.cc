@@ -1095,28 +1095,12 @@ glm::vec3 Spe::Impl::Texel(const MaterialRecord& m, int tx, int ty) {
   return glm::vec3(p[0], p[1], p[2]);
 }
 
-// rs::SampleTexture (kernels/shade.cc) with the texels read through the software cache: the
-// same float operations in the same order.
+// rs::SampleTexture with the texels read through the software cache: the same arithmetic
+// (SampleBilinear, kernels/shade.h).
 glm::vec3 Spe::Impl::SampleTextureCached(const MaterialRecord& m, glm::vec2 uv) {
-  const int w = m.tex_width;
-  const int h = m.tex_height;
-  if (w <= 0 || h <= 0) return glm::vec3(1.0f);
-  float u = std::isfinite(uv.x) ? uv.x - std::floor(uv.x) : 0.0f;  // wrap to [0, 1]
-  float v = std::isfinite(uv.y) ? uv.y - std::floor(uv.y) : 0.0f;
-  const float x = u * static_cast<float>(w) - 0.5f;
-  const float y = (1.0f - v) * static_cast<float>(h) - 0.5f;
-  const float fx0 = std::floor(x);
-  const float fy0 = std::floor(y);
-  const float fx = x - fx0;
-  const float fy = y - fy0;
-  auto wrap = [](int i, int n) { return ((i % n) + n) % n; };
-  const int x0 = wrap(static_cast<int>(fx0), w);
-  const int x1 = wrap(static_cast<int>(fx0) + 1, w);
-  const int y0 = wrap(static_cast<int>(fy0), h);
-  const int y1 = wrap(static_cast<int>(fy0) + 1, h);
-  const glm::vec3 top = Texel(m, x0, y0) * (1.0f - fx) + Texel(m, x1, y0) * fx;
-  const glm::vec3 bottom = Texel(m, x0, y1) * (1.0f - fx) + Texel(m, x1, y1) * fx;
-  return top * (1.0f - fy) + bottom * fy;
+  if (m.tex_width <= 0 || m.tex_height <= 0) return glm::vec3(1.0f);
+  return SampleBilinear(m.tex_width, m.tex_height, uv,
+                        [&](int tx, int ty) { return Texel(m, tx, ty); });
 }
 
 // Shading of the iteration's finished closest-hit rays (paper 3.7) with raystream's shader on a
