@@ -165,26 +165,42 @@ struct QueueClock {
 #endif
   }
 
-  // Seconds per tick. For the TSC it is measured once against steady_clock over ~20 ms on first
-  // use (thread-safe static; call it outside timed regions), accurate to ~0.1%.
+  // Seconds per tick. For the TSC it is measured against steady_clock over the span since the
+  // process started (the anchor below, taken during static initialization) without waiting: by
+  // the time a frame's queue times are converted, that span holds the scene's load and the
+  // frame, and steady_clock's nanoseconds over it make the rate good to 1e-4 or better. A span
+  // under 2 ms is waited out (to about 1e-5). The rate is refined on every call until the span
+  // passes 1 s, then fixed. Thread-safe. (It used to spin 20 ms on first use, which was inside
+  // the first frame of every render with queue statistics: 20 ms on a 30-100 ms frame.)
   static double SecondsPerTick() {
 #if RS_QUEUE_HAVE_RDTSC
-    static const double seconds_per_tick = [] {
-      using Clock = std::chrono::steady_clock;
-      const auto t0 = Clock::now();
-      const uint64_t c0 = __rdtsc();
-      while (Clock::now() - t0 < std::chrono::milliseconds(20)) {
-      }
-      const auto t1 = Clock::now();
-      const uint64_t c1 = __rdtsc();
-      const double seconds = std::chrono::duration<double>(t1 - t0).count();
-      return c1 > c0 ? seconds / static_cast<double>(c1 - c0) : 1e-9;
-    }();
-    return seconds_per_tick;
+    static std::atomic<double> fixed{0.0};
+    const double known = fixed.load(std::memory_order_relaxed);
+    if (known > 0.0) return known;
+    using Clock = std::chrono::steady_clock;
+    Clock::time_point t;
+    uint64_t c = 0;
+    do {
+      t = Clock::now();
+      c = __rdtsc();
+    } while (t - kAnchor.time < std::chrono::milliseconds(2));
+    const double seconds = std::chrono::duration<double>(t - kAnchor.time).count();
+    const double rate = c > kAnchor.tsc ? seconds / static_cast<double>(c - kAnchor.tsc) : 1e-9;
+    if (seconds >= 1.0) fixed.store(rate, std::memory_order_relaxed);
+    return rate;
 #else
     return 1e-9;
 #endif
   }
+
+ private:
+#if RS_QUEUE_HAVE_RDTSC
+  struct Anchor {
+    std::chrono::steady_clock::time_point time;
+    uint64_t tsc;
+  };
+  static inline const Anchor kAnchor{std::chrono::steady_clock::now(), __rdtsc()};
+#endif
 };
 
 // Statistics policy "off": an empty type whose Measure() returns an empty scope. With
