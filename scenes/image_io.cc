@@ -11,12 +11,14 @@
 #include <fmt/format.h>
 #include <limits.h>
 #include <png.h>
+#include <zlib.h>
 #include <sys/resource.h>
 #include <sys/stat.h>
 #include <unistd.h>
 
 #include <algorithm>
 #include <atomic>
+#include <bit>
 #include <cerrno>
 #include <cmath>
 #include <csignal>
@@ -115,11 +117,59 @@ void FsyncFolder(const std::string& dir, int& err) {
 }
 
 
-// Piecewise sRGB transfer function (IEC 61966-2-1).
-float LinearToSrgb(float x) {
-  if (!(x > 0.0f)) return 0.0f;  // also NaN
-  if (x >= 1.0f) return 1.0f;
-  return x <= 0.0031308f ? 12.92f * x : 1.055f * std::pow(x, 1.0f / 2.4f) - 0.055f;
+// Piecewise sRGB transfer function (IEC 61966-2-1) on [0, 1], in double.
+double SrgbOfLinear(double x) {
+  return x <= 0.0031308 ? 12.92 * x : 1.055 * std::pow(x, 1.0 / 2.4) - 0.055;
+}
+
+// LinearToSrgb8's tables. Code k (1..255) starts at the smallest float x in (0, 1] with
+// SrgbOfLinear(x) x 255 >= k - 0.5, found by bisection over the floats' bit patterns (the
+// function is increasing; in double its rounding is far below a float's spacing). The floats in
+// [0, 1) are cut into buckets of 2^kShift consecutive bit patterns, each holding the code of its
+// first float; a value's code is its bucket's, stepped up past the starts it has reached (a
+// bucket spans at most a few codes: none but the first below 2^-7).
+struct Srgb8Table {
+  static constexpr int kShift = 15;
+  static constexpr uint32_t kOne = 0x3f800000u;  // 1.0f
+  float start[257];                               // start[0] = 0, start[256] = +inf
+  uint8_t bucket[kOne >> kShift];
+
+  Srgb8Table() {
+    start[0] = 0.0f;
+    start[256] = INFINITY;
+    for (int k = 1; k <= 255; ++k) {
+      const double half = double(k) - 0.5;
+      uint32_t lo = 0, hi = kOne;  // the code of 0 is below k, that of 1 is 255
+      while (hi - lo > 1) {
+        const uint32_t mid = lo + (hi - lo) / 2;
+        if (SrgbOfLinear(double(std::bit_cast<float>(mid))) * 255.0 >= half) {
+          hi = mid;
+        } else {
+          lo = mid;
+        }
+      }
+      start[k] = std::bit_cast<float>(hi);
+    }
+    int code = 0;
+    for (uint32_t b = 0; b < (kOne >> kShift); ++b) {
+      const float first = std::bit_cast<float>(b << kShift);
+      while (first >= start[code + 1]) ++code;
+      bucket[b] = static_cast<uint8_t>(code);
+    }
+  }
+
+  uint8_t Code(float x) const {
+    if (!(x > 0.0f)) return 0;  // also NaN
+    if (x >= 1.0f) return 255;
+    int code = bucket[std::bit_cast<uint32_t>(x) >> kShift];
+    while (x >= start[code + 1]) ++code;
+    return static_cast<uint8_t>(code);
+  }
+};
+
+const Srgb8Table& Srgb8() {
+  static const Srgb8Table table;
+  return table;
 }
 
 
@@ -274,6 +324,13 @@ std::string EncodePng(int width, int height, const unsigned char* rgb,
                PNG_COLOR_TYPE_RGB, PNG_INTERLACE_NONE, PNG_COMPRESSION_TYPE_DEFAULT,
                PNG_FILTER_TYPE_DEFAULT);
   png_set_sRGB_gAMA_and_cHRM(png, info, PNG_sRGB_INTENT_PERCEPTUAL);
+  // Paeth-filtered rows, run-length deflate: 3-4x faster than libpng's defaults (every filter
+  // tried per row, deflate level 6) for 11-19 % larger files (1024x1024 renders: bunny 47 -> 14
+  // ms, sponza 77 -> 18 ms; erw6, bunny, sponza and conference 11-19 % larger). A render's
+  // image is written on the application thread after the frame, so this was up to half the
+  // frame's time on 2 threads.
+  png_set_filter(png, PNG_FILTER_TYPE_BASE, PNG_FILTER_PAETH);
+  png_set_compression_strategy(png, Z_RLE);
   png_write_info(png, info);
   png_write_image(png, rows.data());
   png_write_end(png, nullptr);
@@ -522,6 +579,13 @@ void WriteFileAtomically(const std::string& path, std::string_view bytes, std::s
   StageFile(path, bytes, what).Commit();
 }
 
+uint8_t LinearToSrgb8(float x) { return Srgb8().Code(x); }
+
+void LinearToSrgb8(const float* linear, size_t n, uint8_t* out) {
+  const Srgb8Table& table = Srgb8();
+  for (size_t i = 0; i < n; ++i) out[i] = table.Code(linear[i]);
+}
+
 StagedFile StageImage(const std::string& path, int width, int height,
                       const std::vector<float>& rgb) {
   if (path.empty()) Fail("output path is empty");
@@ -536,9 +600,7 @@ StagedFile StageImage(const std::string& path, int width, int height,
   std::vector<unsigned char> bytes;
   if (encoding == Encoding::kSrgb8) {
     bytes.resize(rgb.size());
-    for (size_t i = 0; i < rgb.size(); ++i) {
-      bytes[i] = static_cast<unsigned char>(std::lround(LinearToSrgb(rgb[i]) * 255.0f));
-    }
+    LinearToSrgb8(rgb.data(), rgb.size(), bytes.data());
   }
   std::vector<unsigned char> encoded;
   std::string why;

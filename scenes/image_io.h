@@ -62,6 +62,14 @@ StagedFile StageFile(const std::string& path, std::string_view bytes,
 void WriteFileAtomically(const std::string& path, std::string_view bytes,
                          std::string_view what = "file");
 
+// The 8-bit sRGB code of a linear value: the code nearest to 255 x the sRGB transfer function
+// (IEC 61966-2-1) of x evaluated in double, halves up; 0 for x <= 0 or NaN, 255 for x >= 1.
+// A table lookup (the codes' first floats, found once by bisection), about 4x faster than a
+// float pow per channel; what PNG and the other 8-bit formats are written with.
+uint8_t LinearToSrgb8(float x);
+// The same for n values into out[0, n).
+void LinearToSrgb8(const float* linear, size_t n, uint8_t* out);
+
 // Encodes width x height linear rgb floats (row 0 at the top) in memory and stages the file.
 // 8-bit formats (PNG, JPEG, BMP, TGA, PPM) get sRGB encoding and clamping; EXR gets half floats,
 // HDR/TIFF floats. OIIO and its libraries print nothing; their reasons go into the rs::Error.

@@ -6,11 +6,14 @@
 #include <doctest/doctest.h>
 #include <unistd.h>
 
+#include <bit>
 #include <cmath>
+#include <cstdint>
 #include <filesystem>
 #include <fstream>
 #include <limits>
 #include <string>
+#include <vector>
 
 namespace rs {
 namespace {
@@ -99,6 +102,68 @@ TEST_CASE("PNG round trip: 8-bit sRGB within half a code value") {
   REQUIRE(in->read_image(0, 0, 0, 3, OIIO::TypeDesc::UINT8, code));
   CHECK(code[0] == 188);
   CHECK(ReadImage(path).rgb[0] == doctest::Approx(0.5f).epsilon(0.005));
+}
+
+// The reference LinearToSrgb8 must equal: the transfer function in double, the nearest code
+// (halves up), clamped.
+int ReferenceSrgb8(float x) {
+  if (!(x > 0.0f)) return 0;
+  if (x >= 1.0f) return 255;
+  const double d = x;
+  const double s = d <= 0.0031308 ? 12.92 * d : 1.055 * std::pow(d, 1.0 / 2.4) - 0.055;
+  return static_cast<int>(std::floor(s * 255.0 + 0.5));
+}
+
+TEST_CASE("8-bit sRGB codes: the nearest code of the double-precision transfer function") {
+  // Every code's first float and the 64 floats on either side of it (where a table lookup
+  // would go wrong first), a million random floats in (0, 1), and special values.
+  const auto next = [](float x, int steps) {
+    return std::bit_cast<float>(static_cast<uint32_t>(
+        static_cast<int64_t>(std::bit_cast<uint32_t>(x)) + steps));
+  };
+  size_t checked = 0, wrong = 0;
+  const auto check = [&](float x) {
+    ++checked;
+    if (LinearToSrgb8(x) != ReferenceSrgb8(x)) {
+      if (++wrong <= 5) MESSAGE("x = ", x, ": ", int(LinearToSrgb8(x)), " != ", ReferenceSrgb8(x));
+    }
+  };
+  int code = 0;
+  for (uint32_t bits = 0; bits <= 0x3f800000u; bits += 1u << 12) {  // coarse sweep, monotone
+    const float x = std::bit_cast<float>(bits);
+    const int c = LinearToSrgb8(x);
+    CHECK(c >= code);
+    code = c;
+    check(x);
+  }
+  for (int k = 1; k <= 255; ++k) {
+    // the first float of code k: bisection on the reference
+    uint32_t lo = 0, hi = 0x3f800000u;
+    while (hi - lo > 1) {
+      const uint32_t mid = lo + (hi - lo) / 2;
+      (ReferenceSrgb8(std::bit_cast<float>(mid)) >= k ? hi : lo) = mid;
+    }
+    for (int d = -64; d <= 64; ++d) check(next(std::bit_cast<float>(hi), d));
+  }
+  uint64_t state = 0x9E3779B97F4A7C15ull;
+  for (int i = 0; i < 1000000; ++i) {
+    state = state * 6364136223846793005ull + 1442695040888963407ull;
+    check(static_cast<float>(state >> 40) * 0x1p-24f);
+  }
+  const float inf = std::numeric_limits<float>::infinity();
+  for (const float x : {0.0f, -0.0f, -1.0f, -inf, inf, 1.0f, 2.0f, 1e-45f, 1e-38f, 0.0031308f,
+                        std::nextafter(1.0f, 0.0f), std::numeric_limits<float>::quiet_NaN()}) {
+    check(x);
+  }
+  CHECK(wrong == 0);
+  CHECK(checked > 1000000);
+  CHECK(LinearToSrgb8(0.5f) == 188);  // linear mid grey
+  CHECK(LinearToSrgb8(0.18f) == 118);
+  // the bulk form gives the same codes
+  const std::vector<float> in = {0.5f, -1.0f, 0.18f, 1.0f, 0.0f, 0.999f, 1e-4f};
+  std::vector<uint8_t> out(in.size());
+  LinearToSrgb8(in.data(), in.size(), out.data());
+  for (size_t i = 0; i < in.size(); ++i) CHECK(out[i] == LinearToSrgb8(in[i]));
 }
 
 TEST_CASE("PNG clamps out-of-range values; NaN becomes black") {
