@@ -25,7 +25,7 @@ constexpr size_t kPage = 4096;
 // the same array asked for again fits the block it had. Blocks without a cache go back to the
 // system when freed and get no slack: a queue backend's 20-ray task streams (3.6 KiB each,
 // thousands of them) took 2 KiB more each, and their first frame spent 58 ms instead of 8-10 in
-// faulting them in (office-graz 1024x1024, LOCAL, 2 threads; peak RSS 142 -> 120 MB).
+// faulting them in (office-graz 1024x1024, LOCAL, 2 threads; peak RSS 139 -> 117 MiB).
 constexpr size_t kSlack = 2048;
 
 std::atomic<size_t> g_system_blocks{0};
