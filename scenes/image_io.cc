@@ -127,7 +127,7 @@ double SrgbOfLinear(double x) {
 // function is increasing; in double its rounding is far below a float's spacing). The floats in
 // [0, 1) are cut into buckets of 2^kShift consecutive bit patterns, each holding the code of its
 // first float; a value's code is its bucket's, stepped up past the starts it has reached (a
-// bucket spans at most a few codes: none but the first below 2^-7).
+// bucket is 1/256 of a binade, over which the code moves by one at most).
 struct Srgb8Table {
   static constexpr int kShift = 15;
   static constexpr uint32_t kOne = 0x3f800000u;  // 1.0f
