@@ -1,15 +1,26 @@
 // The build threads' pool (kernels/build_threads.h): threads started on first use and kept for
-// the process, parked on a condition variable between RunParts calls. One RunParts uses the
-// pool at a time; a part claims the next index under the mutex.
+// the process. A thread that finishes a part spins for kSpin before it parks on a condition
+// variable, and so does the caller waiting for the parts: a build calls RunParts 15-20 times
+// in a row, and waking a parked thread took 25 us a call on this VM (2 vCPUs), as long as some
+// of the parts. One RunParts uses the pool at a time; a part claims the next index under the
+// mutex.
 #include "kernels/build_threads.h"
 
 #include <pthread.h>
 
+#include <atomic>
+#include <chrono>
 #include <condition_variable>
+#include <cstdint>
 #include <mutex>
 
 namespace rs {
 namespace {
+
+// How long a pool thread, or the caller of RunParts, spins for the next call or the last part
+// before it sleeps: longer than the serial stretches between a build's RunParts calls, short
+// against a frame (the CPU it spins away is bounded by it, once per build).
+constexpr std::chrono::microseconds kSpin{200};
 
 struct BuildPool {
   std::mutex run;  // held by the RunParts that owns the pool
@@ -18,8 +29,31 @@ struct BuildPool {
   std::vector<std::thread> threads;
   void (*call)(void*, int) = nullptr;
   void* ctx = nullptr;
-  int parts = 0, next = 0, pending = 0;  // next part to claim; parts not finished
+  // next part to claim; parts not finished (written under `mutex`; read without it by the
+  // spins, which then take the mutex to act)
+  int parts = 0, next = 0;
+  std::atomic<int> pending{0};
+  std::atomic<uint64_t> posted{0};  // RunParts calls so far
 };
+
+inline void CpuRelax() {
+#if defined(__x86_64__) || defined(__i386__)
+  __builtin_ia32_pause();
+#endif
+}
+
+// Spins until done() or kSpin has passed; returns done().
+template <class Done>
+bool SpinFor(Done&& done) {
+  const auto until = std::chrono::steady_clock::now() + kSpin;
+  for (;;) {
+    for (int i = 0; i < 64; ++i) {
+      if (done()) return true;
+      CpuRelax();
+    }
+    if (std::chrono::steady_clock::now() >= until) return done();
+  }
+}
 
 thread_local bool t_pool_thread = false;
 
@@ -40,16 +74,23 @@ BuildPool& Pool() {
 
 void Worker(BuildPool* p) {
   t_pool_thread = true;
+  uint64_t seen = 0;  // the calls this thread has looked at
   std::unique_lock<std::mutex> lock(p->mutex);
   for (;;) {
-    p->work.wait(lock, [p] { return p->next < p->parts; });
+    if (!(p->next < p->parts)) {
+      seen = p->posted.load(std::memory_order_relaxed);
+      lock.unlock();
+      SpinFor([p, seen] { return p->posted.load(std::memory_order_acquire) != seen; });
+      lock.lock();
+      p->work.wait(lock, [p] { return p->next < p->parts; });
+    }
     const int t = p->next++;
     void (*const call)(void*, int) = p->call;
     void* const ctx = p->ctx;
     lock.unlock();
     call(ctx, t);
     lock.lock();
-    if (--p->pending == 0) p->done.notify_all();
+    if (p->pending.fetch_sub(1, std::memory_order_acq_rel) == 1) p->done.notify_all();
   }
 }
 
@@ -69,14 +110,17 @@ bool RunOnBuildPool(int parts, void (*call)(void*, int), void* ctx) {
     }
     p.call = call;
     p.ctx = ctx;
-    p.pending = parts - 1;
+    p.pending.store(parts - 1, std::memory_order_relaxed);
     p.next = 1;
     p.parts = parts;
+    p.posted.fetch_add(1, std::memory_order_release);
   }
   p.work.notify_all();
   call(ctx, 0);
+  const auto finished = [&p] { return p.pending.load(std::memory_order_acquire) == 0; };
+  SpinFor(finished);
   std::unique_lock<std::mutex> lock(p.mutex);
-  p.done.wait(lock, [&p] { return p.pending == 0; });
+  p.done.wait(lock, finished);
   p.parts = p.next = 0;
   return true;
 }

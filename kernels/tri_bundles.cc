@@ -96,19 +96,25 @@ void BuildTriBundles(const Grid& grid, const TriangleSoA& tris, TriBundles* out,
   // One pass over the lists, in cell order: the output is written sequentially. Threaded: each
   // part fills a contiguous range of cells from its first bundle (its offsets come out relative
   // to it and are shifted after; FillBundleCells writes only offsets c0 + 1 .. c1), the same
-  // bytes as one pass.
+  // bytes as one pass. The parts hold about as many bundles each, not as many cells (a scene's
+  // occupied cells bunch up in some parts of its grid); their first cells are multiples of 64.
   const int parts = int(std::min<size_t>(size_t(BuildThreadCount(threads)), cells / 4096 + 1));
-  std::vector<size_t> part_first(size_t(parts) + 1, 0);
-  for (int k = 0; k < parts; ++k) {
-    const size_t c0 = PartBegin(cells, parts, k, 64), c1 = PartBegin(cells, parts, k + 1, 64);
+  std::vector<size_t> part_cell(size_t(parts) + 1, cells), part_first(size_t(parts) + 1, bundles);
+  part_cell[0] = part_first[0] = 0;
+  {
     size_t n = 0;
-    for (size_t c = c0; c < c1; ++c) {
+    int k = 1;
+    for (size_t c = 0; c < cells && k < parts; ++c) {
+      if (c % 64 == 0 && n * size_t(parts) >= bundles * size_t(k)) {
+        part_cell[size_t(k)] = c, part_first[size_t(k)] = n;
+        ++k;
+      }
       n += (cell_begin[c + 1] - cell_begin[c] + kBundleLanes - 1) / kBundleLanes;
     }
-    part_first[size_t(k) + 1] = part_first[size_t(k)] + n;
   }
   RunParts(parts, [&](int k) {
-    const size_t c0 = PartBegin(cells, parts, k, 64), c1 = PartBegin(cells, parts, k + 1, 64);
+    const size_t c0 = part_cell[size_t(k)], c1 = part_cell[size_t(k) + 1];
+    if (c1 <= c0) return;
     const size_t first = part_first[size_t(k)];
     uint32_t* bundle_begin = out->cell_begin.get() + c0;
     FillBundleCells(tris, grid.tri_ids.get(), cell_begin + c0, c1 - c0,

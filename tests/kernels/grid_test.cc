@@ -5,12 +5,17 @@
 #include <doctest/doctest.h>
 
 #include <algorithm>
+#include <atomic>
 #include <bit>
+#include <chrono>
 #include <cmath>
 #include <cstring>
 #include <limits>
+#include <stdexcept>
+#include <thread>
 #include <vector>
 
+#include "kernels/build_threads.h"
 #include "kernels/dda_grid.h"
 #include "kernels/grid.h"
 #include "kernels/grid_binning.h"
@@ -837,6 +842,35 @@ void CheckSameGrid(const Grid& a, const Grid& b) {
   CHECK(std::equal(a.occupancy.get(), a.occupancy.get() + words, b.occupancy.get()));
 }
 
+TEST_CASE("RunParts: each part runs once, for calls back to back and calls after the pool sleeps") {
+  // the pool's threads spin between calls, then sleep (build_threads.cc): calls in a row reach
+  // spinning threads, calls after a pause sleeping ones; parts counts vary, so the pool holds
+  // more threads than some calls use
+  std::vector<std::atomic<int>> ran(6);
+  for (int call = 0; call < 3000; ++call) {
+    const int parts = 1 + call % 5;
+    if (call % 500 == 499) std::this_thread::sleep_for(std::chrono::milliseconds(2));
+    for (auto& r : ran) r.store(0);
+    std::atomic<int> total{0};
+    RunParts(parts, [&](int t) {
+      ran[size_t(t)].fetch_add(1);
+      total.fetch_add(1);
+    });
+    INFO("call ", call, " parts ", parts);
+    REQUIRE(total.load() == parts);
+    for (int t = 0; t < 6; ++t) REQUIRE(ran[size_t(t)].load() == (t < parts ? 1 : 0));
+  }
+  // an exception in a part reaches the caller after every part ran
+  std::atomic<int> finished{0};
+  CHECK_THROWS_AS(RunParts(3,
+                           [&](int t) {
+                             finished.fetch_add(1);
+                             if (t == 1) throw std::runtime_error("part 1");
+                           }),
+                  std::runtime_error);
+  CHECK(finished.load() == 3);
+}
+
 TEST_CASE("threaded build (BuildOptions::build_threads): the same grid and box counts for 1-5 threads") {
   Rng rng(71);
   for (int round = 0; round < 4; ++round) {
@@ -871,42 +905,62 @@ TEST_CASE("threaded build (BuildOptions::build_threads): the same grid and box c
 TEST_CASE(
     "threaded build: the same triangles, bundles, occupancy words and skip rings for 1-4 threads") {
   Rng rng(73);
-  // 20,000 small triangles (several parts of every pass), every 97th degenerate
-  Soup soup = test::RandomSoup(rng, 20000, -1.0, 1.0, 0.05);
-  for (size_t t = 0; t < soup.triangles(); t += 97) soup.indices[3 * t + 2] = soup.indices[3 * t];
-  TriangleSoA one;
-  BuildTriangleSoA(soup.view(), &one, 1);
-  Grid grid;
-  BuildGrid(one, 4.0f, 512, &grid, 1);
-  DdaGrid dda_one;
-  BuildDdaGrid(grid, nullptr, one, &dda_one, 1);
-  REQUIRE(one.num_degenerate > 200);
-  for (int threads = 2; threads <= 4; ++threads) {
-    INFO("threads ", threads);
-    TriangleSoA tris;
-    BuildTriangleSoA(soup.view(), &tris, threads);
-    CHECK(tris.num_degenerate == one.num_degenerate);
-    CHECK(tris.num_nonfinite == one.num_nonfinite);
-    CHECK(std::equal(one.degenerate.data(), one.degenerate.data() + one.size, tris.degenerate.data()));
-    for (int k = 0; k < 3; ++k) {
-      for (int a = 0; a < 3; ++a) {
-        CHECK(std::equal(one.p[k][a].data(), one.p[k][a].data() + one.size, tris.p[k][a].data()));
+  for (const bool bunched : {false, true}) {
+    CAPTURE(bunched);
+    // 20,000 small triangles (several parts of every pass), every 97th degenerate; bunched: all
+    // but 50 in one corner of the bounds, so that the bundle fill's parts (split by bundles)
+    // end at other cells than an even split of the cells would
+    Soup soup = bunched ? test::RandomSoup(rng, 19950, -1.0, -0.6, 0.01)
+                        : test::RandomSoup(rng, 20000, -1.0, 1.0, 0.05);
+    if (bunched) {
+      const Soup spread = test::RandomSoup(rng, 50, -1.0, 1.0, 0.05);
+      for (size_t t = 0; t < spread.triangles(); ++t) {
+        float v[3][3];
+        for (int k = 0; k < 3; ++k) {
+          for (int a = 0; a < 3; ++a) {
+            v[k][a] = spread.positions[3 * size_t(spread.indices[3 * t + size_t(k)]) + size_t(a)];
+          }
+        }
+        soup.AddTriangle(v[0], v[1], v[2]);
       }
     }
-    DdaGrid dda;
-    BuildDdaGrid(grid, nullptr, one, &dda, threads);
-    REQUIRE(dda.bundles.num_bundles == dda_one.bundles.num_bundles);
-    const TriBundles& p = dda.bundles;
-    const TriBundles& q = dda_one.bundles;
-    CHECK(std::equal(p.cell_begin.get(), p.cell_begin.get() + p.num_cells + 1, q.cell_begin.get()));
-    CHECK(std::equal(p.ids.get(), p.ids.get() + kBundleLanes * p.num_bundles, q.ids.get()));
-    // NaN padding: compare the bits
-    CHECK(std::memcmp(p.data.get(), q.data.get(), kBundleFloats * p.num_bundles * sizeof(float)) ==
-          0);
-    CHECK(dda.top_words32 == dda_one.top_words32);
-    CHECK(std::equal(dda.bits.get(), dda.bits.get() + dda.top_words32, dda_one.bits.get()));
-    CHECK(std::equal(dda.skip.get(), dda.skip.get() + (grid.num_cells + 3) / 4, dda_one.skip.get()));
-    CHECK(dda.empty_block_share == dda_one.empty_block_share);
+    for (size_t t = 0; t < soup.triangles(); t += 97) soup.indices[3 * t + 2] = soup.indices[3 * t];
+    TriangleSoA one;
+    BuildTriangleSoA(soup.view(), &one, 1);
+    Grid grid;
+    BuildGrid(one, 4.0f, 512, &grid, 1);
+    DdaGrid dda_one;
+    BuildDdaGrid(grid, nullptr, one, &dda_one, 1);
+    REQUIRE(one.num_degenerate > 200);
+    for (int threads = 2; threads <= 4; ++threads) {
+      INFO("threads ", threads);
+      TriangleSoA tris;
+      BuildTriangleSoA(soup.view(), &tris, threads);
+      CHECK(tris.num_degenerate == one.num_degenerate);
+      CHECK(tris.num_nonfinite == one.num_nonfinite);
+      CHECK(std::equal(one.degenerate.data(), one.degenerate.data() + one.size,
+                       tris.degenerate.data()));
+      for (int k = 0; k < 3; ++k) {
+        for (int a = 0; a < 3; ++a) {
+          CHECK(std::equal(one.p[k][a].data(), one.p[k][a].data() + one.size, tris.p[k][a].data()));
+        }
+      }
+      DdaGrid dda;
+      BuildDdaGrid(grid, nullptr, one, &dda, threads);
+      REQUIRE(dda.bundles.num_bundles == dda_one.bundles.num_bundles);
+      const TriBundles& p = dda.bundles;
+      const TriBundles& q = dda_one.bundles;
+      CHECK(std::equal(p.cell_begin.get(), p.cell_begin.get() + p.num_cells + 1, q.cell_begin.get()));
+      CHECK(std::equal(p.ids.get(), p.ids.get() + kBundleLanes * p.num_bundles, q.ids.get()));
+      // NaN padding: compare the bits
+      CHECK(std::memcmp(p.data.get(), q.data.get(),
+                        kBundleFloats * p.num_bundles * sizeof(float)) == 0);
+      CHECK(dda.top_words32 == dda_one.top_words32);
+      CHECK(std::equal(dda.bits.get(), dda.bits.get() + dda.top_words32, dda_one.bits.get()));
+      CHECK(std::equal(dda.skip.get(), dda.skip.get() + (grid.num_cells + 3) / 4,
+                       dda_one.skip.get()));
+      CHECK(dda.empty_block_share == dda_one.empty_block_share);
+    }
   }
 }
 
