@@ -219,10 +219,10 @@ HWY_INLINE uint64_t SetupVector(D d, const Grid& grid, const RayStreamView& rays
   if constexpr (kAny) {
     for (size_t l = 0; l < n_live; ++l) out.occluded[first + l] = 0;  // not padded: scalar
   } else {
-    hn::BlendedStore(inf, live, d, out.hits.t + first);
-    hn::BlendedStore(zero, live, d, out.hits.u + first);
-    hn::BlendedStore(zero, live, d, out.hits.v + first);
-    hn::BlendedStore(hn::Set(di, -1), hn::RebindMask(di, live), di, out.hits.prim + first);
+    StoreFirstN(inf, d, n_live, out.hits.t + first);
+    StoreFirstN(zero, d, n_live, out.hits.u + first);
+    StoreFirstN(zero, d, n_live, out.hits.v + first);
+    StoreFirstN(hn::Set(di, -1), di, n_live, out.hits.prim + first);
   }
   // RayIsValid and a non-empty (tmin, tmax] (+inf clamped to FLT_MAX), then the slab clip;
   // parallel axes (d = +-0 or 1/d not finite) need the origin inside the slab

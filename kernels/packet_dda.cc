@@ -1093,14 +1093,13 @@ struct PacketTracer {
           for (size_t l = 0; i + l < n; ++l) occluded[first + i + l] = r.prim[i + l] > 0;
         }
       } else {
-        const M live = hn::FirstN(d, n - i);
+        const size_t live = n - i;  // (lanes past it are left alone)
         const M hf = hn::RebindMask(d, hit);
         const V u = hn::Load(d, r.bu + i), v = hn::Load(d, r.bv + i);
-        hn::BlendedStore(hn::IfThenElse(hf, hn::Load(d, r.best + i), inf), live, d,
-                         hits->t + first + i);
-        hn::BlendedStore(hn::IfThenElse(hf, u, zero), live, d, hits->u + first + i);
-        hn::BlendedStore(hn::IfThenElse(hf, v, zero), live, d, hits->v + first + i);
-        hn::BlendedStore(prim, hn::RebindMask(di, live), di, hits->prim + first + i);
+        StoreFirstN(hn::IfThenElse(hf, hn::Load(d, r.best + i), inf), d, live, hits->t + first + i);
+        StoreFirstN(hn::IfThenElse(hf, u, zero), d, live, hits->u + first + i);
+        StoreFirstN(hn::IfThenElse(hf, v, zero), d, live, hits->v + first + i);
+        StoreFirstN(prim, di, live, hits->prim + first + i);
       }
     }
     if (stats != nullptr) {
