@@ -78,13 +78,17 @@ struct FaceRect {
 };
 
 // A rectangle's face and, once the layout is known, its cells [x0, x1] x [y0, y1] (at most
-// kLightMaxRes per axis). The passes that follow the projection read these 10 bytes per
-// rectangle (the scatter in reach order at random) and the layout its coordinates (RectUv, in
-// rectangle order), instead of its 64-byte LightRecord.
+// kLightMaxRes per axis), and where its reference's floats come from: its triangle's id (the
+// SIMD projection's rectangle: the output pass projects the triangle again, with its planes),
+// or kScalarRect | the index of its LightRecord (the scalar path's rectangles, kept whole). The
+// passes that follow the projection read these 16 bytes per rectangle (the scatter in reach
+// order at random) and the layout its coordinates (RectUv, in rectangle order).
 struct RectCells {
   uint16_t x0, x1, y0, y1;
   uint8_t face;
+  uint32_t src;
 };
+constexpr uint32_t kScalarRect = 0x80000000u;
 struct RectUv {
   float u0, u1, v0, v1;
 };
@@ -292,8 +296,8 @@ void SortByReach(ScratchVec<uint64_t>* keys, ScratchVec<uint64_t>* tmp) {
 
 }  // namespace
 
-// A reference as the output arrays hold it (BuildLightBuffer writes them list by list): one
-// cache line.
+// A reference as the output arrays hold it: kept for the scalar path's rectangles (whose
+// planes are computed in double) and written to the lists by `put`.
 struct alignas(64) LightRecord {
   float reach, u0, u1, v0, v1;
   uint32_t tri;
@@ -306,11 +310,11 @@ static_assert(sizeof(LightRecord) == 64);
 struct LightBuildScratch {
   ScratchVec<RectCells> cells;      // per rectangle, in triangle order
   ScratchVec<RectUv> uv;            // per rectangle, in triangle order
-  ScratchVec<LightRecord> records;  // per rectangle, in triangle order
+  std::vector<LightRecord> records;  // the rectangles of the scalar path (RectCells::src)
   std::vector<std::pair<float, uint32_t>> always;  // (reach, triangle)
   ScratchVec<uint64_t> keys, keys_tmp;  // reach bits << 32 | rectangle (SortByReach)
   std::vector<uint32_t> cursor;
-  ScratchVec<uint32_t> order;       // per reference: its record
+  ScratchVec<uint32_t> order;       // per reference: its rectangle's RectCells::src
 };
 
 void BuildLightBuffer(const TriangleSoA& tris, const float world_light[3],
@@ -329,30 +333,33 @@ void BuildLightBuffer(const TriangleSoA& tris, const float world_light[3],
   const float* const light = lb.frame_light;  // what the build and the tests translate by
   lb.verts = tris.verts.data();
   const Vec3 l = {double(light[0]), double(light[1]), double(light[2])};
-  // per rectangle, in triangle order (sequential reads of the triangles; the lists are
-  // written from the records below): its face and cells, its coordinates, its reference's
-  // floats and its sort key, reach bits << 32 | rectangle (SortByReach). Written through
-  // local pointers (a store of the face byte would otherwise make the compiler reload every
-  // vector's pointers), the arrays sized ahead for a whole projection block.
+  // per rectangle, in triangle order (sequential reads of the triangles): its face, cells and
+  // source, its coordinates and its sort key, reach bits << 32 | rectangle (SortByReach).
+  // Written through local pointers (a store of the face byte would otherwise make the compiler
+  // reload every vector's pointers), the arrays sized ahead for a whole projection block. The
+  // references' floats are not kept: the output pass computes them again from the triangles
+  // (ProjectLightList), but for the scalar path's rectangles, whose LightRecords are kept.
+  if (tris.size >= kScalarRect) {
+    throw Error("light buffer: " + std::to_string(tris.size) + " triangles (at most 2^31 - 1)");
+  }
   ScratchVec<RectCells>& rect_cells = sc.cells;
   ScratchVec<RectUv>& rect_uv = sc.uv;
-  ScratchVec<LightRecord>& records = sc.records;
+  std::vector<LightRecord>& records = sc.records;
+  records.clear();
   ScratchVec<uint64_t>& keys = sc.keys;
   size_t num_rects = 0;
   RectCells* out_cells = nullptr;
   RectUv* out_uv = nullptr;
-  LightRecord* out_records = nullptr;
   uint64_t* out_keys = nullptr;
   const auto room = [&](size_t more) {  // at least num_rects + more of each, contents kept
-    if (num_rects + more > records.size()) {
+    if (num_rects + more > rect_cells.size()) {
       // first the usual bound (one rectangle per triangle, some on two faces), then doubling
       const size_t n = num_rects == 0 ? tris.size + tris.size / 8 + more
-                                      : std::max(num_rects + more, 2 * records.size());
-      Reserve(&rect_cells, n), Reserve(&rect_uv, n), Reserve(&records, n), Reserve(&keys, n);
-      rect_cells.resize(n), rect_uv.resize(n), records.resize(n), keys.resize(n);
+                                      : std::max(num_rects + more, 2 * rect_cells.size());
+      Reserve(&rect_cells, n), Reserve(&rect_uv, n), Reserve(&keys, n);
+      rect_cells.resize(n), rect_uv.resize(n), keys.resize(n);
     }
-    out_cells = rect_cells.data(), out_uv = rect_uv.data();
-    out_records = records.data(), out_keys = keys.data();
+    out_cells = rect_cells.data(), out_uv = rect_uv.data(), out_keys = keys.data();
   };
   std::vector<std::pair<float, uint32_t>>& always = sc.always;  // triangles touching the light
   always.clear();
@@ -361,22 +368,20 @@ void BuildLightBuffer(const TriangleSoA& tris, const float world_light[3],
     float lo_u = FLT_MAX, hi_u = -FLT_MAX, lo_v = FLT_MAX, hi_v = -FLT_MAX;
     size_t rects = 0;
   } win[6];
-  // one rectangle of `rec` on `face`, in rectangle order; its reach rounded down (SortByReach)
-  const auto append = [&](LightRecord& rec, int face) {
-    rec.reach = TruncateReach(rec.reach);
-    out_keys[num_rects] = uint64_t(std::bit_cast<uint32_t>(rec.reach)) << 32 | num_rects;
-    out_records[num_rects] = rec;
-    out_cells[num_rects] = {0, 0, 0, 0, uint8_t(face)};
-    out_uv[num_rects] = {rec.u0, rec.u1, rec.v0, rec.v1};
+  // one rectangle on `face`, in rectangle order; its reach rounded down (SortByReach)
+  const auto append = [&](float reach, float u0, float u1, float v0, float v1, int face,
+                          uint32_t src) {
+    out_keys[num_rects] = uint64_t(std::bit_cast<uint32_t>(TruncateReach(reach))) << 32 | num_rects;
+    out_cells[num_rects] = {0, 0, 0, 0, uint8_t(face), src};
+    out_uv[num_rects] = {u0, u1, v0, v1};
     ++num_rects;
     Window& w = win[face];
-    w.lo_u = std::min(w.lo_u, rec.u0), w.hi_u = std::max(w.hi_u, rec.u1);
-    w.lo_v = std::min(w.lo_v, rec.v0), w.hi_v = std::max(w.hi_v, rec.v1);
+    w.lo_u = std::min(w.lo_u, u0), w.hi_u = std::max(w.hi_u, u1);
+    w.lo_v = std::min(w.lo_v, v0), w.hi_v = std::max(w.hi_v, v1);
     ++w.rects;
   };
   size_t listed = 0;             // and those with projections
   LightProjection block;
-  LightRecord rec;  // (every field written before each append)
   for (size_t i = 0; i < tris.size; ++i) {
     const size_t in_block = i % kLightProjectBlock;
     if (in_block == 0) {
@@ -384,13 +389,9 @@ void BuildLightBuffer(const TriangleSoA& tris, const float world_light[3],
       room(6 * kLightProjectBlock);  // a triangle has a rectangle on at most 6 faces
     }
     if (tris.degenerate[i]) continue;
-    rec.tri = uint32_t(i);
     if (block.face[in_block] >= 0) {  // the SIMD pass's common case
-      rec.reach = block.reach[in_block];
-      rec.u0 = block.u0[in_block], rec.u1 = block.u1[in_block];
-      rec.v0 = block.v0[in_block], rec.v1 = block.v1[in_block];
-      for (int c = 0; c < kLightPlaneFloats; ++c) rec.planes[c] = block.planes[c][in_block];
-      append(rec, block.face[in_block]);
+      append(block.reach[in_block], block.u0[in_block], block.u1[in_block], block.v0[in_block],
+             block.v1[in_block], block.face[in_block], uint32_t(i));
       ++listed;
       continue;
     }
@@ -411,14 +412,18 @@ void BuildLightBuffer(const TriangleSoA& tris, const float world_light[3],
     }
     for (int r = 0; r < n_rects; ++r) {  // (planes computed here in double)
       const FaceRect& f = rects[r];
-      rec.reach = reach;
+      LightRecord rec;
+      rec.reach = TruncateReach(reach);
       rec.u0 = f.u0, rec.u1 = f.u1, rec.v0 = f.v0, rec.v1 = f.v1;
+      rec.tri = uint32_t(i);
       LightPlanes(tris.Vertices(i), light, f.face, f.whole, rec.planes);
-      append(rec, f.face);
+      if (records.size() >= kScalarRect) throw Error("light buffer: too many clipped triangles");
+      append(reach, f.u0, f.u1, f.v0, f.v1, f.face, kScalarRect | uint32_t(records.size()));
+      records.push_back(rec);
     }
     ++listed;
   }
-  rect_cells.resize(num_rects), rect_uv.resize(num_rects), records.resize(num_rects);
+  rect_cells.resize(num_rects), rect_uv.resize(num_rects);
   keys.resize(num_rects);  // (shrinking: the capacity stays for the next build)
   const size_t valid = listed + always.size();
   if (valid == 0) return;
@@ -520,10 +525,11 @@ void BuildLightBuffer(const TriangleSoA& tris, const float world_light[3],
     out_tri[j] = r.tri;
     for (int c = 0; c < kLightPlaneFloats; ++c) out_planes[c][j] = r.planes[c];
   };
-  // The rectangles in reach order append their index to each of their cells' lists (one 4-B
-  // stream per cell); then the references are written list by list from the rectangles'
-  // records: the output arrays in order, instead of every reference's 16 words scattered
-  // over 16 arrays per cell.
+  // The rectangles in reach order append their source to each of their cells' lists (one 4-B
+  // stream per cell); then the references are written list by list, a projection block at a
+  // time: the listed triangles projected again with their planes (ProjectLightList, the same
+  // float operations as the first pass's, so the same reach and rectangle) into the output
+  // arrays in order, the scalar path's from their records.
   ScratchVec<uint32_t>& order = sc.order;
   Reserve(&order, refs);
   order.resize(refs);
@@ -532,13 +538,32 @@ void BuildLightBuffer(const TriangleSoA& tris, const float world_light[3],
   uint32_t* const cur = cursor.data();
   for (size_t i = 0; i < keys.size(); ++i) {
     if (i + 8 < keys.size()) __builtin_prefetch(&rect_cells[uint32_t(keys[i + 8])]);
-    const uint32_t r = uint32_t(keys[i]);
-    for_cells(rect_cells[r], [&](size_t c) { order[cur[c]++] = r; });
+    const RectCells& f = rect_cells[uint32_t(keys[i])];
+    const uint32_t src = f.src;
+    for_cells(f, [&](size_t c) { order[cur[c]++] = src; });
   }
-  constexpr size_t kAhead = 16;  // records in flight
-  for (size_t j = 0; j < refs; ++j) {
-    if (j + kAhead < refs) __builtin_prefetch(&records[order[j + kAhead]]);
-    put(j, records[order[j]]);
+  uint32_t ids[kLightProjectBlock];
+  for (size_t j0 = 0; j0 < refs; j0 += kLightProjectBlock) {
+    const size_t n = std::min(kLightProjectBlock, refs - j0);
+    bool scalar = false;
+    for (size_t k = 0; k < n; ++k) {
+      const uint32_t src = order[j0 + k];
+      scalar = scalar || (src & kScalarRect) != 0;
+      ids[k] = (src & kScalarRect) != 0 ? 0u : src;
+    }
+    // straight into the output arrays (their padding holds the last vector's extra lanes,
+    // overwritten below by the list every ray reads and the padding)
+    LightProjectionOut at{block.face, out_u0 + j0, out_u1 + j0, out_v0 + j0, out_v1 + j0,
+                          out_reach + j0, {}};
+    for (int c = 0; c < kLightPlaneFloats; ++c) at.planes[c] = out_planes[c] + j0;
+    ProjectLightList(tris, light, ids, n, at);
+    for (size_t k = 0; k < n; ++k) out_reach[j0 + k] = TruncateReach(out_reach[j0 + k]);
+    std::copy(ids, ids + n, out_tri + j0);
+    if (!scalar) continue;
+    for (size_t k = 0; k < n; ++k) {
+      const uint32_t src = order[j0 + k];
+      if ((src & kScalarRect) != 0) put(j0 + k, records[src & ~kScalarRect]);
+    }
   }
   std::sort(always.begin(), always.end());  // (reach, triangle)
   for (size_t a = 0; a < always.size(); ++a) {

@@ -134,7 +134,10 @@ void BuildLightBuffer(const TriangleSoA& tris, const float light[3], double cell
 // bound of the distance (the larger of the plane's and the bounding box's; float error far
 // inside the reach slack). face[j] = -1 for the others (several faces, near the light, outside
 // 2^30 of it): the scalar double-precision path decides those. Degenerate triangles are the
-// caller's to skip.
+// caller's to skip. ProjectLightBlock leaves `planes` unwritten; ProjectLightList computes the
+// same for the triangles ids[0, count <= kLightProjectBlock) (read from TriangleSoA::verts),
+// with the same float operations (face, rectangle and reach equal to ProjectLightBlock's bit
+// for bit), and their planes.
 inline constexpr size_t kLightProjectBlock = 256;
 struct LightProjection {
   int32_t face[kLightProjectBlock];
@@ -145,6 +148,15 @@ struct LightProjection {
 };
 void ProjectLightBlock(const TriangleSoA& tris, const float light[3], size_t first, size_t count,
                        LightProjection* out);
+// ProjectLightList's output: lanes [0, count) at these pointers, each with room for a whole
+// vector past count (its last vector is stored whole).
+struct LightProjectionOut {
+  int32_t* face;
+  float *u0, *u1, *v0, *v1, *reach;
+  float* planes[kLightPlaneFloats];
+};
+void ProjectLightList(const TriangleSoA& tris, const float light[3], const uint32_t* ids,
+                      size_t count, const LightProjectionOut& out);
 
 // Any hit with t in (tmin, tmax] of the rays [0, size <= kLightChunk) (arrays of any alignment,
 // read and occluded written in whole vectors up to PaddedSize(size)) that start exactly at the light (origin

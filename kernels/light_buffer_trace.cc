@@ -276,8 +276,11 @@ void OccludedLightBufferT(const LightBufferData& lb, const RayStreamView& rays, 
   }
 }
 
-void ProjectLightBlockT(const TriangleSoA& tris, const float light[3], size_t first,
-                        size_t count, LightProjection* out) {
+// The projections of `count` triangles, vertex a of corner c of the j-th read by
+// load(c, a, j) (a vector of lanes j..j + Lanes - 1). kPlanes: also the edge planes.
+template <bool kPlanes, class Load, class Out>
+HWY_INLINE void ProjectLightTriangles(const float light[3], size_t count, const Load& load,
+                                      Out* out) {
   const D d;
   const DI di;
   const size_t n = hn::Lanes(d);
@@ -288,10 +291,9 @@ void ProjectLightBlockT(const TriangleSoA& tris, const float light[3], size_t fi
   const V touch = hn::Set(d, 1e-6f), limit = hn::Set(d, 1073741824.0f);  // 2^30
   const V l[3] = {hn::Set(d, light[0]), hn::Set(d, light[1]), hn::Set(d, light[2])};
   for (size_t j = 0; j < count; j += n) {
-    const size_t i = first + j;
     V q[3][3];
     for (int c = 0; c < 3; ++c) {
-      for (int a = 0; a < 3; ++a) q[c][a] = hn::Sub(hn::LoadU(d, tris.p[c][a].data() + i), l[a]);
+      for (int a = 0; a < 3; ++a) q[c][a] = hn::Sub(load(c, a, j), l[a]);
     }
     // each vertex's face: the axis of the largest |q| (first on ties) and its sign
     M ok = hn::FirstN(d, count - j);
@@ -357,6 +359,7 @@ void ProjectLightBlockT(const TriangleSoA& tris, const float light[3], size_t fi
     hn::StoreU(hn::Max(none, hn::Sub(v_lo, margin)), d, out->v0 + j);
     hn::StoreU(hn::Min(one, hn::Add(v_hi, margin)), d, out->v1 + j);
     hn::StoreU(reach, d, out->reach + j);
+    if constexpr (!kPlanes) continue;
     // the edge planes (light_buffer.h): n = q_b x q_c over R_b R_c on the face's (k, u, v) axes,
     // in float; lanes not ok are the scalar path's
     V r[3];
@@ -387,6 +390,35 @@ void ProjectLightBlockT(const TriangleSoA& tris, const float light[3], size_t fi
   }
 }
 
+// Triangles [first, first + count) from the SoA arrays; without the planes.
+void ProjectLightBlockT(const TriangleSoA& tris, const float light[3], size_t first,
+                        size_t count, LightProjection* out) {
+  const D d;
+  ProjectLightTriangles<false>(
+      light, count,
+      [&](int c, int a, size_t j) { return hn::LoadU(d, tris.p[c][a].data() + first + j); }, out);
+}
+
+// Triangles ids[0, count) from their interleaved records (TriangleSoA::verts), planes included:
+// the records (in any order: a cache miss each, fetched 16 ahead) copied to SoA first.
+void ProjectLightListT(const TriangleSoA& tris, const float light[3], const uint32_t* ids,
+                       size_t count, const LightProjectionOut& out) {
+  const D d;
+  HWY_ALIGN float soa[9][kLightProjectBlock + HWY_MAX_BYTES / sizeof(float)];
+  constexpr size_t kAhead = 16;
+  for (size_t j = 0; j < count; ++j) {
+    if (j + kAhead < count) hwy::Prefetch(tris.Vertices(ids[j + kAhead]));
+    const float* v = tris.Vertices(ids[j]);
+    for (int k = 0; k < 9; ++k) soa[k][j] = v[k];
+  }
+  for (int k = 0; k < 9; ++k) {  // lanes past count: finite values, results unused
+    for (size_t j = count; j < hwy::RoundUpTo(count, hn::Lanes(d)); ++j) soa[k][j] = 1.0f;
+  }
+  LightProjectionOut at = out;
+  ProjectLightTriangles<true>(
+      light, count, [&](int c, int a, size_t j) { return hn::Load(d, soa[3 * c + a] + j); }, &at);
+}
+
 }  // namespace HWY_NAMESPACE
 }  // namespace rs
 HWY_AFTER_NAMESPACE();
@@ -396,10 +428,16 @@ namespace rs {
 
 HWY_EXPORT(OccludedLightBufferT);
 HWY_EXPORT(ProjectLightBlockT);
+HWY_EXPORT(ProjectLightListT);
 
 void ProjectLightBlock(const TriangleSoA& tris, const float light[3], size_t first, size_t count,
                        LightProjection* out) {
   HWY_DYNAMIC_DISPATCH(ProjectLightBlockT)(tris, light, first, count, out);
+}
+
+void ProjectLightList(const TriangleSoA& tris, const float light[3], const uint32_t* ids,
+                      size_t count, const LightProjectionOut& out) {
+  HWY_DYNAMIC_DISPATCH(ProjectLightListT)(tris, light, ids, count, out);
 }
 
 void OccludedLightBuffer(const LightBufferData& lb, const RayStreamView& rays, int32_t* occluded,
