@@ -134,17 +134,16 @@ void BuildLightBuffer(const TriangleSoA& tris, const float light[3], double cell
 // bound of the distance (the larger of the plane's and the bounding box's; float error far
 // inside the reach slack). face[j] = -1 for the others (several faces, near the light, outside
 // 2^30 of it): the scalar double-precision path decides those. Degenerate triangles are the
-// caller's to skip. ProjectLightBlock leaves `planes` unwritten; ProjectLightList computes the
-// same for the triangles ids[0, count <= kLightProjectBlock) (read from TriangleSoA::verts),
-// with the same float operations (face, rectangle and reach equal to ProjectLightBlock's bit
-// for bit), and their planes.
+// caller's to skip. ProjectLightList computes the same for the triangles ids[0, count <=
+// kLightProjectBlock) (read from TriangleSoA::verts), with the same float operations (face,
+// rectangle and reach equal to ProjectLightBlock's bit for bit), and their edge planes on that
+// face (in float; lanes whose face is -1 are the scalar path's).
 inline constexpr size_t kLightProjectBlock = 256;
 struct LightProjection {
   int32_t face[kLightProjectBlock];
   float u0[kLightProjectBlock], u1[kLightProjectBlock];
   float v0[kLightProjectBlock], v1[kLightProjectBlock];
   float reach[kLightProjectBlock];
-  float planes[kLightPlaneFloats][kLightProjectBlock];  // the edge planes on that face, in float
 };
 void ProjectLightBlock(const TriangleSoA& tris, const float light[3], size_t first, size_t count,
                        LightProjection* out);

@@ -359,34 +359,36 @@ HWY_INLINE void ProjectLightTriangles(const float light[3], size_t count, const 
     hn::StoreU(hn::Max(none, hn::Sub(v_lo, margin)), d, out->v0 + j);
     hn::StoreU(hn::Min(one, hn::Add(v_hi, margin)), d, out->v1 + j);
     hn::StoreU(reach, d, out->reach + j);
-    if constexpr (!kPlanes) continue;
-    // the edge planes (light_buffer.h): n = q_b x q_c over R_b R_c on the face's (k, u, v) axes,
-    // in float; lanes not ok are the scalar path's
-    V r[3];
-    for (int c = 0; c < 3; ++c) {
-      r[c] = hn::Max(hn::Max(hn::Abs(q[c][0]), hn::Abs(q[c][1])), hn::Abs(q[c][2]));
+    if constexpr (kPlanes) {
+      // the edge planes (light_buffer.h): n = q_b x q_c over R_b R_c on the face's (k, u, v) axes,
+      // in float; lanes not ok are the scalar path's
+      V r[3];
+      for (int c = 0; c < 3; ++c) {
+        r[c] = hn::Max(hn::Max(hn::Abs(q[c][0]), hn::Abs(q[c][1])), hn::Abs(q[c][2]));
+      }
+      V most = zero;
+      for (int e = 0; e < 3; ++e) {
+        const V* p = q[kLightPlaneEdges[e][0]];
+        const V* t = q[kLightPlaneEdges[e][1]];
+        const V n0 = hn::Sub(hn::Mul(p[1], t[2]), hn::Mul(p[2], t[1]));
+        const V n1 = hn::Sub(hn::Mul(p[2], t[0]), hn::Mul(p[0], t[2]));
+        const V n2 = hn::Sub(hn::Mul(p[0], t[1]), hn::Mul(p[1], t[0]));
+        const V scale = hn::Mul(r[kLightPlaneEdges[e][0]], r[kLightPlaneEdges[e][1]]);
+        // a normal, finite scale (else no planes: zeros are never culled)
+        const M fine =
+            hn::And(hn::Ge(scale, hn::Set(d, FLT_MIN)), hn::Le(scale, hn::Set(d, FLT_MAX)));
+        const V inv = hn::IfThenElseZero(fine, hn::Div(one, hn::IfThenElse(fine, scale, one)));
+        const V pa = hn::Mul(hn::Mul(sign[0], PickAxis(k0, k1, n0, n1, n2)), inv);
+        const V pb = hn::Mul(PickAxis(k0, k1, n1, n2, n0), inv);
+        const V pc = hn::Mul(PickAxis(k0, k1, n2, n0, n1), inv);
+        hn::StoreU(pa, d, out->planes[3 * e] + j);
+        hn::StoreU(pb, d, out->planes[3 * e + 1] + j);
+        hn::StoreU(pc, d, out->planes[3 * e + 2] + j);
+        most = hn::Max(most, hn::Add(hn::Add(hn::Abs(pa), hn::Abs(pb)), hn::Abs(pc)));
+      }
+      // M + 1, rounded up (float planes)
+      hn::StoreU(hn::Mul(hn::Add(most, one), hn::Set(d, 1.0f + 1e-6f)), d, out->planes[9] + j);
     }
-    V most = zero;
-    for (int e = 0; e < 3; ++e) {
-      const V* p = q[kLightPlaneEdges[e][0]];
-      const V* t = q[kLightPlaneEdges[e][1]];
-      const V n0 = hn::Sub(hn::Mul(p[1], t[2]), hn::Mul(p[2], t[1]));
-      const V n1 = hn::Sub(hn::Mul(p[2], t[0]), hn::Mul(p[0], t[2]));
-      const V n2 = hn::Sub(hn::Mul(p[0], t[1]), hn::Mul(p[1], t[0]));
-      const V scale = hn::Mul(r[kLightPlaneEdges[e][0]], r[kLightPlaneEdges[e][1]]);
-      // a normal, finite scale (else no planes: zeros are never culled)
-      const M fine = hn::And(hn::Ge(scale, hn::Set(d, FLT_MIN)), hn::Le(scale, hn::Set(d, FLT_MAX)));
-      const V inv = hn::IfThenElseZero(fine, hn::Div(one, hn::IfThenElse(fine, scale, one)));
-      const V pa = hn::Mul(hn::Mul(sign[0], PickAxis(k0, k1, n0, n1, n2)), inv);
-      const V pb = hn::Mul(PickAxis(k0, k1, n1, n2, n0), inv);
-      const V pc = hn::Mul(PickAxis(k0, k1, n2, n0, n1), inv);
-      hn::StoreU(pa, d, out->planes[3 * e] + j);
-      hn::StoreU(pb, d, out->planes[3 * e + 1] + j);
-      hn::StoreU(pc, d, out->planes[3 * e + 2] + j);
-      most = hn::Max(most, hn::Add(hn::Add(hn::Abs(pa), hn::Abs(pb)), hn::Abs(pc)));
-    }
-    // M + 1, rounded up (float planes)
-    hn::StoreU(hn::Mul(hn::Add(most, one), hn::Set(d, 1.0f + 1e-6f)), d, out->planes[9] + j);
   }
 }
 

@@ -950,7 +950,8 @@ TEST_CASE(
       REQUIRE(dda.bundles.num_bundles == dda_one.bundles.num_bundles);
       const TriBundles& p = dda.bundles;
       const TriBundles& q = dda_one.bundles;
-      CHECK(std::equal(p.cell_begin.get(), p.cell_begin.get() + p.num_cells + 1, q.cell_begin.get()));
+      CHECK(std::equal(p.cell_begin.get(), p.cell_begin.get() + p.num_cells + 1,
+                       q.cell_begin.get()));
       CHECK(std::equal(p.ids.get(), p.ids.get() + kBundleLanes * p.num_bundles, q.ids.get()));
       // NaN padding: compare the bits
       CHECK(std::memcmp(p.data.get(), q.data.get(),
