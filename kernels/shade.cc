@@ -281,112 +281,95 @@ HWY_INLINE VF PhongPowV(VF x, VF e) {
 
 // ---- output streams (contributions and secondary rays)
 
+// Packs the lanes of a mask to the front of whole-vector stores, the same lanes for every
+// array of an emission, and counts them. Highway 1.0.3's CompressStore is slow on both x86
+// families we target, differently:
+// - AVX2/SSE4: it decodes a function-local (non-static) constexpr table that GCC 12 copies to
+//   the stack on every call (rep movsq, 1 KiB on AVX2): with 14 arrays per emission AVX2 ran at
+//   half the speed of SSE4. Here: one permutation per mask from a static table, applied to
+//   every array with TableLookupLanes.
+// - AVX3: it is vcompressps with a memory operand, microcoded on AMD Zen 4: 54.6 TSC ticks a
+//   store on this project's AVX-512 host, against 3.7 for vcompressps into a register plus a
+//   store (a loop of 4 M 16-lane stores with random masks). Here: Compress, then StoreU.
+// SCALAR: one lane. Every store may write up to a vector of garbage past the packed lanes,
+// which the output streams have room for.
+class LanePacker {
+ public:
+  explicit LanePacker(MF m) : m_(m) {
 #if HWY_TARGET == HWY_AVX2 || HWY_TARGET == HWY_SSE4 || HWY_TARGET == HWY_SSSE3
-// Highway 1.0.3's AVX2/SSE4 CompressStore decodes a function-local (non-static) constexpr
-// table that GCC 12 copies to the stack on every call (rep movsq, 1 KiB on AVX2): with 14
-// arrays per emission AVX2 ran at half the speed of SSE4. Instead: one permutation per mask
-// from a static table, applied to every array with TableLookupLanes + StoreU. Returns the
-// permutation; *count = lanes set in m.
-HWY_INLINE auto CompressIndices(MF m, size_t* count) {
-  const DF df;
-  const DI di;
-  uint8_t bits[8] = {};
-  hn::StoreMaskBits(df, m, bits);
+    const DF df;
+    const DI di;
+    uint8_t bits[8] = {};
+    hn::StoreMaskBits(df, m, bits);
 #if HWY_TARGET == HWY_AVX2
-  const uint8_t* row = detail::kCompress8.rows[bits[0]].data();
+    const uint8_t* row = detail::kCompress8.rows[bits[0]].data();
 #else
-  const uint8_t* row = detail::kCompress4.rows[bits[0] & 15].data();
+    const uint8_t* row = detail::kCompress4.rows[bits[0] & 15].data();
 #endif
-  *count = static_cast<size_t>(std::popcount(static_cast<unsigned>(bits[0])));
-  const hn::Rebind<uint8_t, DF> d8;
-  return hn::IndicesFromVec(df, hn::PromoteTo(di, hn::LoadU(d8, row)));
-}
+    count_ = static_cast<size_t>(std::popcount(static_cast<unsigned>(bits[0])));
+    const hn::Rebind<uint8_t, DF> d8;
+    idx_ = hn::IndicesFromVec(df, hn::PromoteTo(di, hn::LoadU(d8, row)));
+#else
+    count_ = hn::CountTrue(DF(), m);
 #endif
+  }
+  size_t count() const { return count_; }
 
-#if !(HWY_TARGET == HWY_AVX2 || HWY_TARGET == HWY_SSE4 || HWY_TARGET == HWY_SSSE3)
-// The lanes of m of v packed to the front of a vector stored whole at p (the caller has room for
-// it); returns their count. The same lanes as hn::CompressStore, whose AVX3 form in Highway
-// 1.0.3 is vcompressps with a memory operand: microcoded on AMD Zen 4, it took 54.6 TSC ticks a
-// store on this project's AVX-512 host, against 3.7 for vcompressps into a register plus a
-// store (a loop of 4 M 16-lane stores with random masks).
-template <class D>
-HWY_INLINE size_t PackStore(hn::Vec<D> v, hn::Mask<D> m, D d, hn::TFromD<D>* p) {
-  hn::StoreU(hn::Compress(v, m), d, p);
-  return hn::CountTrue(d, m);
-}
+  // v (float, int32 or uint32 lanes) packed and stored at p.
+  template <class V, typename T>
+  void Store(V v, T* p) const {
+    static_assert(sizeof(T) == sizeof(float));
+    const DF df;
+    const VF f = hn::BitCast(df, v);
+#if HWY_TARGET == HWY_AVX2 || HWY_TARGET == HWY_SSE4 || HWY_TARGET == HWY_SSSE3
+    hn::StoreU(hn::TableLookupLanes(f, idx_), df, reinterpret_cast<float*>(p));
+#else
+    hn::StoreU(hn::Compress(f, m_), df, reinterpret_cast<float*>(p));
 #endif
+  }
+
+ private:
+  MF m_;
+  size_t count_ = 0;
+#if HWY_TARGET == HWY_AVX2 || HWY_TARGET == HWY_SSE4 || HWY_TARGET == HWY_SSSE3
+  decltype(hn::IndicesFromVec(DF(), hn::Zero(DI()))) idx_;
+#endif
+};
 
 // One contribution (pixel, c) per lane of m, appended at index pos with the lanes packed to the
 // front (lane order); may write up to a vector of garbage past the new end, which `out` has
 // room for. Returns the new end.
 HWY_INLINE size_t EmitContributions(MF m, const V3& c, hn::Vec<DU> pixel,
                                     const detail::ContributionOut& out, size_t pos) {
-  const DF df;
   static_assert(HWY_MAX_BYTES <= kStreamPad * sizeof(float), "slack below one vector");
-#if HWY_TARGET == HWY_AVX2 || HWY_TARGET == HWY_SSE4 || HWY_TARGET == HWY_SSSE3
-  size_t count = 0;
-  const auto idx = CompressIndices(m, &count);
-  hn::StoreU(hn::TableLookupLanes(hn::BitCast(df, pixel), idx), df,
-             reinterpret_cast<float*>(out.pixel + pos));
-  hn::StoreU(hn::TableLookupLanes(c.x, idx), df, out.r + pos);
-  hn::StoreU(hn::TableLookupLanes(c.y, idx), df, out.g + pos);
-  hn::StoreU(hn::TableLookupLanes(c.z, idx), df, out.b + pos);
-  return pos + count;
-#else  // AVX3: vcompressps into a register (PackStore); SCALAR: one lane
-  const DU du;
-  PackStore(pixel, hn::RebindMask(du, m), du, out.pixel + pos);
-  PackStore(c.x, m, df, out.r + pos);
-  PackStore(c.y, m, df, out.g + pos);
-  return pos + PackStore(c.z, m, df, out.b + pos);
-#endif
+  const LanePacker pack(m);
+  pack.Store(pixel, out.pixel + pos);
+  pack.Store(c.x, out.r + pos);
+  pack.Store(c.y, out.g + pos);
+  pack.Store(c.z, out.b + pos);
+  return pos + pack.count();
 }
 
 // One secondary ray per lane of m, appended at out[pos] with its live lanes packed to the front;
 // may write up to a vector of garbage past the new end, which `out` has room for.
 HWY_INLINE size_t Emit(MF m, const V3& o, const V3& d, VF tmin, VF tmax, hn::Vec<DU> pixel,
                        const V3& w, VI depth, VI kind, const RayStreamView& out, size_t pos) {
-  const DF df;
-  const DI di;
-#if HWY_TARGET == HWY_AVX2 || HWY_TARGET == HWY_SSE4 || HWY_TARGET == HWY_SSSE3
-  size_t count = 0;
-  const auto idx = CompressIndices(m, &count);
-  auto put = [&](VF v, float* p) { hn::StoreU(hn::TableLookupLanes(v, idx), df, p); };
-  auto put_bits = [&](VF v, void* p) {
-    hn::StoreU(hn::TableLookupLanes(v, idx), df, static_cast<float*>(p));
-  };
-  put(o.x, out.ox + pos);
-  put(o.y, out.oy + pos);
-  put(o.z, out.oz + pos);
-  put(d.x, out.dx + pos);
-  put(d.y, out.dy + pos);
-  put(d.z, out.dz + pos);
-  put(tmin, out.tmin + pos);
-  put(tmax, out.tmax + pos);
-  put_bits(hn::BitCast(df, pixel), out.pixel + pos);
-  put(w.x, out.wr + pos);
-  put(w.y, out.wg + pos);
-  put(w.z, out.wb + pos);
-  put_bits(hn::BitCast(df, depth), out.depth + pos);
-  put_bits(hn::BitCast(df, kind), out.kind + pos);
-  return pos + count;
-#else  // AVX3: vcompressps into a register (PackStore); SCALAR: one lane
-  const DU du;
-  const auto mi = hn::RebindMask(di, m);
-  PackStore(o.x, m, df, out.ox + pos);
-  PackStore(o.y, m, df, out.oy + pos);
-  PackStore(o.z, m, df, out.oz + pos);
-  PackStore(d.x, m, df, out.dx + pos);
-  PackStore(d.y, m, df, out.dy + pos);
-  PackStore(d.z, m, df, out.dz + pos);
-  PackStore(tmin, m, df, out.tmin + pos);
-  PackStore(tmax, m, df, out.tmax + pos);
-  PackStore(pixel, hn::RebindMask(du, m), du, out.pixel + pos);
-  PackStore(w.x, m, df, out.wr + pos);
-  PackStore(w.y, m, df, out.wg + pos);
-  PackStore(w.z, m, df, out.wb + pos);
-  PackStore(depth, mi, di, out.depth + pos);
-  return pos + PackStore(kind, mi, di, out.kind + pos);
-#endif
+  const LanePacker pack(m);
+  pack.Store(o.x, out.ox + pos);
+  pack.Store(o.y, out.oy + pos);
+  pack.Store(o.z, out.oz + pos);
+  pack.Store(d.x, out.dx + pos);
+  pack.Store(d.y, out.dy + pos);
+  pack.Store(d.z, out.dz + pos);
+  pack.Store(tmin, out.tmin + pos);
+  pack.Store(tmax, out.tmax + pos);
+  pack.Store(pixel, out.pixel + pos);
+  pack.Store(w.x, out.wr + pos);
+  pack.Store(w.y, out.wg + pos);
+  pack.Store(w.z, out.wb + pos);
+  pack.Store(depth, out.depth + pos);
+  pack.Store(kind, out.kind + pos);
+  return pos + pack.count();
 }
 
 // Emit at the end of `to`, grown first if it lacks room for a vector; returns the rays added.
