@@ -1,9 +1,10 @@
 // The build threads' pool (kernels/build_threads.h): threads started on first use and kept for
 // the process. A thread that finishes a part spins for kSpin before it parks on a condition
 // variable, and so does the caller waiting for the parts: a build calls RunParts 15-20 times
-// in a row, and waking a parked thread took 25 us a call on this VM (2 vCPUs), as long as some
-// of the parts. One RunParts uses the pool at a time; a part claims the next index under the
-// mutex.
+// in a row, and on this VM (2 vCPUs) waking a parked thread costs as much as some of the parts.
+// A loop of two-part calls (50 us of work each, 20 us apart) took 104-109 us a call with the
+// threads parked between calls, 52 us with them spinning (04:52 UTC, load 0.56). One RunParts
+// uses the pool at a time; a part claims the next index under the mutex.
 #include "kernels/build_threads.h"
 
 #include <pthread.h>
@@ -20,9 +21,9 @@ namespace {
 // How long a pool thread, or the caller of RunParts, spins for the next call or the last part
 // before it sleeps: short against a frame (the CPU it spins away is bounded by it), longer than
 // the serial stretches between a build's RunParts calls. Measured (trace_bench rebuild-2t, gaps
-// from the end of one call to the start of the next): bunny, sponza, office-graz and spherebox
-// had 2 gaps over 200 us in 4,000-7,000 calls (the first ones); conference, whose two-level
-// refinement has longer serial passes, 141 of 448.
+// from the end of one call to the start of the next, 04:53 UTC, load 0.77): bunny, sponza,
+// office-graz and spherebox had 2 gaps over 200 us in 4,000-7,000 calls (the first ones);
+// conference, whose two-level refinement has longer serial passes, 137 of 432.
 constexpr std::chrono::microseconds kSpin{200};
 
 struct BuildPool {

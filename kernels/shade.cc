@@ -288,9 +288,10 @@ HWY_INLINE VF PhongPowV(VF x, VF e) {
 //   the stack on every call (rep movsq, 1 KiB on AVX2): with 14 arrays per emission AVX2 ran at
 //   half the speed of SSE4. Here: one permutation per mask from a static table, applied to
 //   every array with TableLookupLanes.
-// - AVX3: it is vcompressps with a memory operand, microcoded on AMD Zen 4: 54.6 TSC ticks a
-//   store on this project's AVX-512 host, against 3.7 for vcompressps into a register plus a
-//   store (a loop of 4 M 16-lane stores with random masks). Here: Compress, then StoreU.
+// - AVX3: it is vcompressps with a memory operand, microcoded on AMD Zen 4: 56-61 TSC ticks a
+//   store on this project's AVX-512 host, against 3.8 for vcompressps into a register plus a
+//   store (a loop of 4 M 16-lane stores with random masks; load 0.56). Here: Compress, then
+//   StoreU.
 // SCALAR: one lane. Every store may write up to a vector of garbage past the packed lanes,
 // which the output streams have room for.
 class LanePacker {
